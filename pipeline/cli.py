@@ -1,0 +1,164 @@
+"""The ``skyroute`` command line.
+
+Every :class:`~skyroute.pipeline.errors.SkyrouteError` becomes a one-line ``error: ...`` on
+stderr with exit code 2; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from skyroute.pipeline.errors import SkyrouteError
+
+SCHEDULER_HELP = ("dask scheduler: threads (default), processes, synchronous, distributed "
+                  "(a new LocalCluster, see --workers) or the address of a running cluster tcp://HOST:PORT")
+
+
+class SkyrouteGroup(click.Group):
+    """A click group that reports SkyrouteError as a clean one-line error (exit code 2)."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except SkyrouteError as exc:
+            msg = str(exc)
+            click.echo(f"error: {msg}", err=True)
+            ctx.exit(2)
+
+
+def _setup_logging(verbose: int) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, stream=sys.stderr,
+                        format="%(asctime)s level=%(levelname)s logger=%(name)s %(message)s")
+    logging.getLogger("skyroute").setLevel(level)
+
+
+@click.group(cls=SkyrouteGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.option("-v", "--verbose", count=True, help="Structured log lines on stderr (-v info, -vv debug).")
+@click.version_option(package_name="skyroute")
+def main(verbose: int) -> None:
+    """skyroute: plan safe, GNSS-aware, risk-aware and energy-aware drone flights from real maps,
+    real satellite almanacs and real wind.
+
+    \b
+    Typical use:
+      skyroute scenarios                      list the catalog
+      skyroute run                            run the default scenario (helsinki-medical)
+      skyroute run rotterdam-canyon --out out/rotterdam
+      skyroute cache ls                       show cached stage outputs
+    """
+    _setup_logging(verbose)
+
+
+@main.command("scenarios")
+def scenarios_command() -> None:
+    """List the scenario catalog, one line each."""
+    from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario, scenario_paths
+
+    for name, path in scenario_paths().items():
+        try:
+            sc = load_scenario(path)
+            g = sc.grid
+            desc = " ".join(sc.description.split())
+            if len(desc) > 70:
+                desc = desc[:67] + "..."
+            mark = "*" if name == DEFAULT_SCENARIO else " "
+            click.echo(f"{mark} {name:24s} {g.nx}x{g.ny} cells @ {g.resolution_m:g} m  {g.crs_wkt[:12]:12s} {desc}")
+        except SkyrouteError as exc:
+            click.echo(f"! {name:24s} INVALID: {str(exc).splitlines()[0]}")
+
+
+@main.command("run")
+@click.argument("scenario", required=False, default=None)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default: ./skyroute-out/SCENARIO).")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
+@click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers for processes/distributed.")
+@click.option("--stage", "targets", multiple=True, help="Run only these stages (and what they need).")
+@click.option("--force", multiple=True, help="Recompute these stages even if cached.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force, quiet) -> None:
+    """Run every stage that applies to SCENARIO (a catalog name or a YAML path; default
+    helsinki-medical) and write datasets, GeoTIFFs, figures and summary.json to --out."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.outputs import write_run_outputs
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
+
+    sc = load_scenario(scenario or DEFAULT_SCENARIO)
+    out_dir = out_dir or Path("skyroute-out") / sc.name
+    result = run_scenario(sc, cache=Cache(cache_dir), targets=targets or None, scheduler=scheduler,
+                          workers=workers, progress=not quiet and sys.stderr.isatty(), force=force)
+    summary = write_run_outputs(result, out_dir)
+    if not quiet:
+        for rec in result.records:
+            click.echo(f"  {rec.name:12s} {'cache' if rec.cache_hit else 'computed':8s} {rec.seconds:7.2f} s")
+        click.echo(f"{sc.name}: {len(result.records)} stages, {result.cache_hits} from cache, "
+                   f"{result.seconds:.2f} s -> {out_dir}")
+    else:
+        click.echo(json.dumps({"out": str(out_dir), "seconds": round(summary["seconds"], 3)}))
+
+
+@main.group("cache")
+def cache_group() -> None:
+    """Show or remove cached stage outputs."""
+
+
+@cache_group.command("ls")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+def cache_ls(cache_dir) -> None:
+    """List cache entries: stage, key, scenario, size, creation time."""
+    from skyroute.pipeline.cache import Cache
+
+    c = Cache(cache_dir)
+    entries = c.entries()
+    click.echo(f"cache: {c.root} ({len(entries)} entries)")
+    for e in entries:
+        click.echo(f"  {e.stage:12s} {e.key}  {e.manifest.get('scenario', '?'):24s} "
+                   f"{e.size_bytes / 1e6:8.2f} MB  {e.manifest.get('created_utc', '')}")
+
+
+@cache_group.command("clear")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+@click.option("--stage", default=None, help="Remove only the entries of this stage.")
+def cache_clear(cache_dir, stage) -> None:
+    """Remove cache entries (all, or one stage's) and orphaned temporaries."""
+    from skyroute.pipeline.cache import Cache
+
+    c = Cache(cache_dir)
+    n = c.clear(stage)
+    click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'} from {c.root}")
+
+
+# Commands contributed by the stage modules (each file defines one click command).
+_PLUGINS = {
+    "skyroute.pipeline.cli_gnss": "sky_command",
+    "skyroute.pipeline.cli_occlusion": "visibility_height_command",
+}
+
+
+def _register_plugins() -> None:
+    for mod, attr in _PLUGINS.items():
+        try:
+            m = importlib.import_module(mod)
+        except ModuleNotFoundError as exc:
+            if exc.name == mod:
+                continue
+            raise
+        cmd = getattr(m, attr, None)
+        if isinstance(cmd, click.Command):
+            main.add_command(cmd)
+
+
+_register_plugins()
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,237 @@
+"""The stage graph: registry, cache keys and the runner.
+
+Every stage has one signature::
+
+    func(*inputs: xr.Dataset, settings: S) -> xr.Dataset
+
+where ``inputs`` are the outputs of the stages it names (in order) and ``settings`` is a frozen
+object chosen from the scenario by the stage's ``select`` function.  The returned Dataset may be
+lazy (dask); the runner writes it to the zarr cache with the chosen dask scheduler (that is where
+the heavy graph executes, chunk by chunk, with a progress bar) and hands the *cached* dataset,
+opened lazily, to the stages that depend on it.
+
+Cache key of a stage = stable hash of (stage name, code version, settings, keys of its inputs);
+the code version hashes the source of the modules the stage declares, so editing a stage's code
+recomputes it and its dependants only.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib
+import inspect
+import logging
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any
+
+import dask
+import xarray as xr
+
+from skyroute.pipeline.cache import Cache
+from skyroute.pipeline.errors import InputError, UnknownNameError
+from skyroute.pipeline.model import stable_hash
+from skyroute.pipeline.settings import Scenario
+
+log = logging.getLogger("skyroute.pipeline")
+
+try:
+    SKYROUTE_VERSION = version("skyroute")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree
+    SKYROUTE_VERSION = "0+unknown"
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A pipeline stage (see module docstring)."""
+
+    name: str
+    func: Callable[..., xr.Dataset]
+    select: Callable[[Scenario], Any]
+    inputs: tuple[str, ...] = ()
+    applies: Callable[[Scenario], bool] = lambda sc: True
+    code_modules: tuple[str, ...] = ()
+    version: str = "1"
+    description: str = ""
+
+    def code_version(self) -> str:
+        mods = {self.func.__module__, *self.code_modules}
+        h = hashlib.sha256(f"{self.name}:{self.version}".encode())
+        for m in sorted(mods):
+            try:
+                h.update(inspect.getsource(importlib.import_module(m)).encode())
+            except (OSError, TypeError):
+                h.update(SKYROUTE_VERSION.encode())
+        return h.hexdigest()[:16]
+
+
+REGISTRY: dict[str, Stage] = {}
+
+
+def register(stage: Stage) -> Stage:
+    REGISTRY[stage.name] = stage
+    return stage
+
+
+def _load_registry() -> None:
+    # importing the module registers the built-in stages
+    importlib.import_module("skyroute.pipeline.stages_builtin")
+
+
+def stages_for(scenario: Scenario, targets: Sequence[str] | None = None) -> list[Stage]:
+    """The stages that apply to ``scenario`` in dependency order (only those needed for
+    ``targets`` when given)."""
+    _load_registry()
+    if targets:
+        for t in targets:
+            if t not in REGISTRY:
+                raise UnknownNameError("stage", t, list(REGISTRY))
+    order: list[Stage] = []
+    seen: set[str] = set()
+
+    def visit(name: str, stack: tuple[str, ...] = ()) -> None:
+        if name in seen:
+            return
+        if name in stack:
+            raise InputError(f"stage graph has a cycle: {' -> '.join(stack + (name,))}")
+        st = REGISTRY[name]
+        for dep in st.inputs:
+            visit(dep, stack + (name,))
+        seen.add(name)
+        order.append(st)
+
+    for name in (targets or list(REGISTRY)):
+        visit(name)
+    applicable = {s.name for s in order if s.applies(scenario)}
+    # a stage runs only if it and all its inputs apply
+    out = []
+    for s in order:
+        if s.name in applicable and all(d in {o.name for o in out} for d in s.inputs):
+            out.append(s)
+    if targets:
+        missing = [t for t in targets if t not in {s.name for s in out}]
+        if missing:
+            raise InputError(f"stage(s) {', '.join(missing)} do not apply to scenario {scenario.name!r} "
+                             "(missing data sources, e.g. data.almanacs for GNSS stages)")
+    return out
+
+
+# --------------------------------------------------------------------------- schedulers
+@contextlib.contextmanager
+def scheduler_context(scheduler: str = "threads", workers: int | None = None) -> Iterator[Any]:
+    """Configure dask for ``scheduler``: ``threads`` (default), ``processes``, ``synchronous``,
+    ``distributed`` (a new LocalCluster of ``workers`` processes) or ``tcp://host:port``."""
+    if scheduler in ("threads", "processes", "synchronous", "sync"):
+        kw = {"num_workers": workers} if workers else {}
+        with dask.config.set(scheduler=scheduler, **kw):
+            yield None
+    elif scheduler == "distributed" or scheduler.startswith(("tcp://", "tls://", "inproc://")):
+        from distributed import Client, LocalCluster
+
+        if scheduler == "distributed":
+            cluster = LocalCluster(n_workers=workers or 2, threads_per_worker=1, processes=True,
+                                   dashboard_address=None)
+            client = Client(cluster)
+        else:
+            cluster = None
+            try:
+                client = Client(scheduler, timeout="10s")
+            except OSError as exc:
+                raise InputError(f"cannot connect to the dask scheduler at {scheduler}: {exc}; "
+                                 "start one with `dask scheduler` or use --scheduler distributed") from exc
+        try:
+            yield client
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    else:
+        raise UnknownNameError("scheduler", scheduler,
+                               ["threads", "processes", "synchronous", "distributed", "tcp://host:port"])
+
+
+def _computer(client: Any, progress: bool) -> Callable[[Any], Any]:
+    def compute(obj: Any) -> Any:
+        if client is not None:
+            fut = client.compute(obj)
+            if progress:
+                from distributed.diagnostics.progressbar import progress as dprogress
+
+                dprogress(fut)
+            return fut.result()
+        if progress:
+            from dask.diagnostics import ProgressBar
+
+            with ProgressBar(minimum=1.0, dt=0.5):
+                return dask.compute(obj)[0]
+        return dask.compute(obj)[0]
+
+    return compute
+
+
+# --------------------------------------------------------------------------- runner
+@dataclass
+class StageRecord:
+    name: str
+    key: str
+    cache_hit: bool
+    seconds: float
+    path: str
+
+
+@dataclass
+class RunResult:
+    scenario: Scenario
+    datasets: dict[str, xr.Dataset] = field(default_factory=dict)
+    records: list[StageRecord] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def __getitem__(self, name: str) -> xr.Dataset:
+        return self.datasets[name]
+
+    @property
+    def cache_hits(self) -> int:
+        return sum(r.cache_hit for r in self.records)
+
+
+def stage_key(stage: Stage, scenario: Scenario, input_keys: Sequence[str]) -> str:
+    return stable_hash(stage.name, stage.code_version(), stage.select(scenario), list(input_keys))
+
+
+def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Sequence[str] | None = None,
+                 scheduler: str = "threads", workers: int | None = None, progress: bool = False,
+                 force: Sequence[str] = ()) -> RunResult:
+    """Run (or read from the cache) every stage of ``scenario`` needed for ``targets``."""
+    cache = cache or Cache()
+    cache.clean_tmp()
+    t_all = time.perf_counter()
+    result = RunResult(scenario)
+    keys: dict[str, str] = {}
+    with scheduler_context(scheduler, workers) as client:
+        compute = _computer(client, progress)
+        for st in stages_for(scenario, targets):
+            t0 = time.perf_counter()
+            key = stage_key(st, scenario, [keys[d] for d in st.inputs])
+            keys[st.name] = key
+            entry = None if st.name in force else cache.get(st.name, key)
+            hit = entry is not None
+            if entry is None:
+                log.info("stage=%s key=%s status=compute", st.name, key)
+                out = st.func(*[result.datasets[d] for d in st.inputs], settings=st.select(scenario))
+                if not isinstance(out, xr.Dataset):
+                    raise TypeError(f"stage {st.name} returned {type(out).__name__}, not an xarray.Dataset")
+                out.attrs.update({"skyroute_stage": st.name, "skyroute_key": key,
+                                  "skyroute_version": SKYROUTE_VERSION})
+                entry = cache.write(st.name, key, out, {
+                    "scenario": scenario.name, "code_version": st.code_version(),
+                    "inputs": {d: keys[d] for d in st.inputs}, "skyroute_version": SKYROUTE_VERSION,
+                }, compute=compute)
+            else:
+                log.info("stage=%s key=%s status=cache-hit", st.name, key)
+            result.datasets[st.name] = cache.open(entry)
+            result.records.append(StageRecord(st.name, key, hit, time.perf_counter() - t0, str(entry.path)))
+    result.seconds = time.perf_counter() - t_all
+    return result

@@ -1,0 +1,82 @@
+"""Writing a run's outputs: dataset links, GeoTIFFs, figures and ``summary.json``."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from skyroute.pipeline.graph import RunResult
+
+
+def plot_surface(result: RunResult, path: Path) -> Path:
+    """Surface model (hill-shaded heights) with the mission start and goal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sc = result.scenario
+    ds = result["surface"]
+    g = sc.grid
+    z = np.asarray(ds["surface"].values, dtype=float)
+    terr = np.asarray(ds["terrain"].values, dtype=float)
+    extent = g.bounds[0], g.bounds[2], g.bounds[1], g.bounds[3]
+    fig, ax = plt.subplots(figsize=(7.5, 7.5 * g.ny / max(g.nx, 1) * 0.9 + 0.8), dpi=110)
+    dy, dx = np.gradient(z, g.resolution_m)
+    shade = 0.5 + 0.5 * (-dx - dy) / np.sqrt(2 + dx**2 + dy**2 + 1e-9)
+    im = ax.imshow(z, extent=extent, cmap="terrain" if np.ptp(terr) > 20 else "viridis", interpolation="nearest")
+    ax.imshow(shade, extent=extent, cmap="gray", alpha=0.25, interpolation="nearest")
+    for name, marker, colour in (("start", "o", "white"), ("goal", "*", "red")):
+        p = getattr(sc.mission, name)
+        x, y = sc.point_xy(p)
+        ax.plot(x, y, marker, ms=12, mfc=colour, mec="black", label=f"{name}: {p.name or f'({x:.0f}, {y:.0f})'}")
+    ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
+    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+    cb.set_label(f"surface height [m] ({ds.attrs.get('vertical_datum', '')[:40]})", fontsize=8)
+    ax.set_xlabel(f"x [m] ({g.crs_wkt[:30]})")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"{sc.name}: surface model, {g.nx} x {g.ny} cells @ {g.resolution_m:g} m", fontsize=10)
+    ax.ticklabel_format(useOffset=False, style="plain")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def write_run_outputs(result: RunResult, out_dir: Path) -> dict[str, Any]:
+    """Write links to the cached zarr datasets, GeoTIFFs, PNG figures and ``summary.json``."""
+    out_dir = Path(out_dir)
+    (out_dir / "datasets").mkdir(parents=True, exist_ok=True)
+    (out_dir / "figures").mkdir(exist_ok=True)
+    files: list[str] = []
+    for rec in result.records:
+        link = out_dir / "datasets" / f"{rec.name}.zarr"
+        if link.is_symlink() or link.exists():
+            link.unlink()
+        os.symlink(Path(rec.path) / "data.zarr", link)
+        files.append(str(link))
+    if "surface" in result.datasets:
+        tif = out_dir / "surface.tif"
+        result["surface"]["surface"].rio.to_raster(tif, compress="deflate")
+        files.append(str(tif))
+        files.append(str(plot_surface(result, out_dir / "figures" / "surface.png")))
+    sc = result.scenario
+    summary = {
+        "scenario": sc.name,
+        "description": sc.description,
+        "crs": sc.grid.crs_wkt,
+        "grid": {"nx": sc.grid.nx, "ny": sc.grid.ny, "resolution_m": sc.grid.resolution_m,
+                 "bounds": list(sc.grid.bounds)},
+        "stages": [{"name": r.name, "key": r.key, "cache_hit": r.cache_hit, "seconds": round(r.seconds, 4),
+                    "path": r.path} for r in result.records],
+        "stages_run": [r.name for r in result.records if not r.cache_hit],
+        "cache_hits": result.cache_hits,
+        "seconds": result.seconds,
+        "files": files,
+    }
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary

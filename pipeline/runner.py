@@ -1,0 +1,48 @@
+"""Public entry points: run a scenario's pipeline and check its mission against the maps."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import xarray as xr
+
+from skyroute.pipeline.cache import Cache
+from skyroute.pipeline.errors import ScenarioError
+from skyroute.pipeline.graph import RunResult, run_pipeline
+from skyroute.pipeline.settings import DEFAULT_SCENARIO, Scenario, load_scenario
+
+
+def check_mission(scenario: Scenario, surface: xr.Dataset) -> None:
+    """Refuse a mission whose start or goal lies inside a building or the terrain (the point's
+    altitude, ``alt_agl_m`` above the terrain, must be above the surface there)."""
+    g = scenario.grid
+    problems = []
+    for name in ("start", "goal"):
+        p = getattr(scenario.mission, name)
+        x, y = scenario.point_xy(p)
+        r, c = g.index_of(x, y)
+        r, c = int(np.clip(r, 0, g.ny - 1)), int(np.clip(c, 0, g.nx - 1))
+        terr = float(surface["terrain"][r, c])
+        top = float(surface["surface"][r, c])
+        alt = terr + p.alt_agl_m
+        if alt <= top:
+            problems.append(f"mission.{name}: altitude {p.alt_agl_m:g} m above ground is inside a building or "
+                            f"the terrain (surface {top - terr:.1f} m above ground there); raise alt_agl_m or move the point")
+    if problems:
+        raise ScenarioError(str(scenario.source_path or scenario.name), problems)
+
+
+def run_scenario(scenario: Scenario | str = DEFAULT_SCENARIO, *, cache: Cache | None = None,
+                 targets: Sequence[str] | None = None, scheduler: str = "threads", workers: int | None = None,
+                 progress: bool = False, force: Sequence[str] = ()) -> RunResult:
+    """Run every stage of ``scenario`` (a :class:`Scenario`, catalog name or YAML path).
+
+    Stage outputs come from the cache when their inputs, settings and code are unchanged.
+    """
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    result = run_pipeline(sc, cache=cache, targets=targets, scheduler=scheduler, workers=workers,
+                          progress=progress, force=force)
+    if "surface" in result.datasets:
+        check_mission(sc, result.datasets["surface"])
+    return result

@@ -1,0 +1,1 @@
+"""skyroute.stages: one module per physical concern (surface, almanac, occlusion, DOP, ...)."""

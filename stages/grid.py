@@ -1,0 +1,150 @@
+"""The scenario grid: a north-up raster in a projected CRS, and the raster conventions.
+
+Conventions every stage follows (see ARCHITECTURE.md):
+
+* A raster is an ``xarray.DataArray`` with dims ``("y", "x")`` (or leading dims before them),
+  ``x`` ascending and ``y`` descending, coordinates at **cell centres** in metres of the
+  projected CRS, which travels with the data as the rioxarray/CF ``spatial_ref`` coordinate
+  (``da.rio.crs``).
+* Every variable has a CF ``units`` attribute; heights also carry ``vertical_datum``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import rioxarray  # noqa: F401  (registers the .rio accessor)
+import xarray as xr
+from affine import Affine
+from pyproj import CRS, Transformer
+from pyproj.aoi import AreaOfInterest
+from pyproj.database import query_utm_crs_info
+
+from skyroute.pipeline.errors import CRSError, InputError
+
+
+def resolve_crs(crs: str | int | CRS) -> CRS:
+    """A :class:`pyproj.CRS` from ``"EPSG:32635"``, ``32635``, WKT or PROJ text."""
+    try:
+        return CRS.from_user_input(crs)
+    except Exception as exc:  # pyproj raises CRSError subclasses of several kinds
+        raise CRSError(f"cannot resolve CRS {crs!r}: {exc}. Give an EPSG code such as 'EPSG:32635'") from exc
+
+
+def utm_crs_for(lon_deg: float, lat_deg: float) -> CRS:
+    """The WGS 84 / UTM zone CRS that contains (lon, lat) [deg]."""
+    infos = query_utm_crs_info(
+        datum_name="WGS 84",
+        area_of_interest=AreaOfInterest(lon_deg, lat_deg, lon_deg, lat_deg),
+    )
+    if not infos:
+        raise CRSError(f"no UTM zone found for lon={lon_deg}, lat={lat_deg}; name a CRS in aoi.crs")
+    # prefer the plain WGS 84 / UTM zone NN{N,S} (EPSG 326xx / 327xx)
+    infos = sorted(infos, key=lambda i: (not i.code.startswith(("326", "327")), i.code))
+    return CRS.from_epsg(int(infos[0].code))
+
+
+def _crs_text(crs: CRS) -> str:
+    """``EPSG:nnnn`` when the CRS has an EPSG code, else its WKT (a canonical, hashable text)."""
+    epsg = crs.to_epsg()
+    return f"EPSG:{epsg}" if epsg is not None else crs.to_wkt()
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A north-up grid: ``nx`` x ``ny`` square cells of ``resolution_m`` [m] whose outer
+    corner is (``x0``, ``y1``) (west, north edge) in ``crs``."""
+
+    crs_wkt: str
+    x0: float
+    y1: float
+    nx: int
+    ny: int
+    resolution_m: float
+
+    @classmethod
+    def from_bounds(cls, crs: CRS | str, xmin: float, ymin: float, xmax: float, ymax: float,
+                    resolution_m: float) -> Grid:
+        if not resolution_m > 0:
+            raise InputError(f"resolution {resolution_m} m must be positive (e.g. 2.0)")
+        if not (xmax > xmin and ymax > ymin):
+            raise InputError(f"empty bounds ({xmin}, {ymin}, {xmax}, {ymax}): need xmin < xmax and ymin < ymax")
+        crs = resolve_crs(crs)
+        x0 = np.floor(xmin / resolution_m) * resolution_m
+        y1 = np.ceil(ymax / resolution_m) * resolution_m
+        nx = int(np.ceil((xmax - x0) / resolution_m - 1e-9))
+        ny = int(np.ceil((y1 - ymin) / resolution_m - 1e-9))
+        return cls(_crs_text(crs), float(x0), float(y1), nx, ny, float(resolution_m))
+
+    @property
+    def crs(self) -> CRS:
+        return CRS.from_user_input(self.crs_wkt)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.ny, self.nx)
+
+    @property
+    def transform(self) -> Affine:
+        return Affine(self.resolution_m, 0.0, self.x0, 0.0, -self.resolution_m, self.y1)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        r = self.resolution_m
+        return (self.x0, self.y1 - self.ny * r, self.x0 + self.nx * r, self.y1)
+
+    @property
+    def x(self) -> np.ndarray:
+        return self.x0 + (np.arange(self.nx) + 0.5) * self.resolution_m
+
+    @property
+    def y(self) -> np.ndarray:
+        return self.y1 - (np.arange(self.ny) + 0.5) * self.resolution_m
+
+    def coords(self) -> dict[str, xr.DataArray]:
+        return {
+            "y": xr.DataArray(self.y, dims="y", attrs={"units": "m", "standard_name": "projection_y_coordinate", "axis": "Y"}),
+            "x": xr.DataArray(self.x, dims="x", attrs={"units": "m", "standard_name": "projection_x_coordinate", "axis": "X"}),
+        }
+
+    def dataarray(self, values: np.ndarray, name: str, **attrs) -> xr.DataArray:
+        """Wrap a ``(ny, nx)`` array as a raster of this grid with CRS and attrs."""
+        da = xr.DataArray(values, dims=("y", "x"), coords=self.coords(), name=name, attrs=attrs)
+        return da.rio.write_crs(self.crs)
+
+    def index_of(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """(row, col) of the cells containing map points (x, y) [m]; may fall outside the grid."""
+        col = np.floor((np.asarray(x) - self.x0) / self.resolution_m).astype(np.int64)
+        row = np.floor((self.y1 - np.asarray(y)) / self.resolution_m).astype(np.int64)
+        return row, col
+
+    def contains(self, x: float, y: float) -> bool:
+        xmin, ymin, xmax, ymax = self.bounds
+        return bool(xmin <= x <= xmax and ymin <= y <= ymax)
+
+    def to_lonlat(self, x, y):
+        """Map (x, y) [m] to WGS 84 (lon, lat) [deg]."""
+        t = Transformer.from_crs(self.crs, 4326, always_xy=True)
+        return t.transform(x, y)
+
+    def from_lonlat(self, lon, lat):
+        """WGS 84 (lon, lat) [deg] to map (x, y) [m]."""
+        t = Transformer.from_crs(4326, self.crs, always_xy=True)
+        return t.transform(lon, lat)
+
+    @classmethod
+    def from_dataarray(cls, da: xr.DataArray | xr.Dataset) -> Grid:
+        """Recover the grid of a raster that follows the conventions above."""
+        x = np.asarray(da["x"].values)
+        y = np.asarray(da["y"].values)
+        if x.size < 2 or y.size < 2:
+            raise InputError("a raster needs at least 2 x 2 cells")
+        r = float(x[1] - x[0])
+        if not np.isclose(float(y[0] - y[1]), r) or r <= 0:
+            raise InputError("raster must be north-up with square cells: x ascending, y descending, equal steps")
+        crs = da.rio.crs
+        if crs is None:
+            raise CRSError("raster carries no CRS: write one with da.rio.write_crs('EPSG:...')")
+        return cls(_crs_text(CRS.from_user_input(crs)), float(x[0] - r / 2), float(y[0] + r / 2),
+                   int(x.size), int(y.size), r)

@@ -1,0 +1,387 @@
+"""Surface ingestion: buildings and terrain to a digital surface model on the scenario grid.
+
+Output (:func:`build_surface`): an ``xarray.Dataset`` on the scenario :class:`~skyroute.stages.grid.Grid`
+with
+
+* ``terrain`` [m]: ground height in the scenario's vertical datum (flat 0 m when the scenario has
+  no terrain source: heights are then above local ground);
+* ``surface`` [m]: terrain + buildings (the top of every cell, modelled as a flat-topped prism);
+* ``building_id``: index into the ``building`` dimension (``-1`` where there is no building),
+  with per-building ``building_osm_id`` / ``building_height_m`` / ``building_height_source``.
+
+Building heights
+----------------
+OSM: ``height`` (metres; "12 m", "40 ft" understood), else ``building:levels`` (+ ``roof:levels``)
+times the storey height (default :data:`STOREY_HEIGHT_M` = 3.0 m, settable per scenario), else the
+default for its ``building=*`` type in :data:`DEFAULT_HEIGHT_BY_TYPE_M` (generic ``yes``: 10 m).
+``min_height`` / ``building:min_level`` are ignored: a bridge-like part is filled to the ground,
+which is conservative for collision and occlusion.
+
+CityJSON (1.0 / 1.1 / 2.0, LoD1 or LoD2, Building and BuildingPart): every non-vertical upper
+surface (``RoofSurface``, or for LoD1 every face that is not the ground) is rasterised as a plane;
+a cell takes the highest roof height at its four corners (clamped to the face's own z range), so
+it is never lower than the roof over it.  Terrain comes from each building's ``TerrainHeight``
+attribute (preferred: some LoD2 models put the ground surface at z = 0) or its ``GroundSurface``
+heights, interpolated linearly between buildings.
+
+Rasterisation uses :func:`rasterio.features.rasterize` (a cell belongs to a footprint when its
+centre is inside).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import rasterio
+import rasterio.features
+import rasterio.warp
+import shapely
+import xarray as xr
+from pyproj import CRS, Transformer
+from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+from skyroute.pipeline.errors import DataError, InputError
+from skyroute.stages.grid import Grid
+from skyroute.stages.osm import read_osm
+
+STOREY_HEIGHT_M = 3.0
+#: Default building height [m] by OSM ``building=*`` value when neither height nor levels are tagged.
+DEFAULT_HEIGHT_BY_TYPE_M: dict[str, float] = {
+    "yes": 10.0, "apartments": 18.0, "residential": 15.0, "house": 7.0, "detached": 7.0,
+    "terrace": 9.0, "commercial": 15.0, "office": 18.0, "retail": 12.0, "public": 15.0,
+    "civic": 15.0, "government": 15.0, "hotel": 18.0, "hospital": 20.0, "school": 12.0,
+    "university": 15.0, "church": 20.0, "cathedral": 30.0, "chapel": 8.0, "train_station": 15.0,
+    "transportation": 10.0, "industrial": 10.0, "warehouse": 8.0, "garage": 3.0, "garages": 3.0,
+    "shed": 3.0, "hut": 3.0, "kiosk": 3.0, "roof": 5.0, "service": 4.0, "construction": 10.0,
+}
+_NUM = re.compile(r"^\s*([0-9]*[.,]?[0-9]+)\s*(m|metres|meters|ft|feet|')?\s*$", re.IGNORECASE)
+
+
+def parse_height_m(text: str) -> float | None:
+    """A height tag in metres: ``"12"``, ``"12.5 m"``, ``"40 ft"``; None if unparsable."""
+    m = _NUM.match(text or "")
+    if not m:
+        return None
+    v = float(m.group(1).replace(",", "."))
+    unit = (m.group(2) or "m").lower()
+    return v * 0.3048 if unit in ("ft", "feet", "'") else v
+
+
+def osm_building_height(tags: dict[str, str], storey_height_m: float = STOREY_HEIGHT_M) -> tuple[float, str]:
+    """(height [m], source) of an OSM building from its tags (see module docstring)."""
+    h = parse_height_m(tags.get("height", "")) if "height" in tags else None
+    if h is not None and h > 0:
+        return h, "height"
+    lv = parse_height_m(tags.get("building:levels", "")) if "building:levels" in tags else None
+    if lv is not None and lv > 0:
+        roof = parse_height_m(tags.get("roof:levels", "")) or 0.0
+        return (lv + roof) * storey_height_m, "levels"
+    btype = tags.get("building", tags.get("building:part", "yes"))
+    return DEFAULT_HEIGHT_BY_TYPE_M.get(btype, DEFAULT_HEIGHT_BY_TYPE_M["yes"]), f"default:{btype}"
+
+
+@dataclass(frozen=True)
+class BuildingRaster:
+    """Rasterised buildings: ``top`` [m] (NaN where none), ``index`` (-1 where none) and a table."""
+
+    top: np.ndarray
+    index: np.ndarray
+    ids: np.ndarray
+    heights_m: np.ndarray
+    sources: np.ndarray
+    absolute: bool  # True: ``top`` is an absolute height; False: height above ground
+
+
+def _to_grid_geoms(geoms, src_crs: CRS, grid: Grid):
+    if CRS.from_user_input(src_crs) == grid.crs:
+        return geoms
+    t = Transformer.from_crs(src_crs, grid.crs, always_xy=True)
+    return [shapely.transform(g, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1]))) for g in geoms]
+
+
+def osm_buildings(path: str | Path, grid: Grid, storey_height_m: float = STOREY_HEIGHT_M) -> BuildingRaster:
+    """Rasterise the building footprints of an OSM extract with their heights above ground."""
+    feats = [f for f in read_osm(path, keys=["building", "building:part"]) if f.kind == "area"]
+    xmin, ymin, xmax, ymax = grid.bounds
+    ids, hs, srcs, geoms = [], [], [], []
+    for f in feats:
+        h, src = osm_building_height(f.tags, storey_height_m)
+        ids.append(f.osm_id)
+        hs.append(h)
+        srcs.append(src)
+        geoms.append(f.geometry)
+    geoms = _to_grid_geoms(geoms, CRS.from_epsg(4326), grid)
+    keep = [i for i, g in enumerate(geoms) if g.intersects(shapely.box(xmin, ymin, xmax, ymax))]
+    return _rasterize_flat(grid, [geoms[i] for i in keep], np.array(hs)[keep] if keep else np.zeros(0),
+                           np.array(ids, dtype=np.int64)[keep] if keep else np.zeros(0, np.int64),
+                           np.array(srcs, dtype=object)[keep] if keep else np.zeros(0, object), absolute=False)
+
+
+def _rasterize_flat(grid: Grid, geoms, heights, ids, sources, absolute: bool) -> BuildingRaster:
+    order = np.argsort(heights, kind="stable")  # highest last, so it wins where footprints overlap
+    top = np.full(grid.shape, np.nan, dtype=np.float64)
+    index = np.full(grid.shape, -1, dtype=np.int32)
+    if len(order):
+        index = rasterio.features.rasterize(
+            ((geoms[i], int(i)) for i in order), out_shape=grid.shape, transform=grid.transform,
+            fill=-1, dtype="int32",
+        )
+        has = index >= 0
+        top[has] = np.asarray(heights, dtype=np.float64)[index[has]]
+    return BuildingRaster(top, index, np.asarray(ids, np.int64), np.asarray(heights, np.float64),
+                          np.asarray(sources, dtype=object).astype(str), absolute)
+
+
+# --------------------------------------------------------------------------- CityJSON
+def _read_cityjson(path: Path) -> dict:
+    if not path.is_file():
+        raise DataError(f"CityJSON file not found: {path}")
+    try:
+        cj = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path} is not valid CityJSON (JSON error: {exc})") from exc
+    if cj.get("type") != "CityJSON" or "vertices" not in cj or "CityObjects" not in cj:
+        raise DataError(f"{path} is not a CityJSON file (needs type, vertices, CityObjects)")
+    return cj
+
+
+def cityjson_crs(cj: dict) -> CRS:
+    """The horizontal CRS of a CityJSON document (``metadata.referenceSystem``)."""
+    ref = (cj.get("metadata") or {}).get("referenceSystem")
+    if not ref:
+        raise DataError("CityJSON has no metadata.referenceSystem; set aoi.crs to the file's CRS")
+    m = re.search(r"EPSG[:/]+(?:[0-9.]*/)?(?:0/)?:?(\d+)", str(ref))
+    if not m:
+        raise DataError(f"cannot read the CityJSON referenceSystem {ref!r}")
+    crs = CRS.from_epsg(int(m.group(1)))
+    return crs.sub_crs_list[0] if crs.is_compound else crs
+
+
+def _surfaces(geom: dict):
+    """Yield (ring vertex indices of the outer ring, semantic type or None) of a CityJSON geometry."""
+    gtype = geom["type"]
+    b = geom["boundaries"]
+    sem = geom.get("semantics") or {}
+    stypes = [s.get("type") for s in sem.get("surfaces", [])]
+    values = sem.get("values")
+    if gtype in ("MultiSurface", "CompositeSurface"):
+        polys = [(p, (values[i] if values is not None else None)) for i, p in enumerate(b)]
+    elif gtype == "Solid":
+        polys = []
+        for si, shell in enumerate(b):
+            for pi, p in enumerate(shell):
+                v = values[si][pi] if values is not None else None
+                polys.append((p, v))
+    elif gtype in ("MultiSolid", "CompositeSolid"):
+        polys = []
+        for so_i, solid in enumerate(b):
+            for si, shell in enumerate(solid):
+                for pi, p in enumerate(shell):
+                    v = values[so_i][si][pi] if values is not None else None
+                    polys.append((p, v))
+    else:
+        return
+    for p, v in polys:
+        yield p[0], (stypes[v] if (v is not None and v < len(stypes)) else None)
+
+
+def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np.ndarray]:
+    """Rasterise CityJSON Building/BuildingPart roofs (absolute heights [m]) on ``grid``.
+
+    Returns the raster and ground points ``(n, 3)`` (x, y, z in the grid CRS) for terrain.
+    """
+    p = Path(path)
+    cj = _read_cityjson(p)
+    tr = cj.get("transform") or {"scale": [1, 1, 1], "translate": [0, 0, 0]}
+    V = np.asarray(cj["vertices"], dtype=np.float64) * np.asarray(tr["scale"]) + np.asarray(tr["translate"])
+    src = cityjson_crs(cj)
+    if src != grid.crs:
+        t = Transformer.from_crs(src, grid.crs, always_xy=True)
+        V[:, 0], V[:, 1] = t.transform(V[:, 0], V[:, 1])
+    objs = cj["CityObjects"]
+    r = grid.resolution_m
+    top = np.full(grid.shape, -np.inf)
+    index = np.full(grid.shape, -1, dtype=np.int32)
+    ids: list[str] = []
+    heights: list[float] = []
+    ground: list[np.ndarray] = []
+    # corner offsets of a cell relative to its centre
+    for oid, obj in objs.items():
+        if obj.get("type") not in ("Building", "BuildingPart"):
+            continue
+        geoms = obj.get("geometry") or []
+        if not geoms:
+            continue
+        g = max(geoms, key=lambda gg: float(gg.get("lod", 0)))
+        bidx = len(ids)
+        ids.append(oid)
+        roofs, floor_pts = [], []
+        for ring, stype in _surfaces(g):
+            P = V[np.asarray(ring)]
+            if len(P) < 3:
+                continue
+            nrm = np.zeros(3)  # Newell normal
+            for i in range(len(P)):
+                a, b = P[i], P[(i + 1) % len(P)]
+                nrm += [(a[1] - b[1]) * (a[2] + b[2]), (a[2] - b[2]) * (a[0] + b[0]), (a[0] - b[0]) * (a[1] + b[1])]
+            nn = np.linalg.norm(nrm)
+            if nn == 0:
+                continue
+            nrm /= nn
+            if stype == "GroundSurface" or (stype is None and nrm[2] < -0.5):
+                floor_pts.append(P)
+                continue
+            if stype in ("WallSurface", "ClosureSurface") or abs(nrm[2]) < 1e-3:
+                continue
+            if stype is None or stype in ("RoofSurface", "OuterCeilingSurface", "OuterFloorSurface"):
+                if nrm[2] > 0 or stype is not None:
+                    roofs.append((P, nrm))
+        zmax_b = max((float(P[:, 2].max()) for P, _ in roofs), default=np.nan)
+        heights.append(zmax_b)
+        th = (obj.get("attributes") or {}).get("TerrainHeight")
+        if th is not None and (roofs or floor_pts):
+            P = np.vstack([pp for pp, _ in roofs] + floor_pts)
+            ground.append(np.column_stack([P[:, 0], P[:, 1], np.full(len(P), float(th))]))
+        elif floor_pts:
+            ground.append(np.vstack(floor_pts))
+        for P, nrm in roofs:
+            x0, y0 = P[:, 0].min(), P[:, 1].min()
+            x1, y1 = P[:, 0].max(), P[:, 1].max()
+            c0 = max(int(np.floor((x0 - grid.x0) / r)), 0)
+            c1 = min(int(np.floor((x1 - grid.x0) / r)) + 1, grid.nx)
+            r0 = max(int(np.floor((grid.y1 - y1) / r)), 0)
+            r1 = min(int(np.floor((grid.y1 - y0) / r)) + 1, grid.ny)
+            if c0 >= c1 or r0 >= r1:
+                continue
+            win_tr = rasterio.Affine(r, 0, grid.x0 + c0 * r, 0, -r, grid.y1 - r0 * r)
+            inside = rasterio.features.geometry_mask(
+                [shapely.Polygon(P[:, :2])], out_shape=(r1 - r0, c1 - c0), transform=win_tr, invert=True)
+            if not inside.any():
+                continue
+            rr, cc = np.nonzero(inside)
+            xc = grid.x0 + (c0 + cc + 0.5) * r
+            yc = grid.y1 - (r0 + rr + 0.5) * r
+            # plane through the face: n . (q - P0) = 0  ->  z = P0z - (nx (x-P0x) + ny (y-P0y)) / nz
+            zc = np.full(xc.shape, -np.inf)
+            for dx in (-r / 2, r / 2):
+                for dy in (-r / 2, r / 2):
+                    z = P[0, 2] - (nrm[0] * (xc + dx - P[0, 0]) + nrm[1] * (yc + dy - P[0, 1])) / nrm[2]
+                    zc = np.maximum(zc, z)
+            zc = np.clip(zc, P[:, 2].min(), P[:, 2].max())
+            sub = top[r0:r1, c0:c1]
+            isub = index[r0:r1, c0:c1]
+            better = zc > sub[rr, cc]
+            sub[rr[better], cc[better]] = zc[better]
+            isub[rr[better], cc[better]] = bidx
+    top[~np.isfinite(top)] = np.nan
+    gpts = np.vstack(ground) if ground else np.zeros((0, 3))
+    raster = BuildingRaster(top, index, np.arange(len(ids), dtype=np.int64), np.asarray(heights, np.float64),
+                            np.asarray(["cityjson:" + i for i in ids]), absolute=True)
+    return raster, gpts
+
+
+def terrain_from_points(points: np.ndarray, grid: Grid) -> np.ndarray:
+    """Terrain [m] interpolated linearly from scattered ground points, nearest outside their hull."""
+    if len(points) < 3:
+        return np.zeros(grid.shape)
+    # thin to one point per cell to keep the triangulation small
+    row, col = grid.index_of(points[:, 0], points[:, 1])
+    key = row * (grid.nx + 1) + col
+    _, first = np.unique(key, return_index=True)
+    pts = points[first]
+    X, Y = np.meshgrid(grid.x, grid.y)
+    lin = LinearNDInterpolator(pts[:, :2], pts[:, 2])(X, Y)
+    near = NearestNDInterpolator(pts[:, :2], pts[:, 2])(X, Y)
+    return np.where(np.isfinite(lin), lin, near)
+
+
+def terrain_from_dem(path: str | Path, grid: Grid) -> np.ndarray:
+    """A GeoTIFF DEM reprojected and resampled (bilinear) to ``grid`` [m]; small nodata holes are
+    filled from the nearest valid cell; an AOI outside the DEM is an error."""
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"terrain file not found: {p}")
+    try:
+        src = rasterio.open(p)
+    except rasterio.errors.RasterioIOError as exc:
+        raise DataError(f"cannot read terrain GeoTIFF {p}: {exc}") from exc
+    with src:
+        if src.crs is None:
+            raise DataError(f"terrain GeoTIFF {p} has no CRS; assign one with gdal_edit.py -a_srs")
+        b = rasterio.warp.transform_bounds(grid.crs, src.crs, *grid.bounds)
+        sb = src.bounds
+        if b[0] >= sb.right or b[2] <= sb.left or b[1] >= sb.top or b[3] <= sb.bottom:
+            raise DataError(f"the AOI {tuple(round(v) for v in grid.bounds)} does not intersect terrain {p} "
+                            f"(bounds {tuple(round(v) for v in sb)} in {src.crs}); fix aoi or the terrain path")
+        out = np.full(grid.shape, np.nan, dtype=np.float64)
+        rasterio.warp.reproject(
+            source=rasterio.band(src, 1), destination=out, dst_transform=grid.transform, dst_crs=grid.crs,
+            dst_nodata=np.nan, resampling=rasterio.warp.Resampling.bilinear,
+        )
+    bad = ~np.isfinite(out)
+    if bad.all():
+        raise DataError(f"terrain {p} has no valid height inside the AOI")
+    if bad.mean() > 0.05:
+        raise DataError(f"terrain {p} covers only {100 * (1 - bad.mean()):.1f} % of the AOI; shrink aoi.bounds to the DEM")
+    if bad.any():
+        from scipy.ndimage import distance_transform_edt
+
+        _, (ri, ci) = distance_transform_edt(bad, return_indices=True)
+        out = out[ri, ci]
+    return out
+
+
+def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | None = None,
+                  storey_height_m: float = STOREY_HEIGHT_M, terrain_path=None,
+                  vertical_datum: str | None = None) -> xr.Dataset:
+    """Digital surface model of ``grid`` from buildings (OSM or CityJSON) and terrain (GeoTIFF).
+
+    Returns a Dataset with ``terrain``, ``surface``, ``building_id`` and a building table;
+    see the module docstring for the rules and the vertical datum.
+    """
+    if buildings_format not in (None, "osm", "cityjson"):
+        raise InputError(f"unknown buildings format {buildings_format!r}; use 'osm' or 'cityjson'")
+    ground_pts = np.zeros((0, 3))
+    braster = None
+    if buildings_path is not None:
+        if buildings_format == "cityjson":
+            braster, ground_pts = cityjson_buildings(buildings_path, grid)
+        else:
+            braster = osm_buildings(buildings_path, grid, storey_height_m)
+        if braster.index.max() < 0:
+            raise DataError(f"the AOI does not intersect any building of {buildings_path}; check aoi.bounds")
+    if terrain_path is not None:
+        terrain = terrain_from_dem(terrain_path, grid)
+        datum = vertical_datum or "EGM96 geoid"
+    elif len(ground_pts):
+        terrain = terrain_from_points(ground_pts, grid)
+        datum = vertical_datum or "source data heights (CityJSON; NAP for Dutch data)"
+    else:
+        terrain = np.zeros(grid.shape)
+        datum = vertical_datum or "local ground (flat terrain, heights above ground level)"
+    surface = terrain.copy()
+    if braster is not None:
+        has = braster.index >= 0
+        top = braster.top if braster.absolute else terrain + braster.top
+        surface[has] = np.maximum(terrain[has], top[has])
+    zattrs = {"units": "m", "vertical_datum": datum}
+    ds = xr.Dataset({
+        "terrain": grid.dataarray(terrain.astype(np.float32), "terrain", long_name="ground height", **zattrs),
+        "surface": grid.dataarray(surface.astype(np.float32), "surface",
+                                  long_name="top of terrain and buildings (flat-topped prism per cell)", **zattrs),
+        "building_id": grid.dataarray(
+            (braster.index if braster is not None else np.full(grid.shape, -1, np.int32)).astype(np.int32),
+            "building_id", units="1", long_name="index into the building dimension, -1 where no building"),
+    })
+    if braster is not None:
+        ds["building_osm_id"] = ("building", braster.ids)
+        ds["building_height_m"] = ("building", braster.heights_m.astype(np.float32),
+                                   {"units": "m", "long_name": "building height (above ground for OSM, absolute roof top for CityJSON)"})
+        ds["building_height_source"] = ("building", braster.sources.astype("U32"))
+    ds.attrs.update({"title": "skyroute surface model", "vertical_datum": datum,
+                     "resolution_m": grid.resolution_m, "Conventions": "CF-1.10"})
+    return ds

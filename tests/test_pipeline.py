@@ -1,0 +1,166 @@
+"""The cached stage graph: cache hits, selective recomputation, atomic writes, schedulers."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from skyroute.pipeline import graph
+from skyroute.pipeline.cache import Cache
+from skyroute.pipeline.errors import UnknownNameError
+from skyroute.pipeline.graph import REGISTRY, Stage, register, run_pipeline
+from skyroute.pipeline.model import FrozenModel, stable_hash
+
+HERE = Path(__file__).resolve().parent
+
+
+def _load_slow():
+    spec = importlib.util.spec_from_file_location("skyroute_test_slow_stage", HERE / "_slow_stage.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+class ScaleSettings(FrozenModel):
+    factor: float = 2.0
+
+
+SCALE = {"factor": 2.0}
+CALLS: list[str] = []
+
+
+def _scale_stage(surface: xr.Dataset, *, settings: ScaleSettings) -> xr.Dataset:
+    CALLS.append("scaled")
+    return xr.Dataset({"scaled": surface["surface"] * settings.factor})
+
+
+@pytest.fixture
+def scaled_stage():
+    st = register(Stage("scaled", _scale_stage, lambda sc: ScaleSettings(factor=SCALE["factor"]), inputs=("surface",)))
+    yield st
+    REGISTRY.pop("scaled", None)
+    REGISTRY.pop("slow", None)
+    SCALE["factor"] = 2.0
+    CALLS.clear()
+
+
+def test_stable_hash_is_order_and_process_independent(tmp_path):
+    assert stable_hash({"a": 1, "b": [1.0, 2]}) == stable_hash({"b": [1.0, 2], "a": 1})
+    assert stable_hash({"a": 1}) != stable_hash({"a": 2})
+    f = tmp_path / "f.txt"
+    f.write_text("one")
+    h1 = stable_hash(f)
+    f.write_text("two")
+    os.utime(f, ns=(time.time_ns(), time.time_ns() + 10**9))
+    assert stable_hash(f) != h1  # file content is part of the key
+    out = subprocess.run([sys.executable, "-c", "from skyroute.pipeline.model import stable_hash;"
+                          "print(stable_hash({'b': [1.0, 2], 'a': 1}))"], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == stable_hash({"a": 1, "b": [1.0, 2]})
+
+
+def test_rerun_reads_cache_and_change_recomputes_only_dependants(helsinki, cache, scaled_stage):
+    r1 = run_pipeline(helsinki, cache=cache, targets=["scaled"])
+    assert [(r.name, r.cache_hit) for r in r1.records] == [("surface", False), ("scaled", False)]
+    r2 = run_pipeline(helsinki, cache=cache, targets=["scaled"])
+    assert [(r.name, r.cache_hit) for r in r2.records] == [("surface", True), ("scaled", True)]
+    assert CALLS == ["scaled"]
+    xr.testing.assert_identical(r1["scaled"].load(), r2["scaled"].load())
+    # a changed setting of the downstream stage recomputes it alone
+    SCALE["factor"] = 3.0
+    r3 = run_pipeline(helsinki, cache=cache, targets=["scaled"])
+    assert [(r.name, r.cache_hit) for r in r3.records] == [("surface", True), ("scaled", False)]
+    np.testing.assert_allclose(r3["scaled"]["scaled"].values, 1.5 * r1["scaled"]["scaled"].values)
+    # a code change of the upstream stage recomputes it and its dependants
+    REGISTRY["surface"] = Stage(**{**REGISTRY["surface"].__dict__, "version": "changed"})
+    try:
+        r4 = run_pipeline(helsinki, cache=cache, targets=["scaled"])
+        assert [(r.name, r.cache_hit) for r in r4.records] == [("surface", False), ("scaled", False)]
+    finally:
+        REGISTRY.pop("surface")
+        importlib.reload(importlib.import_module("skyroute.pipeline.stages_builtin"))
+    assert len(cache.entries()) == 5
+
+
+def test_sigkill_mid_write_leaves_nothing_trusted(tmp_path, helsinki):
+    slow = _load_slow()
+    cache_dir = tmp_path / "cache"
+    script = tmp_path / "run_slow.py"
+    script.write_text(textwrap.dedent(f"""
+        import importlib.util, sys
+        spec = importlib.util.spec_from_file_location("skyroute_test_slow_stage", {str(HERE / '_slow_stage.py')!r})
+        mod = importlib.util.module_from_spec(spec); sys.modules[spec.name] = mod; spec.loader.exec_module(mod)
+        mod.install()
+        from skyroute.pipeline.cache import Cache
+        from skyroute.pipeline.graph import run_pipeline
+        from skyroute.pipeline.settings import load_scenario
+        run_pipeline(load_scenario("helsinki-medical"), cache=Cache({str(cache_dir)!r}), targets=["slow"],
+                     scheduler="synchronous")
+    """))
+    env = {**os.environ, "SKYROUTE_TEST_SLOW": "1"}
+    proc = subprocess.Popen([sys.executable, str(script)], env=env)
+    tmp_store = cache_dir / "tmp"
+    deadline = time.time() + 120
+    # wait until the slow stage is half written
+    while time.time() < deadline:
+        chunks = list(tmp_store.glob("slow-*/data.zarr/v/c/*")) if tmp_store.exists() else []
+        if len(chunks) >= 5:
+            break
+        assert proc.poll() is None, "the writer finished before it could be killed"
+        time.sleep(0.05)
+    else:
+        proc.kill()
+        pytest.fail("the slow stage never started writing")
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    cache = Cache(cache_dir)
+    assert [e.stage for e in cache.entries()] == ["surface"]  # completed before the kill
+    assert list(tmp_store.iterdir())  # an orphan is left...
+    assert not list((cache_dir / "stages").glob("slow-*"))  # ...but never under stages/
+    # a later run ignores and removes the orphan, recomputes, and gets the right data
+    slow.install()
+    try:
+        res = run_pipeline(helsinki, cache=cache, targets=["slow"])
+    finally:
+        REGISTRY.pop("slow", None)
+    assert [(r.name, r.cache_hit) for r in res.records] == [("surface", True), ("slow", False)]
+    np.testing.assert_array_equal(res["slow"]["v"].values, slow.expected())
+    assert not list(tmp_store.iterdir())
+
+
+def test_localcluster_two_workers_equals_threads(helsinki, tmp_path):
+    a = run_pipeline(helsinki, cache=Cache(tmp_path / "a"), scheduler="threads")
+    b = run_pipeline(helsinki, cache=Cache(tmp_path / "b"), scheduler="distributed", workers=2)
+    assert [r.name for r in a.records] == [r.name for r in b.records]
+    for name in a.datasets:
+        xr.testing.assert_identical(a[name].load(), b[name].load())
+
+
+def test_unknown_scheduler_and_stage(helsinki, cache):
+    with pytest.raises(UnknownNameError, match="unknown scheduler 'gpu'; known schedulers: distributed"):
+        run_pipeline(helsinki, cache=cache, scheduler="gpu")
+    with pytest.raises(UnknownNameError, match="unknown stage 'nope'"):
+        run_pipeline(helsinki, cache=cache, targets=["nope"])
+
+
+def test_cache_clear(helsinki, cache):
+    run_pipeline(helsinki, cache=cache, targets=["surface"])
+    (cache.tmp_dir / "surface-x.999999999.abcd").mkdir(parents=True)
+    assert len(cache.entries()) == 1
+    assert cache.clear() == 2
+    assert cache.entries() == [] and not list(cache.tmp_dir.iterdir())
+
+
+def test_graph_module_exposes_registry():
+    graph._load_registry()
+    assert "surface" in REGISTRY

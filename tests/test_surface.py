@@ -10,6 +10,7 @@ import pytest
 import rasterio
 import shapely
 from pyproj import Transformer
+
 from skyroute.pipeline.errors import DataError, InputError
 from skyroute.pipeline.settings import catalog_dir, load_scenario
 from skyroute.stages.grid import Grid

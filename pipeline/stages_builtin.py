@@ -44,3 +44,43 @@ def surface_stage(*, settings: SurfaceSettings) -> xr.Dataset:
 
 register(Stage("surface", surface_stage, _surface_settings, code_modules=("skyroute.stages.surface", "skyroute.stages.osm", "skyroute.stages.grid"),
                description="buildings + terrain -> digital surface model"))
+
+
+# --------------------------------------------------------------------------- GNSS geometry
+class SatellitesSettings(FrozenModel):
+    almanacs: tuple[Path, ...]
+    times_utc: tuple[str, ...]
+    lat_deg: float
+    lon_deg: float
+    height_m: float = 0.0
+    mask_deg: float = 5.0
+
+
+def _satellites_settings(sc: Scenario) -> SatellitesSettings:
+    g = sc.grid
+    xmin, ymin, xmax, ymax = g.bounds
+    lon, lat = g.to_lonlat((xmin + xmax) / 2, (ymin + ymax) / 2)
+    return SatellitesSettings(
+        almanacs=tuple(sc.data.almanacs),
+        times_utc=tuple(t.replace(tzinfo=None).isoformat() for t in sc.mission_times_utc()),
+        lat_deg=round(float(lat), 7), lon_deg=round(float(lon), 7),
+        mask_deg=sc.gnss.elevation_mask_deg,
+    )
+
+
+def satellites_stage(*, settings: SatellitesSettings) -> xr.Dataset:
+    """Satellite ECEF positions, true azimuth/elevation and open-sky DOP at the AOI centre,
+    dims (time, sat), at the scenario's GNSS epochs (mission start + window)."""
+    import numpy as np
+
+    from skyroute.stages.almanac import sky_geometry
+
+    times = np.array(settings.times_utc, dtype="datetime64[ns]")
+    ds = sky_geometry(list(settings.almanacs), times, settings.lat_deg, settings.lon_deg,
+                      settings.height_m, mask_deg=settings.mask_deg)
+    return ds
+
+
+register(Stage("satellites", satellites_stage, _satellites_settings, applies=lambda sc: bool(sc.data.almanacs),
+               code_modules=("skyroute.stages.almanac", "skyroute.stages.orbits", "skyroute.stages.dop"),
+               description="almanacs -> satellite positions, az/el, open-sky DOP over the mission window"))

@@ -1,0 +1,228 @@
+"""Vehicle profiles: the rotorcraft constraints of seed 000 Table I plus the rotor/airframe
+parameters that the energy model (seed 000 eq. 5-10, :mod:`skyroute.stages.energy`) needs.
+
+Profiles live in the YAML catalog ``catalogs/vehicles/<name>.yaml`` (each value documented
+there with its source: seed 000 Table I, the manufacturer's spec sheet, or ``assumed``).
+:func:`load_vehicle` reads one by name or by path.
+
+Derived quantities (properties of :class:`VehicleProfile`):
+
+* ``r_p_m`` = d_m + K_m * dp_max, the collision-sphere radius [m] (seed 000 eq. 13);
+* ``rotor.thrust_coefficient`` C_t (eq. 8), ``rotor.blade_drag_coefficient`` C_d,
+  ``rotor.solidity`` sigma = 2 B_b / (pi AR_b) (text after eq. 9), ``rotor.blade_angle_rad``;
+* ``battery_energy_j`` = capacity [mAh] * 3.6 * voltage [V] [J].
+"""
+
+from __future__ import annotations
+
+import math
+from importlib.resources import files
+from pathlib import Path
+from typing import Annotated, Literal
+
+import yaml
+from pydantic import Field, ValidationError, model_validator
+
+from skyroute.pipeline.errors import DataError, ScenarioError, UnknownNameError
+from skyroute.pipeline.model import FrozenModel
+
+Pos = Annotated[float, Field(gt=0)]
+NonNeg = Annotated[float, Field(ge=0)]
+
+G0 = 9.80665  # standard gravity [m/s^2]
+
+
+class ImuSpec(FrozenModel):
+    """Accelerometer figures used by the covariance analysis (:mod:`skyroute.stages.navigation`).
+
+    ``accel_bias_instability_mg`` is the in-run bias stability [mg] (1 mg = 9.80665e-3 m/s^2),
+    modelled as a first-order Gauss-Markov bias with steady-state sigma equal to it and
+    correlation time ``accel_bias_correlation_time_s`` [s]; ``velocity_random_walk_mps_per_sqrt_h``
+    [m/s/sqrt(h)] is the white accelerometer noise (process noise on velocity)."""
+
+    accel_bias_instability_mg: Pos
+    velocity_random_walk_mps_per_sqrt_h: Pos
+    accel_bias_correlation_time_s: Pos = 3600.0
+
+    @property
+    def accel_bias_sigma_mps2(self) -> float:
+        """In-run bias stability [m/s^2]."""
+        return self.accel_bias_instability_mg * 1e-3 * G0
+
+    @property
+    def vrw_mps_per_sqrt_s(self) -> float:
+        """Velocity random walk [m/s/sqrt(s)] (= sqrt of the accel white-noise PSD [m^2/s^3])."""
+        return self.velocity_random_walk_mps_per_sqrt_h / 60.0
+
+
+class AirframeSpec(FrozenModel):
+    """Mass and body drag.  The drag area seen by the air flow depends on the attitude
+    (seed 000: "drag vector, which depends on orientation"): with ``d`` the unit airspeed
+    vector and ``t`` the thrust (body-up) axis,
+    ``S = drag_area_side_m2 * sqrt(1 - (d.t)^2) + drag_area_top_m2 * |d.t|``  [m^2]
+    (C_D * area, i.e. equivalent flat-plate areas; rotationally symmetric body)."""
+
+    mass_kg: Pos
+    payload_kg: NonNeg = 0.0
+    drag_area_side_m2: NonNeg
+    drag_area_top_m2: NonNeg
+
+    @property
+    def total_mass_kg(self) -> float:
+        return self.mass_kg + self.payload_kg
+
+
+class RotorSpec(FrozenModel):
+    """Rotors and blades (seed 000 eq. 6-10; blade-element coefficients of eq. 8 and the
+    blade drag coefficient as in Quan, *Introduction to Multicopter Design and Control*,
+    Springer 2017, ch. 4, whose ``C_T`` for rpm becomes eq. 8 with Omega in rad/s)."""
+
+    count: Annotated[int, Field(ge=1)]                 # N_b, number of rotors
+    radius_m: Pos                                      # r_b = R_b
+    blade_count: Annotated[int, Field(ge=1)]           # B_b
+    pitch_m: Pos                                       # geometric propeller pitch H_p
+    blade_aspect_ratio: Pos                            # AR_b = D_p / c_b
+    zero_lift_angle_deg: float = 0.0                   # alpha_b
+    downwash_factor: Pos = 0.85                        # epsilon
+    correction_lambda: Pos = 0.75                      # lambda
+    correction_zeta: Pos = 0.5                         # zeta
+    lift_slope: Pos = 6.11                             # eta_0 (K_0), lift-curve slope [1/rad]
+    oswald_factor: Pos = 0.83                          # e, for the blade induced drag
+    zero_lift_drag_coefficient: Pos = 0.015            # C_fd
+    induced_power_factor: Pos = 1.15                   # kappa (eq. 7)
+    profile_advance_factor: NonNeg = 4.65              # K_v (eq. 9)
+
+    @property
+    def blade_angle_rad(self) -> float:
+        """theta_b = atan(H_p / (pi D_p)) [rad], the pitch-helix angle at the tip (Quan 2017)."""
+        return math.atan(self.pitch_m / (math.pi * 2.0 * self.radius_m))
+
+    @property
+    def solidity(self) -> float:
+        """sigma = 2 B_b / (pi AR_b) (seed 000, after eq. 9)."""
+        return 2.0 * self.blade_count / (math.pi * self.blade_aspect_ratio)
+
+    @property
+    def chord_m(self) -> float:
+        """Mean blade chord D_p / AR_b [m] (informative)."""
+        return 2.0 * self.radius_m / self.blade_aspect_ratio
+
+    @property
+    def thrust_coefficient(self) -> float:
+        """C_t of eq. 8 (T = C_t rho pi R^4 Omega^2 per rotor)."""
+        a = math.radians(self.zero_lift_angle_deg)
+        ar = self.blade_aspect_ratio
+        return (self.correction_lambda * self.correction_zeta**2 * self.blade_count * self.lift_slope
+                * (self.downwash_factor * self.blade_angle_rad - a) / (math.pi * ar + self.lift_slope))
+
+    @property
+    def blade_drag_coefficient(self) -> float:
+        """C_d = C_fd + pi AR K0^2 (eps theta - alpha0)^2 / (e (pi AR + K0)^2) (Quan 2017)."""
+        a = math.radians(self.zero_lift_angle_deg)
+        ar, k0 = self.blade_aspect_ratio, self.lift_slope
+        return (self.zero_lift_drag_coefficient
+                + math.pi * ar * k0**2 * (self.downwash_factor * self.blade_angle_rad - a) ** 2
+                / (self.oswald_factor * (math.pi * ar + k0) ** 2))
+
+    @property
+    def disc_area_m2(self) -> float:
+        """Total rotor disc area N_b pi R^2 [m^2]."""
+        return self.count * math.pi * self.radius_m**2
+
+
+class VehicleProfile(FrozenModel):
+    """A rotorcraft profile: constraints of seed 000 Table I plus energy-model parameters."""
+
+    name: str
+    kind: Literal["multirotor"] = "multirotor"
+    description: str = ""
+    references: tuple[str, ...] = ()
+    # seed 000 Table I
+    battery_capacity_mah: Pos                          # xi
+    max_airspeed_mps: Pos                              # v_max
+    max_wind_mps: Pos
+    cruise_speed_mps: Pos                              # v_c
+    max_flight_path_angle_deg: Annotated[float, Field(gt=0, le=90)]   # alpha
+    max_position_error_m: Pos                          # dp_max
+    safety_distance_m: NonNeg                          # d_m
+    safety_factor: Annotated[float, Field(ge=1)] = 1.0  # K_m >= 1
+    min_altitude_m: float = 0.0
+    max_altitude_m: float
+    imu: ImuSpec
+    # not in Table I
+    min_ground_speed_mps: NonNeg = 0.0                 # v_min of eq. 3
+    battery_voltage_v: Pos
+    airframe: AirframeSpec
+    rotor: RotorSpec
+
+    @model_validator(mode="after")
+    def _check(self) -> VehicleProfile:
+        if self.cruise_speed_mps > self.max_airspeed_mps:
+            raise ValueError(f"cruise_speed_mps {self.cruise_speed_mps} exceeds max_airspeed_mps "
+                             f"{self.max_airspeed_mps}")
+        if self.min_ground_speed_mps >= self.cruise_speed_mps:
+            raise ValueError("min_ground_speed_mps must be below cruise_speed_mps")
+        if self.max_altitude_m <= self.min_altitude_m:
+            raise ValueError("max_altitude_m must exceed min_altitude_m")
+        return self
+
+    @property
+    def r_p_m(self) -> float:
+        """Collision-sphere radius r_p = d_m + K_m dp_max [m] (seed 000 eq. 13)."""
+        return self.safety_distance_m + self.safety_factor * self.max_position_error_m
+
+    @property
+    def battery_energy_j(self) -> float:
+        """Battery energy [J] = capacity [mAh] * 3.6 [C/mAh] * voltage [V]."""
+        return self.battery_capacity_mah * 3.6 * self.battery_voltage_v
+
+    @property
+    def weight_n(self) -> float:
+        """Take-off weight m g [N]."""
+        return self.airframe.total_mass_kg * G0
+
+
+def _catalog_dir():
+    return files("skyroute.catalogs").joinpath("vehicles")
+
+
+def known_vehicles() -> list[str]:
+    """Names of the vehicles in the catalog (file stems)."""
+    d = _catalog_dir()
+    return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".yaml"))
+
+
+def load_vehicle(name_or_path: str | Path | VehicleProfile) -> VehicleProfile:
+    """A :class:`VehicleProfile` by catalog name (``"dji-m300-rtk"``) or YAML file path.
+
+    Raises :class:`~skyroute.pipeline.errors.UnknownNameError` for an unknown name,
+    :class:`~skyroute.pipeline.errors.DataError` for an unreadable file and
+    :class:`~skyroute.pipeline.errors.ScenarioError` (every problem listed) for invalid content.
+    """
+    if isinstance(name_or_path, VehicleProfile):
+        return name_or_path
+    s = str(name_or_path)
+    if isinstance(name_or_path, Path) or s.endswith((".yaml", ".yml")) or "/" in s:
+        path = Path(s)
+        if not path.is_file():
+            raise DataError(f"vehicle file {path} not found; give a catalog name "
+                            f"({', '.join(known_vehicles())}) or an existing YAML path")
+        text = path.read_text()
+        source = str(path)
+    else:
+        res = _catalog_dir().joinpath(f"{s}.yaml")
+        if not res.is_file():
+            raise UnknownNameError("vehicle", s, known_vehicles())
+        text = res.read_text()
+        source = f"vehicle {s}"
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise DataError(f"{source}: invalid YAML: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise DataError(f"{source}: expected a mapping of vehicle fields, got {type(raw).__name__}")
+    try:
+        return VehicleProfile.model_validate(raw)
+    except ValidationError as exc:
+        problems = [f"{'.'.join(str(p) for p in e['loc']) or '(root)'}: {e['msg']}" for e in exc.errors()]
+        raise ScenarioError(source, problems) from exc

@@ -107,6 +107,36 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
         click.echo(json.dumps({"out": str(out_dir), "seconds": round(summary["seconds"], 3)}))
 
 
+@main.command("maps")
+@click.argument("scenario", required=False, default=None)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default: ./skyroute-out/SCENARIO/maps).")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
+@click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
+    """Environment maps of SCENARIO: GeoTIFFs of risk, landing, no-fly and clearance layers
+    and a PNG panel (risk, landing cost, wind over buildings, no-fly, a traffic slice)."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.maps import plot_maps_panel, write_map_geotiffs
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
+
+    sc = load_scenario(scenario or DEFAULT_SCENARIO)
+    out_dir = out_dir or Path("skyroute-out") / sc.name / "maps"
+    targets = [t for t in ("surface", "environment", "wind", "clearance", "traffic")]
+    from skyroute.pipeline.graph import stages_for
+
+    targets = [s.name for s in stages_for(sc) if s.name in targets]
+    result = run_scenario(sc, cache=Cache(cache_dir), targets=targets, scheduler=scheduler,
+                          progress=not quiet and sys.stderr.isatty())
+    files = write_map_geotiffs(result, out_dir)
+    files.append(plot_maps_panel(result, out_dir / "maps.png"))
+    for f in files:
+        click.echo(str(f))
+
+
 @main.group("cache")
 def cache_group() -> None:
     """Show or remove cached stage outputs."""

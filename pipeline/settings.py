@@ -95,6 +95,8 @@ class DataSources(FrozenModel):
     landuse: Path | None = None
     landing_sites: Path | None = None
     osm_landing_sites: bool = True
+    risk_tags: Path | None = None
+    risk_default_level: Annotated[int, Field(ge=1, le=6)] | None = None
     uniform_wind: UniformWind | None = None
     wind: GriddedWind | None = None
     almanacs: tuple[Path, ...] = ()
@@ -257,7 +259,7 @@ def scenario_paths() -> dict[str, Path]:
 
 def _resolve_paths(node: Any, base: Path, key: str = "") -> Any:
     """Make every relative path in a ``path`` / ``*_path`` / data field absolute w.r.t. ``base``."""
-    path_keys = {"path", "landuse", "landing_sites", "nofly_zones"}
+    path_keys = {"path", "landuse", "landing_sites", "nofly_zones", "risk_tags"}
     if isinstance(node, dict):
         return {k: _resolve_paths(v, base, k) for k, v in node.items()}
     if isinstance(node, list):
@@ -290,6 +292,7 @@ def _semantic_problems(sc: Scenario) -> list[str]:
         ("data.terrain.path", [sc.data.terrain.path] if sc.data.terrain else []),
         ("data.landuse", [sc.data.landuse] if sc.data.landuse else []),
         ("data.landing_sites", [sc.data.landing_sites] if sc.data.landing_sites else []),
+        ("data.risk_tags", [sc.data.risk_tags] if sc.data.risk_tags else []),
         ("data.wind.path", [sc.data.wind.path] if sc.data.wind else []),
         ("data.almanacs", list(sc.data.almanacs)),
         ("constraints.nofly_zones", [sc.constraints.nofly_zones] if sc.constraints.nofly_zones else []),
@@ -299,6 +302,10 @@ def _semantic_problems(sc: Scenario) -> list[str]:
                 problems.append(f"{section}: data file not found: {p}")
             elif not os.access(p, os.R_OK):
                 problems.append(f"{section}: data file is not readable: {p}")
+    from skyroute.stages.vehicle import known_vehicles
+
+    if sc.vehicle not in known_vehicles() and not Path(sc.vehicle).is_file():
+        problems.append(f"vehicle: unknown vehicle {sc.vehicle!r}; known vehicles: {', '.join(known_vehicles())}")
     try:
         grid = sc.grid
     except Exception as exc:  # CRSError / InputError

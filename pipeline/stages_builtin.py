@@ -84,3 +84,193 @@ def satellites_stage(*, settings: SatellitesSettings) -> xr.Dataset:
 register(Stage("satellites", satellites_stage, _satellites_settings, applies=lambda sc: bool(sc.data.almanacs),
                code_modules=("skyroute.stages.almanac", "skyroute.stages.orbits", "skyroute.stages.dop"),
                description="almanacs -> satellite positions, az/el, open-sky DOP over the mission window"))
+
+
+# --------------------------------------------------------------------------- environment
+class EnvironmentSettings(FrozenModel):
+    grid: Grid
+    osm_path: Path | None = None
+    cityjson_path: Path | None = None
+    tag_table: Path | None = None
+    level5_nofly: bool = False
+    nofly_zones: Path | None = None
+    landing_geojson: Path | None = None
+    osm_landing_sites: bool = True
+    default_level: int | None = None
+
+
+def _environment_settings(sc: Scenario) -> EnvironmentSettings:
+    from skyroute.stages.risk import default_tag_table_path
+
+    b = sc.data.buildings
+    osm = sc.data.landuse or (b.path if b is not None and b.format == "osm" else None)
+    return EnvironmentSettings(
+        grid=sc.grid, osm_path=osm, cityjson_path=b.path if b is not None and b.format == "cityjson" else None,
+        tag_table=sc.data.risk_tags or Path(default_tag_table_path()), level5_nofly=sc.constraints.level5_nofly,
+        nofly_zones=sc.constraints.nofly_zones, landing_geojson=sc.data.landing_sites,
+        osm_landing_sites=sc.data.osm_landing_sites, default_level=sc.data.risk_default_level,
+    )
+
+
+def environment_stage(*, settings: EnvironmentSettings) -> xr.Dataset:
+    """Ground-risk levels and cost, no-fly mask, landing sites, distance and cost."""
+    import warnings
+
+    from skyroute.stages.landing import environment_risk_dataset
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="no landing sites")
+        ds = environment_risk_dataset(
+            settings.grid, osm_path=settings.osm_path, cityjson_path=settings.cityjson_path,
+            tag_table=settings.tag_table, level5_nofly=settings.level5_nofly, nofly_zones=settings.nofly_zones,
+            landing_geojson=settings.landing_geojson, osm_landing_sites=settings.osm_landing_sites,
+            default_level=settings.default_level)
+    return ds
+
+
+register(Stage("environment", environment_stage, _environment_settings,
+               code_modules=("skyroute.stages.risk", "skyroute.stages.landing", "skyroute.stages.osm"),
+               description="risk levels 1-6, risk cost, no-fly, landing sites and landing cost"))
+
+
+class WindSettings(FrozenModel):
+    grid: Grid
+    path: Path | None = None
+    time_utc: str | None = None
+    uniform: tuple[float, float, float] | None = None
+    profile: str = "constant"
+    altitudes_m: tuple[float, ...]
+    horizontal_step_m: float
+    max_wind_mps: float
+
+
+def _wind_settings(sc: Scenario) -> WindSettings:
+    from skyroute.stages.vehicle import load_vehicle
+
+    top = sc.constraints.max_altitude_agl_m
+    levels = tuple(float(z) for z in sorted({*range(0, int(top) + 1, 10), top}))
+    step = max(sc.grid.resolution_m, 100.0)
+    veh = load_vehicle(sc.vehicle)
+    if sc.data.wind is not None:
+        w = sc.data.wind
+        return WindSettings(grid=sc.grid, path=w.path, profile=w.profile, altitudes_m=levels,
+                            time_utc=w.time_utc.replace(tzinfo=None).isoformat() if w.time_utc else None,
+                            horizontal_step_m=step, max_wind_mps=veh.max_wind_mps)
+    u = sc.data.uniform_wind
+    assert u is not None
+    return WindSettings(grid=sc.grid, uniform=(u.speed_mps, u.direction_deg, u.elevation_deg), profile="constant",
+                        altitudes_m=levels, horizontal_step_m=step, max_wind_mps=veh.max_wind_mps)
+
+
+def wind_stage(surface: xr.Dataset, *, settings: WindSettings) -> xr.Dataset:
+    """Wind u, v, w, speed on (z above ground, y, x) at ``horizontal_step_m``, and the wind
+    no-fly mask (speed above the vehicle's limit)."""
+    import numpy as np
+
+    from skyroute.stages.wind import read_wind, wind_nofly, wind_on_grid
+
+    if settings.path is not None:
+        src = read_wind(settings.path, time=np.datetime64(settings.time_utc) if settings.time_utc else None)
+    else:
+        src = settings.uniform
+    ds = wind_on_grid(src, settings.grid, list(settings.altitudes_m), terrain=surface["terrain"].load(),
+                      profile=settings.profile, horizontal_step_m=settings.horizontal_step_m)
+    ds["wind_nofly"] = wind_nofly(ds, settings.max_wind_mps)
+    return ds
+
+
+register(Stage("wind", wind_stage, _wind_settings, inputs=("surface",),
+               applies=lambda sc: sc.data.wind is not None or sc.data.uniform_wind is not None,
+               code_modules=("skyroute.stages.wind",), description="wind field and wind no-fly mask"))
+
+
+class ClearanceSettings(FrozenModel):
+    radius_m: float
+    min_agl_m: float
+    max_agl_m: float
+
+
+def _clearance_settings(sc: Scenario) -> ClearanceSettings:
+    from skyroute.stages.vehicle import load_vehicle
+
+    return ClearanceSettings(radius_m=load_vehicle(sc.vehicle).r_p_m, min_agl_m=sc.constraints.min_altitude_agl_m,
+                             max_agl_m=sc.constraints.max_altitude_agl_m)
+
+
+def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: ClearanceSettings) -> xr.Dataset:
+    """Obstacle clearance for the vehicle sphere r_p (seed 000 eq. 13): lowest allowed
+    sphere-centre altitude, AGL ceiling, dilated no-fly cells and altitude-limited volumes."""
+    import numpy as np
+
+    from skyroute.stages.clearance import clearance_dataset
+
+    terrain = surface["terrain"].load()
+    env = environment[["nofly", "nofly_floor_m", "nofly_ceiling_m"]].load()
+    floor, ceil = env["nofly_floor_m"].values, env["nofly_ceiling_m"].values
+    unlimited = env["nofly"].values & (np.nan_to_num(floor, nan=0.0) <= 0) & np.isinf(ceil)
+    limited = env["nofly"].values & ~unlimited
+    volumes = []
+    if limited.any():
+        t = terrain.values
+        for lo, hi in {(float(a), float(b)) for a, b in zip(floor[limited], ceil[limited], strict=True)}:
+            m = limited & (floor == lo) & (ceil == hi)
+            # AGL band -> absolute altitudes with the mean terrain of the zone (exact on flat ground)
+            base = float(t[m].mean())
+            volumes.append((env["nofly"].copy(data=m), base + lo, base + hi))
+    ds = clearance_dataset(surface["surface"].load(), settings.radius_m, terrain=terrain,
+                           min_agl_m=settings.min_agl_m, max_agl_m=settings.max_agl_m,
+                           nofly=env["nofly"].copy(data=unlimited), volumes=volumes or None)
+    for v in ds.data_vars.values():
+        v.attrs.setdefault("units", "1" if v.dtype == bool else "m")
+    return ds
+
+
+register(Stage("clearance", clearance_stage, _clearance_settings, inputs=("surface", "environment"),
+               code_modules=("skyroute.stages.clearance",),
+               description="obstacle clearance floor for the vehicle sphere, AGL bounds, no-fly"))
+
+
+class TrafficStageSettings(FrozenModel):
+    intruders: tuple
+    n_slices: int
+    margin_m: float
+    time_margin_s: float
+    terrain_base_m: float = 0.0
+
+
+def _traffic_settings(sc: Scenario) -> TrafficStageSettings:
+    t = sc.traffic
+    return TrafficStageSettings(intruders=tuple(i.model_dump() for i in t.intruders), n_slices=t.n_slices,
+                                margin_m=t.margin_m, time_margin_s=t.time_margin_s)
+
+
+def traffic_stage(surface: xr.Dataset, *, settings: TrafficStageSettings) -> xr.Dataset:
+    """Time-sliced occupancy of the known traffic (seed 000 eq. 1) as capsules per slice.
+    Intruder altitudes are AGL in the scenario; they are converted to the surface datum with
+    the terrain under each waypoint."""
+    import numpy as np
+
+    from skyroute.stages.grid import Grid as _Grid
+    from skyroute.stages.traffic import build_occupancy
+
+    grid = _Grid.from_dataarray(surface["terrain"])
+    terrain = surface["terrain"].values
+    records = []
+    for it in settings.intruders:
+        wp = np.asarray(it["waypoints"], dtype=float)
+        r, c = grid.index_of(wp[:, 1], wp[:, 2])
+        r = np.clip(r, 0, grid.ny - 1)
+        c = np.clip(c, 0, grid.nx - 1)
+        wp[:, 3] = wp[:, 3] + terrain[r, c]
+        records.append({"id": it["id"], "radius_m": it["radius_m"], "waypoints": wp.tolist()})
+    t_end = max(float(np.asarray(it["waypoints"])[:, 0].max()) for it in settings.intruders)
+    occ = build_occupancy(records, t_total_s=t_end, n_slices=settings.n_slices, d_c_m=settings.margin_m,
+                          dt_c_s=settings.time_margin_s)
+    ds = occ.to_dataset()
+    ds.attrs["vertical_datum"] = surface["surface"].attrs.get("vertical_datum", "")
+    return ds
+
+
+register(Stage("traffic", traffic_stage, _traffic_settings, inputs=("surface",),
+               applies=lambda sc: len(sc.traffic.intruders) > 0, code_modules=("skyroute.stages.traffic",),
+               description="time-sliced occupancy of known traffic (capsules, exact queries)"))

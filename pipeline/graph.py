@@ -20,7 +20,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import importlib
-import inspect
+import importlib.util
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -61,9 +61,12 @@ class Stage:
         mods = {self.func.__module__, *self.code_modules}
         h = hashlib.sha256(f"{self.name}:{self.version}".encode())
         for m in sorted(mods):
-            try:
-                h.update(inspect.getsource(importlib.import_module(m)).encode())
-            except (OSError, TypeError):
+            # read the module's source without importing it (a cache hit needs no heavy imports)
+            spec = importlib.util.find_spec(m)
+            if spec is not None and spec.origin and spec.origin.endswith(".py"):
+                with open(spec.origin, "rb") as f:
+                    h.update(f.read())
+            else:
                 h.update(SKYROUTE_VERSION.encode())
         return h.hexdigest()[:16]
 

@@ -10,7 +10,6 @@ from skyroute.pipeline.graph import Stage, register
 from skyroute.pipeline.model import FrozenModel
 from skyroute.pipeline.settings import Scenario
 from skyroute.stages.grid import Grid
-from skyroute.stages.surface import build_surface
 
 
 class SurfaceSettings(FrozenModel):
@@ -35,6 +34,9 @@ def _surface_settings(sc: Scenario) -> SurfaceSettings:
 
 
 def surface_stage(*, settings: SurfaceSettings) -> xr.Dataset:
+    """Digital surface model: terrain + buildings on the scenario grid (chunked)."""
+    from skyroute.stages.surface import build_surface
+
     ds = build_surface(settings.grid, buildings_path=settings.buildings_path,
                        buildings_format=settings.buildings_format, storey_height_m=settings.storey_height_m,
                        terrain_path=settings.terrain_path, vertical_datum=settings.vertical_datum)
@@ -100,13 +102,13 @@ class EnvironmentSettings(FrozenModel):
 
 
 def _environment_settings(sc: Scenario) -> EnvironmentSettings:
-    from skyroute.stages.risk import default_tag_table_path
+    from skyroute.pipeline.settings import catalog_dir
 
     b = sc.data.buildings
     osm = sc.data.landuse or (b.path if b is not None and b.format == "osm" else None)
     return EnvironmentSettings(
         grid=sc.grid, osm_path=osm, cityjson_path=b.path if b is not None and b.format == "cityjson" else None,
-        tag_table=sc.data.risk_tags or Path(default_tag_table_path()), level5_nofly=sc.constraints.level5_nofly,
+        tag_table=sc.data.risk_tags or catalog_dir() / "risk_tags.yaml", level5_nofly=sc.constraints.level5_nofly,
         nofly_zones=sc.constraints.nofly_zones, landing_geojson=sc.data.landing_sites,
         osm_landing_sites=sc.data.osm_landing_sites, default_level=sc.data.risk_default_level,
     )

@@ -18,8 +18,6 @@ import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
 from affine import Affine
 from pyproj import CRS, Transformer
-from pyproj.aoi import AreaOfInterest
-from pyproj.database import query_utm_crs_info
 
 from skyroute.pipeline.errors import CRSError, InputError
 
@@ -32,17 +30,26 @@ def resolve_crs(crs: str | int | CRS) -> CRS:
         raise CRSError(f"cannot resolve CRS {crs!r}: {exc}. Give an EPSG code such as 'EPSG:32635'") from exc
 
 
+def utm_zone(lon_deg: float, lat_deg: float) -> int:
+    """UTM zone number of (lon, lat) [deg], with the Norway (32V) and Svalbard (31X-37X) exceptions."""
+    lon = (float(lon_deg) + 180.0) % 360.0 - 180.0
+    zone = int((lon + 180.0) // 6.0) + 1
+    if 56.0 <= lat_deg < 64.0 and 3.0 <= lon < 12.0:
+        zone = 32
+    elif 72.0 <= lat_deg < 84.0 and lon >= 0.0:
+        for lo, hi, z in ((0.0, 9.0, 31), (9.0, 21.0, 33), (21.0, 33.0, 35), (33.0, 42.0, 37)):
+            if lo <= lon < hi:
+                zone = z
+    return min(zone, 60)
+
+
 def utm_crs_for(lon_deg: float, lat_deg: float) -> CRS:
-    """The WGS 84 / UTM zone CRS that contains (lon, lat) [deg]."""
-    infos = query_utm_crs_info(
-        datum_name="WGS 84",
-        area_of_interest=AreaOfInterest(lon_deg, lat_deg, lon_deg, lat_deg),
-    )
-    if not infos:
-        raise CRSError(f"no UTM zone found for lon={lon_deg}, lat={lat_deg}; name a CRS in aoi.crs")
-    # prefer the plain WGS 84 / UTM zone NN{N,S} (EPSG 326xx / 327xx)
-    infos = sorted(infos, key=lambda i: (not i.code.startswith(("326", "327")), i.code))
-    return CRS.from_epsg(int(infos[0].code))
+    """The WGS 84 / UTM zone CRS (EPSG 326zz north, 327zz south) that contains (lon, lat) [deg]."""
+    if not (-80.0 <= lat_deg <= 84.0):
+        raise CRSError(f"latitude {lat_deg} deg is outside the UTM range -80..84; name a CRS in aoi.crs "
+                       "(e.g. a polar stereographic EPSG:3413)")
+    zone = utm_zone(lon_deg, lat_deg)
+    return CRS.from_epsg((32600 if lat_deg >= 0 else 32700) + zone)
 
 
 def _crs_text(crs: CRS) -> str:

@@ -137,6 +137,32 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
         click.echo(str(f))
 
 
+@main.command("coverage")
+@click.argument("scenario", required=False, default=None)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default: ./skyroute-out/SCENARIO/coverage).")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
+@click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers for processes/distributed.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) -> None:
+    """GNSS coverage maps of SCENARIO: for each DOP threshold D_j (scenario gnss.dop_thresholds)
+    the altitude above which DOP < D_j, worst case over the mission window, as one GeoTIFF per
+    D_j plus a PNG figure."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.cli_coverage import write_coverage_outputs
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
+
+    sc = load_scenario(scenario or DEFAULT_SCENARIO)
+    out_dir = out_dir or Path("skyroute-out") / sc.name / "coverage"
+    result = run_scenario(sc, cache=Cache(cache_dir), targets=["coverage"], scheduler=scheduler, workers=workers,
+                          progress=not quiet and sys.stderr.isatty())
+    for f in write_coverage_outputs(result["coverage"].load(), out_dir):
+        click.echo(str(f))
+
+
 @main.group("cache")
 def cache_group() -> None:
     """Show or remove cached stage outputs."""

@@ -52,6 +52,7 @@ class Stage:
     func: Callable[..., xr.Dataset]
     select: Callable[[Scenario], Any]
     inputs: tuple[str, ...] = ()
+    optional_inputs: tuple[str, ...] = ()  # passed as None when that stage does not apply
     applies: Callable[[Scenario], bool] = lambda sc: True
     code_modules: tuple[str, ...] = ()
     version: str = "1"
@@ -101,7 +102,7 @@ def stages_for(scenario: Scenario, targets: Sequence[str] | None = None) -> list
         if name in stack:
             raise InputError(f"stage graph has a cycle: {' -> '.join(stack + (name,))}")
         st = REGISTRY[name]
-        for dep in st.inputs:
+        for dep in (*st.inputs, *st.optional_inputs):
             visit(dep, stack + (name,))
         seen.add(name)
         order.append(st)
@@ -217,20 +218,23 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
         compute = _computer(client, progress)
         for st in stages_for(scenario, targets):
             t0 = time.perf_counter()
-            key = stage_key(st, scenario, [keys[d] for d in st.inputs])
+            key = stage_key(st, scenario, [keys[d] for d in st.inputs]
+                            + [keys.get(d, "absent") for d in st.optional_inputs])
             keys[st.name] = key
             entry = None if st.name in force else cache.get(st.name, key)
             hit = entry is not None
             if entry is None:
                 log.info("stage=%s key=%s status=compute", st.name, key)
-                out = st.func(*[result.datasets[d] for d in st.inputs], settings=st.select(scenario))
+                args = [result.datasets[d] for d in st.inputs] + [result.datasets.get(d) for d in st.optional_inputs]
+                out = st.func(*args, settings=st.select(scenario))
                 if not isinstance(out, xr.Dataset):
                     raise TypeError(f"stage {st.name} returned {type(out).__name__}, not an xarray.Dataset")
                 out.attrs.update({"skyroute_stage": st.name, "skyroute_key": key,
                                   "skyroute_version": SKYROUTE_VERSION})
                 entry = cache.write(st.name, key, out, {
                     "scenario": scenario.name, "code_version": st.code_version(),
-                    "inputs": {d: keys[d] for d in st.inputs}, "skyroute_version": SKYROUTE_VERSION,
+                    "inputs": {d: keys.get(d, "absent") for d in (*st.inputs, *st.optional_inputs)},
+                    "skyroute_version": SKYROUTE_VERSION,
                 }, compute=compute)
             else:
                 log.info("stage=%s key=%s status=cache-hit", st.name, key)

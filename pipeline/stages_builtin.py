@@ -276,3 +276,40 @@ def traffic_stage(surface: xr.Dataset, *, settings: TrafficStageSettings) -> xr.
 register(Stage("traffic", traffic_stage, _traffic_settings, inputs=("surface",),
                applies=lambda sc: len(sc.traffic.intruders) > 0, code_modules=("skyroute.stages.traffic",),
                description="time-sliced occupancy of known traffic (capsules, exact queries)"))
+
+
+# --------------------------------------------------------------------------- GNSS coverage
+class CoverageSettings(FrozenModel):
+    thresholds: tuple[float, ...]
+    dop_kind: str
+    mask_deg: float
+    min_agl_m: float
+    max_agl_m: float
+    chunk_cells: int
+
+
+def _coverage_settings(sc: Scenario) -> CoverageSettings:
+    g = sc.gnss
+    return CoverageSettings(thresholds=g.dop_thresholds, dop_kind=g.dop_kind, mask_deg=g.elevation_mask_deg,
+                            min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
+                            chunk_cells=sc.aoi.chunk_cells)
+
+
+def coverage_stage(surface: xr.Dataset, satellites: xr.Dataset, *, settings: CoverageSettings) -> xr.Dataset:
+    """GNSS coverage maps (seed 000 item 5, seed 001 item 5): per DOP threshold D_j the altitude
+    above which DOP < D_j, worst case over the mission window, clipped to the AGL limits; the
+    number of visible satellites and DOP on sections come from `stages.coverage.dop_section`."""
+    from skyroute.stages.coverage import coverage_maps
+
+    terrain = surface["terrain"]
+    az = satellites["az_deg"].load()
+    el = satellites["el_deg"].load()
+    ds = coverage_maps(surface["surface"], az, el, thresholds=settings.thresholds, dop=settings.dop_kind,
+                       floor_m=terrain + settings.min_agl_m, ceiling_m=terrain + settings.max_agl_m,
+                       mask_deg=settings.mask_deg)
+    return ds
+
+
+register(Stage("coverage", coverage_stage, _coverage_settings, inputs=("surface", "satellites"),
+               code_modules=("skyroute.stages.coverage", "skyroute.stages.occlusion", "skyroute.stages.dop"),
+               description="GNSS coverage floors per DOP threshold (worst case over the window)"))

@@ -1,0 +1,95 @@
+"""Outputs of ``skyroute coverage``: one GeoTIFF per DOP threshold and a PNG overview.
+
+The lead's click command builds the coverage Dataset
+(:func:`skyroute.stages.coverage.coverage_maps`) and calls :func:`write_coverage_outputs`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import rioxarray  # noqa: F401  (registers the .rio accessor)
+import xarray as xr
+
+from skyroute.pipeline.errors import InputError
+
+
+def _threshold_label(value: float) -> str:
+    return f"{value:g}".replace(".", "p")
+
+
+def _window_text(ds: xr.Dataset) -> str:
+    start, end = ds.attrs.get("window_start"), ds.attrs.get("window_end")
+    n = ds.attrs.get("n_epochs")
+    if start and end:
+        return f"{str(start)[:16]} .. {str(end)[:16]} UTC, {n} epochs, worst case"
+    return f"{n} epoch(s), worst case" if n else "worst case over the window"
+
+
+def write_coverage_outputs(ds: xr.Dataset, out_dir: Path) -> list[Path]:
+    """Write ``coverage_<KIND>_<D>.tif`` (float32, NaN nodata = unflyable or no data, heights
+    [m] in the surface's vertical datum) for every threshold D and ``coverage_<KIND>.png``
+    (one panel per threshold, unflyable cells grey) into ``out_dir``; return the paths."""
+    if "coverage_floor" not in ds or "threshold" not in ds["coverage_floor"].dims:
+        raise InputError("expected the Dataset of skyroute.stages.coverage.coverage_maps "
+                         "(variable coverage_floor on (threshold, y, x))")
+    if ds.rio.crs is None:
+        raise InputError("coverage Dataset carries no CRS; build it from a surface with a CRS")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    kind = str(ds.attrs.get("dop_kind", "DOP"))
+    ds = ds.compute()
+    floor = ds["coverage_floor"].astype(np.float32)
+    unfly = ds["unflyable"] if "unflyable" in ds else xr.zeros_like(floor, dtype=bool)
+    paths: list[Path] = []
+    for thr in floor["threshold"].values:
+        layer = floor.sel(threshold=thr).drop_vars("threshold")
+        layer = layer.rio.write_crs(ds.rio.crs).rio.write_nodata(np.nan, encoded=False)
+        layer.attrs = {"long_name": f"altitude above which {kind} < {thr:g}", "units": "m",
+                       "dop_kind": kind, "threshold": float(thr),
+                       "vertical_datum": str(floor.attrs.get("vertical_datum", "")),
+                       "window": _window_text(ds), "nodata_meaning": "unflyable or no surface data"}
+        path = out_dir / f"coverage_{kind}_{_threshold_label(float(thr))}.tif"
+        layer.rio.to_raster(path, dtype="float32", compress="deflate")
+        paths.append(path)
+    paths.append(_figure(floor, unfly, kind, _window_text(ds), out_dir / f"coverage_{kind}.png"))
+    return paths
+
+
+def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+
+    thr = floor["threshold"].values
+    n = len(thr)
+    x, y = floor["x"].values, floor["y"].values
+    r = float(x[1] - x[0]) if x.size > 1 else 1.0
+    extent = (x[0] - r / 2, x[-1] + r / 2, y[-1] - r / 2, y[0] + r / 2)
+    vals = floor.values
+    finite = vals[np.isfinite(vals)]
+    vmin, vmax = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n + 0.8, 4.2), squeeze=False, layout="constrained")
+    im = None
+    for ax, j in zip(axes[0], range(n), strict=True):
+        im = ax.imshow(vals[j], extent=extent, origin="upper", vmin=vmin, vmax=vmax,
+                       cmap="viridis", interpolation="nearest")
+        bad = np.asarray(unfly.values[j], dtype=bool)
+        if bad.any():
+            ax.imshow(np.where(bad, 1.0, np.nan), extent=extent, origin="upper",
+                      cmap=ListedColormap(["0.55"]), vmin=0, vmax=1, interpolation="nearest")
+        ax.set_title(f"{kind} < {thr[j]:g}  ({100 * bad.mean():.1f}% unflyable)")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.ticklabel_format(useOffset=False, style="plain")
+        ax.tick_params(labelsize=7)
+    fig.colorbar(im, ax=axes[0].tolist(), label="coverage floor [m]" + (
+        f" ({floor.attrs['vertical_datum']})" if floor.attrs.get("vertical_datum") else ""),
+        shrink=0.85)
+    fig.suptitle(f"GNSS coverage maps, {kind}; {window}; grey = unflyable")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

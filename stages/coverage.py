@@ -1,0 +1,797 @@
+"""GNSS dilution of precision (DOP) above a surface: column DOP profiles and coverage maps.
+
+Physics
+-------
+Satellites are ~20 000 km away, so within a map of a few km the direction (azimuth, elevation)
+of a satellite is the same from every point, and whether it is in line of sight from a point
+(x, y, z) only depends on the *visibility height* ``h_s(x, y)`` of the column: the satellite is
+visible from every altitude ``z >= h_s`` (computed by :mod:`skyroute.stages.occlusion`).  The
+visible set of a column therefore only changes at the sorted visibility heights, and since adding
+a satellite adds a positive semi-definite rank-one term ``g g^T`` to the normal matrix
+``N = G^T G`` (seed 003, eqs. 17-18, here in the local ENU frame with rows
+``g = [cos(el) sin(az), cos(el) cos(az), sin(el), 1]``), ``Q = N^-1`` and every DOP
+(GDOP, PDOP, HDOP, VDOP, TDOP) never increases with altitude.  Each column's DOP profile is
+computed *exactly* from its breakpoints (rank-one updates of the 4x4 normal matrix and a 4x4
+Cholesky inverse-diagonal at each distinct breakpoint, numba kernel) instead of sampling a
+voxel grid.
+
+GNSS coverage map (seeds 000 item 5, 001 item 5): for a DOP threshold ``D_j`` the altitude
+above which DOP < D_j, worst case (max) over the epochs of a time window (default 20 min sampled
+every 5 min = 5 epochs, as in seed 001), clipped to altitude limits.  Heights are in the
+vertical datum of the surface [m].
+
+Unflyable cells: ``coverage_floor`` is **NaN** and the boolean ``unflyable`` is True where DOP
+never gets below ``D_j`` under the ceiling in at least one epoch (fewer than 4 satellites, bad
+geometry, or the floor above ``ceiling_m``).  The surface must be NaN-free (fill holes first).
+
+Lower bound of DOP (why thresholds must exceed ``c / sqrt(n)``): with ``n`` unit line-of-sight
+vectors ``e_i``, ``A = sum e e^T`` (trace n), ``b = sum e`` and the position block of ``Q`` is
+``S^-1`` with the Schur complement ``S = A - b b^T / n <= A``.  Hence
+``PDOP^2 = tr(S^-1) >= tr(A^-1) >= 9 / tr(A) = 9 / n`` (AM-HM on eigenvalues),
+``HDOP^2 >= 4 / n``, ``VDOP^2 >= 1 / n``, ``TDOP^2 = Q_tt >= 1 / N_tt = 1 / n`` and
+``GDOP^2 >= 10 / n``.  So PDOP < 1 *is* possible with 10 or more satellites (multi-constellation
+receivers do reach it); the "PDOP >= 1" folklore is not a bound.  :func:`coverage_maps` rejects
+thresholds <= ``c / sqrt(n_max)`` (``n_max`` = most satellites above the mask in one epoch),
+which no geometry can reach, and reports the open-sky DOP of the window in the attrs.
+
+Layers: numba kernels (``_*_kernel``), numpy runners (``*_numpy``, one spatial block, all
+epochs), dask runners (``map_blocks`` on an explicit overlap of depth
+``shadow_halo_cells`` at the lowest elevation used) and public xarray functions
+(:func:`coverage_maps`, :func:`dop_section`, :func:`dop_volume`, :func:`column_dop_profile`).
+The (time, sat, y, x) visibility heights are never materialised for the whole map: each block
+computes them one epoch at a time and reduces them at once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import dask.array as da
+import numba
+import numpy as np
+import rioxarray  # noqa: F401  (registers the .rio accessor)
+import xarray as xr
+
+from skyroute.pipeline.errors import InputError, UnknownNameError
+
+DOP_KINDS: tuple[str, ...] = ("GDOP", "PDOP", "HDOP", "VDOP", "TDOP")
+"""DOP kinds, in the order of the ``kind`` index used by the kernels."""
+
+DOP_BOUND_COEF: dict[str, float] = {
+    "GDOP": math.sqrt(10.0), "PDOP": 3.0, "HDOP": 2.0, "VDOP": 1.0, "TDOP": 1.0,
+}
+"""``c`` of the universal lower bound ``DOP >= c / sqrt(n)`` for ``n`` satellites (see module doc)."""
+
+VisibilityFn = Callable[..., np.ndarray]
+"""``fn(surface_2d, az_grid_deg (n,), el_deg (n,), cell_m, origin=(row, col)) -> (n, ny, nx)``
+(the signature of ``occlusion.visibility_heights_numpy``)."""
+
+
+# --------------------------------------------------------------------------------------------
+# numba kernels
+# --------------------------------------------------------------------------------------------
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _inv_diag4(nm: np.ndarray, lo: np.ndarray, mi: np.ndarray, q: np.ndarray) -> bool:
+    """Diagonal of ``inv(nm)`` for a symmetric 4x4 ``nm`` into ``q`` (Cholesky).  False when
+    ``nm`` is (numerically) singular.  ``lo``, ``mi``: 4x4 scratch."""
+    for j in range(4):
+        s = nm[j, j]
+        for k in range(j):
+            s -= lo[j, k] * lo[j, k]
+        if s <= 1e-10 * nm[j, j] or s <= 0.0:
+            return False
+        d = math.sqrt(s)
+        lo[j, j] = d
+        for i in range(j + 1, 4):
+            t = nm[i, j]
+            for k in range(j):
+                t -= lo[i, k] * lo[j, k]
+            lo[i, j] = t / d
+    # mi = inv(lo), lower triangular
+    for i in range(4):
+        mi[i, i] = 1.0 / lo[i, i]
+        for j in range(i):
+            t = 0.0
+            for k in range(j, i):
+                t -= lo[i, k] * mi[k, j]
+            mi[i, j] = t / lo[i, i]
+        for j in range(i + 1, 4):
+            mi[i, j] = 0.0
+    # inv(nm) = mi^T mi  ->  diag_j = sum_i mi[i, j]^2
+    for j in range(4):
+        t = 0.0
+        for i in range(j, 4):
+            t += mi[i, j] * mi[i, j]
+        q[j] = t
+    return True
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _dop_of_kind(q: np.ndarray, kind: int) -> float:
+    if kind == 0:
+        return math.sqrt(q[0] + q[1] + q[2] + q[3])
+    if kind == 1:
+        return math.sqrt(q[0] + q[1] + q[2])
+    if kind == 2:
+        return math.sqrt(q[0] + q[1])
+    if kind == 3:
+        return math.sqrt(q[2])
+    return math.sqrt(q[3])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _sorted_column(h: np.ndarray, i: int, j: int, hs: np.ndarray, order: np.ndarray) -> int:
+    """Finite visibility heights of cell (i, j), sorted ascending into ``hs`` (indices into
+    ``order``); returns their count (insertion sort: n is ~10)."""
+    m = 0
+    for s in range(h.shape[0]):
+        v = h[s, i, j]
+        if not (v == v) or v == np.inf:  # NaN or never visible
+            continue
+        p = m
+        while p > 0 and hs[p - 1] > v:
+            hs[p] = hs[p - 1]
+            order[p] = order[p - 1]
+            p -= 1
+        hs[p] = v
+        order[p] = s
+        m += 1
+    return m
+
+
+@numba.njit(cache=True, nogil=True)
+def _floor_epoch_kernel(h, g, thresholds, kind, out):
+    """Fold one epoch into the running worst-case floor.
+
+    h: (n, ny, nx) visibility heights [m] (+inf/NaN = never visible); g: (n, 4) rows
+    [e_east, e_north, e_up, 1]; thresholds: (J,) ascending; out: (J, ny, nx) float64, running
+    max of the lowest altitude with DOP < D_j (+inf = never).  Updated in place."""
+    n, ny, nx = h.shape
+    nj = thresholds.shape[0]
+    hs = np.empty(n)
+    order = np.empty(n, np.int64)
+    nm = np.zeros((4, 4))
+    lo = np.zeros((4, 4))
+    mi = np.zeros((4, 4))
+    q = np.zeros(4)
+    for i in range(ny):
+        for j in range(nx):
+            m = _sorted_column(h, i, j, hs, order)
+            nm[:, :] = 0.0
+            jj = nj - 1  # the largest threshold is reached first
+            k = 0
+            while k < m and jj >= 0:
+                # add the whole group of satellites that appear at the same height
+                z = hs[k]
+                while k < m and hs[k] == z:
+                    gs = g[order[k]]
+                    for a in range(4):
+                        for b in range(4):
+                            nm[a, b] += gs[a] * gs[b]
+                    k += 1
+                if k < 4:
+                    continue
+                if not _inv_diag4(nm, lo, mi, q):
+                    continue
+                d = _dop_of_kind(q, kind)
+                while jj >= 0 and d < thresholds[jj]:
+                    if z > out[jj, i, j]:
+                        out[jj, i, j] = z
+                    jj -= 1
+            while jj >= 0:  # never reached in this epoch
+                out[jj, i, j] = np.inf
+                jj -= 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _section_epoch_kernel(h, g, surface, altitudes, out):
+    """DOP on horizontal sections for one epoch.
+
+    h: (n, ny, nx) visibility heights [m]; g: (n, 4); surface: (ny, nx) [m];
+    altitudes: (A,) [m], any order; out: (A, 6, ny, nx) float32 with
+    [n_visible, GDOP, PDOP, HDOP, VDOP, TDOP]; DOP = +inf with < 4 satellites or singular
+    geometry, NaN (and n_visible 0) below the surface."""
+    n, ny, nx = h.shape
+    na = altitudes.shape[0]
+    hs = np.empty(n)
+    order = np.empty(n, np.int64)
+    prof = np.empty((n + 1, 5))  # DOPs with the first k satellites
+    nm = np.zeros((4, 4))
+    lo = np.zeros((4, 4))
+    mi = np.zeros((4, 4))
+    q = np.zeros(4)
+    for i in range(ny):
+        for j in range(nx):
+            m = _sorted_column(h, i, j, hs, order)
+            nm[:, :] = 0.0
+            for c in range(5):
+                prof[0, c] = np.inf
+            for k in range(m):
+                gs = g[order[k]]
+                for a in range(4):
+                    for b in range(4):
+                        nm[a, b] += gs[a] * gs[b]
+                if k + 1 < 4 or (k + 1 < m and hs[k + 1] == hs[k]):
+                    # fewer than 4, or not a breakpoint (ties): value never looked up
+                    for c in range(5):
+                        prof[k + 1, c] = np.inf
+                    continue
+                if _inv_diag4(nm, lo, mi, q):
+                    for c in range(5):
+                        prof[k + 1, c] = _dop_of_kind(q, c)
+                else:
+                    for c in range(5):
+                        prof[k + 1, c] = np.inf
+            zs = surface[i, j]
+            for a in range(na):
+                z = altitudes[a]
+                if not (z >= zs):  # below the surface, or surface NaN
+                    out[a, 0, i, j] = 0.0
+                    for c in range(5):
+                        out[a, c + 1, i, j] = np.nan
+                    continue
+                kv = np.searchsorted(hs[:m], z, side="right")
+                out[a, 0, i, j] = kv
+                for c in range(5):
+                    out[a, c + 1, i, j] = prof[kv, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _profile_kernel(hs, gs):
+    """DOP profile of one column with heights ``hs`` already sorted ascending: (n, 5) DOPs
+    after adding satellite k (inf with fewer than 4 or singular geometry)."""
+    n = hs.shape[0]
+    prof = np.full((n, 5), np.inf)
+    nm = np.zeros((4, 4))
+    lo = np.zeros((4, 4))
+    mi = np.zeros((4, 4))
+    q = np.zeros(4)
+    for k in range(n):
+        for a in range(4):
+            for b in range(4):
+                nm[a, b] += gs[k, a] * gs[k, b]
+        if k + 1 >= 4 and _inv_diag4(nm, lo, mi, q):
+            for c in range(5):
+                prof[k, c] = _dop_of_kind(q, c)
+    return prof
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+# --------------------------------------------------------------------------------------------
+
+def los_rows(az_deg: np.ndarray, el_deg: np.ndarray) -> np.ndarray:
+    """Rows ``[cos(el) sin(az), cos(el) cos(az), sin(el), 1]`` (ENU unit vector and clock) of
+    the geometry matrix for azimuths/elevations [deg]; shape ``az.shape + (4,)``."""
+    az = np.deg2rad(np.asarray(az_deg, dtype=np.float64))
+    el = np.deg2rad(np.asarray(el_deg, dtype=np.float64))
+    ce = np.cos(el)
+    return np.stack([ce * np.sin(az), ce * np.cos(az), np.sin(el), np.ones_like(az)], axis=-1)
+
+
+def dop_kind_index(dop: str) -> int:
+    """Index of a DOP kind name (case-insensitive) in :data:`DOP_KINDS`."""
+    name = str(dop).upper()
+    if name not in DOP_KINDS:
+        raise UnknownNameError("DOP kind", str(dop), DOP_KINDS)
+    return DOP_KINDS.index(name)
+
+
+def dop_lower_bound(dop: str, n_sat: int) -> float:
+    """Universal lower bound ``c / sqrt(n)`` of a DOP kind with ``n_sat`` satellites (any
+    geometry; see the module docstring for the derivation)."""
+    return DOP_BOUND_COEF[DOP_KINDS[dop_kind_index(dop)]] / math.sqrt(max(int(n_sat), 1))
+
+
+def _default_visibility() -> VisibilityFn:
+    from skyroute.stages.occlusion import visibility_heights_numpy
+
+    return visibility_heights_numpy
+
+
+def _halo_cells(surface_2d: Any, min_el_deg: float, cell_m: float) -> int:
+    """Halo [cells] a block needs so that every obstacle that can shadow it at elevations
+    >= ``min_el_deg`` is inside it (``occlusion.shadow_halo_cells``)."""
+    from skyroute.stages.occlusion import shadow_halo_cells
+
+    return int(shadow_halo_cells(surface_2d, float(min_el_deg), float(cell_m)))
+
+
+def _grid_azimuth(true_az_deg: np.ndarray, surface: xr.DataArray) -> np.ndarray:
+    """True -> grid azimuth [deg] (meridian convergence at the map centre); NaN stays NaN."""
+    from skyroute.stages.occlusion import grid_azimuth_deg
+
+    az = np.asarray(true_az_deg, dtype=np.float64)
+    out = np.asarray(grid_azimuth_deg(np.nan_to_num(az), surface), dtype=np.float64)
+    return np.where(np.isfinite(az), out, np.nan)
+
+
+def _epoch_directions(az_deg: np.ndarray, el_deg: np.ndarray, mask_deg: float
+                      ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per epoch, the (az, el) [deg] of the satellites at or above the mask."""
+    out = []
+    for t in range(az_deg.shape[0]):
+        ok = (np.isfinite(az_deg[t]) & np.isfinite(el_deg[t]) & (el_deg[t] >= mask_deg)
+              & (el_deg[t] > 0.0))
+        out.append((az_deg[t, ok], el_deg[t, ok]))
+    return out
+
+
+def _visibility(fn: VisibilityFn, surface: np.ndarray, az: np.ndarray, el: np.ndarray,
+                cell_m: float, origin: tuple[int, int]) -> np.ndarray:
+    if az.size == 0:
+        return np.empty((0,) + surface.shape, np.float32)
+    return np.asarray(fn(surface, az, el, cell_m, origin=origin))
+
+
+# --------------------------------------------------------------------------------------------
+# numpy runners (one spatial block, all epochs)
+# --------------------------------------------------------------------------------------------
+
+def coverage_floor_numpy(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg: np.ndarray,
+                         cell_m: float, thresholds: np.ndarray, kind: int, mask_deg: float = 5.0,
+                         visibility_fn: VisibilityFn | None = None,
+                         origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """Worst-case (over epochs) lowest altitude [m] with DOP < thresholds[j], ``(J, ny, nx)``
+    float64, +inf where some epoch never gets there.
+
+    ``az_grid_deg``/``el_deg``: (time, sat) [deg], azimuth relative to grid north (DOP does not
+    depend on a rotation about the vertical).  ``thresholds`` ascending.  Visibility heights are
+    computed one epoch at a time (``visibility_fn``, default occlusion.visibility_heights_numpy;
+    ``origin``: (row, col) of the block in the whole map, for bit-identical blocks).
+    """
+    fn = visibility_fn or _default_visibility()
+    surface_2d = np.ascontiguousarray(surface_2d, dtype=np.float32)
+    thr = np.ascontiguousarray(thresholds, dtype=np.float64)
+    out = np.full((thr.size,) + surface_2d.shape, -np.inf)
+    for az, el in _epoch_directions(np.asarray(az_grid_deg, float), np.asarray(el_deg, float),
+                                    mask_deg):
+        h = _visibility(fn, surface_2d, az, el, cell_m, origin)
+        g = np.ascontiguousarray(los_rows(az, el))
+        _floor_epoch_kernel(np.ascontiguousarray(h), g, thr, int(kind), out)
+    return out
+
+
+def dop_section_numpy(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg: np.ndarray,
+                      cell_m: float, altitudes_m: np.ndarray, mask_deg: float = 5.0,
+                      visibility_fn: VisibilityFn | None = None,
+                      origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """``(time, altitude, 6, ny, nx)`` float32: n_visible, GDOP, PDOP, HDOP, VDOP, TDOP at
+    absolute altitudes [m] (conventions of :func:`_section_epoch_kernel`)."""
+    fn = visibility_fn or _default_visibility()
+    surface_2d = np.ascontiguousarray(surface_2d, dtype=np.float32)
+    alts = np.ascontiguousarray(altitudes_m, dtype=np.float64)
+    dirs = _epoch_directions(np.asarray(az_grid_deg, float), np.asarray(el_deg, float), mask_deg)
+    out = np.empty((len(dirs), alts.size, 6) + surface_2d.shape, np.float32)
+    for t, (az, el) in enumerate(dirs):
+        h = _visibility(fn, surface_2d, az, el, cell_m, origin)
+        g = np.ascontiguousarray(los_rows(az, el))
+        _section_epoch_kernel(np.ascontiguousarray(h), g, surface_2d, alts, out[t])
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# dask runners
+# --------------------------------------------------------------------------------------------
+
+def _min_chunks(arr: da.Array, depth: tuple[int, int]) -> da.Array:
+    """Rechunk so that every block is at least ``depth`` cells wide (dask's overlap needs it)."""
+    new = []
+    for c, d in zip(arr.chunks, depth, strict=True):
+        if len(c) == 1 or min(c) >= d:
+            new.append(c)
+            continue
+        size, b = sum(c), max(c[0], d)
+        cs = [b] * (size // b)
+        rem = size - sum(cs)
+        if rem and rem < d:
+            cs[-1] += rem
+        elif rem:
+            cs.append(rem)
+        new.append(tuple(cs))
+    return arr if tuple(new) == arr.chunks else arr.rechunk(tuple(new))
+
+
+def _overlap_map(surface: da.Array, depth: int,
+                 fn: Callable[[np.ndarray, tuple[int, int]], np.ndarray],
+                 lead_chunks: tuple[tuple[int, ...], ...], dtype: Any) -> da.Array:
+    """Apply ``fn(block, origin)`` (2D block with halo and its (row, col) in the map ->
+    (..., by, bx) for the extended block) on every block of
+    ``surface`` extended by ``depth`` cells of its neighbours (none beyond the map edge, like
+    the unchunked computation)."""
+    dy = int(min(depth, surface.shape[0]))
+    dx = int(min(depth, surface.shape[1]))
+    surface = _min_chunks(surface, (dy, dx))
+    dy = dy if len(surface.chunks[0]) > 1 else 0
+    dx = dx if len(surface.chunks[1]) > 1 else 0
+    ext = (da.overlap.overlap(surface, depth={0: dy, 1: dx}, boundary="none")
+           if dy or dx else surface)
+    chunks_y, chunks_x = surface.chunks
+    start_y = np.r_[0, np.cumsum(chunks_y)[:-1]]
+    start_x = np.r_[0, np.cumsum(chunks_x)[:-1]]
+    n_lead = len(lead_chunks)
+
+    def block(b: np.ndarray, block_info: dict | None = None) -> np.ndarray:
+        iy, ix = block_info[None]["chunk-location"][-2:]
+        top = dy if iy > 0 else 0
+        left = dx if ix > 0 else 0
+        res = fn(np.asarray(b), (int(start_y[iy]) - top, int(start_x[ix]) - left))
+        return res[..., top:top + chunks_y[iy], left:left + chunks_x[ix]]
+
+    return da.map_blocks(block, ext, chunks=lead_chunks + (chunks_y, chunks_x),
+                         new_axis=list(range(n_lead)) if n_lead else None,
+                         dtype=dtype, meta=np.empty((0,) * (n_lead + 2), dtype))
+
+
+# --------------------------------------------------------------------------------------------
+# public xarray layer
+# --------------------------------------------------------------------------------------------
+
+def _as_time_sat(az_deg: Any, el_deg: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Validate (time, sat) azimuth/elevation [deg]; a 1D input is one epoch."""
+    meta: dict[str, Any] = {}
+    if isinstance(az_deg, xr.DataArray) and "time" in az_deg.dims:
+        meta["time"] = az_deg["time"].values if "time" in az_deg.coords else None
+        if "sat" in az_deg.dims:
+            az_deg = az_deg.transpose("time", "sat")
+            if isinstance(el_deg, xr.DataArray) and "sat" in el_deg.dims:
+                el_deg = el_deg.transpose("time", "sat")
+    az = np.asarray(az_deg, dtype=np.float64)
+    el = np.asarray(el_deg, dtype=np.float64)
+    if az.shape != el.shape:
+        raise InputError(f"azimuth shape {az.shape} and elevation shape {el.shape} differ: "
+                         "give both as (time, sat) arrays of the same satellites")
+    if az.ndim == 1:
+        az, el = az[None, :], el[None, :]
+    if az.ndim != 2 or az.shape[0] == 0 or az.shape[1] == 0:
+        raise InputError(f"azimuth/elevation must be (time, sat) arrays, got shape {az.shape}")
+    if np.any(np.abs(el[np.isfinite(el)]) > 90.0):
+        raise InputError("elevations must be in [-90, 90] deg; did you pass radians or swap az/el?")
+    return az, el, meta
+
+
+def _check_surface(surface: xr.DataArray) -> float:
+    if not isinstance(surface, xr.DataArray) or surface.dims[-2:] != ("y", "x") or surface.ndim != 2:
+        raise InputError("surface must be a 2D xarray.DataArray with dims ('y', 'x') "
+                         "(see skyroute.stages.grid)")
+    x = np.asarray(surface["x"].values)
+    y = np.asarray(surface["y"].values)
+    if x.size < 2 or y.size < 2:
+        raise InputError("surface needs at least 2 x 2 cells")
+    cell = float(x[1] - x[0])
+    if not (cell > 0 and np.isclose(float(y[0] - y[1]), cell)):
+        raise InputError("surface must be north-up with square cells: x ascending, y descending")
+    if not np.issubdtype(surface.dtype, np.number):
+        raise InputError(f"surface must hold numbers [m], got dtype {surface.dtype}")
+    n_nan = surface.isnull().sum().values
+    if int(n_nan):
+        raise InputError(f"surface has {int(n_nan)} NaN cell(s): fill them first (e.g. with the "
+                         "terrain height or rioxarray's interpolate_na)")
+    return cell
+
+
+def _check_mask(mask_deg: float) -> float:
+    mask = float(mask_deg)
+    if not (0.0 <= mask < 90.0):
+        raise InputError(f"elevation mask {mask_deg} deg must be in [0, 90) (typically 5-15)")
+    return mask
+
+
+def _min_el(el: np.ndarray, mask: float) -> float:
+    ok = el[np.isfinite(el) & (el >= mask)]
+    return float(ok.min()) if ok.size else 90.0
+
+
+def _surface_array(surface: xr.DataArray, chunks: int | tuple[int, int] | None) -> np.ndarray | da.Array:
+    data = surface.data
+    if isinstance(data, da.Array):
+        data = data.astype(np.float32)
+        if chunks is not None:
+            data = data.rechunk(chunks)
+        return data
+    arr = np.asarray(data, dtype=np.float32)
+    if chunks is not None:
+        return da.from_array(arr, chunks=chunks)
+    return arr
+
+
+def _limit(value: Any, name: str, surface: xr.DataArray, default: float) -> np.ndarray | da.Array:
+    if value is None:
+        return np.float32(default)
+    if isinstance(value, xr.DataArray):
+        if set(value.dims) - {"y", "x"}:
+            raise InputError(f"{name} must be a scalar or a (y, x) raster, got dims {value.dims}")
+        value = value.broadcast_like(surface).transpose("y", "x").data
+    else:
+        value = np.asarray(value, dtype=np.float32)
+        if value.ndim not in (0, 2) or (value.ndim == 2 and value.shape != surface.shape):
+            raise InputError(f"{name} must be a scalar or an array of the surface shape "
+                             f"{surface.shape}, got shape {value.shape}")
+    return value
+
+
+def _spatial_attrs(surface: xr.DataArray) -> dict[str, Any]:
+    datum = surface.attrs.get("vertical_datum")
+    return {"vertical_datum": datum} if datum is not None else {}
+
+
+def _wrap(surface: xr.DataArray, data: Any, dims: tuple[str, ...], coords: dict, name: str,
+          attrs: dict) -> xr.DataArray:
+    c = {k: v for k, v in coords.items()}
+    c["y"], c["x"] = surface["y"], surface["x"]
+    out = xr.DataArray(data, dims=dims, coords=c, name=name, attrs=attrs)
+    if surface.rio.crs is not None:
+        out = out.rio.write_crs(surface.rio.crs)
+    return out
+
+
+def _window_attrs(meta: dict[str, Any], n_epochs: int) -> dict[str, Any]:
+    attrs: dict[str, Any] = {"n_epochs": int(n_epochs)}
+    t = meta.get("time")
+    if t is not None and len(t):
+        t = np.asarray(t)
+        attrs["window_start"] = str(t[0])
+        attrs["window_end"] = str(t[-1])
+        if len(t) > 1 and np.issubdtype(t.dtype, np.datetime64):
+            attrs["window_step_s"] = float(np.median(np.diff(t)) / np.timedelta64(1, "s"))
+    return attrs
+
+
+def open_sky_dop(az_deg: Any, el_deg: Any, mask_deg: float = 5.0) -> np.ndarray:
+    """``(time, 5)`` GDOP, PDOP, HDOP, VDOP, TDOP with every satellite above the mask visible."""
+    az, el, _ = _as_time_sat(az_deg, el_deg)
+    out = np.full((az.shape[0], 5), np.inf)
+    for t, (a, e) in enumerate(_epoch_directions(az, el, _check_mask(mask_deg))):
+        if a.size:
+            out[t] = _profile_kernel(np.zeros(a.size), np.ascontiguousarray(los_rows(a, e)))[-1]
+    return out
+
+
+def column_dop_profile(visibility_height_m: Any, az_deg: Any, el_deg: Any,
+                       mask_deg: float = 5.0) -> dict[str, np.ndarray]:
+    """Exact DOP profile of one column for one epoch.
+
+    ``visibility_height_m`` (sat,) [m] (+inf/NaN = never visible), ``az_deg``/``el_deg`` (sat,).
+    Returns ``altitude_m`` (k,) breakpoints ascending (the distinct visibility heights),
+    ``n_visible`` (k,) and one (k,) array per DOP kind: the value for
+    ``altitude_m[i] <= z < altitude_m[i+1]`` (+inf with fewer than 4 satellites)."""
+    h = np.asarray(visibility_height_m, dtype=np.float64).ravel()
+    az = np.asarray(az_deg, dtype=np.float64).ravel()
+    el = np.asarray(el_deg, dtype=np.float64).ravel()
+    if not (h.shape == az.shape == el.shape):
+        raise InputError(f"heights {h.shape}, azimuths {az.shape} and elevations {el.shape} "
+                         "must have the same length (one per satellite)")
+    ok = np.isfinite(h) & np.isfinite(el) & (el >= _check_mask(mask_deg))
+    h, az, el = h[ok], az[ok], el[ok]
+    order = np.argsort(h, kind="stable")
+    h = h[order]
+    prof = _profile_kernel(h, np.ascontiguousarray(los_rows(az[order], el[order])))
+    last = np.r_[h[1:] != h[:-1], True] if h.size else np.zeros(0, bool)
+    res = {"altitude_m": h[last], "n_visible": np.flatnonzero(last) + 1}
+    for c, name in enumerate(DOP_KINDS):
+        res[name] = prof[last, c]
+    return res
+
+
+def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
+                  thresholds: Sequence[float] = (2.0, 3.0, 4.0), dop: str = "PDOP",
+                  floor_m: float | np.ndarray | xr.DataArray | None = None,
+                  ceiling_m: float | np.ndarray | xr.DataArray | None = None,
+                  mask_deg: float = 5.0, chunks: int | tuple[int, int] | None = None,
+                  visibility_fn: VisibilityFn | None = None) -> xr.Dataset:
+    """GNSS coverage maps: per DOP threshold D_j, the altitude [m] above which DOP < D_j.
+
+    Parameters
+    ----------
+    surface : (y, x) heights [m] of the obstacle surface (DSM: terrain + buildings) with CRS.
+        A dask-backed surface (or ``chunks``) is computed lazily block by block.
+    az_deg, el_deg : (time, sat) TRUE azimuth / elevation [deg] of the satellites at the epochs
+        of the window (NaN = absent), e.g. from ``almanac.sky_geometry``; DataArrays with a
+        ``time`` coordinate record the window in the attrs.
+    thresholds : DOP thresholds D_j (sorted ascending in the output).
+    dop : "GDOP", "PDOP" (default), "HDOP", "VDOP" or "TDOP".
+    floor_m, ceiling_m : altitude limits [m] in the surface's vertical datum (scalars or (y, x)
+        rasters; AGL limits are ``surface + 150``).  The coverage floor is raised to
+        ``floor_m``; cells whose floor lies above ``ceiling_m`` are unflyable.
+    mask_deg : elevation mask [deg]; satellites below it are never used.
+    chunks : block size [cells] for the dask runner (default: the surface's own chunks).  Each
+        block is extended by ``occlusion.shadow_halo_cells`` at the lowest satellite elevation
+        used (~230 cells for 42 m of relief, 5 deg, 2 m cells), so blocks of ~1000+ cells keep
+        the overlap cost moderate.  Memory per block: one epoch of (sat, y, x) float32 heights
+        plus (threshold, y, x) float64; the numpy path (no chunks) holds that for the whole map.
+
+    Returns
+    -------
+    Dataset with ``coverage_floor`` (threshold, y, x) float32 [m] (NaN where unflyable),
+    ``unflyable`` (threshold, y, x) bool, ``open_sky_dop`` (time) and the surface's CRS.
+    The worst case over epochs is taken: a cell is unflyable if any epoch fails.
+    """
+    cell = _check_surface(surface)
+    az, el, meta = _as_time_sat(az_deg, el_deg)
+    kind = dop_kind_index(dop)
+    kind_name = DOP_KINDS[kind]
+    mask = _check_mask(mask_deg)
+    thr = np.asarray(list(thresholds), dtype=np.float64).ravel()
+    if thr.size == 0 or not np.all(np.isfinite(thr)):
+        raise InputError(f"thresholds {list(thresholds)} must be a non-empty list of finite "
+                         "DOP values, e.g. (2, 3, 4)")
+    thr = np.unique(thr)  # sorted, duplicates dropped
+    n_max = int(max(np.sum(np.isfinite(el) & (el >= mask), axis=1).max(), 0))
+    bound = DOP_BOUND_COEF[kind_name] / math.sqrt(max(n_max, 1))
+    if thr[0] <= bound:
+        raise InputError(
+            f"{kind_name} threshold {thr[0]:g} can never be reached: with at most {n_max} "
+            f"satellites above the {mask:g} deg mask, {kind_name} >= "
+            f"{DOP_BOUND_COEF[kind_name]:.3g}/sqrt({n_max}) = {bound:.3f}; use thresholds above "
+            "it (typically 2-6)")
+    az_grid = _grid_azimuth(az, surface)
+    min_el = _min_el(el, mask)
+    floor_lim = _limit(floor_m, "floor_m", surface, -np.inf)
+    ceil_lim = _limit(ceiling_m, "ceiling_m", surface, np.inf)
+    data = _surface_array(surface, chunks)
+    fn = visibility_fn or _default_visibility()
+
+    def run(block: np.ndarray, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+        return coverage_floor_numpy(block, az_grid, el, cell, thr, kind, mask, fn, origin)
+
+    if isinstance(data, da.Array):
+        depth = _halo_cells(data, min_el, cell)
+        raw = _overlap_map(data, depth, run, ((thr.size,),), np.float64)
+    else:
+        raw = run(data)
+    lib = da if isinstance(raw, da.Array) else np
+    floor = lib.maximum(raw, floor_lim)
+    unflyable = lib.isinf(raw) | ~(floor <= ceil_lim)  # never reached, or above the ceiling
+    floor = lib.where(unflyable, np.nan, floor).astype(np.float32)
+
+    common = _spatial_attrs(surface)
+    window = _window_attrs(meta, az.shape[0])
+    thr_coord = xr.DataArray(thr, dims="threshold", attrs={
+        "long_name": f"{kind_name} threshold D_j", "units": "1", "dop_kind": kind_name})
+    coords = {"threshold": thr_coord}
+    ds = xr.Dataset({
+        "coverage_floor": _wrap(surface, floor, ("threshold", "y", "x"), coords, "coverage_floor", {
+            "long_name": f"lowest altitude above which {kind_name} < threshold (worst case over the window)",
+            "units": "m", **common,
+            "comment": "NaN where unflyable (see `unflyable`)"}),
+        "unflyable": _wrap(surface, unflyable, ("threshold", "y", "x"), coords, "unflyable", {
+            "long_name": f"{kind_name} never below the threshold under the ceiling in some epoch",
+            "units": "1"}),
+    })
+    osd = open_sky_dop(az, el, mask)[:, kind]
+    tcoord = meta.get("time")
+    ds["open_sky_dop"] = xr.DataArray(
+        osd, dims="time", coords={"time": tcoord} if tcoord is not None else None,
+        attrs={"long_name": f"open-sky {kind_name} (all satellites above the mask)", "units": "1"})
+    ds.attrs.update({
+        "title": "GNSS coverage maps", "dop_kind": kind_name, "thresholds": thr.tolist(),
+        "mask_deg": mask, "reduction": "max over epochs (worst case)",
+        "unflyable_convention": "coverage_floor = NaN and unflyable = True",
+        "open_sky_dop_max": float(np.max(osd)), **window, **common,
+        "references": "seed 000 item 5; seed 001 item 5; seed 003 eqs. 15-19",
+    })
+    if surface.rio.crs is not None:
+        ds = ds.rio.write_crs(surface.rio.crs)
+    return ds
+
+
+def _prepare_sections(surface: xr.DataArray, az_deg: Any, el_deg: Any, altitudes_m: Any,
+                      mask_deg: float) -> tuple:
+    cell = _check_surface(surface)
+    az, el, meta = _as_time_sat(az_deg, el_deg)
+    mask = _check_mask(mask_deg)
+    alts = np.atleast_1d(np.asarray(altitudes_m, dtype=np.float64))
+    if alts.ndim != 1 or alts.size == 0 or not np.all(np.isfinite(alts)):
+        raise InputError("altitudes_m must be a non-empty 1D list of finite altitudes [m] "
+                         "in the surface's vertical datum")
+    return cell, az, el, meta, mask, alts
+
+
+def _section_array(surface: xr.DataArray, az: np.ndarray, el: np.ndarray, cell: float,
+                   alts: np.ndarray, mask: float, chunks: Any,
+                   visibility_fn: VisibilityFn | None) -> Any:
+    az_grid = _grid_azimuth(az, surface)
+    data = _surface_array(surface, chunks)
+    fn = visibility_fn or _default_visibility()
+
+    def run(block: np.ndarray, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+        return dop_section_numpy(block, az_grid, el, cell, alts, mask, fn, origin)
+
+    if isinstance(data, da.Array):
+        depth = _halo_cells(data, _min_el(el, mask), cell)
+        return _overlap_map(data, depth, run, ((az.shape[0],), (alts.size,), (6,)), np.float32)
+    return run(data)
+
+
+def dop_section(surface: xr.DataArray, az_deg: Any, el_deg: Any, altitudes_m: Any, *,
+                mask_deg: float = 5.0, chunks: int | tuple[int, int] | None = None,
+                visibility_fn: VisibilityFn | None = None) -> xr.Dataset:
+    """Number of visible satellites and DOPs on horizontal sections at absolute altitudes [m]
+    (surface vertical datum), per epoch.
+
+    Returns a Dataset on (time, altitude, y, x): ``n_visible`` (int16) and ``gdop``, ``pdop``,
+    ``hdop``, ``vdop``, ``tdop`` (float32; +inf with fewer than 4 visible satellites, NaN below
+    the surface).  Azimuths are TRUE azimuths [deg], (time, sat) as in :func:`coverage_maps`."""
+    cell, az, el, meta, mask, alts = _prepare_sections(surface, az_deg, el_deg, altitudes_m,
+                                                      mask_deg)
+    arr = _section_array(surface, az, el, cell, alts, mask, chunks, visibility_fn)
+    t = meta.get("time")
+    coords: dict[str, Any] = {"altitude": xr.DataArray(alts, dims="altitude", attrs={
+        "units": "m", "long_name": "section altitude", **_spatial_attrs(surface)})}
+    if t is not None:
+        coords["time"] = t
+    dims = ("time", "altitude", "y", "x")
+    out = {"n_visible": _wrap(surface, arr[:, :, 0].astype(np.int16), dims, coords, "n_visible",
+                              {"long_name": "number of satellites in line of sight above the mask",
+                               "units": "1"})}
+    for c, name in enumerate(DOP_KINDS):
+        out[name.lower()] = _wrap(surface, arr[:, :, c + 1], dims, coords, name.lower(), {
+            "long_name": name, "units": "1",
+            "comment": "+inf with fewer than 4 visible satellites; NaN below the surface"})
+    ds = xr.Dataset(out, attrs={"title": "DOP on horizontal sections", "mask_deg": mask,
+                                **_window_attrs(meta, az.shape[0])})
+    if surface.rio.crs is not None:
+        ds = ds.rio.write_crs(surface.rio.crs)
+    return ds
+
+
+def dop_volume(surface: xr.DataArray, az_deg: Any, el_deg: Any, z_m: Any, *,
+               dop: str = "PDOP", reduce: str | None = "max", mask_deg: float = 5.0,
+               chunks: int | tuple[int, int] | None = None,
+               visibility_fn: VisibilityFn | None = None) -> xr.DataArray:
+    """3D DOP volume on (z, y, x) levels ``z_m`` [m] (the "digital morphing map" of seed 003:
+    its isosurface DOP = D is the coverage floor).
+
+    ``reduce="max"`` (default) gives the worst case over the epochs, ``None`` keeps a leading
+    ``time`` dim.  +inf with fewer than 4 visible satellites, NaN below the surface."""
+    kind = dop_kind_index(dop)
+    if reduce not in ("max", None):
+        raise InputError(f"reduce must be 'max' or None, got {reduce!r}")
+    cell, az, el, meta, mask, alts = _prepare_sections(surface, az_deg, el_deg, z_m, mask_deg)
+    arr = _section_array(surface, az, el, cell, alts, mask, chunks, visibility_fn)
+    vol = arr[:, :, kind + 1]
+    coords: dict[str, Any] = {"z": xr.DataArray(alts, dims="z", attrs={
+        "units": "m", "long_name": "altitude", "axis": "Z", **_spatial_attrs(surface)})}
+    dims: tuple[str, ...] = ("time", "z", "y", "x")
+    if reduce == "max":
+        vol = vol.max(axis=0)
+        dims = dims[1:]
+    elif meta.get("time") is not None:
+        coords["time"] = meta["time"]
+    return _wrap(surface, vol, dims, coords, DOP_KINDS[kind].lower(), {
+        "long_name": f"{DOP_KINDS[kind]}" + (" (worst case over the window)" if reduce else ""),
+        "units": "1", "mask_deg": mask, **_window_attrs(meta, az.shape[0]),
+        "comment": "+inf with fewer than 4 visible satellites; NaN below the surface"})
+
+
+def window_times(start_utc: Any, window_min: float = 20.0, step_min: float = 5.0) -> np.ndarray:
+    """Epochs [datetime64[s], UTC] of a time window: ``start``, ``start + step``, ... up to and
+    including ``start + window`` (default 20 min every 5 min = 5 epochs, as in seed 001)."""
+    if not (step_min > 0 and window_min >= 0):
+        raise InputError(f"need step_min > 0 and window_min >= 0, got {step_min}, {window_min}")
+    start = np.datetime64(np.datetime64(start_utc, "s"))
+    n = int(math.floor(window_min / step_min + 1e-9)) + 1
+    return start + (np.arange(n) * step_min * 60.0).astype("timedelta64[s]")
+
+
+def coverage_from_almanac(surface: xr.DataArray, almanac_paths: Any, start_utc: Any, *,
+                          window_min: float = 20.0, step_min: float = 5.0,
+                          mask_deg: float = 5.0, **kwargs: Any) -> xr.Dataset:
+    """:func:`coverage_maps` with the satellite geometry of an almanac over a time window,
+    seen from the centre of the surface (far satellites: one geometry for the whole map).
+    ``kwargs`` go to :func:`coverage_maps` (thresholds, dop, floor_m, ceiling_m, chunks)."""
+    from skyroute.stages.almanac import sky_geometry
+    from skyroute.stages.grid import Grid
+
+    grid = Grid.from_dataarray(surface)
+    xmin, ymin, xmax, ymax = grid.bounds
+    lon, lat = grid.to_lonlat((xmin + xmax) / 2, (ymin + ymax) / 2)
+    h0 = float(np.nanmedian(np.asarray(surface.values)))
+    times = window_times(start_utc, window_min, step_min)
+    sky = sky_geometry(almanac_paths, times, float(lat), float(lon), h0, mask_deg=mask_deg)
+    ds = coverage_maps(surface, sky["az_deg"], sky["el_deg"], mask_deg=mask_deg, **kwargs)
+    ds.attrs.update({"window_min": float(window_min), "step_min": float(step_min)})
+    return ds

@@ -1,0 +1,8 @@
+"""skyroute.stages.planning: the strategic planner of seed 000 (section III).
+
+* :mod:`.problem`  -- :class:`PlanningProblem`: validity (floor/ceiling/angle/wind) and the
+  four costs of eq. 11 on one GNSS coverage level D_j (compiled kernels);
+* :mod:`.grid_planner` -- deterministic A* on a 3-D lattice (STEP I alternative);
+* :mod:`.bitstar` -- OMPL BIT* with the eq. 11 objective (STEP I, seed 000 III-A);
+* :mod:`.step1` -- STEP I driver: planner choice, energy re-plan loop, all D_j levels.
+"""

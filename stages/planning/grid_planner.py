@@ -1,0 +1,394 @@
+"""Deterministic STEP I planner: A* on a 3-D lattice with the eq. 11 cost, plus path refinement.
+
+Lattice (:func:`make_lattice`)
+------------------------------
+Nodes at the centres of every ``step_cells``-th grid cell (horizontal spacing
+``h = step_cells * resolution`` [m]) and on altitude levels ``dz_m`` apart (default
+``0.98 h tan(alpha_max)``, so that a move of one level over one horizontal step respects the
+flight-path angle).  The levels are aligned on the start altitude.  Edges: 26-connectivity
+(|di|, |dj|, |dk| <= 1); the start and the goal are extra nodes linked to every lattice node
+within 2 horizontal steps and 1 level of them (and to each other).  An edge exists when the
+problem's :meth:`~skyroute.stages.planning.problem.PlanningProblem.motion_valid` accepts the
+straight motion; its weight is f of eq. 11 on that segment (same kernel as BIT*).
+
+Search: A* (binary heap, numba), edges evaluated lazily when a node is expanded, so only the
+explored part of the lattice is costed.  Heuristic: the exact cost-to-goal of a horizontal 2-D
+relaxation (:func:`heuristic_2d`, consistent; it sees obstacles that fill whole columns and
+the risk / landing maps) or ``cost_rate_lb * distance`` (every edge costs at least
+``cost_rate_lb`` per metre).  Without refinement the result is
+the exact shortest path on the lattice (tested against scipy's Dijkstra).
+
+Refinement (:func:`refine_path`, also applied to BIT* paths): greedy shortcutting (a vertex
+is dropped when the direct segment is valid and not costlier) and a pattern search moving each
+interior vertex along 26 directions with halving steps while f decreases and both adjacent
+segments stay valid.  Refinement never increases f.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import time
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from skyroute.pipeline.errors import InputError
+from skyroute.stages.planning.problem import OK, PlanningProblem, segment_eval
+
+_OFFS = np.array([(dk, di, dj) for dk in (-1, 0, 1) for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                  if (dk, di, dj) != (0, 0, 0)], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Lattice:
+    """Lattice geometry: node (k, r, c) at (x[c], y[r], z[k]); id = (k * ny + r) * nx + c."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    valid: np.ndarray          # (nz, ny, nx) bool, state_valid of each node
+    start_links: np.ndarray    # node ids linked to the start (candidates; motion checked in search)
+    goal_links: np.ndarray     # node ids linked to the goal
+    step_m: float
+    dz_m: float
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.z.size, self.y.size, self.x.size)
+
+    def xyz(self, ids: np.ndarray) -> np.ndarray:
+        nz, ny, nx = self.shape
+        ids = np.asarray(ids, dtype=np.int64)
+        k, rem = np.divmod(ids, ny * nx)
+        r, c = np.divmod(rem, nx)
+        return np.stack([self.x[c], self.y[r], self.z[k]], axis=-1)
+
+
+def _links(lat_x, lat_y, lat_z, p, radius_h: int = 2, radius_v: int = 1) -> np.ndarray:
+    nz, ny, nx = lat_z.size, lat_y.size, lat_x.size
+    c0 = int(np.argmin(np.abs(lat_x - p[0])))
+    r0 = int(np.argmin(np.abs(lat_y - p[1])))
+    k0 = int(np.argmin(np.abs(lat_z - p[2])))
+    ids = []
+    for k in range(max(0, k0 - radius_v), min(nz, k0 + radius_v + 1)):
+        for r in range(max(0, r0 - radius_h), min(ny, r0 + radius_h + 1)):
+            for c in range(max(0, c0 - radius_h), min(nx, c0 + radius_h + 1)):
+                ids.append((k * ny + r) * nx + c)
+    return np.array(ids, dtype=np.int64)
+
+
+def make_lattice(problem: PlanningProblem, step_cells: int = 4, dz_m: float | None = None) -> Lattice:
+    """The A* lattice of ``problem`` (module docstring)."""
+    if int(step_cells) < 1:
+        raise InputError(f"step_cells {step_cells} must be >= 1")
+    g = problem.grid
+    step = int(step_cells)
+    h = step * g.resolution_m
+    if dz_m is None:
+        dz_m = 0.98 * h * math.tan(math.radians(problem.vehicle.max_flight_path_angle_deg))
+    if not dz_m > 0:
+        raise InputError(f"dz_m {dz_m} must be > 0 [m]")
+    cols = np.arange(step // 2, g.nx, step)
+    rows = np.arange(step // 2, g.ny, step)
+    x = g.x[cols]
+    y = g.y[rows]
+    fin = problem.floor_m[np.isfinite(problem.floor_m)]
+    zlo = float(fin.min()) if fin.size else float(problem.terrain_m.min())
+    zhi = float(problem.ceiling_m.max())
+    zs = problem.start_xyz[2]
+    kdown = math.floor((zs - zlo) / dz_m + 1e-9)
+    kup = math.floor((zhi - zs) / dz_m + 1e-9)
+    z = zs + dz_m * np.arange(-kdown, kup + 1)
+    zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
+    valid = problem.state_valid(np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)).reshape(zz.shape)
+    return Lattice(x=x, y=y, z=z, valid=valid, start_links=_links(x, y, z, problem.start_xyz),
+                   goal_links=_links(x, y, z, problem.goal_xyz), step_m=h, dz_m=float(dz_m))
+
+
+@numba.njit(cache=True)
+def _astar_kernel(lx, ly, lz, valid, offs, start_links, goal_links, sx, sy, sz, gx, gy, gz, wts, rate,
+                  max_expansions, h2, use_h2, terrain, floor, ceiling, risk, landing, gprm, wind, wz, wgprm, vprm, pprm):
+    nz, ny, nx = valid.shape
+    n = nz * ny * nx
+    S = n
+    G = n + 1
+    gcost = np.full(n + 2, np.inf)
+    parent = np.full(n + 2, -1, dtype=np.int64)
+    closed = np.zeros(n + 2, dtype=np.bool_)
+    is_goal_link = np.zeros(n, dtype=np.bool_)
+    for i in range(goal_links.shape[0]):
+        is_goal_link[goal_links[i]] = True
+    buf = np.empty(6)
+    gcost[S] = 0.0
+    heap = [(rate * math.sqrt((sx - gx) ** 2 + (sy - gy) ** 2 + (sz - gz) ** 2), S)]
+    expanded = 0
+    while len(heap) > 0:
+        fcur, u = heapq.heappop(heap)
+        if closed[u]:
+            continue
+        closed[u] = True
+        if u == G:
+            break
+        expanded += 1
+        if expanded > max_expansions:
+            break
+        if u == S:
+            ux, uy, uz = sx, sy, sz
+        else:
+            k = u // (ny * nx)
+            rem = u - k * ny * nx
+            r = rem // nx
+            c = rem - r * nx
+            ux, uy, uz = lx[c], ly[r], lz[k]
+        # candidate successors
+        if u == S:
+            ncand = start_links.shape[0] + 1
+        else:
+            ncand = offs.shape[0] + 1
+        for m in range(ncand):
+            if m == ncand - 1:
+                if u != S and not is_goal_link[u]:
+                    continue
+                v = G
+                vx, vy, vz = gx, gy, gz
+            elif u == S:
+                v = start_links[m]
+                kk = v // (ny * nx)
+                rem = v - kk * ny * nx
+                rr = rem // nx
+                cc = rem - rr * nx
+                if not valid[kk, rr, cc]:
+                    continue
+                vx, vy, vz = lx[cc], ly[rr], lz[kk]
+            else:
+                kk = k + offs[m, 0]
+                rr = r + offs[m, 1]
+                cc = c + offs[m, 2]
+                if kk < 0 or rr < 0 or cc < 0 or kk >= nz or rr >= ny or cc >= nx:
+                    continue
+                if not valid[kk, rr, cc]:
+                    continue
+                v = (kk * ny + rr) * nx + cc
+                vx, vy, vz = lx[cc], ly[rr], lz[kk]
+            if closed[v]:
+                continue
+            code = segment_eval(ux, uy, uz, vx, vy, vz, True, terrain, floor, ceiling, risk, landing, gprm,
+                                wind, wz, wgprm, vprm, pprm, buf)
+            if code != OK:
+                continue
+            w = wts[0] * buf[0] + wts[1] * buf[1] + wts[2] * buf[2]
+            if wts[3] > 0:
+                w += wts[3] * buf[3]
+            ng = gcost[u] + w
+            if ng < gcost[v]:
+                gcost[v] = ng
+                parent[v] = u
+                if v == G:
+                    hv = 0.0
+                elif use_h2:
+                    hv = h2[(v % (ny * nx)) // nx, v % nx]
+                else:
+                    hv = rate * math.sqrt((vx - gx) ** 2 + (vy - gy) ** 2 + (vz - gz) ** 2)
+                heapq.heappush(heap, (ng + hv, v))
+    return gcost[G], parent, expanded
+
+
+def heuristic_2d(problem: PlanningProblem, lattice: Lattice) -> np.ndarray:
+    """Admissible, consistent A* heuristic (ny_l, nx_l): exact cost-to-goal on the horizontal
+    8-connected lattice (scipy Dijkstra, directed) with edge cost ``w_l L_h + w_r R_h + w_d D_h +
+    w_e e_lb(dir) L_h`` (L_h horizontal length, R_h / D_h exact map integrals along it,
+    e_lb(dir) the energy-ratio bound of the 3 lattice edges (dk = -1, 0, 1) projecting on that
+    move, times L_3d / L_h, over the map's winds).  The projection of every 3-D lattice path is such a 2-D path and each
+    3-D edge costs at least its projection (3-D length >= horizontal length, same cells crossed in
+    the same proportions), so h(u) <= true cost-to-go.  Columns without any admissible altitude
+    (floor > ceiling or forbidden) are removed."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    ny, nx = lattice.y.size, lattice.x.size
+    rr, cc = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
+    col_ok = lattice.valid.any(axis=0)
+    ids = rr * nx + cc
+    wl, wr, wd, we = problem.weights
+    sin_max = math.sin(math.radians(problem.vehicle.max_flight_path_angle_deg))
+    a_l, b_l, e_l = [], [], []
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            if di == 0 and dj == 0:
+                continue
+            r2, c2 = rr + di, cc + dj
+            ins = (r2 >= 0) & (r2 < ny) & (c2 >= 0) & (c2 < nx)
+            a_l.append(ids[ins])
+            b_l.append((r2 * nx + c2)[ins])
+            # energy bound of this horizontal move over the 3 lattice edges projecting on it
+            lh = lattice.step_m * math.hypot(di, dj)
+            best = np.inf
+            for dk in (-1, 0, 1):
+                v = np.array([dj * lattice.step_m, -di * lattice.step_m, dk * lattice.dz_m])
+                l3 = float(np.linalg.norm(v))
+                if abs(v[2]) > l3 * sin_max + 1e-9:
+                    continue
+                best = min(best, problem.energy_ratio_lb_dirs(v / l3) * l3 / lh)
+            e_l.append(np.full(int(ins.sum()), best if np.isfinite(best) else 0.0))
+    a, b = np.concatenate(a_l), np.concatenate(b_l)
+    e_rate = np.concatenate(e_l)
+    n = ny * nx
+    G = n
+    glinks = np.unique(lattice.goal_links % n)
+    a = np.concatenate([a, glinks])
+    b = np.concatenate([b, np.full(glinks.size, G)])
+    e_rate = np.concatenate([e_rate, np.full(glinks.size, problem.energy_ratio_lb)])
+    okn = np.concatenate([col_ok.ravel(), [True]])
+    keep = okn[a] & okn[b]
+    a, b, e_rate = a[keep], b[keep], e_rate[keep]
+    gx, gy, gz = problem.goal_xyz
+    xy = np.concatenate([np.stack([lattice.x[cc.ravel()], lattice.y[rr.ravel()]], axis=1), [[gx, gy]]])
+    z = np.full((a.size, 1), gz)
+    _, out = problem.motion_codes(np.hstack([xy[a], z]), np.hstack([xy[b], z]), want_cost=False)
+    if we <= 0:
+        e_rate = np.zeros_like(e_rate)
+    w = (wl + we * e_rate) * out[:, 0] + wr * out[:, 1] + wd * out[:, 2]
+    w = np.maximum(w, 1e-12)   # csgraph drops explicit zeros
+    m = coo_matrix((w, (a, b)), shape=(n + 1, n + 1)).tocsr()
+    d = dijkstra(m.T.tocsr(), directed=True, indices=G)   # cost to reach G along directed edges
+    return np.ascontiguousarray(np.where(np.isfinite(d[:n]), d[:n], np.inf).reshape(ny, nx))
+
+
+def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_000_000,
+          heuristic: str = "dijkstra2d") -> dict:
+    """A* from start to goal on ``lattice``.  Returns ``waypoints`` (k, 3) or None, ``f`` (the
+    lattice optimum), ``expanded`` (node expansions).  ``heuristic``: ``"dijkstra2d"``
+    (:func:`heuristic_2d`, default) or ``"euclid"`` (``cost_rate_lb * distance``); both are
+    consistent, so the result is the lattice optimum either way."""
+    sx, sy, sz = problem.start_xyz
+    gx, gy, gz = problem.goal_xyz
+    if heuristic == "dijkstra2d":
+        h2 = heuristic_2d(problem, lattice)
+        use_h2 = True
+    elif heuristic == "euclid":
+        h2 = np.zeros((1, 1))
+        use_h2 = False
+    else:
+        raise InputError(f"heuristic {heuristic!r} must be 'dijkstra2d' or 'euclid'")
+    f, parent, expanded = _astar_kernel(lattice.x, lattice.y, lattice.z, lattice.valid, _OFFS,
+                                        lattice.start_links, lattice.goal_links, sx, sy, sz, gx, gy, gz,
+                                        np.asarray(problem.weights, float), float(problem.cost_rate_lb),
+                                        int(max_expansions), h2, use_h2, *problem.seg_args)
+    if not np.isfinite(f):
+        return {"waypoints": None, "f": math.inf, "expanded": int(expanded)}
+    n = lattice.valid.size
+    ids = []
+    v = n + 1
+    while v != -1:
+        ids.append(v)
+        v = parent[v]
+    ids = ids[::-1]
+    pts = [problem.start_xyz]
+    inner = np.array([i for i in ids if i < n], dtype=np.int64)
+    if inner.size:
+        pts.extend(map(tuple, lattice.xyz(inner)))
+    pts.append(problem.goal_xyz)
+    return {"waypoints": np.array(pts, dtype=float), "f": float(f), "expanded": int(expanded)}
+
+
+# --------------------------------------------------------------------------- refinement
+
+
+def _seg_f(problem: PlanningProblem, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(f per segment, valid per segment); invalid segments get f = inf."""
+    codes, out = problem.motion_codes(a, b, want_cost=True)
+    f = problem.f_of(np.where(np.isfinite(out[:, :4]), out[:, :4], np.inf))
+    ok = codes == OK
+    return np.where(ok, f, np.inf), ok
+
+
+def shortcut(problem: PlanningProblem, wp: np.ndarray) -> np.ndarray:
+    """Greedy shortcutting: from each kept vertex jump to the farthest later vertex whose
+    direct segment is valid and not costlier than the chain it replaces."""
+    wp = np.asarray(wp, float)
+    if len(wp) <= 2:
+        return wp
+    segf, _ = _seg_f(problem, wp[:-1], wp[1:])
+    cum = np.concatenate([[0.0], np.cumsum(segf)])
+    out = [0]
+    i = 0
+    while i < len(wp) - 1:
+        js = np.arange(len(wp) - 1, i, -1)
+        fd, ok = _seg_f(problem, np.repeat(wp[i:i + 1], js.size, axis=0), wp[js])
+        good = ok & (fd <= cum[js] - cum[i] + 1e-9)
+        j = int(js[np.argmax(good)]) if good.any() else i + 1
+        out.append(j)
+        i = j
+    return wp[out]
+
+
+_DIRS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) != (0, 0, 0)],
+                 dtype=float)
+_DIRS /= np.linalg.norm(_DIRS, axis=1)[:, None]
+
+
+def relax_vertices(problem: PlanningProblem, wp: np.ndarray, step0_m: float, min_step_m: float = 0.05,
+                   max_passes: int = 30) -> np.ndarray:
+    """Pattern search on each interior vertex (26 directions, step halving): move it while the
+    two adjacent segments stay valid and their f decreases."""
+    wp = np.array(wp, float)
+    k = len(wp)
+    if k <= 2:
+        return wp
+    steps = [step0_m]
+    while steps[-1] / 2 >= min_step_m:
+        steps.append(steps[-1] / 2)
+    for _ in range(max_passes):
+        improved = False
+        for i in range(1, k - 1):
+            fa, _ = _seg_f(problem, wp[i - 1:i], wp[i:i + 1])
+            fb, _ = _seg_f(problem, wp[i:i + 1], wp[i + 1:i + 2])
+            best = float(fa[0] + fb[0])
+            for s in steps:
+                moved = True
+                while moved:
+                    moved = False
+                    cand = wp[i] + s * _DIRS
+                    fa, _ = _seg_f(problem, np.repeat(wp[i - 1:i], len(cand), 0), cand)
+                    fb, _ = _seg_f(problem, cand, np.repeat(wp[i + 1:i + 2], len(cand), 0))
+                    tot = fa + fb
+                    j = int(np.argmin(tot))
+                    if tot[j] < best - 1e-9:
+                        best = float(tot[j])
+                        wp[i] = cand[j]
+                        moved = improved = True
+        if not improved:
+            break
+    return wp
+
+
+def refine_path(problem: PlanningProblem, wp: np.ndarray, step0_m: float | None = None,
+                time_limit_s: float = np.inf) -> np.ndarray:
+    """Shortcut, relax vertices, shortcut again (f never increases; validity kept)."""
+    t0 = time.perf_counter()
+    if step0_m is None:
+        step0_m = 2.0 * problem.grid.resolution_m
+    wp = shortcut(problem, wp)
+    if time.perf_counter() - t0 < time_limit_s:
+        wp = relax_vertices(problem, wp, step0_m)
+        wp = shortcut(problem, wp)
+    return wp
+
+
+def plan_grid(problem: PlanningProblem, step_cells: int = 6, dz_m: float | None = None, refine: bool = True,
+              max_expansions: int = 50_000_000, heuristic: str = "dijkstra2d") -> dict:
+    """A* on the lattice then (optionally) :func:`refine_path`.  Returns a dict with
+    ``waypoints`` (or None), ``lattice_f``, ``expanded``, ``lattice`` and ``compute_s``."""
+    t0 = time.perf_counter()
+    lat = make_lattice(problem, step_cells, dz_m)
+    res = astar(problem, lat, max_expansions, heuristic)
+    wp = res["waypoints"]
+    if wp is not None and refine:
+        wp = refine_path(problem, wp)
+    return {"waypoints": wp, "lattice_f": res["f"], "expanded": res["expanded"], "lattice": lat,
+            "compute_s": time.perf_counter() - t0}
+
+
+__all__ = ["Lattice", "astar", "make_lattice", "plan_grid", "refine_path", "relax_vertices", "shortcut"]

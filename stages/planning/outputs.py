@@ -1,0 +1,241 @@
+"""Plan outputs: GeoJSON, CSV tables and PNG figures of the STEP III result.
+
+* ``plan.geojson``: RFC 7946 FeatureCollection.  Feature 1 is the chosen trajectory as a
+  ``LineString`` of ``[lon, lat, altitude]`` (WGS 84, altitude [m] in the surface's vertical
+  datum).  RFC 7946 altitudes are ellipsoidal heights, which the maps do not give: the feature
+  properties state ``vertical_datum`` and ``heights_are_ellipsoidal: false``.  Its properties
+  also carry ``times_utc`` (ISO 8601 UTC per vertex), ``t_s``, ``alt_agl_m``, ``sigma_p_m``
+  and the map-CRS coordinates (``map_crs``, ``map_xyz_m``: [x, y, z] per vertex); feature 2
+  is a ``MultiPoint`` of the polynomial's waypoints (same conventions).
+* ``waypoints.csv``: one row per trajectory sample: ``t_utc, t_s, x_m, y_m, z_m, lon, lat,
+  alt_agl_m, sigma_p_m``.
+* ``candidates.csv``: one row per candidate D_j (seed 000 Tables II-III): ``label,
+  dop_threshold, C_l_m, C_r_m, C_d_m, C_e_m, f_m, flyable, max_sigma_p_m, energy_Wh,
+  flight_time_s, compute_time_s, chosen, reasons``.
+* ``top_view.png``, ``profile.png``, ``sigma_p.png`` (matplotlib Agg).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from pyproj import CRS, Transformer
+
+from skyroute.pipeline.errors import InputError
+from skyroute.stages.grid import Grid
+from skyroute.stages.planning.step3 import Candidate, utc_of
+
+__all__ = ["write_plan", "plan_geojson", "CANDIDATE_COLUMNS", "WAYPOINT_COLUMNS"]
+
+WAYPOINT_COLUMNS = ("t_utc", "t_s", "x_m", "y_m", "z_m", "lon", "lat", "alt_agl_m", "sigma_p_m")
+CANDIDATE_COLUMNS = ("label", "dop_threshold", "C_l_m", "C_r_m", "C_d_m", "C_e_m", "f_m", "flyable",
+                     "max_sigma_p_m", "energy_Wh", "flight_time_s", "compute_time_s", "chosen", "reasons")
+
+
+def _crs_of(grid_or_crs) -> tuple[CRS, Grid | None]:
+    if isinstance(grid_or_crs, Grid):
+        return grid_or_crs.crs, grid_or_crs
+    try:
+        return CRS.from_user_input(grid_or_crs), None
+    except Exception as exc:
+        raise InputError(f"cannot resolve CRS {grid_or_crs!r}: {exc}") from exc
+
+
+def _num(v: float) -> float | None:
+    return None if v is None or not math.isfinite(float(v)) else float(v)
+
+
+def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_datum: str) -> dict:
+    """The RFC 7946 FeatureCollection of ``candidate`` (see module docstring)."""
+    if candidate.xyz_m.shape[0] < 2:
+        raise InputError(f"candidate {candidate.label!r} has no trajectory to write")
+    crs, _ = _crs_of(grid_or_crs)
+    tr = Transformer.from_crs(crs, 4326, always_xy=True)
+    p = candidate.xyz_m
+    lon, lat = tr.transform(p[:, 0], p[:, 1])
+    coords = [[float(a), float(b), float(z)] for a, b, z in zip(lon, lat, p[:, 2], strict=True)]
+    epsg = crs.to_epsg()
+    crs_txt = f"EPSG:{epsg}" if epsg is not None else crs.to_wkt()
+    note = (f"altitudes are in the vertical datum '{vertical_datum}' of the surface model; heights are NOT "
+            "ellipsoidal (RFC 7946 expects ellipsoidal heights)")
+    props = {
+        "name": f"skyroute plan {candidate.label}",
+        "label": candidate.label,
+        "dop_threshold": _num(candidate.dop_threshold) if candidate.dop_threshold is not None else None,
+        "vertical_datum": vertical_datum,
+        "heights_are_ellipsoidal": False,
+        "altitude_note": note,
+        "start_time_utc": utc_of(start_time_utc, [0.0])[0],
+        "times_utc": utc_of(start_time_utc, candidate.t_s),
+        "t_s": [float(v) for v in candidate.t_s],
+        "alt_agl_m": [float(v) for v in candidate.alt_agl_m],
+        "sigma_p_m": [_num(v) for v in candidate.sigma_p_m],
+        "map_crs": crs_txt,
+        "map_xyz_m": [[float(a), float(b), float(c)] for a, b, c in p],
+        "C_l_m": _num(candidate.C_l), "C_r_m": _num(candidate.C_r), "C_d_m": _num(candidate.C_d),
+        "C_e_m": _num(candidate.C_e), "f_m": _num(candidate.f), "flyable": bool(candidate.flyable),
+        "max_sigma_p_m": _num(candidate.max_sigma_p_m), "energy_Wh": _num(candidate.energy_Wh),
+        "flight_time_s": _num(candidate.flight_time_s),
+    }
+    features = [{"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords}, "properties": props}]
+    wp = np.asarray(candidate.waypoints, float)
+    if wp.shape[0]:
+        wl, wa = tr.transform(wp[:, 0], wp[:, 1])
+        knots = np.concatenate([[0.0], np.cumsum(candidate.segment_times_s)]) + float(candidate.t_s[0])
+        features.append({"type": "Feature",
+                         "geometry": {"type": "MultiPoint",
+                                      "coordinates": [[float(a), float(b), float(z)]
+                                                      for a, b, z in zip(wl, wa, wp[:, 2], strict=True)]},
+                         "properties": {"name": "polynomial waypoints", "vertical_datum": vertical_datum,
+                                        "heights_are_ellipsoidal": False, "map_crs": crs_txt,
+                                        "map_xyz_m": wp.tolist(), "times_utc": utc_of(start_time_utc, knots),
+                                        "t_s": knots.tolist()}})
+    return {"type": "FeatureCollection", "features": features}
+
+
+def _write_csv(path: Path, header, rows) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        w.writerows(rows)
+
+
+def _fmt(v, nd=3) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    v = float(v)
+    return "nan" if not math.isfinite(v) else f"{v:.{nd}f}"
+
+
+def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or_crs, out_dir, start_time_utc,
+               vertical_datum: str, *, surface_m=None, terrain_m=None, floor_m=None, cost_m=None,
+               figures: bool = True) -> dict[str, Path]:
+    """Write ``plan.geojson``, ``waypoints.csv``, ``candidates.csv`` and the figures to ``out_dir``.
+
+    ``candidate``: the chosen one (:func:`~skyroute.stages.planning.step3.choose`) or None (no
+    flyable plan: only ``candidates.csv`` is written, with every reason).  ``grid_or_crs``: the
+    scenario :class:`~skyroute.stages.grid.Grid` (needed for the map figures) or a CRS.
+    ``start_time_utc``: UTC of mission time 0.  Optional (ny, nx) rasters for the figures:
+    ``surface_m`` / ``terrain_m`` (profile), ``floor_m`` (lowest admissible altitude, e.g. the
+    coverage floor), ``cost_m`` (dimensionless cost map for the top view).  Returns the paths.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    crs, grid = _crs_of(grid_or_crs)
+    files: dict[str, Path] = {}
+    rows = []
+    for c in candidates:
+        rows.append([c.label, _fmt(c.dop_threshold, 2), _fmt(c.C_l, 1), _fmt(c.C_r, 1), _fmt(c.C_d, 1),
+                     _fmt(c.C_e, 1), _fmt(c.f, 1), _fmt(bool(c.flyable)), _fmt(c.max_sigma_p_m, 3),
+                     _fmt(c.energy_Wh, 2), _fmt(c.flight_time_s, 1), _fmt(c.compute_time_s, 2),
+                     _fmt(candidate is not None and c is candidate), "; ".join(c.reasons)])
+    files["candidates.csv"] = out / "candidates.csv"
+    _write_csv(files["candidates.csv"], CANDIDATE_COLUMNS, rows)
+    if candidate is None:
+        return files
+    gj = plan_geojson(candidate, grid_or_crs, start_time_utc, vertical_datum)
+    files["plan.geojson"] = out / "plan.geojson"
+    files["plan.geojson"].write_text(json.dumps(gj, indent=1, allow_nan=False))
+    tr = Transformer.from_crs(crs, 4326, always_xy=True)
+    p = candidate.xyz_m
+    lon, lat = tr.transform(p[:, 0], p[:, 1])
+    utc = utc_of(start_time_utc, candidate.t_s)
+    wrows = [[utc[i], f"{candidate.t_s[i]:.3f}", f"{p[i, 0]:.3f}", f"{p[i, 1]:.3f}", f"{p[i, 2]:.3f}",
+              f"{lon[i]:.9f}", f"{lat[i]:.9f}", f"{candidate.alt_agl_m[i]:.3f}", _fmt(candidate.sigma_p_m[i], 4)]
+             for i in range(p.shape[0])]
+    files["waypoints.csv"] = out / "waypoints.csv"
+    _write_csv(files["waypoints.csv"], WAYPOINT_COLUMNS, wrows)
+    if figures:
+        files.update(_figures(candidate, candidates, grid, out, vertical_datum, surface_m, terrain_m, floor_m,
+                              cost_m))
+    return files
+
+
+def _ras(a):
+    return None if a is None else np.asarray(getattr(a, "values", a), dtype=float)
+
+
+def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_m) -> dict[str, Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = {}
+    p = cand.xyz_m
+    # top view
+    fig, ax = plt.subplots(figsize=(8, 6), dpi=100)
+    if grid is not None:
+        xmin, ymin, xmax, ymax = grid.bounds
+        ext = (xmin, xmax, ymin, ymax)
+        cm, fl = _ras(cost_m), _ras(floor_m)
+        if cm is not None:
+            im = ax.imshow(cm, extent=ext, cmap="YlOrRd", interpolation="nearest", alpha=0.8)
+            fig.colorbar(im, ax=ax, shrink=0.7).set_label("cost map [-]")
+        if fl is not None:
+            ax.contour(np.linspace(xmin, xmax, grid.nx), np.linspace(ymax, ymin, grid.ny),
+                       np.where(np.isfinite(fl), fl, np.nanmax(np.where(np.isfinite(fl), fl, np.nan)) + 50),
+                       levels=8, colors="steelblue", linewidths=0.6)
+            ax.plot([], [], color="steelblue", lw=0.6, label="admissible floor (contours)")
+    for c in cands:
+        if c.xyz_m.shape[0] and c is not cand:
+            ax.plot(c.xyz_m[:, 0], c.xyz_m[:, 1], lw=1, alpha=0.6, label=f"{c.label} (f={c.f:.0f} m)")
+    ax.plot(p[:, 0], p[:, 1], "k-", lw=2, label=f"chosen {cand.label} (f={cand.f:.0f} m)")
+    ax.plot(p[0, 0], p[0, 1], "go", ms=8, label="start")
+    ax.plot(p[-1, 0], p[-1, 1], "r*", ms=12, label="goal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title("plan, top view")
+    fig.tight_layout()
+    files["top_view.png"] = out / "top_view.png"
+    fig.savefig(files["top_view.png"])
+    plt.close(fig)
+    # lateral profile
+    dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1))])
+    fig, ax = plt.subplots(figsize=(9, 4), dpi=100)
+    if grid is not None:
+        col = np.clip(np.floor((p[:, 0] - grid.x0) / grid.resolution_m).astype(int), 0, grid.nx - 1)
+        row = np.clip(np.floor((grid.y1 - p[:, 1]) / grid.resolution_m).astype(int), 0, grid.ny - 1)
+        for ras, style, lab in ((_ras(surface_m), dict(color="0.5", alpha=0.5), "surface (buildings)"),
+                                (_ras(terrain_m), dict(color="saddlebrown", alpha=0.6), "terrain")):
+            if ras is not None:
+                ax.fill_between(dist, np.nanmin(ras) - 5, ras[row, col], step="mid", label=lab, **style)
+        fl = _ras(floor_m)
+        if fl is not None:
+            ax.plot(dist, np.where(np.isfinite(fl[row, col]), fl[row, col], np.nan), "b--", lw=1,
+                    label="admissible floor")
+    ax.plot(dist, p[:, 2], "k-", lw=2, label=f"trajectory {cand.label}")
+    ax.set_xlabel("horizontal distance along the path [m]")
+    ax.set_ylabel(f"altitude [m] ({datum[:40]})")
+    ax.legend(fontsize=7)
+    ax.set_title("lateral profile")
+    fig.tight_layout()
+    files["profile.png"] = out / "profile.png"
+    fig.savefig(files["profile.png"])
+    plt.close(fig)
+    # sigma_p
+    fig, ax = plt.subplots(figsize=(9, 3.5), dpi=100)
+    for c in cands:
+        if c.xyz_m.shape[0] and np.isfinite(c.sigma_p_m).any():
+            ax.plot(c.t_s, c.sigma_p_m, lw=2 if c is cand else 1, label=c.label)
+    dp = getattr(cand, "dp_max_m", None)
+    if dp is not None:
+        ax.axhline(dp, color="r", ls="--", label="dp_max")
+    ax.set_xlabel("mission time [s]")
+    ax.set_ylabel("sigma_p [m]")
+    ax.legend(fontsize=7)
+    ax.set_title("predicted navigation error along the trajectories")
+    fig.tight_layout()
+    files["sigma_p.png"] = out / "sigma_p.png"
+    fig.savefig(files["sigma_p.png"])
+    plt.close(fig)
+    return files

@@ -1,0 +1,143 @@
+"""STEP I driver (seed 000 section III-A, seed 001 section 3.1).
+
+For each GNSS coverage level D_j one :class:`~skyroute.stages.planning.problem.PlanningProblem`
+is solved by a planner (``"bitstar"``: OMPL BIT*, seed 000; ``"astar"``: the deterministic
+lattice A* of :mod:`.grid_planner`), giving an optimised polygonal chain and its costs.
+
+Energy feasibility (seed 000 III-A.3): when the chain needs more energy E_w than the battery
+holds, the level is re-planned with a larger length weight (w_l doubled; w_l = sum of the
+weights if it was 0), at most ``max_tries`` plans in all (N_t).  If every try is still
+infeasible the level's status is ``"energy_infeasible"`` with the numbers in ``reason``.
+
+A level whose start or goal is not a valid state (e.g. below the coverage floor of D_j) yields
+``status="no_solution"`` and the reason (seed 001 Table 4, mission 2, D1).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from skyroute.pipeline.errors import InputError, UnknownNameError
+from skyroute.stages.planning.grid_planner import plan_grid, refine_path
+from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
+
+PLANNERS = ("bitstar", "astar")
+
+
+@dataclass
+class Step1Result:
+    """One level's STEP I outcome.  ``waypoints`` (k, 3) [m] (None without a solution),
+    ``costs`` {C_l, C_r, C_d, C_e} [m], ``f`` (eq. 11 with the ORIGINAL weights), ``energy_J``,
+    ``time_s``, ``compute_s`` (wall clock of the whole level), ``status`` ("solved",
+    "no_solution", "energy_infeasible"), ``reason`` (why not solved, "" otherwise)."""
+
+    waypoints: np.ndarray | None
+    costs: dict
+    f: float
+    energy_J: float
+    time_s: float
+    compute_s: float
+    status: str
+    reason: str = ""
+    label: str = ""
+    planner: str = ""
+    tries: int = 0
+    weights_used: tuple[float, ...] = ()
+    info: dict = field(default_factory=dict)
+
+    @property
+    def solved(self) -> bool:
+        return self.status == "solved"
+
+
+def _empty(problem: PlanningProblem, planner: str, status: str, reason: str, t0: float, tries: int = 0
+           ) -> Step1Result:
+    return Step1Result(None, {k: math.nan for k in COST_NAMES}, math.inf, math.nan, math.nan,
+                       time.perf_counter() - t0, status, reason, problem.label, planner, tries, problem.weights)
+
+
+def _check(planner: str, time_budget_s: float) -> None:
+    if planner not in PLANNERS:
+        raise UnknownNameError("planner", planner, PLANNERS)
+    if not (isinstance(time_budget_s, int | float) and math.isfinite(time_budget_s) and time_budget_s > 0):
+        raise InputError(f"time budget {time_budget_s} s must be a positive number of seconds (e.g. 5)")
+
+
+def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, seed: int, refine: bool,
+                step_cells: int, max_iterations: int | None) -> tuple[np.ndarray | None, dict]:
+    if planner == "astar":
+        r = plan_grid(problem, step_cells=step_cells, refine=refine)
+        return r["waypoints"], {"lattice_f": r["lattice_f"], "expanded": r["expanded"]}
+    from skyroute.stages.planning.bitstar import plan_bitstar
+
+    r = plan_bitstar(problem, time_budget_s, seed=seed, max_iterations=max_iterations)
+    wp = r["waypoints"]
+    info = {k: v for k, v in r.items() if k != "waypoints"}
+    if wp is not None and refine:
+        wp = refine_path(problem, wp)
+    return wp, info
+
+
+def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s: float = 5.0, seed: int = 0,
+               max_tries: int = 3, refine: bool = True, step_cells: int = 6,
+               max_iterations: int | None = None) -> Step1Result:
+    """STEP I on one level: plan, check the energy, re-plan with larger w_l if needed.
+
+    ``planner``: one of :data:`PLANNERS`; ``time_budget_s`` [s] > 0: BIT*'s wall-clock budget
+    per try (A* runs to completion); ``seed``: BIT* random seed (OMPL seed = seed + 1, OMPL
+    ignores 0); ``max_iterations``: stop BIT* after that many iterations (reproducible runs);
+    ``refine``: shortcut + vertex relaxation of the chain (never increases f); ``step_cells``:
+    A* lattice step.  Raises UnknownNameError / InputError for a bad planner / budget.
+    """
+    _check(planner, time_budget_s)
+    if int(max_tries) < 1:
+        raise InputError(f"max_tries {max_tries} must be >= 1 (N_t)")
+    t0 = time.perf_counter()
+    why = problem.endpoint_problem()
+    if why:
+        return _empty(problem, planner, "no_solution", why, t0)
+    battery = problem.vehicle.battery_energy_j
+    w = list(problem.weights)
+    best = None
+    info: dict = {"tries": []}
+    for attempt in range(int(max_tries)):
+        prob = problem if attempt == 0 else problem.with_weights(w)
+        wp, inf = _solve_once(prob, planner, time_budget_s, seed + attempt, refine, step_cells, max_iterations)
+        if wp is None:
+            info["tries"].append({"weights": tuple(w), "solved": False, **inf})
+            if attempt == 0:
+                r = _empty(problem, planner, "no_solution",
+                           f"{problem.label}: {planner} found no path within the budget ({time_budget_s:g} s)", t0, 1)
+                r.info = info
+                return r
+            break
+        pc = problem.path_costs(wp)
+        info["tries"].append({"weights": tuple(w), "solved": True, "energy_J": pc["energy_J"], "f": pc["f"], **inf})
+        if best is None or pc["energy_J"] < best[1]["energy_J"]:
+            best = (wp, pc, tuple(w), attempt + 1)
+        if pc["energy_J"] <= battery:
+            break
+        w[0] = 2.0 * w[0] if w[0] > 0 else float(sum(w))
+    wp, pc, wused, ntry = best
+    status, reason = "solved", ""
+    if pc["energy_J"] > battery:
+        status = "energy_infeasible"
+        reason = (f"{problem.label}: the best path needs {pc['energy_J'] / 3600:.1f} Wh, more than the battery's "
+                  f"{battery / 3600:.1f} Wh after {len(info['tries'])} tries with increasing w_l (N_t = {max_tries})")
+    return Step1Result(wp, {k: pc[k] for k in COST_NAMES}, pc["f"], pc["energy_J"], pc["time_s"],
+                       time.perf_counter() - t0, status, reason, problem.label, planner, len(info["tries"]),
+                       wused, info)
+
+
+def step1_all_levels(problems: list[PlanningProblem], planner: str = "bitstar", time_budget_s: float = 5.0,
+                     seed: int = 0, max_tries: int = 3, **kwargs) -> list[Step1Result]:
+    """:func:`plan_step1` on every coverage level (same planner, budget and seed per level)."""
+    _check(planner, time_budget_s)
+    return [plan_step1(p, planner, time_budget_s, seed, max_tries, **kwargs) for p in problems]
+
+
+__all__ = ["PLANNERS", "Step1Result", "plan_step1", "step1_all_levels"]

@@ -1,0 +1,219 @@
+"""STEP I planner (seed 000 III-A): problem costs/validity, lattice A*, OMPL BIT*, energy loop."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import xarray as xr
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from skyroute.pipeline.errors import InputError, PlanningError, UnknownNameError
+from skyroute.stages.energy import energy_cost
+from skyroute.stages.grid import Grid
+from skyroute.stages.planning.grid_planner import _OFFS, astar, make_lattice, plan_grid
+from skyroute.stages.planning.problem import build_problem
+from skyroute.stages.planning.step1 import plan_step1, step1_all_levels
+from skyroute.stages.vehicle import load_vehicle
+
+VEH = load_vehicle("dji-m300-rtk")
+
+
+def _surface(nx_m=200.0, ny_m=100.0, res=2.0):
+    g = Grid.from_bounds("EPSG:32635", 0, 0, nx_m, ny_m, res)
+    t = g.dataarray(np.zeros(g.shape), "terrain", units="m")
+    return g, xr.Dataset({"terrain": t, "surface": t})
+
+
+def make_problem(risk=0.3, landing=0.2, wind=(0.0, 0.0, 0.0), block=True, coverage=None, weights=(1, 1, 1, 1),
+                 start=(10, 50, 20), goal=(190, 50, 20), vehicle=VEH, size=(200.0, 100.0), **kw):
+    g, ds = _surface(*size)
+    clear = np.zeros(g.shape)
+    if block:  # a tower x 80..120 m, y 20..80 m whose clearance floor is 70 m
+        clear[10:40, 40:60] = 70.0
+    return build_problem(ds, clear, coverage, risk, landing, wind, vehicle, weights, start, goal, 0.0, 80.0, **kw)
+
+
+# ------------------------------------------------------------------ costs and validity
+
+
+def test_costs_closed_form_uniform_maps():
+    pr = make_problem(block=False)
+    p0 = np.array([[10.0, 50.0, 20.0], [30.0, 10.0, 20.0], [100.0, 50.0, 20.0]])
+    p1 = np.array([[190.0, 50.0, 20.0], [170.0, 90.0, 35.0], [100.0, 50.0, 20.0]])
+    c = pr.segment_costs(p0, p1)
+    L = np.linalg.norm(p1 - p0, axis=1)
+    np.testing.assert_allclose(c[:, 0], L, rtol=1e-12)
+    np.testing.assert_allclose(c[:, 1], 0.3 * L, rtol=1e-12, atol=1e-12)   # risk * length
+    np.testing.assert_allclose(c[:, 2], 0.2 * L, rtol=1e-12, atol=1e-12)   # landing * length
+    np.testing.assert_allclose(c[:, 3], L, rtol=1e-12, atol=1e-12)         # no wind: E_w / E_0 = 1
+    pc = pr.path_costs([[10, 50, 20], [100, 50, 20], [190, 50, 20]])
+    assert pc["f"] == pytest.approx((1 + 0.3 + 0.2 + 1) * 180.0, rel=1e-12)
+    assert pc["time_s"] == pytest.approx(180.0 / VEH.cruise_speed_mps, rel=1e-12)   # g = v_c without wind
+
+
+def test_risk_integral_exact_on_a_step_map():
+    g, _ = _surface()
+    risk = np.zeros(g.shape)
+    risk[:, 50:] = 1.0          # x >= 100 m
+    pr = make_problem(risk=risk, block=False)
+    p0, p1 = np.array([50.0, 30.0, 20.0]), np.array([150.0, 70.0, 30.0])
+    L = float(np.linalg.norm(p1 - p0))
+    c = pr.segment_costs(p0, p1)[0]
+    assert c[1] == pytest.approx(0.5 * L, rel=1e-12)   # half of the segment lies at x >= 100 m
+
+
+def test_energy_cost_matches_energy_module_with_wind():
+    wind = (4.0, -2.0, 0.0)
+    pr = make_problem(block=False, wind=wind)
+    p0 = np.array([[10.0, 50.0, 20.0], [190.0, 10.0, 20.0], [20.0, 20.0, 20.0]])
+    p1 = np.array([[190.0, 50.0, 20.0], [10.0, 90.0, 40.0], [180.0, 60.0, 30.0]])
+    ref = energy_cost(p0, p1, lambda pts: np.tile(wind, (len(pts), 1)), VEH, subsegment_m=10.0)
+    np.testing.assert_allclose(pr.segment_costs(p0, p1)[:, 3], ref, rtol=1e-10)
+    # tail wind (east): E_w / E_0 < 1, so the heuristic rate must be below 1 + 0.3 + 0.2 + ratio
+    assert pr.segment_costs(p0[:1], p1[:1])[0, 3] < 180.0
+    ratio = pr.segment_costs(p0, p1)[:, 3] / np.linalg.norm(p1 - p0, axis=1)
+    assert pr.energy_ratio_lb <= ratio.min()
+
+
+def test_motion_validity_reasons():
+    pr = make_problem()
+    # straight through the tower at 20 m
+    assert not pr.motion_valid([10, 50, 20], [190, 50, 20])[0]
+    assert "below the lowest admissible altitude" in pr.explain_motion([10, 50, 20], [190, 50, 20])
+    # climb of 30 m over 60 m: 26.6 deg > 15 deg
+    assert pr.explain_motion([10, 90, 20], [70, 90, 50]) == "flight-path angle above the vehicle maximum"
+    # 15 deg exactly-ish is fine: dz = 0.99 * L tan(15 deg)
+    dz = 0.99 * 60 * math.tan(math.radians(15))
+    assert pr.motion_valid([10, 90, 20], [70, 90, 20 + dz])[0]
+    # a one-cell wall crossed between any coarse samples is still caught (exact cell traversal)
+    g, ds = _surface()
+    clear = np.zeros(g.shape)
+    clear[:, 75] = 60.0                       # x in [150, 152) m
+    wall = build_problem(ds, clear, None, 0, 0, (0, 0, 0), VEH, (1, 0, 0, 0), (10, 50, 20), (190, 50, 20), 0, 80)
+    assert not wall.motion_valid([149.99, 10, 20], [152.01, 90, 20])[0]
+    assert wall.motion_valid([100, 10, 20], [149.99, 90, 20])[0]
+    assert "inside obstacle clearance" in wall.explain_invalid((151, 50, 20))
+
+
+# ------------------------------------------------------------------ lattice A* vs Dijkstra
+
+
+def _dijkstra_oracle(pr, lat):
+    nz, ny, nx = lat.shape
+    n = nz * ny * nx
+    kk, rr, cc = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    ids = ((kk * ny + rr) * nx + cc).ravel()
+    a_list, b_list = [], []
+    for dk, di, dj in _OFFS:
+        k2, r2, c2 = kk.ravel() + dk, rr.ravel() + di, cc.ravel() + dj
+        inside = (k2 >= 0) & (k2 < nz) & (r2 >= 0) & (r2 < ny) & (c2 >= 0) & (c2 < nx)
+        a_list.append(ids[inside])
+        b_list.append(((k2 * ny + r2) * nx + c2)[inside])
+    a, b = np.concatenate(a_list), np.concatenate(b_list)
+    S, G = n, n + 1
+    a = np.concatenate([a, np.full(lat.start_links.size, S), lat.goal_links, [S]])
+    b = np.concatenate([b, lat.start_links, np.full(lat.goal_links.size, G), [G]])
+    valid_node = np.concatenate([lat.valid.ravel(), [True, True]])
+    keep = valid_node[a] & valid_node[b]
+    a, b = a[keep], b[keep]
+    xyz = np.concatenate([lat.xyz(np.arange(n)), [pr.start_xyz, pr.goal_xyz]])
+    ok = pr.motion_valid(xyz[a], xyz[b])
+    w = pr.f_of(pr.segment_costs(xyz[a[ok]], xyz[b[ok]]))
+    m = coo_matrix((w, (a[ok], b[ok])), shape=(n + 2, n + 2)).tocsr()
+    return dijkstra(m, directed=True, indices=S)[G]
+
+
+def test_astar_is_exact_on_the_lattice():
+    pr = make_problem(size=(120.0, 60.0), start=(8, 30, 20), goal=(112, 30, 20), wind=(3.0, 1.0, 0.0),
+                      block=False, risk=None, landing=None, weights=(1, 2, 1, 1))
+    g = pr.grid
+    risk = np.zeros(g.shape)
+    risk[5:25, 20:40] = 1.0      # a risky square in the middle: the optimum bends around it
+    pr = dataclasses.replace(pr, risk_cost=risk)
+    lat = make_lattice(pr, step_cells=4, dz_m=2.0)
+    res = astar(pr, lat)
+    assert astar(pr, lat, heuristic="euclid")["f"] == pytest.approx(res["f"], rel=1e-9)
+    ref = _dijkstra_oracle(pr, lat)
+    assert np.isfinite(ref)
+    assert res["f"] == pytest.approx(ref, rel=1e-9)
+    assert pr.path_costs(res["waypoints"])["f"] == pytest.approx(ref, rel=1e-9)
+    assert pr.path_costs(res["waypoints"])["valid"]
+
+
+# ------------------------------------------------------------------ BIT*
+
+
+def test_bitstar_path_valid_close_to_grid_and_reproducible():
+    pr = make_problem(wind=(3.0, -1.0, 0.0))
+    grid_res = plan_step1(pr, "astar", 5.0)
+    assert grid_res.solved
+    a = plan_step1(pr, "bitstar", 5.0, seed=3, max_iterations=6000)
+    b = plan_step1(pr, "bitstar", 5.0, seed=3, max_iterations=6000)
+    assert a.solved
+    wp = a.waypoints
+    assert pr.motion_valid(wp[:-1], wp[1:]).all()
+    np.testing.assert_allclose(wp[0], pr.start_xyz)
+    np.testing.assert_allclose(wp[-1], pr.goal_xyz)
+    np.testing.assert_array_equal(a.waypoints, b.waypoints)     # same seed + iterations: same path
+    assert a.f == pytest.approx(grid_res.f, rel=0.03)
+    # around the tower: longer than the straight line, no shorter than the lower bound
+    assert 180.0 < a.costs["C_l"] < 200.0
+
+
+# ------------------------------------------------------------------ energy loop, levels, bad input
+
+
+def test_energy_replan_loop_with_tiny_battery():
+    tiny = VEH.model_copy(update={"battery_capacity_mah": 10.0})   # 10 mAh * 52.8 V = 1.9 kJ
+    pr = make_problem(vehicle=tiny, weights=(1, 1, 1, 1))
+    r = plan_step1(pr, "astar", 5.0, max_tries=3)
+    assert r.status == "energy_infeasible"
+    assert r.tries == 3
+    assert [t["weights"][0] for t in r.info["tries"]] == [1.0, 2.0, 4.0]
+    assert "more than the battery" in r.reason and r.energy_J > tiny.battery_energy_j
+    ok = plan_step1(make_problem(), "astar", 5.0, max_tries=3)
+    assert ok.status == "solved" and ok.tries == 1 and ok.energy_J < VEH.battery_energy_j
+
+
+def test_level_with_start_below_coverage_floor_has_no_solution():
+    g, _ = _surface()
+    cov_hi = np.full(g.shape, 40.0)        # D1: covered only above 40 m; the start is at 20 m
+    cov_lo = np.full(g.shape, 5.0)
+    levels = [make_problem(coverage=cov_hi, dop_threshold=2.0, check_endpoints=False),
+              make_problem(coverage=cov_lo, dop_threshold=3.0, check_endpoints=False)]
+    res = step1_all_levels(levels, "astar", 5.0)
+    assert res[0].status == "no_solution" and res[0].waypoints is None
+    assert "below GNSS coverage floor for PDOP < 2" in res[0].reason and "start" in res[0].reason
+    assert res[1].status == "solved"
+    with pytest.raises(PlanningError, match="below GNSS coverage floor for PDOP < 2"):
+        make_problem(coverage=cov_hi, dop_threshold=2.0)
+
+
+def test_bad_inputs():
+    with pytest.raises(InputError, match="must be finite and >= 0"):
+        make_problem(weights=(1, -1, 0, 0))
+    with pytest.raises(InputError, match="all zero"):
+        make_problem(weights=(0, 0, 0, 0))
+    pr = make_problem()
+    with pytest.raises(UnknownNameError, match="astar, bitstar"):
+        plan_step1(pr, "rrtstar", 5.0)
+    with pytest.raises(InputError, match="time budget"):
+        plan_step1(pr, "astar", 0.0)
+    with pytest.raises(PlanningError, match="start .*inside obstacle clearance"):
+        make_problem(start=(100, 50, 20))
+    with pytest.raises(PlanningError, match="goal .*outside the planning area"):
+        make_problem(goal=(500, 50, 20))
+
+
+def test_grid_planner_refinement_never_increases_f():
+    pr = make_problem(wind=(2.0, 2.0, 0.0))
+    raw = plan_grid(pr, refine=False)
+    ref = plan_grid(pr, refine=True)
+    f_raw = pr.path_costs(raw["waypoints"])["f"]
+    f_ref = pr.path_costs(ref["waypoints"])
+    assert f_ref["valid"] and f_ref["f"] <= f_raw + 1e-9
+    assert f_raw == pytest.approx(raw["lattice_f"], rel=1e-12)

@@ -1,0 +1,170 @@
+"""STEP II (seed 000 Algorithm 1): RRT deconfliction against intruders crossing the STEP I
+chain (as in seed 000 Fig. 10-11).  Oracles: the exact capsule queries of the occupancy maps on
+every leg, and an independent dense brute force of own positions vs intruder positions in time;
+leg times against the energy model (stages.energy.segment_energy)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from skyroute.pipeline.errors import InputError
+from skyroute.stages.energy import segment_energy
+from skyroute.stages.grid import Grid
+from skyroute.stages.planning.problem import PlanningProblem
+from skyroute.stages.planning.rrt import Step2Result, chain_conflicts, deconflict
+from skyroute.stages.traffic import Intruder, build_occupancy
+from skyroute.stages.vehicle import load_vehicle
+
+X0, Y0 = 385000.0, 6672000.0                       # UTM 35N, Helsinki
+WIND = np.array([3.0, 0.0, 0.0])
+T_TOT, N_O, D_C, DT_C = 400.0, 20, 10.0, 10.0      # seed 000 case 2: dt = 20 s, dt_c = 10 s, d_c = 10 m
+CHAIN = np.array([[100, 300, 30], [300, 320, 30], [500, 300, 30], [700, 280, 30], [900, 300, 30.0]]) + [X0, Y0, 0]
+
+
+def make_problem(vehicle=None, wind=WIND):
+    g = Grid.from_bounds("EPSG:32635", X0, Y0, X0 + 1000, Y0 + 600, 5.0)
+    terr = np.zeros(g.shape)
+    veh = vehicle or load_vehicle("dji-m300-rtk")
+    return PlanningProblem(grid=g, terrain_m=terr, floor_m=terr + 10.0, ceiling_m=terr + 80.0,
+                           risk_cost=np.zeros(g.shape), landing_cost=np.zeros(g.shape), wind_uvw=wind,
+                           vehicle=veh, weights=(1, 1, 1, 1), start_xyz=tuple(CHAIN[0]),
+                           goal_xyz=tuple(CHAIN[-1]), min_agl_m=0.0, max_agl_m=80.0)
+
+
+def crossing_intruders():
+    """Two intruders that cross the chain when the drone gets there (t ~ 40 s and ~ 65 s)."""
+    return [Intruder("north-south", np.array([0.0, 80.0]), np.array([[500, -100, 30], [500, 700, 30.0]]) + [X0, Y0, 0], 2.0),
+            Intruder("diagonal", np.array([20.0, 120.0]), np.array([[800, 600, 30], [650, 0, 30.0]]) + [X0, Y0, 0], 2.0)]
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return make_problem()
+
+
+@pytest.fixture(scope="module")
+def intruders():
+    return crossing_intruders()
+
+
+@pytest.fixture(scope="module")
+def occ(intruders):
+    return build_occupancy(intruders, T_TOT, N_O, D_C, DT_C)
+
+
+def reference_leg_times(w):
+    r = segment_energy(w[:-1], w[1:], np.broadcast_to(WIND, (w.shape[0] - 1, 3)), "dji-m300-rtk")
+    return r["time_s"], r["energy_J"]
+
+
+def brute_force_min_gap(res: Step2Result, intruders, occ, dt=0.05, strict_slices=True):
+    """Smallest (distance - (r_i + d_c)) [m] between own positions (legs flown linearly in
+    time, sampled every dt s) and intruder positions sampled every dt s over the window the
+    occupancy maps reserve: [t_k - dt_c, t_{k+1} + dt_c] of the slice k containing t
+    (strict_slices) or [t - dt_c, t + dt_c]."""
+    t = np.arange(res.times_s[0], res.times_s[-1], dt)
+    t = np.r_[t, res.times_s[-1]]
+    own = np.stack([np.interp(t, res.times_s, res.waypoints[:, j]) for j in range(3)], axis=1)
+    gap = np.inf
+    for it in intruders:
+        if strict_slices:
+            k = np.minimum(np.floor((t - occ.t0_s) / occ.dt_s), occ.n_slices - 1)
+            a, b = occ.t0_s + k * occ.dt_s - DT_C, occ.t0_s + (k + 1) * occ.dt_s + DT_C
+        else:
+            a, b = t - DT_C, t + DT_C
+        a, b = np.maximum(a, it.times_s[0]), np.minimum(b, it.times_s[-1])
+        for i in np.nonzero(a <= b)[0]:
+            tau = np.r_[np.arange(a[i], b[i], dt), b[i]]
+            q = np.stack([np.interp(tau, it.times_s, it.xyz_m[:, j]) for j in range(3)], axis=1)
+            d = np.min(np.linalg.norm(q - own[i], axis=1))
+            gap = min(gap, d - (it.radius_m + D_C))
+    return gap
+
+
+def test_unchanged_when_conflict_free(problem):
+    res = deconflict(problem, CHAIN, None, t0_s=5.0)
+    assert res.status == "unchanged" and res.ok
+    np.testing.assert_array_equal(res.waypoints, CHAIN)
+    tau, e = reference_leg_times(CHAIN)
+    # arrival times / cumulative energy from the energy model (uniform wind: sub-segments equal)
+    np.testing.assert_allclose(np.diff(res.times_s), tau, rtol=1e-9)
+    np.testing.assert_allclose(res.times_s[0], 5.0)
+    np.testing.assert_allclose(np.diff(res.energy_J), e, rtol=1e-9)
+    # far traffic: also unchanged, same timing
+    far = [Intruder("far", np.array([0.0, 300.0]), np.array([[X0 + 50, Y0 + 550, 70], [X0 + 950, Y0 + 550, 70]]), 2.0)]
+    res2 = deconflict(problem, CHAIN, build_occupancy(far, T_TOT, N_O, D_C, DT_C))
+    assert res2.status == "unchanged"
+    np.testing.assert_allclose(np.diff(res2.times_s), tau, rtol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_deconflicts_crossing_traffic(problem, intruders, occ, seed):
+    tau, _ = reference_leg_times(CHAIN)
+    t_chain = np.r_[0.0, np.cumsum(tau)]
+    assert chain_conflicts(occ, CHAIN, t_chain).sum() >= 2          # the scenario does conflict
+    assert brute_force_min_gap(Step2Result(CHAIN, t_chain, t_chain, "x"), intruders, occ) < -5.0
+    res = deconflict(problem, CHAIN, occ, seed=seed, time_budget_s=30.0)
+    assert res.status == "deconflicted", res.reason
+    w, t = res.waypoints, res.times_s
+    np.testing.assert_allclose(w[0], CHAIN[0])
+    np.testing.assert_allclose(w[-1], CHAIN[-1])
+    assert np.all(np.diff(t) > 0)
+    # exact capsule queries on every leg
+    assert not occ.segment_conflicts(w[:-1], t[:-1], w[1:], t[1:]).any()
+    # static bounds on every leg, times and energies of the energy model, battery
+    assert problem.motion_valid(w[:-1], w[1:]).all()
+    ref_tau, ref_e = reference_leg_times(w)
+    np.testing.assert_allclose(np.diff(t), ref_tau, rtol=1e-9)
+    np.testing.assert_allclose(np.diff(res.energy_J), ref_e, rtol=1e-9)
+    assert res.energy_J[-1] <= problem.vehicle.battery_energy_j
+    # brute force (sampling error <= 10 m/s * 0.025 s per side: 0.5 m band)
+    assert brute_force_min_gap(res, intruders, occ, strict_slices=True) > -0.5
+    assert brute_force_min_gap(res, intruders, occ, strict_slices=False) > -0.5
+
+
+def test_seeded_and_reproducible(problem, occ):
+    a = deconflict(problem, CHAIN, occ, seed=7)
+    b = deconflict(problem, CHAIN, occ, seed=7)
+    assert a.status == b.status == "deconflicted"
+    np.testing.assert_array_equal(a.waypoints, b.waypoints)
+    np.testing.assert_array_equal(a.times_s, b.times_s)
+
+
+def test_energy_infeasible():
+    veh = load_vehicle("dji-m300-rtk").model_copy(update={"battery_capacity_mah": 100.0})   # 5.3 Wh
+    prob = make_problem(veh)
+    res = deconflict(prob, CHAIN, None)
+    assert res.status == "failed" and not res.ok and res.waypoints.shape == (0, 3)
+    assert "energy infeasible" in res.reason
+    res = deconflict(prob, CHAIN, build_occupancy(crossing_intruders(), T_TOT, N_O, D_C, DT_C), max_iter=200)
+    assert res.status == "failed" and "battery" in res.reason
+
+
+def test_unreachable_goal_reports_reasons(problem):
+    # an intruder hovering on the goal for the whole mission: the goal is always reserved
+    g = CHAIN[-1]
+    hover = [Intruder("on-goal", np.array([0.0, 400.0]), np.array([g, g]), 5.0)]
+    occ = build_occupancy(hover, T_TOT, N_O, D_C, DT_C)
+    res = deconflict(problem, CHAIN, occ, max_iter=300)
+    assert res.status == "failed"
+    assert "without reaching the goal" in res.reason and "traffic" in res.reason
+    assert res.iterations == 300
+
+
+def test_static_violation_of_step1_chain_is_reported(problem):
+    bad = CHAIN.copy()
+    bad[2, 2] = 5.0                                  # below the 10 m floor
+    res = deconflict(problem, bad, None)
+    assert res.status == "failed" and "violates the bounds" in res.reason
+
+
+def test_bad_input(problem, occ):
+    with pytest.raises(InputError, match="time_budget_s"):
+        deconflict(problem, CHAIN, occ, time_budget_s=0)
+    with pytest.raises(InputError, match="step1_waypoints"):
+        deconflict(problem, CHAIN[:1], occ)
+    with pytest.raises(InputError, match="max_iter"):
+        deconflict(problem, CHAIN, occ, max_iter=0)
+    with pytest.raises(InputError, match="before the occupancy maps"):
+        deconflict(problem, CHAIN, occ, t0_s=-50.0)

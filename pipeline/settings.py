@@ -156,6 +156,7 @@ class GnssSettings(FrozenModel):
     dop_thresholds: tuple[float, ...] = (2.0, 3.0, 4.0)
     window_min: NonNegFloat = 20.0
     step_min: PositiveFloat = 5.0
+    uere_m: PositiveFloat = 3.0  # pseudorange error (1 sigma) of the navigation filter [m]
 
     @field_validator("dop_thresholds")
     @classmethod

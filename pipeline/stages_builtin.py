@@ -252,19 +252,11 @@ def traffic_stage(surface: xr.Dataset, *, settings: TrafficStageSettings) -> xr.
     the terrain under each waypoint."""
     import numpy as np
 
-    from skyroute.stages.grid import Grid as _Grid
+    from skyroute.stages.planning.strategic import intruders_for
     from skyroute.stages.traffic import build_occupancy
 
-    grid = _Grid.from_dataarray(surface["terrain"])
-    terrain = surface["terrain"].values
-    records = []
-    for it in settings.intruders:
-        wp = np.asarray(it["waypoints"], dtype=float)
-        r, c = grid.index_of(wp[:, 1], wp[:, 2])
-        r = np.clip(r, 0, grid.ny - 1)
-        c = np.clip(c, 0, grid.nx - 1)
-        wp[:, 3] = wp[:, 3] + terrain[r, c]
-        records.append({"id": it["id"], "radius_m": it["radius_m"], "waypoints": wp.tolist()})
+    records = [{"id": i.id, "radius_m": i.radius_m, "waypoints": np.column_stack([i.times_s, i.xyz_m]).tolist()}
+               for i in intruders_for(settings.intruders, surface)]
     t_end = max(float(np.asarray(it["waypoints"])[:, 0].max()) for it in settings.intruders)
     occ = build_occupancy(records, t_total_s=t_end, n_slices=settings.n_slices, d_c_m=settings.margin_m,
                           dt_c_s=settings.time_margin_s)
@@ -313,3 +305,65 @@ def coverage_stage(surface: xr.Dataset, satellites: xr.Dataset, *, settings: Cov
 register(Stage("coverage", coverage_stage, _coverage_settings, inputs=("surface", "satellites"),
                code_modules=("skyroute.stages.coverage", "skyroute.stages.occlusion", "skyroute.stages.dop"),
                description="GNSS coverage floors per DOP threshold (worst case over the window)"))
+
+
+# --------------------------------------------------------------------------- strategic plan
+class PlanSettings(FrozenModel):
+    start_xy: tuple[float, float]
+    start_agl_m: float
+    goal_xy: tuple[float, float]
+    goal_agl_m: float
+    start_time_utc: str
+    vehicle: str
+    weights: tuple[float, float, float, float]
+    planner: str
+    time_budget_s: float
+    seed: int
+    max_tries: int
+    min_agl_m: float
+    max_agl_m: float
+    dop_kind: str
+    intruders: tuple
+    d_c_m: float
+    dt_c_s: float
+    uere_m: float = 3.0
+
+
+def _plan_settings(sc: Scenario) -> PlanSettings:
+    m, p = sc.mission, sc.planner
+    return PlanSettings(
+        start_xy=sc.point_xy(m.start), start_agl_m=m.start.alt_agl_m, goal_xy=sc.point_xy(m.goal),
+        goal_agl_m=m.goal.alt_agl_m, start_time_utc=m.start_time_utc.isoformat(), vehicle=sc.vehicle,
+        weights=p.weights, planner=p.name, time_budget_s=p.time_budget_s, seed=p.seed, max_tries=p.max_tries,
+        min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
+        dop_kind=sc.gnss.dop_kind, intruders=tuple(i.model_dump() for i in sc.traffic.intruders),
+        d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s, uere_m=sc.gnss.uere_m)
+
+
+def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Dataset, wind: xr.Dataset | None,
+               coverage: xr.Dataset | None, satellites: xr.Dataset | None, traffic: xr.Dataset | None, *,
+               settings: PlanSettings) -> xr.Dataset:
+    """Strategic plan (seed 000 III): STEP I-III for every coverage level and the choice."""
+    from skyroute.stages.planning.strategic import intruders_for, plan_strategic, plan_to_dataset
+
+    s = settings
+    intr = intruders_for(s.intruders, surface) if s.intruders else None
+    plan = plan_strategic(surface, environment, wind, clearance, coverage, satellites, traffic,
+                          start_xy=s.start_xy, start_agl_m=s.start_agl_m, goal_xy=s.goal_xy, goal_agl_m=s.goal_agl_m,
+                          start_time_utc=s.start_time_utc, vehicle=s.vehicle, weights=s.weights, planner=s.planner,
+                          time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, min_agl_m=s.min_agl_m,
+                          max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m,
+                          dt_c_s=s.dt_c_s, uere_m=s.uere_m)
+    return plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),
+                           s.start_time_utc)
+
+
+register(Stage("plan", plan_stage, _plan_settings, inputs=("surface", "environment", "clearance"),
+               optional_inputs=("wind", "coverage", "satellites", "traffic"),
+               code_modules=("skyroute.stages.planning.strategic", "skyroute.stages.planning.problem",
+                             "skyroute.stages.planning.step1", "skyroute.stages.planning.grid_planner",
+                             "skyroute.stages.planning.bitstar", "skyroute.stages.planning.rrt",
+                             "skyroute.stages.planning.step3", "skyroute.stages.planning.validate",
+                             "skyroute.stages.energy", "skyroute.stages.smoothing", "skyroute.stages.navigation",
+                             "skyroute.stages.vehicle"),
+               description="strategic plan: STEP I-III per DOP level and the chosen trajectory"))

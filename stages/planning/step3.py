@@ -159,6 +159,33 @@ def _split_long_legs(w, times, max_leg_s):
     return np.array(out_w), np.array(out_t)
 
 
+def _add_accel_legs(w, times, accel_mps2: float):
+    """Trapezoidal speed profile at the ends: the chain starts and ends at rest, so the first
+    (last) leg gets a waypoint at the end (start) of an acceleration (deceleration) phase at
+    ``accel_mps2`` [m/s^2]; the phase takes 2 d / v instead of d / v, so the schedule of the
+    rest of the chain shifts by d / v = v / (2 a) only (a few seconds at cruise speed)."""
+    w, t = np.asarray(w, float), np.asarray(times, float)
+    if t.size == 0 or accel_mps2 <= 0:
+        return w, t
+    out_w, out_t = list(w), list(t)
+    # last leg first, so the indices of the first one stay valid
+    for k, at_start in ((t.size - 1, False), (0, True)):
+        length = float(np.linalg.norm(out_w[k + 1] - out_w[k]))
+        if length <= 0:
+            continue
+        v = length / out_t[k]
+        d = min(v * v / (2 * accel_mps2), 0.45 * length)
+        if d <= 0:
+            continue
+        frac = d / length if at_start else 1 - d / length
+        mid = out_w[k] + (out_w[k + 1] - out_w[k]) * frac
+        t_ramp = 2 * d / v
+        t_rest = (length - d) / v
+        out_w.insert(k + 1, mid)
+        out_t[k:k + 1] = [t_ramp, t_rest] if at_start else [t_rest, t_ramp]
+    return np.array(out_w), np.array(out_t)
+
+
 def _check_samples(traj: MinSnapTrajectory, spacing_m: float):
     """Sample times of each segment (about spacing_m apart along the chord)."""
     chord = np.linalg.norm(np.diff(traj.waypoints, axis=0), axis=1)
@@ -171,8 +198,10 @@ def _check_samples(traj: MinSnapTrajectory, spacing_m: float):
     return t, s
 
 
-def _smooth(problem, w, seg_t, t0_s, occupancy, spacing_m, max_iter, fpa_tol_deg):
-    """Min-snap with time-aware midpoint insertion; returns (traj, message or '')."""
+def _smooth(problem, w, seg_t, t0_s, occupancy, spacing_m, max_iter, fpa_tol_deg, sample_dt_s=None):
+    """Min-snap with time-aware midpoint insertion; returns (traj, message or '').
+    Chords are checked at ``spacing_m`` and, if given, at the output sampling ``sample_dt_s``
+    (the validator's chords), so the output passes the same flight-path-angle rule."""
     tan_a = math.tan(math.radians(problem.vehicle.max_flight_path_angle_deg + fpa_tol_deg))
     for it in range(max_iter + 1):
         traj = min_snap(w, seg_t)
@@ -184,7 +213,16 @@ def _smooth(problem, w, seg_t, t0_s, occupancy, spacing_m, max_iter, fpa_tol_deg
         bad_ch = np.abs(d[:, 2]) > tan_a * h + 1e-9
         if occupancy is not None:
             bad_ch |= _conflicts(occupancy, p[:-1], t0_s + t[:-1], p[1:], t0_s + t[1:])
-        bad = np.unique(np.concatenate([seg[bad_pt], seg[:-1][bad_ch]]))
+        bad_out = np.zeros(0, dtype=int)
+        if sample_dt_s:
+            T = traj.duration_s
+            to = np.linspace(0.0, T, max(int(math.ceil(T / sample_dt_s - 1e-9)), 1) + 1)
+            po = traj.sample(to)
+            do = np.diff(po, axis=0)
+            steep = np.abs(do[:, 2]) > tan_a * np.hypot(do[:, 0], do[:, 1]) + 1e-9
+            knots = np.concatenate([[0.0], np.cumsum(traj.segment_times_s)])
+            bad_out = np.clip(np.searchsorted(knots, to[:-1][steep], side="right") - 1, 0, len(knots) - 2)
+        bad = np.unique(np.concatenate([seg[bad_pt], seg[:-1][bad_ch], bad_out]))
         if bad.size == 0:
             return traj, ""
         if it < max_iter:
@@ -274,7 +312,8 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
           occupancy: TrafficOccupancy | None = None, intruders: list[Intruder] | None = None,
           sample_dt_s: float = 0.5, check_spacing_m: float = 1.0, max_insert_iter: int = 10,
           max_leg_s: float = 10.0, gnss_sigma_m: float = DEFAULT_UERE_M, gnss_period_s: float = 1.0,
-          warmup_s: float = 60.0, fpa_tol_deg: float = 3.0, label: str | None = None) -> Candidate:
+          warmup_s: float = 60.0, fpa_tol_deg: float = 3.0, label: str | None = None,
+          max_retime_iter: int = 8, accel_mps2: float = 2.0) -> Candidate:
     """Smooth, check and cost one STEP II chain (see the module docstring).
 
     ``sky``: :func:`~skyroute.stages.almanac.sky_geometry` Dataset (time, sat) or None (no
@@ -289,6 +328,9 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     sigma_p).  ``fpa_tol_deg`` [deg]: tolerance on the flight-path angle of the *smooth*
     curve (the chain respects alpha exactly; min-snap rounding of a sharp vertical corner
     overshoots it by up to ~2 deg whatever the number of inserted midpoints).
+    ``max_retime_iter``: how many 10 % stretches of the schedule may bring the airspeed of the
+    smooth curve below the vehicle limit.
+    ``accel_mps2`` [m/s^2]: take-off and landing legs get a constant-acceleration ramp.
     """
     t_start = time.perf_counter()
     lab = label if label is not None else (getattr(problem, "label", "") or "candidate")
@@ -309,8 +351,25 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
         return _empty(lab, dop, ["STEP II chain has non-positive or infinite segment times"], t_start,
                       step2_result.status)
     reasons: list[str] = []
+    w, seg_t = _add_accel_legs(w, seg_t, accel_mps2)
     w, seg_t = _split_long_legs(w, seg_t, max_leg_s)
-    traj, msg = _smooth(problem, w, seg_t, t0, occupancy, check_spacing_m, max_insert_iter, fpa_tol_deg)
+    traj, msg = _smooth(problem, w, seg_t, t0, occupancy, check_spacing_m, max_insert_iter, fpa_tol_deg,
+                        sample_dt_s)
+    wind_of = wind_sampler(problem)
+    # time allocation: the take-off and landing ramps keep the minimum-snap curve near the
+    # chain's speeds; where it still exceeds the airspeed limit (headwind legs), the whole
+    # schedule is stretched by 10 % and re-solved (uniform scaling divides every velocity by
+    # the same factor, so this converges; the traffic re-check runs on the new schedule)
+    for _ in range(max_retime_iter):
+        if msg:
+            break
+        T = traj.duration_s
+        tt = np.linspace(0.0, T, max(int(math.ceil(T / sample_dt_s)), 1) + 1)
+        air = np.linalg.norm(traj.velocity(tt) - wind_of(traj.sample(tt)), axis=1)
+        if air.max() <= 0.97 * veh.max_airspeed_mps:
+            break
+        traj, msg = _smooth(problem, np.asarray(traj.waypoints, float), np.asarray(traj.segment_times_s) * 1.1,
+                            t0, occupancy, check_spacing_m, max_insert_iter, fpa_tol_deg, sample_dt_s)
     if msg:
         reasons.append(msg)
     # output samples

@@ -1,0 +1,177 @@
+"""The whole strategic planner (seed 000 section III): for every GNSS coverage level D_j,
+STEP I (optimised polygonal chain), STEP II (deconfliction against known traffic) and STEP III
+(minimum-snap smoothing, navigation-error check, eq. 15 costs); then the choice of the flyable
+candidate with minimum f.
+
+:func:`plan_strategic` takes the pipeline's datasets (surface, satellites, coverage, environment,
+wind, clearance, traffic) and returns a :class:`StrategicPlan`; :func:`plan_to_dataset` /
+:func:`plan_from_dataset` convert it to and from an xarray Dataset so the plan is cached like
+every other stage output.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from skyroute.pipeline.errors import PlanningError
+from skyroute.stages.planning.problem import build_problem, xyz_from_agl
+from skyroute.stages.planning.rrt import Step2Result, deconflict
+from skyroute.stages.planning.step1 import Step1Result, plan_step1
+from skyroute.stages.planning.step3 import Candidate, _empty, choose, explain_no_plan, step3
+from skyroute.stages.traffic import Intruder, TrafficOccupancy, intruders_from_records
+from skyroute.stages.vehicle import VehicleProfile, load_vehicle
+
+
+@dataclass
+class StrategicPlan:
+    """Every level's STEP I-III outcome and the chosen candidate (None if none is flyable)."""
+
+    chosen: Candidate | None
+    candidates: list[Candidate]
+    step1: list[Step1Result] = field(default_factory=list)
+    step2: list[Step2Result | None] = field(default_factory=list)
+    compute_s: float = 0.0
+
+    @property
+    def reason(self) -> str:
+        return "" if self.chosen is not None else explain_no_plan(self.candidates)
+
+
+def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Dataset | None,
+                   clearance: xr.Dataset, coverage: xr.Dataset | None, satellites: xr.Dataset | None,
+                   traffic: xr.Dataset | None, *, start_xy: tuple[float, float], start_agl_m: float,
+                   goal_xy: tuple[float, float], goal_agl_m: float, start_time_utc,
+                   vehicle: str | VehicleProfile = "dji-m300-rtk", weights=(1.0, 1.0, 1.0, 1.0),
+                   planner: str = "bitstar", time_budget_s: float = 5.0, seed: int = 0, max_tries: int = 3,
+                   min_agl_m: float = 0.0, max_agl_m: float = 120.0, dop_kind: str = "PDOP",
+                   intruders: list[Intruder] | None = None, d_c_m: float = 0.0, dt_c_s: float = 0.0,
+                   uere_m: float = 3.0) -> StrategicPlan:
+    """Plan the mission for every coverage level of ``coverage`` (one level without GNSS data)."""
+    t0 = time.perf_counter()
+    veh = load_vehicle(vehicle)
+    surf = surface[["terrain", "surface"]].load()
+    surface_2d = surf["surface"].values
+    clear = clearance["min_altitude_m"].load()
+    nofly = clearance["nofly"].load() if "nofly" in clearance else None
+    risk = environment["risk_cost"].load() if environment is not None else None
+    land = environment["landing_cost"].load() if environment is not None else None
+    wind_map = wind.load() if wind is not None else None
+    sky = satellites.load() if satellites is not None else None
+    occ = TrafficOccupancy.from_dataset(traffic.load()) if traffic is not None else None
+    start = xyz_from_agl(surf, *start_xy, start_agl_m)
+    goal = xyz_from_agl(surf, *goal_xy, goal_agl_m)
+    levels: list[tuple[float | None, xr.DataArray | None]]
+    if coverage is not None:
+        cov = coverage["coverage_floor"].load()
+        levels = [(float(d), cov.sel(threshold=d)) for d in cov["threshold"].values]
+    else:
+        levels = [(None, None)]
+    plan = StrategicPlan(None, [])
+    for d, floor_j in levels:
+        tl = time.perf_counter()
+        problem = build_problem(surf, clear, floor_j, risk, land, wind_map, veh, weights, start, goal,
+                                min_agl_m, max_agl_m, d, dop_kind=dop_kind, nofly=nofly, check_endpoints=False)
+        s1 = plan_step1(problem, planner=planner, time_budget_s=time_budget_s, seed=seed, max_tries=max_tries)
+        plan.step1.append(s1)
+        if not s1.solved:
+            plan.step2.append(None)
+            plan.candidates.append(_empty(problem.label, d, [f"STEP I: {s1.reason or s1.status}"], tl, s1.status))
+            continue
+        s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=max(time_budget_s, 1.0))
+        plan.step2.append(s2)
+        if s2.status == "failed":
+            plan.candidates.append(_empty(problem.label, d, [f"STEP II: {s2.reason}"], tl, s2.status))
+            continue
+        cand = step3(problem, s2, sky, surface_2d, start_time_utc=start_time_utc, occupancy=occ,
+                     intruders=intruders, label=problem.label, gnss_sigma_m=uere_m)
+        cand.compute_time_s = time.perf_counter() - tl
+        plan.candidates.append(cand)
+    plan.chosen = choose(plan.candidates)
+    plan.compute_s = time.perf_counter() - t0
+    return plan
+
+
+# ------------------------------------------------------------------ dataset round trip
+_SCALARS = ("C_l", "C_r", "C_d", "C_e", "f", "max_sigma_p_m", "energy_J", "flight_time_s", "compute_time_s")
+
+
+def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_utc) -> xr.Dataset:
+    """The candidate table (dim ``level``) and the chosen trajectory (dim ``sample``)."""
+    cands = plan.candidates
+    ds = xr.Dataset(coords={"level": np.arange(len(cands))})
+    ds["label"] = ("level", np.array([c.label for c in cands], dtype=object))
+    ds["dop_threshold"] = ("level", np.array([np.nan if c.dop_threshold is None else c.dop_threshold
+                                               for c in cands]), {"units": "1"})
+    units = {"C_l": "m", "C_r": "m", "C_d": "m", "C_e": "m", "f": "m", "max_sigma_p_m": "m", "energy_J": "J",
+             "flight_time_s": "s", "compute_time_s": "s"}
+    for k in _SCALARS:
+        ds[k] = ("level", np.array([float(getattr(c, k)) for c in cands]), {"units": units[k]})
+    ds["flyable"] = ("level", np.array([bool(c.flyable) for c in cands]))
+    ds["reasons"] = ("level", np.array(["; ".join(c.reasons) for c in cands], dtype=object))
+    ds["status"] = ("level", np.array([c.step2_status for c in cands], dtype=object))
+    chosen = -1 if plan.chosen is None else next(i for i, c in enumerate(cands) if c is plan.chosen)
+    ds.attrs.update({"chosen_level": chosen, "crs": str(crs), "vertical_datum": vertical_datum,
+                     "start_time_utc": pd.Timestamp(start_time_utc).isoformat(), "compute_s": plan.compute_s,
+                     "reason": plan.reason, "title": "skyroute strategic plan"})
+    if plan.chosen is not None:
+        c = plan.chosen
+        ds = ds.assign_coords(sample=np.arange(c.t_s.size))
+        ds["t_s"] = ("sample", c.t_s, {"units": "s", "long_name": "time since mission start"})
+        for i, ax in enumerate("xyz"):
+            ds[f"{ax}_m"] = ("sample", c.xyz_m[:, i], {"units": "m"})
+        ds["z_m"].attrs["vertical_datum"] = vertical_datum
+        for k in ("alt_agl_m", "speed_mps", "sigma_p_m"):
+            ds[k] = ("sample", np.asarray(getattr(c, k), float), {"units": "m" if k != "speed_mps" else "m s-1"})
+        ds["n_visible"] = ("sample", np.asarray(c.n_visible, np.int32), {"units": "1"})
+        ds = ds.assign_coords(waypoint=np.arange(len(c.waypoints)))
+        ds["waypoints"] = (("waypoint", "xyz"), np.asarray(c.waypoints, float), {"units": "m"})
+    return ds
+
+
+def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]]:
+    """Candidates (without their polynomial) back from :func:`plan_to_dataset`."""
+    cands = []
+    z = np.zeros(0)
+    chosen_i = int(ds.attrs.get("chosen_level", -1))
+    for i in range(ds.sizes["level"]):
+        row = ds.isel(level=i)
+        d = float(row["dop_threshold"])
+        kw = {k: float(row[k]) for k in _SCALARS}
+        reasons = [r for r in str(row["reasons"].values).split("; ") if r]
+        if i == chosen_i:
+            xyz = np.column_stack([ds["x_m"].values, ds["y_m"].values, ds["z_m"].values])
+            c = Candidate(str(row["label"].values), None if np.isnan(d) else d, ds["t_s"].values, xyz,
+                          ds["alt_agl_m"].values, ds["speed_mps"].values, ds["sigma_p_m"].values,
+                          ds["n_visible"].values, flyable=bool(row["flyable"]), reasons=reasons,
+                          waypoints=ds["waypoints"].values, step2_status=str(row["status"].values), **kw)
+        else:
+            c = Candidate(str(row["label"].values), None if np.isnan(d) else d, z, np.zeros((0, 3)), z, z, z,
+                          np.zeros(0, int), flyable=bool(row["flyable"]), reasons=reasons,
+                          step2_status=str(row["status"].values), **kw)
+        cands.append(c)
+    chosen = cands[chosen_i] if chosen_i >= 0 else None
+    return chosen, cands
+
+
+def intruders_for(traffic_settings_intruders, surface: xr.Dataset) -> list[Intruder]:
+    """Scenario intruder records (AGL waypoints) -> Intruders in the surface datum."""
+    from skyroute.stages.grid import Grid
+
+    grid = Grid.from_dataarray(surface["terrain"])
+    terrain = surface["terrain"].values
+    recs = []
+    for it in traffic_settings_intruders:
+        wp = np.asarray(it["waypoints"], dtype=float)
+        r, c = grid.index_of(wp[:, 1], wp[:, 2])
+        wp[:, 3] += terrain[np.clip(r, 0, grid.ny - 1), np.clip(c, 0, grid.nx - 1)]
+        recs.append({"id": it["id"], "radius_m": it["radius_m"], "waypoints": wp.tolist()})
+    return intruders_from_records(recs)
+
+
+__all__ = ["PlanningError", "StrategicPlan", "intruders_for", "plan_from_dataset", "plan_strategic",
+           "plan_to_dataset"]

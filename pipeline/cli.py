@@ -137,6 +137,66 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
         click.echo(str(f))
 
 
+@main.command("plan")
+@click.argument("scenario", required=False, default=None)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default: ./skyroute-out/SCENARIO/plan).")
+@click.option("--weights", default=None, metavar="W_L,W_R,W_D,W_E",
+              help="Cost weights of eq. 11: length, risk, landing, energy (overrides planner.weights).")
+@click.option("--planner", "planner_name", default=None, help="STEP I planner: bitstar or astar (overrides planner.name).")
+@click.option("--seed", type=int, default=None, help="Random seed of BIT* and the RRT (overrides planner.seed).")
+@click.option("--time-budget", "time_budget_s", type=float, default=None,
+              help="BIT* time per coverage level [s] (overrides planner.time_budget_s).")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
+@click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, cache_dir, scheduler, quiet) -> None:
+    """Strategic plan of SCENARIO (seed 000 III): for every GNSS coverage level D_j, STEP I
+    (BIT* or A*), STEP II (deconfliction against known traffic) and STEP III (min-snap, navigation
+    error, eq. 15 costs); writes plan.geojson, waypoints.csv, candidates.csv and figures of the
+    flyable candidate with minimum f (or candidates.csv with every reason when none is flyable,
+    exit code 3)."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.errors import InputError
+    from skyroute.pipeline.outputs import write_plan_outputs
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
+
+    sc = load_scenario(scenario or DEFAULT_SCENARIO)
+    upd = {}
+    if weights is not None:
+        try:
+            w = tuple(float(v) for v in weights.split(","))
+        except ValueError:
+            raise InputError(f"--weights {weights!r}: give four numbers W_L,W_R,W_D,W_E, e.g. 1,1,1,1") from None
+        if len(w) != 4:
+            raise InputError(f"--weights {weights!r}: give four numbers W_L,W_R,W_D,W_E, e.g. 1,1,1,1")
+        upd["weights"] = w
+    if planner_name is not None:
+        upd["name"] = planner_name
+    if seed is not None:
+        upd["seed"] = seed
+    if time_budget_s is not None:
+        upd["time_budget_s"] = time_budget_s
+    if upd:
+        from skyroute.pipeline.settings import PlannerSettings, parse_planner
+
+        planner = parse_planner({**sc.planner.model_dump(), **upd})
+        assert isinstance(planner, PlannerSettings)
+        sc = sc.model_copy(update={"planner": planner})
+    out_dir = out_dir or Path("skyroute-out") / sc.name / "plan"
+    result = run_scenario(sc, cache=Cache(cache_dir), targets=["plan"], scheduler=scheduler,
+                          progress=not quiet and sys.stderr.isatty())
+    files = write_plan_outputs(result, out_dir)
+    ds = result["plan"]
+    for f in files.values():
+        click.echo(str(f))
+    if int(ds.attrs.get("chosen_level", -1)) < 0:
+        click.echo(f"no flyable plan: {ds.attrs.get('reason', '')}", err=True)
+        sys.exit(3)
+
+
 @main.command("coverage")
 @click.argument("scenario", required=False, default=None)
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,

@@ -47,6 +47,68 @@ def plot_surface(result: RunResult, path: Path) -> Path:
     return path
 
 
+def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
+    """plan.geojson, waypoints.csv, candidates.csv and figures of the cached plan stage.
+
+    The plan was validated independently (``stages.planning.validate``) when it was made;
+    the chosen trajectory is validated again here and nothing is written if it fails."""
+    from skyroute.pipeline.errors import PlanningError
+    from skyroute.stages.planning.outputs import write_plan
+    from skyroute.stages.planning.strategic import plan_from_dataset
+
+    ds = result["plan"].load()
+    chosen, cands = plan_from_dataset(ds)
+    surface = result["surface"].load()
+    floor = None
+    if "clearance" in result.datasets:
+        floor = result["clearance"]["min_altitude_m"].values
+    if chosen is not None and "coverage" in result.datasets and chosen.dop_threshold is not None:
+        import numpy as np
+
+        cov = result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold).values
+        floor = np.fmax(floor, cov) if floor is not None else cov
+    if chosen is not None:
+        problems = revalidate(result, chosen)
+        if problems:
+            raise PlanningError("refusing to write a plan that fails validation: " + "; ".join(problems))
+    cost = result["environment"]["risk_cost"].values if "environment" in result.datasets else None
+    return write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
+                      ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
+                      terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost)
+
+
+def revalidate(result: RunResult, chosen) -> list[str]:
+    """Independent check of the chosen trajectory against the cached maps."""
+    import numpy as np
+
+    from skyroute.stages.planning.strategic import intruders_for
+    from skyroute.stages.planning.validate import validate_plan
+    from skyroute.stages.wind import sample_wind
+
+    sc = result.scenario
+    surface = result["surface"].load()
+    clear = result["clearance"].load()
+    gnss = None
+    if "coverage" in result.datasets and chosen.dop_threshold is not None:
+        gnss = result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold).values
+    wind = None
+    if "wind" in result.datasets:
+        wmap = result["wind"].load()
+        terrain = surface["terrain"]
+
+        def wind(p):  # noqa: E306 - heights above ground for the wind map
+            g = sc.grid
+            r, c = g.index_of(p[:, 0], p[:, 1])
+            agl = p[:, 2] - terrain.values[np.clip(r, 0, g.ny - 1), np.clip(c, 0, g.nx - 1)]
+            return np.column_stack(sample_wind(wmap, p[:, 0], p[:, 1], agl))
+    intr = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else ()
+    return validate_plan(chosen, grid=sc.grid, terrain_m=surface["terrain"].values, vehicle=sc.vehicle,
+                         clearance_floor_m=clear["obstacle_floor_m"].values, gnss_floor_m=gnss,
+                         min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
+                         nofly=clear["nofly"].values, wind=wind, intruders=intr, d_c_m=sc.traffic.margin_m,
+                         dt_c_s=sc.traffic.time_margin_s, tol_deg=3.0 + 1e-6)
+
+
 def _previous_outputs(out_dir: Path) -> dict[str, str]:
     try:
         return json.loads((out_dir / "summary.json").read_text()).get("output_keys", {})
@@ -84,6 +146,8 @@ def write_run_outputs(result: RunResult, out_dir: Path) -> dict[str, Any]:
         produce(out_dir / "surface.tif", "surface",
                 lambda p: result["surface"]["surface"].rio.to_raster(p, compress="deflate"))
         produce(out_dir / "figures" / "surface.png", "surface", lambda p: plot_surface(result, p))
+    if "plan" in result.datasets:
+        produce(out_dir / "plan" / "candidates.csv", "plan", lambda p: write_plan_outputs(result, p.parent))
     sc = result.scenario
     summary = {
         "scenario": sc.name,

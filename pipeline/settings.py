@@ -184,12 +184,40 @@ class TrafficSettings(FrozenModel):
     time_margin_s: NonNegFloat = 5.0
 
 
+PLANNERS = ("astar", "bitstar")
+
+
 class PlannerSettings(FrozenModel):
+    """STEP I planner (``bitstar`` or ``astar``), eq. 11 weights (w_l, w_r, w_d, w_e) >= 0 and
+    not all zero, BIT* time per coverage level [s], random seed, energy re-plan tries N_t."""
+
     name: str = "bitstar"
     weights: tuple[NonNegFloat, NonNegFloat, NonNegFloat, NonNegFloat] = (1.0, 1.0, 1.0, 1.0)
     time_budget_s: PositiveFloat = 5.0
     seed: int = 0
     max_tries: Annotated[int, Field(ge=1)] = 3
+
+    @field_validator("name")
+    @classmethod
+    def _known(cls, v: str) -> str:
+        if v not in PLANNERS:
+            raise ValueError(f"unknown planner {v!r}; known planners: {', '.join(PLANNERS)}")
+        return v
+
+    @field_validator("weights")
+    @classmethod
+    def _not_all_zero(cls, v):
+        if not any(w > 0 for w in v):
+            raise ValueError("at least one weight must be > 0 (all zero makes every path equally good)")
+        return v
+
+
+def parse_planner(raw: dict) -> PlannerSettings:
+    """Validate planner settings (CLI overrides) with the same messages as the catalog."""
+    try:
+        return PlannerSettings.model_validate(raw)
+    except ValidationError as exc:
+        raise ScenarioError("planner settings", [f"planner.{p}" for p in _problems_from(exc)]) from None
 
 
 class Scenario(FrozenModel):

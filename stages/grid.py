@@ -19,7 +19,7 @@ import xarray as xr
 from affine import Affine
 from pyproj import CRS, Transformer
 
-from skyroute.pipeline.errors import CRSError, InputError
+from skyroute.pipeline.errors import CRSError, DataError, InputError
 
 
 def resolve_crs(crs: str | int | CRS) -> CRS:
@@ -155,3 +155,37 @@ class Grid:
             raise CRSError("raster carries no CRS: write one with da.rio.write_crs('EPSG:...')")
         return cls(_crs_text(CRS.from_user_input(crs)), float(x[0] - r / 2), float(y[0] + r / 2),
                    int(x.size), int(y.size), r)
+
+
+def warp_to_grid(path, grid: Grid, *, what: str, resampling: str = "bilinear",
+                 require_overlap: bool = True) -> np.ndarray:
+    """Band 1 of a GeoTIFF reprojected to ``grid`` (float64; NaN outside the raster and at its
+    nodata).  ``what`` names the layer in error messages ("terrain", "risk GeoTIFF").
+    ``require_overlap``: a raster that does not intersect the grid is a :class:`DataError`."""
+    from pathlib import Path
+
+    import rasterio
+    import rasterio.warp
+
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"{what} file not found: {p}")
+    try:
+        src = rasterio.open(p)
+    except rasterio.errors.RasterioIOError as exc:
+        raise DataError(f"cannot read {what} GeoTIFF {p}: {exc}") from exc
+    with src:
+        if src.crs is None:
+            raise CRSError(f"{what} GeoTIFF {p} has no CRS; assign one with gdal_edit.py -a_srs EPSG:...")
+        if require_overlap:
+            b = rasterio.warp.transform_bounds(grid.crs, src.crs, *grid.bounds)
+            sb = src.bounds
+            if b[0] >= sb.right or b[2] <= sb.left or b[1] >= sb.top or b[3] <= sb.bottom:
+                raise DataError(f"the AOI {tuple(round(v) for v in grid.bounds)} does not intersect {what} {p} "
+                                f"(bounds {tuple(round(v) for v in sb)} in {src.crs}); fix aoi or the {what} path")
+        out = np.full(grid.shape, np.nan, dtype=np.float64)
+        rasterio.warp.reproject(
+            source=rasterio.band(src, 1), destination=out, dst_transform=grid.transform, dst_crs=grid.crs,
+            src_nodata=src.nodata, dst_nodata=np.nan, init_dest_nodata=True,
+            resampling=getattr(rasterio.warp.Resampling, resampling))
+    return out

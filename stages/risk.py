@@ -85,8 +85,8 @@ import yaml
 from pyproj import CRS, Transformer
 from shapely.geometry.base import BaseGeometry
 
-from skyroute.pipeline.errors import CRSError, DataError, InputError
-from skyroute.stages.grid import Grid
+from skyroute.pipeline.errors import DataError, InputError
+from skyroute.stages.grid import Grid, warp_to_grid
 
 LEVELS = (1, 2, 3, 4, 5, 6)
 LEVEL_NAMES = {
@@ -419,22 +419,10 @@ def risk_from_geotiff(path: str | Path, grid: Grid, default_level: int = 4) -> x
     Cells outside the raster or at its nodata take ``default_level``.
     """
     p = Path(path)
-    if not p.is_file():
-        raise DataError(f"risk GeoTIFF not found: {p}")
     if not 1 <= int(default_level) <= 6:
         raise InputError(f"default_level {default_level!r} must be 1..6")
-    try:
-        src = rasterio.open(p)
-    except rasterio.errors.RasterioIOError as exc:
-        raise DataError(f"cannot read risk GeoTIFF {p}: {exc}") from exc
-    with src:
-        if src.crs is None:
-            raise CRSError(f"risk GeoTIFF {p} has no CRS; assign one with gdal_edit.py -a_srs EPSG:...")
-        out = np.zeros(grid.shape, np.float64)
-        rasterio.warp.reproject(
-            source=rasterio.band(src, 1), destination=out, dst_transform=grid.transform, dst_crs=grid.crs,
-            src_nodata=src.nodata if src.nodata is not None else 0, dst_nodata=0,
-            resampling=rasterio.warp.Resampling.nearest, init_dest_nodata=True)
+    out = np.nan_to_num(warp_to_grid(p, grid, what="risk GeoTIFF", resampling="nearest", require_overlap=False),
+                        nan=0.0)
     vals = np.unique(out)
     bad = [v for v in vals if v != 0 and (v not in LEVELS)]
     if bad:

@@ -45,7 +45,7 @@ from pyproj import CRS, Transformer
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
 from skyroute.pipeline.errors import DataError, InputError
-from skyroute.stages.grid import Grid
+from skyroute.stages.grid import Grid, warp_to_grid
 from skyroute.stages.osm import read_osm
 
 STOREY_HEIGHT_M = 3.0
@@ -303,25 +303,7 @@ def terrain_from_dem(path: str | Path, grid: Grid) -> np.ndarray:
     """A GeoTIFF DEM reprojected and resampled (bilinear) to ``grid`` [m]; small nodata holes are
     filled from the nearest valid cell; an AOI outside the DEM is an error."""
     p = Path(path)
-    if not p.is_file():
-        raise DataError(f"terrain file not found: {p}")
-    try:
-        src = rasterio.open(p)
-    except rasterio.errors.RasterioIOError as exc:
-        raise DataError(f"cannot read terrain GeoTIFF {p}: {exc}") from exc
-    with src:
-        if src.crs is None:
-            raise DataError(f"terrain GeoTIFF {p} has no CRS; assign one with gdal_edit.py -a_srs")
-        b = rasterio.warp.transform_bounds(grid.crs, src.crs, *grid.bounds)
-        sb = src.bounds
-        if b[0] >= sb.right or b[2] <= sb.left or b[1] >= sb.top or b[3] <= sb.bottom:
-            raise DataError(f"the AOI {tuple(round(v) for v in grid.bounds)} does not intersect terrain {p} "
-                            f"(bounds {tuple(round(v) for v in sb)} in {src.crs}); fix aoi or the terrain path")
-        out = np.full(grid.shape, np.nan, dtype=np.float64)
-        rasterio.warp.reproject(
-            source=rasterio.band(src, 1), destination=out, dst_transform=grid.transform, dst_crs=grid.crs,
-            dst_nodata=np.nan, resampling=rasterio.warp.Resampling.bilinear,
-        )
+    out = warp_to_grid(p, grid, what="terrain", resampling="bilinear")
     bad = ~np.isfinite(out)
     if bad.all():
         raise DataError(f"terrain {p} has no valid height inside the AOI")

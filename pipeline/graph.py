@@ -35,6 +35,7 @@ from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.errors import InputError, UnknownNameError
 from skyroute.pipeline.model import stable_hash
 from skyroute.pipeline.settings import Scenario
+from skyroute.pipeline.verify import DatasetError, verify_dataset
 
 log = logging.getLogger("skyroute.pipeline")
 
@@ -229,6 +230,9 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                 out = st.func(*args, settings=st.select(scenario))
                 if not isinstance(out, xr.Dataset):
                     raise TypeError(f"stage {st.name} returned {type(out).__name__}, not an xarray.Dataset")
+                problems = verify_dataset(out)
+                if problems:  # never cache (and so never trust) a malformed output
+                    raise DatasetError(f"output of stage {st.name!r}", problems)
                 out.attrs.update({"skyroute_stage": st.name, "skyroute_key": key,
                                   "skyroute_version": SKYROUTE_VERSION})
                 entry = cache.write(st.name, key, out, {

@@ -177,7 +177,7 @@ def wind_stage(surface: xr.Dataset, *, settings: WindSettings) -> xr.Dataset:
         src = settings.uniform
     ds = wind_on_grid(src, settings.grid, list(settings.altitudes_m), terrain=surface["terrain"].load(),
                       profile=settings.profile, horizontal_step_m=settings.horizontal_step_m)
-    ds["wind_nofly"] = wind_nofly(ds, settings.max_wind_mps)
+    ds["wind_nofly"] = wind_nofly(ds, settings.max_wind_mps).assign_attrs(units="1")
     return ds
 
 
@@ -222,8 +222,11 @@ def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: C
     ds = clearance_dataset(surface["surface"].load(), settings.radius_m, terrain=terrain,
                            min_agl_m=settings.min_agl_m, max_agl_m=settings.max_agl_m,
                            nofly=env["nofly"].copy(data=unlimited), volumes=volumes or None)
+    datum = surface["surface"].attrs.get("vertical_datum", "")
     for v in ds.data_vars.values():
         v.attrs.setdefault("units", "1" if v.dtype == bool else "m")
+        if v.attrs["units"] == "m":
+            v.attrs.setdefault("vertical_datum", datum)
     return ds
 
 

@@ -360,7 +360,7 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
             "building_id", units="1", long_name="index into the building dimension, -1 where no building"),
     })
     if braster is not None:
-        ds["building_osm_id"] = ("building", braster.ids)
+        ds["building_osm_id"] = ("building", braster.ids, {"units": "1", "long_name": "OSM id (or CityJSON index)"})
         ds["building_height_m"] = ("building", braster.heights_m.astype(np.float32),
                                    {"units": "m", "long_name": "building height (above ground for OSM, absolute roof top for CityJSON)"})
         ds["building_height_source"] = ("building", braster.sources.astype("U32"))

@@ -407,8 +407,8 @@ class TrafficOccupancy:
         """The capsules as a Dataset (dim ``capsule``) that caches in zarr."""
         ds = xr.Dataset(
             {
-                "slice": ("capsule", self.slice_index.astype(np.int64), {"long_name": "occupancy slice index"}),
-                "intruder": ("capsule", self.intruder_index.astype(np.int64), {"long_name": "index into intruder_id"}),
+                "slice": ("capsule", self.slice_index.astype(np.int64), {"units": "1", "long_name": "occupancy slice index"}),
+                "intruder": ("capsule", self.intruder_index.astype(np.int64), {"units": "1", "long_name": "index into intruder_id"}),
                 "start": (("capsule", "xyz"), self.caps[:, :3], {"units": "m", "long_name": "capsule axis start (x, y, z)"}),
                 "end": (("capsule", "xyz"), self.caps[:, 3:], {"units": "m", "long_name": "capsule axis end (x, y, z)"}),
                 "radius": ("capsule", self.radius_m, {"units": "m", "long_name": "intruder radius + d_c"}),

@@ -111,7 +111,7 @@ def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_ut
              "flight_time_s": "s", "compute_time_s": "s"}
     for k in _SCALARS:
         ds[k] = ("level", np.array([float(getattr(c, k)) for c in cands]), {"units": units[k]})
-    ds["flyable"] = ("level", np.array([bool(c.flyable) for c in cands]))
+    ds["flyable"] = ("level", np.array([bool(c.flyable) for c in cands]), {"units": "1"})
     ds["reasons"] = ("level", np.array(["; ".join(c.reasons) for c in cands], dtype=object))
     ds["status"] = ("level", np.array([c.step2_status for c in cands], dtype=object))
     chosen = -1 if plan.chosen is None else next(i for i, c in enumerate(cands) if c is plan.chosen)

@@ -49,7 +49,7 @@ def verify_dataset(ds: xr.Dataset) -> list[str]:
         if y.size > 1 and not np.all(np.diff(y) < 0):
             problems.append("y: coordinates must decrease (north-up raster)")
         if x.size > 1 and y.size > 1:
-            dx, dy = np.diff(x), -np.diff(y)
+            dx, dy = np.abs(np.diff(x)), np.abs(np.diff(y))
             if not (np.allclose(dx, dx[0]) and np.allclose(dy, dy[0]) and np.isclose(dx[0], dy[0])):
                 problems.append("x/y: cells must be square with a constant step")
         try:

@@ -74,7 +74,6 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
-import numba
 import numpy as np
 import rasterio
 import rasterio.features
@@ -86,7 +85,7 @@ from pyproj import CRS, Transformer
 from shapely.geometry.base import BaseGeometry
 
 from skyroute.pipeline.errors import DataError, InputError
-from skyroute.stages.grid import Grid, warp_to_grid
+from skyroute.stages.grid import Grid, ring_cells, warp_to_grid
 
 LEVELS = (1, 2, 3, 4, 5, 6)
 LEVEL_NAMES = {
@@ -329,53 +328,16 @@ def _cityjson_levels(path: str | Path, grid: Grid, table: TagTable) -> np.ndarra
         lvs.append(lv)
     if not ring_vertices:
         return np.zeros(grid.shape, np.uint8)
-    # every surface as a 2-D ring; the numba scanline kernel burns the highest level per cell
+    # every surface as a 2-D ring; the compiled scanline fill gives the cells, the highest level wins
     # (TIN surfaces hold tens of thousands of triangles: too many for rasterio's Python path)
     lengths = np.array([len(r) for r in ring_vertices], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(lengths)])
     P = V[np.concatenate(ring_vertices)]
     values = np.asarray(lvs, dtype=np.uint8)[np.asarray(ring_owner)]
     out = np.zeros(grid.shape, np.uint8)
-    _fill_rings_max(np.ascontiguousarray(P[:, 0]), np.ascontiguousarray(P[:, 1]), offsets, values,
-                    grid.x0, grid.y1, grid.resolution_m, out)
+    ring, rr, cc = ring_cells(P[:, 0], P[:, 1], offsets, grid)
+    np.maximum.at(out, (rr, cc), values[ring])
     return out
-
-
-@numba.njit(cache=True)
-def _fill_rings_max(xs, ys, offsets, values, x0, y1, res, out):  # pragma: no cover - numba
-    """Burn ``max(out, value)`` into the cells whose centre is inside each ring (even-odd)."""
-    ny, nx = out.shape
-    for p in range(offsets.size - 1):
-        s, e = offsets[p], offsets[p + 1]
-        n = e - s
-        if n < 3:
-            continue
-        ymin, ymax = ys[s], ys[s]
-        for k in range(s, e):
-            ymin = min(ymin, ys[k])
-            ymax = max(ymax, ys[k])
-        r0 = max(int(np.ceil((y1 - ymax) / res - 0.5)), 0)
-        r1 = min(int(np.floor((y1 - ymin) / res - 0.5)), ny - 1)
-        cross = np.empty(n, np.float64)
-        v = values[p]
-        for r in range(r0, r1 + 1):
-            yc = y1 - (r + 0.5) * res
-            m = 0
-            for k in range(n):
-                i = s + k
-                j = s + (k + 1) % n
-                if (ys[i] > yc) != (ys[j] > yc):
-                    cross[m] = xs[i] + (yc - ys[i]) * (xs[j] - xs[i]) / (ys[j] - ys[i])
-                    m += 1
-            if m < 2:
-                continue
-            c = np.sort(cross[:m])
-            for q in range(0, m - 1, 2):
-                c0 = max(int(np.ceil((c[q] - x0) / res - 0.5)), 0)
-                c1 = min(int(np.floor((c[q + 1] - x0) / res - 0.5)), nx - 1)
-                for col in range(c0, c1 + 1):
-                    if out[r, col] < v:
-                        out[r, col] = v
 
 
 def _levels_dataarray(grid: Grid, levels: np.ndarray, **extra: Any) -> xr.DataArray:

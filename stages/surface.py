@@ -24,8 +24,9 @@ it is never lower than the roof over it.  Terrain comes from each building's ``T
 attribute (preferred: some LoD2 models put the ground surface at z = 0) or its ``GroundSurface``
 heights, interpolated linearly between buildings.
 
-Rasterisation uses :func:`rasterio.features.rasterize` (a cell belongs to a footprint when its
-centre is inside).
+Rasterisation: a cell belongs to a footprint when its centre is inside (OSM footprints with
+:func:`rasterio.features.rasterize`, CityJSON roof faces with the compiled scanline fill
+:func:`~skyroute.stages.grid.ring_cells`, identical cell for cell).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ from pyproj import CRS, Transformer
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
 from skyroute.pipeline.errors import DataError, InputError
-from skyroute.stages.grid import Grid, warp_to_grid
+from skyroute.stages.grid import Grid, ring_cells, warp_to_grid
 from skyroute.stages.osm import read_osm
 
 STOREY_HEIGHT_M = 3.0
@@ -209,7 +210,9 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
     ids: list[str] = []
     heights: list[float] = []
     ground: list[np.ndarray] = []
-    # corner offsets of a cell relative to its centre
+    roof_rings: list[np.ndarray] = []
+    roof_normals: list[np.ndarray] = []
+    roof_owner: list[int] = []
     for oid, obj in objs.items():
         if obj.get("type") not in ("Building", "BuildingPart"):
             continue
@@ -249,34 +252,34 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
         elif floor_pts:
             ground.append(np.vstack(floor_pts))
         for P, nrm in roofs:
-            x0, y0 = P[:, 0].min(), P[:, 1].min()
-            x1, y1 = P[:, 0].max(), P[:, 1].max()
-            c0 = max(int(np.floor((x0 - grid.x0) / r)), 0)
-            c1 = min(int(np.floor((x1 - grid.x0) / r)) + 1, grid.nx)
-            r0 = max(int(np.floor((grid.y1 - y1) / r)), 0)
-            r1 = min(int(np.floor((grid.y1 - y0) / r)) + 1, grid.ny)
-            if c0 >= c1 or r0 >= r1:
-                continue
-            win_tr = rasterio.Affine(r, 0, grid.x0 + c0 * r, 0, -r, grid.y1 - r0 * r)
-            inside = rasterio.features.geometry_mask(
-                [shapely.Polygon(P[:, :2])], out_shape=(r1 - r0, c1 - c0), transform=win_tr, invert=True)
-            if not inside.any():
-                continue
-            rr, cc = np.nonzero(inside)
-            xc = grid.x0 + (c0 + cc + 0.5) * r
-            yc = grid.y1 - (r0 + rr + 0.5) * r
-            # plane through the face: n . (q - P0) = 0  ->  z = P0z - (nx (x-P0x) + ny (y-P0y)) / nz
-            zc = np.full(xc.shape, -np.inf)
-            for dx in (-r / 2, r / 2):
-                for dy in (-r / 2, r / 2):
-                    z = P[0, 2] - (nrm[0] * (xc + dx - P[0, 0]) + nrm[1] * (yc + dy - P[0, 1])) / nrm[2]
-                    zc = np.maximum(zc, z)
-            zc = np.clip(zc, P[:, 2].min(), P[:, 2].max())
-            sub = top[r0:r1, c0:c1]
-            isub = index[r0:r1, c0:c1]
-            better = zc > sub[rr, cc]
-            sub[rr[better], cc[better]] = zc[better]
-            isub[rr[better], cc[better]] = bidx
+            roof_rings.append(P)
+            roof_normals.append(nrm)
+            roof_owner.append(bidx)
+    # every roof face at once: cells whose centre is inside (compiled scanline fill), the face's
+    # plane at the cell's four corners, the highest value per cell (clamped to the face's z range)
+    if roof_rings:
+        lengths = np.array([len(P) for P in roof_rings])
+        offsets = np.concatenate([[0], np.cumsum(lengths)])
+        allP = np.vstack(roof_rings)
+        ring, rr, cc = ring_cells(allP[:, 0], allP[:, 1], offsets, grid)
+        P0 = np.array([P[0] for P in roof_rings])[ring]
+        N = np.array(roof_normals)[ring]
+        zlo = np.array([P[:, 2].min() for P in roof_rings])[ring]
+        zhi = np.array([P[:, 2].max() for P in roof_rings])[ring]
+        xc = grid.x0 + (cc + 0.5) * r
+        yc = grid.y1 - (rr + 0.5) * r
+        zc = np.full(xc.shape, -np.inf)
+        for dx in (-r / 2, r / 2):
+            for dy in (-r / 2, r / 2):
+                z = P0[:, 2] - (N[:, 0] * (xc + dx - P0[:, 0]) + N[:, 1] * (yc + dy - P0[:, 1])) / N[:, 2]
+                zc = np.maximum(zc, z)
+        zc = np.clip(zc, zlo, zhi)
+        cell = rr * grid.nx + cc
+        order = np.lexsort((zc, cell))  # by cell, then height: the last of each cell is its max
+        last = np.r_[cell[order][1:] != cell[order][:-1], True]
+        sel = order[last]
+        top.ravel()[cell[sel]] = zc[sel]
+        index.ravel()[cell[sel]] = np.asarray(roof_owner)[ring[sel]]
     top[~np.isfinite(top)] = np.nan
     gpts = np.vstack(ground) if ground else np.zeros((0, 3))
     raster = BuildingRaster(top, index, np.arange(len(ids), dtype=np.int64), np.asarray(heights, np.float64),

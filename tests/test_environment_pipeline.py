@@ -51,9 +51,12 @@ def test_wind_stage_equals_the_gfs_profile_at_a_cell(helsinki_run):
 
 def test_traffic_stage_round_trips_and_blocks_the_crossing(helsinki_run):
     occ = TrafficOccupancy.from_dataset(helsinki_run["traffic"].load())
-    # courier-1 is at x = 385400 + 7 t along y = 6671900 at 60 m: reserved there at t = 50 s
-    assert occ.occupied(np.array([385750.0]), np.array([6671900.0]), np.array([60.0]), np.array([50.0]))[0]
-    assert not occ.occupied(np.array([385750.0]), np.array([6671900.0]), np.array([60.0]), np.array([5.0]))[0]
+    # courier-1 flies x = 385400 + 8.75 (t - 50) along y = 6671900 at 35 m AGL (flat ground):
+    # reserved at x = 385662.5 at t = 80 s, free there at t = 5 s and 10 m above its margin
+    x, y = np.array([385662.5]), np.array([6671900.0])
+    assert occ.occupied(x, y, np.array([35.0]), np.array([80.0]))[0]
+    assert not occ.occupied(x, y, np.array([35.0]), np.array([5.0]))[0]
+    assert not occ.occupied(x, y, np.array([35.0 + 2.0 + 5.0 + 0.5]), np.array([80.0]))[0]
 
 
 def test_maps_command_writes_geotiffs_and_panel(tmp_path):

@@ -22,6 +22,7 @@ import hashlib
 import importlib
 import importlib.util
 import logging
+import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -217,7 +218,8 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
     keys: dict[str, str] = {}
     with scheduler_context(scheduler, workers) as client:
         compute = _computer(client, progress)
-        for st in stages_for(scenario, targets):
+        todo = stages_for(scenario, targets)
+        for i, st in enumerate(todo, 1):
             t0 = time.perf_counter()
             key = stage_key(st, scenario, [keys[d] for d in st.inputs]
                             + [keys.get(d, "absent") for d in st.optional_inputs])
@@ -226,6 +228,8 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
             hit = entry is not None
             if entry is None:
                 log.info("stage=%s key=%s status=compute", st.name, key)
+                if progress:
+                    print(f"[{i}/{len(todo)}] {st.name}: computing ({st.description})", file=sys.stderr, flush=True)
                 args = [result.datasets[d] for d in st.inputs] + [result.datasets.get(d) for d in st.optional_inputs]
                 out = st.func(*args, settings=st.select(scenario))
                 if not isinstance(out, xr.Dataset):

@@ -1,139 +1,162 @@
-"""STEP I on real maps: lattice A* (+ refinement) vs OMPL BIT* (scenario budget) vs BIT* with a
-long budget (the reference best f), for every GNSS coverage level D_j.
+"""Whole strategic plan (every GNSS coverage level D_j, STEP I-III) on real maps: the grid
+planner (lattice A* + refinement, levels in parallel threads) against OMPL BIT*, with BIT* given
+a long wall-clock budget per level as the reference best f.
 
-    python benchmarks/bench_planner.py                 # grid + BIT* at the scenario budget
-    python benchmarks/bench_planner.py --ref-s 60      # + BIT* 60 s per level (slow: 3 x 60 s per case)
+    python benchmarks/bench_planner.py                  # A* (1 and 2 workers) + BIT* 5 s
+    python benchmarks/bench_planner.py --ref-s 60       # + BIT* 60 s per level (slow: ~3 min per case)
 
-Cases: ``helsinki-medical`` (scenario mission, 60 m AGL) and a >= 2.5 km diagonal across
-``monaco-helipads``.  Inputs: OSM surface, clearance floor (r_p), risk and landing maps
-(environment stage), wind (GFS / uniform), GNSS coverage floors from the scenario almanacs.
-Prints time and f per level and the ratios grid / BIT* (budget) and grid / BIT* reference.
+Cases: ``helsinki-medical`` (the scenario mission, 0.83 km) and a >= 2.5 km SW -> NE diagonal
+across ``monaco-helipads`` (both points 60 m AGL, nudged to the nearest state valid on the
+strictest level).  The maps (surface, clearance, environment, wind, coverage, satellites,
+traffic) come from the pipeline cache (``--cache``), exactly as the ``plan`` stage gets them.
+
+Printed: one table, one row per (case, configuration): whole-plan wall time [s], STEP I f
+(eq. 11) per level, plan f (eq. 15, STEP III) per level, and both against the reference
+(BIT* ``--ref-s`` per level; without it against BIT* at the scenario budget).  "BIT* 5 s wall"
+is the old behaviour (wall-clock stop: not reproducible); "BIT* 5 s iter" stops on the
+iteration count that stands for 5 s (:func:`~skyroute.stages.planning.step1.bitstar_iterations`).
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 import time
 import warnings
 
 import numpy as np
 
+from skyroute.pipeline.cache import Cache
+from skyroute.pipeline.errors import InputError
+from skyroute.pipeline.runner import run_scenario
 from skyroute.pipeline.settings import load_scenario
-from skyroute.stages.clearance import clearance_floor
+from skyroute.pipeline.stages_builtin import _plan_settings
 from skyroute.stages.planning.problem import build_problem, xyz_from_agl
-from skyroute.stages.planning.step1 import step1_all_levels
-from skyroute.stages.surface import build_surface
-from skyroute.stages.vehicle import load_vehicle
+from skyroute.stages.planning.strategic import intruders_for, plan_strategic
+
+MAPS = ["surface", "environment", "clearance", "wind", "coverage", "satellites", "traffic"]
 
 
-def scenario_inputs(name: str):
+def case_inputs(name: str, cache: Cache):
     sc = load_scenario(name)
-    t0 = time.perf_counter()
-    b = sc.data.buildings
-    surf = build_surface(sc.grid, buildings_path=b.path, buildings_format=b.format,
-                         storey_height_m=getattr(b, "storey_height_m", 3.0))
-    veh = load_vehicle(sc.vehicle)
-    clear = clearance_floor(surf["surface"], veh.r_p_m)
-    notes = []
-    try:
-        from skyroute.stages.landing import environment_for_scenario
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            env = environment_for_scenario(sc)
-        risk, land = env["risk_cost"], env["landing_cost"]
-    except Exception as exc:  # noqa: BLE001 - report and fall back
-        notes.append(f"environment maps failed ({exc}); risk = landing = 0")
-        risk = land = None
-    try:
-        from skyroute.pipeline.stages_builtin import _wind_settings, wind_stage
-
-        wind = wind_stage(surf, settings=_wind_settings(sc))
-    except Exception as exc:  # noqa: BLE001
-        notes.append(f"wind failed ({exc}); no wind")
-        wind = None
-    cons = sc.constraints
-    try:
-        from skyroute.stages.coverage import coverage_from_almanac
-
-        cov = coverage_from_almanac(surf["surface"], list(sc.data.almanacs), sc.mission.start_time_utc,
-                                    window_min=sc.gnss.window_min, step_min=sc.gnss.step_min,
-                                    mask_deg=sc.gnss.elevation_mask_deg, thresholds=sc.gnss.dop_thresholds,
-                                    dop=sc.gnss.dop_kind,
-                                    ceiling_m=surf["terrain"].values + cons.max_altitude_agl_m)
-        covs = [(float(t), cov["coverage_floor"].isel(threshold=i).values)
-                for i, t in enumerate(cov["threshold"].values)]
-    except Exception as exc:  # noqa: BLE001
-        notes.append(f"coverage failed ({exc}); no GNSS floor")
-        covs = [(None, None)]
-    return sc, surf, veh, clear, risk, land, wind, covs, time.perf_counter() - t0, notes
+    t = time.perf_counter()
+    maps = list(MAPS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        while True:
+            try:
+                r = run_scenario(sc, cache=cache, targets=maps)
+                break
+            except InputError as exc:     # optional map without a data source (e.g. no traffic)
+                gone = [m for m in maps[3:] if f"stage(s) {m} " in str(exc) or f" {m}," in str(exc)]
+                if not gone:
+                    raise
+                maps = [m for m in maps if m not in gone]
+    return sc, {k: (r[k] if k in maps else None) for k in MAPS}, _plan_settings(sc), time.perf_counter() - t
 
 
-def find_valid(problem_factory, x, y, agl, surf, search_m=150.0):
-    """Nearest point to (x, y) whose 60 m AGL state is valid on the least constrained level."""
-    pr = problem_factory(xyz_from_agl(surf, x, y, agl), xyz_from_agl(surf, x, y, agl))
+def strictest_problem(d: dict, s) -> object:
+    """The most constrained level (smallest DOP threshold) of the case, for endpoint checks."""
+    surf = d["surface"][["terrain", "surface"]].load()
+    cov = d["coverage"]["coverage_floor"].load()
+    p0 = xyz_from_agl(surf, *s.start_xy, s.start_agl_m)
+    return build_problem(surf, d["clearance"]["min_altitude_m"].load(), cov.sel(threshold=cov["threshold"].min()),
+                         None, None, None, s.vehicle, s.weights, p0, p0, s.min_agl_m, s.max_agl_m,
+                         nofly=d["clearance"]["nofly"].load(), check_endpoints=False), surf
+
+
+def find_valid(problem, surf, x: float, y: float, agl: float, search_m: float = 200.0) -> tuple[float, float]:
+    """Nearest (x, y) to the given point whose ``agl`` state is valid on ``problem``."""
     for rad in np.arange(0.0, search_m, 4.0):
         for ang in np.linspace(0, 2 * math.pi, max(1, int(rad)), endpoint=False):
-            p = xyz_from_agl(surf, x + rad * math.cos(ang), y + rad * math.sin(ang), agl)
-            if pr.state_valid(p)[0]:
-                return p
-    raise RuntimeError(f"no valid point near ({x}, {y})")
+            px, py = x + rad * math.cos(ang), y + rad * math.sin(ang)
+            if problem.state_valid(xyz_from_agl(surf, px, py, agl))[0]:
+                return float(px), float(py)
+    raise RuntimeError(f"no valid point within {search_m} m of ({x}, {y})")
 
 
-def run_case(label, sc, surf, veh, clear, risk, land, wind, covs, start, goal, budget, ref_s, seed, tries):
-    cons = sc.constraints
-    problems = [build_problem(surf, clear, cf, risk, land, wind, veh, sc.planner.weights, start, goal,
-                              cons.min_altitude_agl_m, cons.max_altitude_agl_m, thr, dop_kind=sc.gnss.dop_kind,
-                              check_endpoints=False) for thr, cf in covs]
-    d = math.dist(start, goal)
-    print(f"\n## {label}: {d:.0f} m start-goal, {len(problems)} level(s), grid {sc.grid.shape}")
-    runs = {}
-    for name, planner, b in (("grid A*", "astar", budget), (f"BIT* {budget:g}s", "bitstar", budget)) + (
-            ((f"BIT* {ref_s:g}s (ref)", "bitstar", ref_s),) if ref_s else ()):
-        t = time.perf_counter()
-        runs[name] = (step1_all_levels(problems, planner, b, seed, tries), time.perf_counter() - t)
-    print(f"{'planner':<16}{'level':<8}{'status':<18}{'f':>10}{'C_l m':>9}{'E Wh':>8}{'time s':>9}")
-    for name, (res, _) in runs.items():
-        for r in res:
-            print(f"{name:<16}{r.label:<8}{r.status:<18}{r.f:>10.1f}{r.costs['C_l']:>9.1f}"
-                  f"{r.energy_J / 3600:>8.1f}{r.compute_s:>9.2f}")
-    names = list(runs)
-    grid_res, grid_t = runs[names[0]]
-    print(f"{'whole STEP I':<16}" + "  ".join(f"{n}: {runs[n][1]:.2f} s" for n in names))
-    for other in names[1:]:
-        res, tt = runs[other]
-        ratios = [g.f / o.f for g, o in zip(grid_res, res, strict=True) if g.solved and o.solved]
-        print(f"grid / {other}: time {grid_t / tt:.3f}, f ratio per level "
-              + ", ".join(f"{x:.4f}" for x in ratios))
-    return runs
+def long_mission(sc, d, s, inset_m: float = 150.0, agl: float = 60.0):
+    """Settings of a SW -> NE corner-to-corner mission at ``agl`` m AGL."""
+    pr, surf = strictest_problem(d, s)
+    xmin, ymin, xmax, ymax = sc.grid.bounds
+    a = find_valid(pr, surf, xmin + inset_m, ymin + inset_m, agl)
+    b = find_valid(pr, surf, xmax - inset_m, ymax - inset_m, agl)
+    return s.model_copy(update={"start_xy": a, "goal_xy": b, "start_agl_m": agl, "goal_agl_m": agl,
+                                "intruders": ()})
+
+
+def run_plan(d: dict, s, **kw):
+    intr = intruders_for(s.intruders, d["surface"]) if s.intruders else None
+    args = dict(start_xy=s.start_xy, start_agl_m=s.start_agl_m, goal_xy=s.goal_xy, goal_agl_m=s.goal_agl_m,
+                start_time_utc=s.start_time_utc, vehicle=s.vehicle, weights=s.weights, planner=s.planner,
+                time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, min_agl_m=s.min_agl_m,
+                max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m, dt_c_s=s.dt_c_s,
+                uere_m=s.uere_m)
+    args.update(kw)
+    t = time.perf_counter()
+    plan = plan_strategic(d["surface"], d["environment"], d["wind"], d["clearance"], d["coverage"],
+                          d["satellites"], d["traffic"], **args)
+    return plan, time.perf_counter() - t
+
+
+def _fmt(values, nd=0) -> str:
+    return " ".join(f"{v:.{nd}f}" if np.isfinite(v) else "-" for v in values)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--ref-s", type=float, default=0.0, help="BIT* reference budget per level [s] (0 = skip)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--budget-s", type=float, default=5.0, help="BIT* budget per level [s] of the compared runs")
     ap.add_argument("--cases", default="helsinki,monaco")
+    ap.add_argument("--cache", default="/tmp/perf-cache", help="pipeline cache folder of the maps")
+    ap.add_argument("--skip-bitstar", action="store_true", help="only the grid planner (and the reference)")
     a = ap.parse_args()
+    cache = Cache(a.cache)
+    rows = []
+    b = a.budget_s
     for case in a.cases.split(","):
         name = {"helsinki": "helsinki-medical", "monaco": "monaco-helipads"}[case]
-        sc, surf, veh, clear, risk, land, wind, covs, prep_s, notes = scenario_inputs(name)
-        print(f"\n# {name}: inputs prepared in {prep_s:.1f} s" + ("".join(f"\n  note: {n}" for n in notes)))
-        if case == "helsinki":
-            start = xyz_from_agl(surf, *sc.point_xy(sc.mission.start), sc.mission.start.alt_agl_m)
-            goal = xyz_from_agl(surf, *sc.point_xy(sc.mission.goal), sc.mission.goal.alt_agl_m)
-        else:  # a >= 2.5 km diagonal, SW -> NE corner regions, 60 m AGL, nudged to valid cells
-            xmin, ymin, xmax, ymax = sc.grid.bounds
-            cons = sc.constraints
-
-            def factory(s, g, surf=surf, clear=clear, risk=risk, land=land, wind=wind, veh=veh, cons=cons):
-                return build_problem(surf, clear, None, risk, land, wind, veh, (1, 1, 1, 1), s, g,
-                                     cons.min_altitude_agl_m, cons.max_altitude_agl_m, check_endpoints=False)
-
-            start = find_valid(factory, xmin + 300, ymin + 300, 60.0, surf)
-            goal = find_valid(factory, xmax - 300, ymax - 300, 60.0, surf)
-        run_case(name, sc, surf, veh, clear, risk, land, wind, covs, start, goal, sc.planner.time_budget_s,
-                 a.ref_s, a.seed, sc.planner.max_tries)
+        sc, d, s, prep = case_inputs(name, cache)
+        if case == "monaco":
+            s = long_mission(sc, d, s)
+        dist = math.dist(s.start_xy, s.goal_xy)
+        print(f"# {name}: {dist:.0f} m start-goal (2-D), maps in {prep:.1f} s", flush=True)
+        configs = [("astar 2 threads", {"planner": "astar", "workers": 2}),
+                   ("astar 1 thread", {"planner": "astar", "workers": 1})]
+        if not a.skip_bitstar:
+            configs += [(f"BIT* {b:g} s wall (old)", {"planner": "bitstar", "time_budget_s": b, "max_iterations": 0}),
+                        (f"BIT* {b:g} s iter", {"planner": "bitstar", "time_budget_s": b})]
+        if a.ref_s:
+            configs.append((f"BIT* {a.ref_s:g} s wall (ref)",
+                            {"planner": "bitstar", "time_budget_s": a.ref_s, "max_iterations": 0}))
+        if not rows:   # untimed warm-up: loads the compiled (numba-cached) kernels once per process
+            run_plan(d, s, planner="astar", workers=1)
+        res = {}
+        for label, kw in configs:
+            plan, t = run_plan(d, s, **kw)
+            res[label] = (plan, t)
+            print(f"  {label}: {t:.1f} s", flush=True)
+        ref_label = configs[-1][0] if (a.ref_s or not a.skip_bitstar) else configs[0][0]
+        ref = res[ref_label][0]
+        ref_f1 = np.array([r.f for r in ref.step1])
+        ref_f3 = np.array([c.f for c in ref.candidates])
+        for label, (plan, t) in res.items():
+            f1 = np.array([r.f for r in plan.step1])
+            f3 = np.array([c.f for c in plan.candidates])
+            rows.append((f"{case} {dist / 1000:.2f} km", label, t, _fmt(f1), _fmt(f3), _fmt(f1 / ref_f1, 3),
+                         _fmt(f3 / ref_f3, 3), "".join("y" if c.flyable else "n" for c in plan.candidates)))
+        print(f"  reference: {ref_label}", flush=True)
+    load = os.getloadavg()
+    ref_txt = f"BIT* {a.ref_s:g} s wall per level" if a.ref_s else "last configuration"
+    print(f"\nload average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores; f_ref = {ref_txt}")
+    head = ("case", "planner/config", "time s", "STEP I f per level", "plan f per level", "f1/f1_ref",
+            "f/f_ref", "flyable")
+    w = [max(len(str(r[i])) if i != 2 else 7 for r in [*rows, head]) for i in range(len(head))]
+    print("  ".join(h.ljust(w[i]) for i, h in enumerate(head)))
+    for r in rows:
+        cells = [r[0], r[1], f"{r[2]:.1f}", *r[3:]]
+        print("  ".join(str(c).ljust(w[i]) for i, c in enumerate(cells)))
 
 
 if __name__ == "__main__":

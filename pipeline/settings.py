@@ -188,10 +188,12 @@ PLANNERS = ("astar", "bitstar")
 
 
 class PlannerSettings(FrozenModel):
-    """STEP I planner (``bitstar`` or ``astar``), eq. 11 weights (w_l, w_r, w_d, w_e) >= 0 and
+    """STEP I planner (``astar``: deterministic 3-D lattice A* + refinement, the default; or
+    ``bitstar``: OMPL BIT*, reproducible with its seed and an iteration budget derived from
+    ``time_budget_s``), eq. 11 weights (w_l, w_r, w_d, w_e) >= 0 and
     not all zero, BIT* time per coverage level [s], random seed, energy re-plan tries N_t."""
 
-    name: str = "bitstar"
+    name: str = "astar"
     weights: tuple[NonNegFloat, NonNegFloat, NonNegFloat, NonNegFloat] = (1.0, 1.0, 1.0, 1.0)
     time_budget_s: PositiveFloat = 5.0
     seed: int = 0

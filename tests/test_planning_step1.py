@@ -14,9 +14,22 @@ from scipy.sparse.csgraph import dijkstra
 from skyroute.pipeline.errors import InputError, PlanningError, UnknownNameError
 from skyroute.stages.energy import energy_cost
 from skyroute.stages.grid import Grid
-from skyroute.stages.planning.grid_planner import _OFFS, astar, make_lattice, plan_grid
+from skyroute.stages.planning.grid_planner import (
+    _OFFS,
+    astar,
+    heuristic_2d,
+    make_lattice,
+    plan_grid,
+    shared_heuristic,
+)
 from skyroute.stages.planning.problem import build_problem
-from skyroute.stages.planning.step1 import plan_step1, step1_all_levels
+from skyroute.stages.planning.step1 import (
+    BITSTAR_ITERATIONS_PER_S,
+    bitstar_iterations,
+    plan_step1,
+    step1_all_levels,
+)
+from skyroute.stages.planning.strategic import plan_strategic
 from skyroute.stages.vehicle import load_vehicle
 
 VEH = load_vehicle("dji-m300-rtk")
@@ -217,3 +230,77 @@ def test_grid_planner_refinement_never_increases_f():
     f_ref = pr.path_costs(ref["waypoints"])
     assert f_ref["valid"] and f_ref["f"] <= f_raw + 1e-9
     assert f_raw == pytest.approx(raw["lattice_f"], rel=1e-12)
+
+
+# ------------------------------------------------------------------ whole-plan performance features
+
+
+def test_shared_heuristic_of_the_loosest_level_keeps_the_lattice_optimum():
+    # two nested coverage levels: the strict one forbids z < 30 m over the west half
+    g, _ = _surface(120.0, 60.0)
+    cov_strict = np.where(g.x[None, :] < 60.0, 30.0, 5.0) * np.ones(g.shape)
+    kw = dict(size=(120.0, 60.0), start=(8, 30, 40), goal=(112, 30, 20), wind=(3.0, 1.0, 0.0), block=False,
+              weights=(1, 2, 1, 1))
+    strict = make_problem(coverage=cov_strict, dop_threshold=2.0, **kw)
+    loose = make_problem(coverage=np.full(g.shape, 5.0), dop_threshold=4.0, **kw)
+    h2 = shared_heuristic(loose, step_cells=4, dz_m=2.0)
+    lat = make_lattice(strict, step_cells=4, dz_m=2.0)
+    assert np.all(h2 <= heuristic_2d(strict, lat) + 1e-9)          # weaker, never stronger
+    shared = astar(strict, lat, h2=h2)
+    ref = _dijkstra_oracle(strict, lat)
+    assert shared["f"] == pytest.approx(ref, rel=1e-9)              # still the exact lattice optimum
+    assert shared["f"] == pytest.approx(astar(strict, lat)["f"], rel=1e-9)
+    with pytest.raises(InputError, match="h2 has shape"):
+        astar(strict, lat, h2=np.zeros((2, 2)))
+
+
+def test_bitstar_default_stop_is_a_reproducible_iteration_count():
+    pr = make_problem(wind=(3.0, -1.0, 0.0))
+    a = plan_step1(pr, "bitstar", 0.25, seed=5)
+    b = plan_step1(pr, "bitstar", 0.25, seed=5)
+    n = bitstar_iterations(0.25)
+    assert n == math.ceil(BITSTAR_ITERATIONS_PER_S * 0.25)
+    assert a.info["tries"][0]["iterations"] == n and a.info["tries"][0]["stopped_by"] == "iterations"
+    assert a.solved and pr.motion_valid(a.waypoints[:-1], a.waypoints[1:]).all()
+    np.testing.assert_array_equal(a.waypoints, b.waypoints)
+
+
+def _plan_inputs(floors: list[np.ndarray], thresholds: list[float]):
+    g, ds = _surface(200.0, 100.0)
+    clear = np.zeros(g.shape)
+    clear[10:40, 40:60] = 70.0
+    clearance = xr.Dataset({"min_altitude_m": g.dataarray(clear, "min_altitude_m", units="m")})
+    cov = xr.concat([g.dataarray(f, "coverage_floor", units="m") for f in floors], dim="threshold")
+    coverage = xr.Dataset({"coverage_floor": cov.assign_coords(threshold=thresholds)})
+    return ds, clearance, coverage
+
+
+def _strategic(ds, clearance, coverage, **kw):
+    return plan_strategic(ds, None, None, clearance, coverage, None, None, start_xy=(10, 50), start_agl_m=20.0,
+                          goal_xy=(190, 50), goal_agl_m=20.0, start_time_utc="2020-01-03T10:00:00Z",
+                          planner="astar", min_agl_m=0.0, max_agl_m=80.0, step_cells=4, **kw)
+
+
+def test_strategic_plan_is_deterministic_and_independent_of_workers_and_level_sharing():
+    g, _ = _surface()
+    low = np.full(g.shape, 5.0)
+    mid = np.where(g.y[:, None] > 70.0, 45.0, 5.0) * np.ones(g.shape)   # D=2.5: north strip needs z >= 45 m
+    ds, clearance, coverage = _plan_inputs([mid, low, low], [2.5, 3.0, 4.0])
+    seq = _strategic(ds, clearance, coverage, workers=1)
+    par = _strategic(ds, clearance, coverage, workers=3)
+    assert [c.label for c in seq.candidates] == ["D=2.5", "D=3", "D=4"]
+    for a, b in zip(seq.candidates, par.candidates, strict=True):
+        assert a.f == b.f and a.label == b.label
+        np.testing.assert_array_equal(a.xyz_m, b.xyz_m)
+    # D=4 has the same floors as D=3: solved once, relabelled, and equal to solving it alone
+    assert seq.step1[2] is not seq.step1[1] and seq.step1[2].label == "D=4"
+    np.testing.assert_array_equal(seq.step1[2].waypoints, seq.step1[1].waypoints)
+    alone = _strategic(*_plan_inputs([low], [4.0]), workers=1)
+    assert alone.candidates[0].f == seq.candidates[2].f
+    np.testing.assert_array_equal(alone.candidates[0].xyz_m, seq.candidates[2].xyz_m)
+    np.testing.assert_array_equal(alone.step1[0].waypoints, seq.step1[2].waypoints)
+    # the shared A* heuristic does not change a level's result either
+    alone_mid = _strategic(*_plan_inputs([mid], [2.5]), workers=1)
+    np.testing.assert_array_equal(alone_mid.step1[0].waypoints, seq.step1[0].waypoints)
+    with pytest.raises(InputError, match="workers 0 must be >= 1"):
+        _strategic(ds, clearance, coverage, workers=0)

@@ -22,7 +22,10 @@ RNGs the planner creates afterwards are re-seeded: measured here, two runs with 
 and iteration limit return identical paths in one process (the message is silenced).  With
 a wall-clock budget the number of batches BIT* completes depends on the CPU load, so two runs
 may stop at different iterations and return different paths; with ``max_iterations`` the
-planner stops on its iteration count and is reproducible run to run (tested).
+planner stops on its iteration count and is reproducible run to run (tested).  STEP I
+(:func:`~skyroute.stages.planning.step1.plan_step1`) therefore stops BIT* on an iteration count
+by default (:func:`~skyroute.stages.planning.step1.bitstar_iterations` of the budget), the
+wall clock being only a safety cap.
 """
 
 from __future__ import annotations

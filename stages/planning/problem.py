@@ -44,7 +44,9 @@ smallest ratio over sampled directions and the map's winds, times a 0.9 safety f
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numba
@@ -60,6 +62,9 @@ from skyroute.stages.vehicle import VehicleProfile, load_vehicle
 OK, OUTSIDE, FORBIDDEN, BELOW_FLOOR, ABOVE_CEILING, ANGLE, WIND, GROUND_SPEED, NONFINITE = range(9)
 _EPS_Z = 1e-9  # [m] tolerance of the floor/ceiling comparisons
 ENERGY_LB_SAFETY = 0.9
+_RATIO_MEMO: dict[str, float] = {}   # energy_ratio_lb_dirs memo (shared by the levels)
+_WINDS_MEMO: dict[str, np.ndarray] = {}
+_RATIO_LOCK = threading.Lock()
 
 COST_NAMES = ("C_l", "C_r", "C_d", "C_e")
 
@@ -627,11 +632,38 @@ class PlanningProblem:
 
     def energy_ratio_lb_dirs(self, dirs) -> float:
         """min of E_w / E_0 over unit directions ``dirs`` (m, 3) and the map's winds, times 0.9
-        (1 * 0.9 when no pair is flyable)."""
+        (1 * 0.9 when no pair is flyable).  Memoised on the bytes of (winds, vehicle, dirs): the
+        coverage levels of one mission share the wind map and the vehicle, so the bound is
+        computed once for all of them."""
         d = np.ascontiguousarray(np.asarray(dirs, dtype=float).reshape(-1, 3))
-        r = _ratio_kernel(d, self.wind_samples(), self._seg_args[-2], self._seg_args[-1])
-        r = 1.0 if not np.isfinite(r) else float(r)
+        winds = self._wind_samples_cached()
+        key = hashlib.sha1(b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes() for a in
+                                    (winds, self._seg_args[-2], self._seg_args[-1], d))).hexdigest()
+        with _RATIO_LOCK:
+            r = _RATIO_MEMO.get(key)
+        if r is None:
+            r = _ratio_kernel(d, winds, self._seg_args[-2], self._seg_args[-1])
+            r = 1.0 if not np.isfinite(r) else float(r)
+            with _RATIO_LOCK:
+                if len(_RATIO_MEMO) > 4096:
+                    _RATIO_MEMO.clear()
+                _RATIO_MEMO[key] = r
         return min(1.0, r) * ENERGY_LB_SAFETY
+
+    def _wind_samples_cached(self) -> np.ndarray:
+        ws = self.__dict__.get("_winds_cache")
+        if ws is None:
+            key = hashlib.sha1(self.wind_uvw.tobytes() + self.wind_z_agl_m.tobytes()).hexdigest()
+            with _RATIO_LOCK:
+                ws = _WINDS_MEMO.get(key)
+            if ws is None:
+                ws = self.wind_samples()
+                with _RATIO_LOCK:
+                    if len(_WINDS_MEMO) > 16:
+                        _WINDS_MEMO.clear()
+                    _WINDS_MEMO[key] = ws
+            object.__setattr__(self, "_winds_cache", ws)
+        return ws
 
     @property
     def cost_rate_lb(self) -> float:

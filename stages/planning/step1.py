@@ -9,6 +9,14 @@ holds, the level is re-planned with a larger length weight (w_l doubled; w_l = s
 weights if it was 0), at most ``max_tries`` plans in all (N_t).  If every try is still
 infeasible the level's status is ``"energy_infeasible"`` with the numbers in ``reason``.
 
+Reproducibility: both planners are deterministic for given inputs and ``seed``.  A* is
+deterministic by construction; BIT* stops on an iteration count that stands for the budget
+(:func:`bitstar_iterations`), not on the wall clock (a wall-clock stop makes the plan depend on
+the machine's load: the pipeline caches plans and compares runs).  The grid planner ("astar",
+lattice step :data:`~skyroute.stages.planning.grid_planner.STEP_CELLS`) is the recommended
+STEP I: on the benchmarks (``benchmarks/bench_planner.py``) its STEP I f is 0.95 x (Helsinki,
+0.83 km) and 1.007 x (Monaco, 2.7 km) the f of BIT* given 60 s per level.
+
 A level whose start or goal is not a valid state (e.g. below the coverage floor of D_j) yields
 ``status="no_solution"`` and the reason (seed 001 Table 4, mission 2, D1).
 """
@@ -22,10 +30,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from skyroute.pipeline.errors import InputError, UnknownNameError
-from skyroute.stages.planning.grid_planner import plan_grid, refine_path
+from skyroute.stages.planning.grid_planner import STEP_CELLS, plan_grid, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 
 PLANNERS = ("bitstar", "astar")
+# BIT* is stopped by an iteration count (reproducible run to run: same scenario + seed, same
+# plan); the count stands for the time budget at this rate, measured on the Helsinki default
+# scenario (2 m grid, real wind): 48-60 k iterations in 5 s on an idle core, 4.6 k/s on a
+# loaded one.  The wall clock still caps a run at BITSTAR_TIME_CAP_FACTOR x the budget (a run
+# stopped by that cap is reported in info["tries"][i]["stopped_by"] == "time").
+BITSTAR_ITERATIONS_PER_S = 8000.0
+BITSTAR_TIME_CAP_FACTOR = 4.0
 
 
 @dataclass
@@ -67,14 +82,30 @@ def _check(planner: str, time_budget_s: float) -> None:
         raise InputError(f"time budget {time_budget_s} s must be a positive number of seconds (e.g. 5)")
 
 
+def bitstar_iterations(time_budget_s: float) -> int:
+    """The BIT* iteration count that stands for a budget of ``time_budget_s`` [s]:
+    ``ceil(BITSTAR_ITERATIONS_PER_S * time_budget_s)``."""
+    return max(1, math.ceil(BITSTAR_ITERATIONS_PER_S * float(time_budget_s)))
+
+
 def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, seed: int, refine: bool,
-                step_cells: int, max_iterations: int | None) -> tuple[np.ndarray | None, dict]:
+                step_cells: int, max_iterations: int | None, h2: np.ndarray | None = None
+                ) -> tuple[np.ndarray | None, dict]:
     if planner == "astar":
-        r = plan_grid(problem, step_cells=step_cells, refine=refine)
+        r = plan_grid(problem, step_cells=step_cells, refine=refine, h2=h2)
         return r["waypoints"], {"lattice_f": r["lattice_f"], "expanded": r["expanded"]}
     from skyroute.stages.planning.bitstar import plan_bitstar
 
-    r = plan_bitstar(problem, time_budget_s, seed=seed, max_iterations=max_iterations)
+    if max_iterations is None:          # deterministic: an iteration count, wall clock as a safety cap
+        max_iterations = bitstar_iterations(time_budget_s)
+        cap_s = BITSTAR_TIME_CAP_FACTOR * time_budget_s
+    elif max_iterations == 0:           # wall clock only (not reproducible run to run)
+        max_iterations, cap_s = None, time_budget_s
+    else:
+        cap_s = time_budget_s
+    r = plan_bitstar(problem, cap_s, seed=seed, max_iterations=max_iterations)
+    r["stopped_by"] = ("iterations" if max_iterations is not None and r["iterations"] >= max_iterations
+                       else "time")
     wp = r["waypoints"]
     info = {k: v for k, v in r.items() if k != "waypoints"}
     if wp is not None and refine:
@@ -83,15 +114,20 @@ def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, se
 
 
 def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s: float = 5.0, seed: int = 0,
-               max_tries: int = 3, refine: bool = True, step_cells: int = 6,
-               max_iterations: int | None = None) -> Step1Result:
+               max_tries: int = 3, refine: bool = True, step_cells: int = STEP_CELLS,
+               max_iterations: int | None = None, h2: np.ndarray | None = None) -> Step1Result:
     """STEP I on one level: plan, check the energy, re-plan with larger w_l if needed.
 
-    ``planner``: one of :data:`PLANNERS`; ``time_budget_s`` [s] > 0: BIT*'s wall-clock budget
-    per try (A* runs to completion); ``seed``: BIT* random seed (OMPL seed = seed + 1, OMPL
-    ignores 0); ``max_iterations``: stop BIT* after that many iterations (reproducible runs);
+    ``planner``: one of :data:`PLANNERS`; ``time_budget_s`` [s] > 0: BIT*'s budget per try
+    (A* runs to completion); ``seed``: BIT* random seed (OMPL seed = seed + 1, OMPL ignores 0);
+    ``max_iterations``: BIT* stops after that many iterations; None (default): after
+    :func:`bitstar_iterations` (``time_budget_s``) iterations, with a wall-clock cap of
+    ``BITSTAR_TIME_CAP_FACTOR * time_budget_s`` -- reproducible run to run; 0: wall clock only
+    (``time_budget_s``; the result depends on the machine's load).
     ``refine``: shortcut + vertex relaxation of the chain (never increases f); ``step_cells``:
-    A* lattice step.  Raises UnknownNameError / InputError for a bad planner / budget.
+    A* lattice step; ``h2``: precomputed A* heuristic table for the first try
+    (:func:`~skyroute.stages.planning.grid_planner.shared_heuristic`).
+    Raises UnknownNameError / InputError for a bad planner / budget.
     """
     _check(planner, time_budget_s)
     if int(max_tries) < 1:
@@ -106,7 +142,8 @@ def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s
     info: dict = {"tries": []}
     for attempt in range(int(max_tries)):
         prob = problem if attempt == 0 else problem.with_weights(w)
-        wp, inf = _solve_once(prob, planner, time_budget_s, seed + attempt, refine, step_cells, max_iterations)
+        wp, inf = _solve_once(prob, planner, time_budget_s, seed + attempt, refine, step_cells, max_iterations,
+                              h2 if attempt == 0 else None)
         if wp is None:
             info["tries"].append({"weights": tuple(w), "solved": False, **inf})
             if attempt == 0:
@@ -140,4 +177,5 @@ def step1_all_levels(problems: list[PlanningProblem], planner: str = "bitstar", 
     return [plan_step1(p, planner, time_budget_s, seed, max_tries, **kwargs) for p in problems]
 
 
-__all__ = ["PLANNERS", "Step1Result", "plan_step1", "step1_all_levels"]
+__all__ = ["BITSTAR_ITERATIONS_PER_S", "PLANNERS", "Step1Result", "bitstar_iterations", "plan_step1",
+           "step1_all_levels"]

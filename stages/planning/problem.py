@@ -38,7 +38,9 @@ Costs of a segment (eq. 11-12), all [m]:
 
 ``f = w_l C_l + w_r C_r + w_d C_d + w_e C_e``.  Because E_w / E_0 can be below 1 (tail wind),
 the admissible lower bound of f per metre (:attr:`PlanningProblem.cost_rate_lb`) uses the
-smallest ratio over sampled directions and the map's winds, times a 0.9 safety factor.
+smallest ratio over sampled directions and the map's winds, times a 0.9 safety factor; for a
+few given directions (the A* lattice edges) :meth:`PlanningProblem.energy_ratio_lb_dense_dirs`
+takes every wind of the map and its level-to-level interpolations, times 0.99.
 """
 
 from __future__ import annotations
@@ -62,6 +64,8 @@ from skyroute.stages.vehicle import VehicleProfile, load_vehicle
 OK, OUTSIDE, FORBIDDEN, BELOW_FLOOR, ABOVE_CEILING, ANGLE, WIND, GROUND_SPEED, NONFINITE = range(9)
 _EPS_Z = 1e-9  # [m] tolerance of the floor/ceiling comparisons
 ENERGY_LB_SAFETY = 0.9
+ENERGY_LB_DENSE_SAFETY = 0.99   # margin of the dense bound for wind between its interpolation samples
+WIND_INTERP_SAMPLES = 8         # samples per gap between two wind levels of the dense bound
 _RATIO_MEMO: dict[str, float] = {}   # energy_ratio_lb_dirs memo (shared by the levels)
 _WINDS_MEMO: dict[str, np.ndarray] = {}
 _RATIO_LOCK = threading.Lock()
@@ -134,6 +138,23 @@ def segment_eval(x0, y0, z0, x1, y1, z1, want_cost, terrain, floor, ceiling, ris
     (or the geometry is valid), its costs in ``out`` (6,): length [m], risk integral [m],
     landing integral [m], energy cost eq. 12 [m], energy E_w [J], time [s] (inf if not
     flyable).  The energy loop runs only when ``want_cost`` is True or to decide flyability."""
+    return _segment_eval(x0, y0, z0, x1, y1, z1, want_cost, False, terrain, floor, ceiling, risk, landing,
+                         gprm, wind, wz, wgprm, vprm, pprm, out)
+
+
+@numba.njit(cache=True, nogil=True)
+def segment_eval_if_valid(x0, y0, z0, x1, y1, z1, terrain, floor, ceiling, risk, landing, gprm,
+                          wind, wz, wgprm, vprm, pprm, out):
+    """:func:`segment_eval` for searches: the costs only when the motion is valid (returns at
+    the first invalidity found, ``out`` is then incomplete), so invalid motions cost no energy
+    evaluation."""
+    return _segment_eval(x0, y0, z0, x1, y1, z1, True, True, terrain, floor, ceiling, risk, landing,
+                         gprm, wind, wz, wgprm, vprm, pprm, out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _segment_eval(x0, y0, z0, x1, y1, z1, want_cost, valid_only, terrain, floor, ceiling, risk, landing,
+                  gprm, wind, wz, wgprm, vprm, pprm, out):
     for k in range(6):
         out[k] = 0.0
     if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(z0)
@@ -206,13 +227,15 @@ def segment_eval(x0, y0, z0, x1, y1, z1, want_cost, terrain, floor, ceiling, ris
             tmy += tdy
     out[1] = srisk * length
     out[2] = sland * length
-    if code != OK and not want_cost:
+    if code != OK and (valid_only or not want_cost):
         return code
     if length == 0.0:
         return code
     # ---- flight-path angle
     if code == OK and abs(dz) > length * vprm[4] + 1e-9:
         code = ANGLE
+        if valid_only:
+            return code
     # ---- wind, ground speed (eq. 2-3) and energy (eq. 4-12)
     vc, vmax, vmin, wmax, sub = vprm[0], vprm[1], vprm[2], vprm[3], vprm[5]
     sx, sy, sz = dx / length, dy / length, dz / length
@@ -256,6 +279,8 @@ def segment_eval(x0, y0, z0, x1, y1, z1, want_cost, terrain, floor, ceiling, ris
             flyable = False
             if code == OK:
                 code = GROUND_SPEED
+            if valid_only:
+                return code
             g = vc
         if want_cost:
             va[i, 0] = g * sx - u
@@ -650,6 +675,49 @@ class PlanningProblem:
                 _RATIO_MEMO[key] = r
         return min(1.0, r) * ENERGY_LB_SAFETY
 
+    def wind_samples_dense(self, per_gap: int = WIND_INTERP_SAMPLES) -> np.ndarray:
+        """Every wind vector of the map (all columns and levels) and ``per_gap - 1`` evenly
+        spaced linear interpolations between adjacent levels, deduplicated [m/s] (m, 3): the
+        winds :func:`_wind_at` returns are on those level-to-level segments."""
+        w = self.wind_uvw
+        parts = [w.reshape(-1, 3)]
+        for i in range(1, int(per_gap) if w.shape[0] > 1 else 1):
+            f = i / per_gap
+            parts.append(((1 - f) * w[:-1] + f * w[1:]).reshape(-1, 3))
+        return np.ascontiguousarray(np.unique(np.concatenate(parts), axis=0))
+
+    def energy_ratio_lb_dense_dirs(self, dirs) -> float:
+        """min of E_w / E_0 over unit directions ``dirs`` (m, 3) and every wind of the map
+        (:meth:`wind_samples_dense`: all columns, levels and interpolations, no subsampling),
+        times :data:`ENERGY_LB_DENSE_SAFETY` (0.99; 1 * 0.99 when no pair is flyable; not capped
+        at 1: every wind a segment meets is in the set, so a head wind everywhere counts).  Much
+        tighter than :meth:`energy_ratio_lb_dirs` (0.9 margin on <= 600 sampled winds); the
+        A* heuristic uses it for the few lattice edge directions.  Memoised like it."""
+        d = np.ascontiguousarray(np.asarray(dirs, dtype=float).reshape(-1, 3))
+        wkey = hashlib.sha1(self.wind_uvw.tobytes() + self.wind_z_agl_m.tobytes()).hexdigest()
+        key = "dense" + hashlib.sha1(wkey.encode() + b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes()
+                                                               for a in (self._seg_args[-2], self._seg_args[-1], d))
+                                     ).hexdigest()
+        with _RATIO_LOCK:
+            r = _RATIO_MEMO.get(key)
+        if r is None:
+            dkey = "densewinds" + wkey
+            with _RATIO_LOCK:
+                winds = _WINDS_MEMO.get(dkey)
+            if winds is None:
+                winds = self.wind_samples_dense()
+                with _RATIO_LOCK:
+                    if len(_WINDS_MEMO) > 16:
+                        _WINDS_MEMO.clear()
+                    _WINDS_MEMO[dkey] = winds
+            r = _ratio_kernel(d, winds, self._seg_args[-2], self._seg_args[-1])
+            r = 1.0 if not np.isfinite(r) else float(r)
+            with _RATIO_LOCK:
+                if len(_RATIO_MEMO) > 4096:
+                    _RATIO_MEMO.clear()
+                _RATIO_MEMO[key] = r
+        return r * ENERGY_LB_DENSE_SAFETY
+
     def _wind_samples_cached(self) -> np.ndarray:
         ws = self.__dict__.get("_winds_cache")
         if ws is None:
@@ -812,4 +880,5 @@ def xyz_from_agl(surface_ds: xr.Dataset, x: float, y: float, alt_agl_m: float) -
     return (float(x), float(y), float(surface_ds["terrain"].values[r, c]) + float(alt_agl_m))
 
 
-__all__ = ["COST_NAMES", "PlanningProblem", "build_problem", "segment_eval", "xyz_from_agl"]
+__all__ = ["COST_NAMES", "ENERGY_LB_DENSE_SAFETY", "PlanningProblem", "build_problem", "segment_eval",
+           "segment_eval_if_valid", "xyz_from_agl"]

@@ -301,7 +301,7 @@ def coverage_stage(surface: xr.Dataset, satellites: xr.Dataset, *, settings: Cov
     el = satellites["el_deg"].load()
     ds = coverage_maps(surface["surface"], az, el, thresholds=settings.thresholds, dop=settings.dop_kind,
                        floor_m=terrain + settings.min_agl_m, ceiling_m=terrain + settings.max_agl_m,
-                       mask_deg=settings.mask_deg)
+                       mask_deg=settings.mask_deg, chunks="auto")
     return ds
 
 

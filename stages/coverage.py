@@ -44,6 +44,7 @@ computes them one epoch at a time and reduces them at once.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -142,47 +143,107 @@ def _sorted_column(h: np.ndarray, i: int, j: int, hs: np.ndarray, order: np.ndar
     return m
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _inv4(nm: np.ndarray, lo: np.ndarray, mi: np.ndarray, qm: np.ndarray) -> bool:
+    """Full ``inv(nm)`` of a symmetric 4x4 ``nm`` into ``qm`` (Cholesky, same singularity
+    test as :func:`_inv_diag4`).  False when ``nm`` is (numerically) singular."""
+    if not _inv_diag4(nm, lo, mi, qm[0]):
+        return False
+    # inv(nm) = mi^T mi with mi = inv(cholesky factor), lower triangular
+    for a in range(4):
+        for b in range(a, 4):
+            t = 0.0
+            for i in range(b, 4):
+                t += mi[i, a] * mi[i, b]
+            qm[a, b] = t
+            qm[b, a] = t
+    return True
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_rank_one(qm: np.ndarray, gs: np.ndarray, u: np.ndarray) -> None:
+    """``qm <- inv(inv(qm) + gs gs^T)`` (Sherman-Morrison; ``1 + g^T Q g >= 1`` for a
+    positive definite ``qm``, so no cancellation in the denominator).  ``u``: scratch (4,)."""
+    for a in range(4):
+        u[a] = qm[a, 0] * gs[0] + qm[a, 1] * gs[1] + qm[a, 2] * gs[2] + qm[a, 3] * gs[3]
+    s = 1.0 / (1.0 + gs[0] * u[0] + gs[1] * u[1] + gs[2] * u[2] + gs[3] * u[3])
+    for a in range(4):
+        ua = u[a] * s
+        for b in range(4):
+            qm[a, b] -= ua * u[b]
+
+
 @numba.njit(cache=True, nogil=True)
 def _floor_epoch_kernel(h, g, thresholds, kind, out):
     """Fold one epoch into the running worst-case floor.
 
-    h: (n, ny, nx) visibility heights [m] (+inf/NaN = never visible); g: (n, 4) rows
-    [e_east, e_north, e_up, 1]; thresholds: (J,) ascending; out: (J, ny, nx) float64, running
-    max of the lowest altitude with DOP < D_j (+inf = never).  Updated in place."""
+    h: (n, ny, nx) visibility heights [m] (+inf/NaN = never visible; any strides, e.g. the
+    core of an overlapped block); g: (n, 4) rows [e_east, e_north, e_up, 1]; thresholds:
+    (J,) ascending; out: (J, ny, nx), running max of the lowest altitude with DOP < D_j
+    (+inf = never).  Updated in place.
+
+    Per column the breakpoints are visited in ascending order by selection (the next
+    larger height, then every satellite at it, in index order), which stops as soon as the
+    smallest threshold is reached: most columns need one or two of them, so no
+    full sort.  The normal matrix is inverted (Cholesky) at the first breakpoint where it is
+    regular; later satellites update the inverse by Sherman-Morrison (one division instead
+    of a 4x4 factorisation)."""
     n, ny, nx = h.shape
     nj = thresholds.shape[0]
-    hs = np.empty(n)
-    order = np.empty(n, np.int64)
+    vals = np.empty(n)
     nm = np.zeros((4, 4))
     lo = np.zeros((4, 4))
     mi = np.zeros((4, 4))
+    qm = np.zeros((4, 4))
+    u = np.zeros(4)
     q = np.zeros(4)
+    inf = np.inf
     for i in range(ny):
         for j in range(nx):
-            m = _sorted_column(h, i, j, hs, order)
+            m = 0
+            for s in range(n):
+                v = h[s, i, j]
+                if v == v and v < inf:
+                    vals[s] = v
+                    m += 1
+                else:  # NaN or never visible
+                    vals[s] = inf
             nm[:, :] = 0.0
+            regular = False  # qm holds inv(nm)
             jj = nj - 1  # the largest threshold is reached first
             k = 0
+            z_prev = -inf
             while k < m and jj >= 0:
-                # add the whole group of satellites that appear at the same height
-                z = hs[k]
-                while k < m and hs[k] == z:
-                    gs = g[order[k]]
-                    for a in range(4):
-                        for b in range(4):
-                            nm[a, b] += gs[a] * gs[b]
-                    k += 1
-                if k < 4:
-                    continue
-                if not _inv_diag4(nm, lo, mi, q):
-                    continue
+                z = inf  # next breakpoint: the smallest height above the previous one
+                for s in range(n):
+                    v = vals[s]
+                    if v > z_prev and v < z:
+                        z = v
+                # add the whole group of satellites that appear at this height
+                for s in range(n):
+                    if vals[s] == z:
+                        gs = g[s]
+                        if regular:
+                            _add_rank_one(qm, gs, u)
+                        else:
+                            for a in range(4):  # lower triangle (all _inv4 reads)
+                                for b in range(a + 1):
+                                    nm[a, b] += gs[a] * gs[b]
+                        k += 1
+                z_prev = z
+                if not regular:
+                    if k < 4 or not _inv4(nm, lo, mi, qm):
+                        continue
+                    regular = True
+                for a in range(4):
+                    q[a] = qm[a, a]
                 d = _dop_of_kind(q, kind)
                 while jj >= 0 and d < thresholds[jj]:
                     if z > out[jj, i, j]:
                         out[jj, i, j] = z
                     jj -= 1
             while jj >= 0:  # never reached in this epoch
-                out[jj, i, j] = np.inf
+                out[jj, i, j] = inf
                 jj -= 1
 
 
@@ -343,15 +404,33 @@ def coverage_floor_numpy(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg
     computed one epoch at a time (``visibility_fn``, default occlusion.visibility_heights_numpy;
     ``origin``: (row, col) of the block in the whole map, for bit-identical blocks).
     """
+    return _floor_block(surface_2d, az_grid_deg, el_deg, cell_m, thresholds, kind, mask_deg,
+                        visibility_fn, origin)
+
+
+_FULL = (slice(None), slice(None))
+
+
+def _floor_block(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg: np.ndarray,
+                 cell_m: float, thresholds: np.ndarray, kind: int, mask_deg: float,
+                 visibility_fn: VisibilityFn | None, origin: tuple[int, int],
+                 core: tuple[slice, slice] = _FULL, epochs: Sequence[int] | None = None,
+                 dtype: Any = np.float64) -> np.ndarray:
+    """:func:`coverage_floor_numpy` of the ``core`` window of an overlapped block (the
+    visibility heights need the whole block, the DOP kernel only runs on the core) over the
+    epochs ``epochs`` (default all), as ``dtype`` (float32 holds every value exactly: the
+    floors are float32 visibility heights or +-inf)."""
     fn = visibility_fn or _default_visibility()
     surface_2d = np.ascontiguousarray(surface_2d, dtype=np.float32)
     thr = np.ascontiguousarray(thresholds, dtype=np.float64)
-    out = np.full((thr.size,) + surface_2d.shape, -np.inf)
-    for az, el in _epoch_directions(np.asarray(az_grid_deg, float), np.asarray(el_deg, float),
-                                    mask_deg):
-        h = _visibility(fn, surface_2d, az, el, cell_m, origin)
+    out = np.full((thr.size,) + surface_2d[core].shape, -np.inf, dtype)
+    dirs = _epoch_directions(np.asarray(az_grid_deg, float), np.asarray(el_deg, float), mask_deg)
+    for t in range(len(dirs)) if epochs is None else epochs:
+        az, el = dirs[t]
+        h = np.ascontiguousarray(_visibility(fn, surface_2d, az, el, cell_m, origin))
         g = np.ascontiguousarray(los_rows(az, el))
-        _floor_epoch_kernel(np.ascontiguousarray(h), g, thr, int(kind), out)
+        _floor_epoch_kernel(h if core == _FULL else h[(slice(None),) + core], g, thr,
+                            int(kind), out)
     return out
 
 
@@ -361,15 +440,26 @@ def dop_section_numpy(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg: n
                       origin: tuple[int, int] = (0, 0)) -> np.ndarray:
     """``(time, altitude, 6, ny, nx)`` float32: n_visible, GDOP, PDOP, HDOP, VDOP, TDOP at
     absolute altitudes [m] (conventions of :func:`_section_epoch_kernel`)."""
+    return _section_block(surface_2d, az_grid_deg, el_deg, cell_m, altitudes_m, mask_deg,
+                          visibility_fn, origin)
+
+
+def _section_block(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg: np.ndarray,
+                   cell_m: float, altitudes_m: np.ndarray, mask_deg: float,
+                   visibility_fn: VisibilityFn | None, origin: tuple[int, int],
+                   core: tuple[slice, slice] = _FULL) -> np.ndarray:
+    """:func:`dop_section_numpy` of the ``core`` window of an overlapped block."""
     fn = visibility_fn or _default_visibility()
     surface_2d = np.ascontiguousarray(surface_2d, dtype=np.float32)
     alts = np.ascontiguousarray(altitudes_m, dtype=np.float64)
     dirs = _epoch_directions(np.asarray(az_grid_deg, float), np.asarray(el_deg, float), mask_deg)
-    out = np.empty((len(dirs), alts.size, 6) + surface_2d.shape, np.float32)
+    surf_core = surface_2d[core]
+    out = np.empty((len(dirs), alts.size, 6) + surf_core.shape, np.float32)
     for t, (az, el) in enumerate(dirs):
-        h = _visibility(fn, surface_2d, az, el, cell_m, origin)
+        h = np.ascontiguousarray(_visibility(fn, surface_2d, az, el, cell_m, origin))
         g = np.ascontiguousarray(los_rows(az, el))
-        _section_epoch_kernel(np.ascontiguousarray(h), g, surface_2d, alts, out[t])
+        _section_epoch_kernel(h if core == _FULL else h[(slice(None),) + core], g, surf_core,
+                              alts, out[t])
     return out
 
 
@@ -395,18 +485,29 @@ def _min_chunks(arr: da.Array, depth: tuple[int, int]) -> da.Array:
     return arr if tuple(new) == arr.chunks else arr.rechunk(tuple(new))
 
 
-def _overlap_map(surface: da.Array, depth: int,
-                 fn: Callable[[np.ndarray, tuple[int, int]], np.ndarray],
-                 lead_chunks: tuple[tuple[int, ...], ...], dtype: Any) -> da.Array:
-    """Apply ``fn(block, origin)`` (2D block with halo and its (row, col) in the map ->
-    (..., by, bx) for the extended block) on every block of
-    ``surface`` extended by ``depth`` cells of its neighbours (none beyond the map edge, like
-    the unchunked computation)."""
+BlockFn = Callable[[np.ndarray, tuple[int, int], tuple[slice, slice]], np.ndarray]
+"""``fn(block, origin, core) -> (..., core_y, core_x)``: a 2D block with its halo, the (row, col)
+of ``block[0, 0]`` in the map and the window of the block's own cells in it."""
+
+
+def _overlap_prepare(surface: da.Array, depth: int) -> tuple[da.Array, int, int]:
+    """(surface rechunked so that every block is at least the halo wide, halo rows, halo
+    columns); no halo along an axis with one block."""
     dy = int(min(depth, surface.shape[0]))
     dx = int(min(depth, surface.shape[1]))
     surface = _min_chunks(surface, (dy, dx))
     dy = dy if len(surface.chunks[0]) > 1 else 0
     dx = dx if len(surface.chunks[1]) > 1 else 0
+    return surface, dy, dx
+
+
+def _overlap_maps(surface: da.Array, depth: int, fns: Sequence[BlockFn],
+                  lead_chunks: tuple[tuple[int, ...], ...], dtype: Any) -> list[da.Array]:
+    """Apply each ``fn(block, origin, core)`` (see :data:`BlockFn`) on every block of
+    ``surface`` extended by ``depth`` cells of its neighbours (none beyond the map edge, like
+    the unchunked computation); one dask array (lead dims, y, x) per ``fn``, all sharing the
+    overlapped blocks."""
+    surface, dy, dx = _overlap_prepare(surface, depth)
     ext = (da.overlap.overlap(surface, depth={0: dy, 1: dx}, boundary="none")
            if dy or dx else surface)
     chunks_y, chunks_x = surface.chunks
@@ -414,16 +515,67 @@ def _overlap_map(surface: da.Array, depth: int,
     start_x = np.r_[0, np.cumsum(chunks_x)[:-1]]
     n_lead = len(lead_chunks)
 
-    def block(b: np.ndarray, block_info: dict | None = None) -> np.ndarray:
-        iy, ix = block_info[None]["chunk-location"][-2:]
-        top = dy if iy > 0 else 0
-        left = dx if ix > 0 else 0
-        res = fn(np.asarray(b), (int(start_y[iy]) - top, int(start_x[ix]) - left))
-        return res[..., top:top + chunks_y[iy], left:left + chunks_x[ix]]
+    def make(fn: BlockFn) -> da.Array:
+        def block(b: np.ndarray, block_info: dict | None = None) -> np.ndarray:
+            iy, ix = block_info[None]["chunk-location"][-2:]
+            top = dy if iy > 0 else 0
+            left = dx if ix > 0 else 0
+            core = (slice(top, top + chunks_y[iy]), slice(left, left + chunks_x[ix]))
+            return fn(np.asarray(b), (int(start_y[iy]) - top, int(start_x[ix]) - left), core)
 
-    return da.map_blocks(block, ext, chunks=lead_chunks + (chunks_y, chunks_x),
-                         new_axis=list(range(n_lead)) if n_lead else None,
-                         dtype=dtype, meta=np.empty((0,) * (n_lead + 2), dtype))
+        return da.map_blocks(block, ext, chunks=lead_chunks + (chunks_y, chunks_x),
+                             new_axis=list(range(n_lead)) if n_lead else None,
+                             dtype=dtype, meta=np.empty((0,) * (n_lead + 2), dtype))
+
+    return [make(fn) for fn in fns]
+
+
+def _overlap_map(surface: da.Array, depth: int, fn: BlockFn,
+                 lead_chunks: tuple[tuple[int, ...], ...], dtype: Any) -> da.Array:
+    """:func:`_overlap_maps` with one function."""
+    return _overlap_maps(surface, depth, [fn], lead_chunks, dtype)[0]
+
+
+#: Fewer spatial blocks than this: one dask task per (block, epoch), reduced by a max over the
+#: epochs, so that a few large blocks still keep every worker busy (the epochs share nothing
+#: but the surface block).  With more blocks, one task per block (less memory in flight).
+_EPOCH_SPLIT_BELOW_BLOCKS = 8
+
+#: Memory budget [bytes] of one block's working set that ``chunks="auto"`` aims at.
+_AUTO_BLOCK_BYTES = 1 << 30
+
+#: Block side [cells] ``chunks="auto"`` aims at: ``max(_AUTO_MIN_SIDE, _AUTO_HALO_FACTOR *
+#: halo)``; the overlap costs ``(1 + 2 halo / side)^2`` times the visibility scan of the block
+#: alone (the DOP kernel, most of the work, only runs on the block's own cells).
+_AUTO_MIN_SIDE = 2048
+_AUTO_HALO_FACTOR = 8
+#: ``chunks="auto"`` splits an axis in two rather than keep one block when both halves stay
+#: at least this wide and 3 halos wide (4 blocks x epochs keep 2+ workers evenly busy).
+_AUTO_SPLIT_MIN_SIDE = 1024
+
+
+def _auto_block_cells(shape: tuple[int, int], halo: int, n_sat: int, n_lead: int = 3,
+                      budget_bytes: int = _AUTO_BLOCK_BYTES) -> tuple[int, int]:
+    """Block size (rows, cols) [cells] for the overlapped dask runners of a map ``shape``
+    with a halo of ``halo`` cells and at most ``n_sat`` satellites per epoch.
+
+    Aim: sides of ``max(_AUTO_MIN_SIDE, _AUTO_HALO_FACTOR * halo)`` cells, shrunk so that the
+    extended block's working set (surface, its transpose and one epoch of ``n_sat`` float32
+    visibility heights, plus ``n_lead`` float32 outputs per cell) stays within
+    ``budget_bytes``, never below the halo.  Each axis is then split into equal blocks (no
+    thin remainder block: equal work per block balances the workers), and in two if it
+    would be one block but both halves stay wide (:data:`_AUTO_SPLIT_MIN_SIDE`, 3 halos)."""
+    halo = int(halo)
+    per_cell = 4 * (int(n_sat) + 2 + int(n_lead))
+    side_mem = int(math.isqrt(max(int(budget_bytes) // per_cell, 1))) - 2 * halo
+    side = max(min(max(_AUTO_MIN_SIDE, _AUTO_HALO_FACTOR * halo), side_mem), halo, 256)
+    out = []
+    for dim in shape:
+        n = max(1, math.ceil(dim / side))
+        if n == 1 and dim >= 2 * max(_AUTO_SPLIT_MIN_SIDE, 3 * halo):
+            n = 2
+        out.append(math.ceil(dim / n))
+    return out[0], out[1]
 
 
 # --------------------------------------------------------------------------------------------
@@ -485,17 +637,36 @@ def _min_el(el: np.ndarray, mask: float) -> float:
     return float(ok.min()) if ok.size else 90.0
 
 
-def _surface_array(surface: xr.DataArray, chunks: int | tuple[int, int] | None) -> np.ndarray | da.Array:
+Chunks = int | tuple[int, int] | str | None
+
+
+def _surface_array(surface: xr.DataArray, chunks: Chunks, min_el_deg: float, cell_m: float,
+                   n_sat: int, n_lead: int) -> tuple[np.ndarray | da.Array, int]:
+    """(surface as float32 numpy or dask, halo [cells] for a dask array, else 0).
+    ``chunks="auto"``: blocks from :func:`_auto_block_cells`."""
+    if not (chunks is None or chunks == "auto" or isinstance(chunks, int | tuple)):
+        raise InputError(f"chunks must be None, 'auto', an int or a (rows, cols) tuple of "
+                         f"cells, got {chunks!r}")
     data = surface.data
     if isinstance(data, da.Array):
         data = data.astype(np.float32)
-        if chunks is not None:
-            data = data.rechunk(chunks)
-        return data
-    arr = np.asarray(data, dtype=np.float32)
+    else:
+        data = np.asarray(data, dtype=np.float32)
+    if chunks is None and not isinstance(data, da.Array):
+        return data, 0
+    depth = _halo_cells(data, min_el_deg, cell_m)
+    if chunks == "auto":
+        chunks = _auto_block_cells(data.shape, depth, n_sat, n_lead)
     if chunks is not None:
-        return da.from_array(arr, chunks=chunks)
-    return arr
+        data = data.rechunk(chunks) if isinstance(data, da.Array) else da.from_array(data, chunks=chunks)
+    return data, depth
+
+
+def _as_block_fn(run: Callable[..., np.ndarray]) -> BlockFn:
+    """``run(block, origin=, core=)`` as a positional :data:`BlockFn`."""
+    def fn(block: np.ndarray, origin: tuple[int, int], core: tuple[slice, slice]) -> np.ndarray:
+        return run(block, origin=origin, core=core)
+    return fn
 
 
 def _limit(value: Any, name: str, surface: xr.DataArray, default: float) -> np.ndarray | da.Array:
@@ -580,7 +751,7 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
                   thresholds: Sequence[float] = (2.0, 3.0, 4.0), dop: str = "PDOP",
                   floor_m: float | np.ndarray | xr.DataArray | None = None,
                   ceiling_m: float | np.ndarray | xr.DataArray | None = None,
-                  mask_deg: float = 5.0, chunks: int | tuple[int, int] | None = None,
+                  mask_deg: float = 5.0, chunks: Chunks = None,
                   visibility_fn: VisibilityFn | None = None) -> xr.Dataset:
     """GNSS coverage maps: per DOP threshold D_j, the altitude [m] above which DOP < D_j.
 
@@ -597,11 +768,18 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
         rasters; AGL limits are ``surface + 150``).  The coverage floor is raised to
         ``floor_m``; cells whose floor lies above ``ceiling_m`` are unflyable.
     mask_deg : elevation mask [deg]; satellites below it are never used.
-    chunks : block size [cells] for the dask runner (default: the surface's own chunks).  Each
-        block is extended by ``occlusion.shadow_halo_cells`` at the lowest satellite elevation
-        used (~230 cells for 42 m of relief, 5 deg, 2 m cells), so blocks of ~1000+ cells keep
-        the overlap cost moderate.  Memory per block: one epoch of (sat, y, x) float32 heights
-        plus (threshold, y, x) float64; the numpy path (no chunks) holds that for the whole map.
+    chunks : block size [cells] for the dask runner (default: the surface's own chunks), or
+        ``"auto"``: blocks of ``max(2048, 8 x halo)`` cells, shrunk to keep one block's working
+        set near 1 GiB, split evenly along each axis (in two when both halves stay >= 1024
+        cells and 3 halos wide).  Each block is extended by
+        ``occlusion.shadow_halo_cells`` at the lowest satellite elevation used (~230 cells for
+        42 m of relief, 5 deg, 2 m cells): the visibility scan runs on the extended block, the
+        DOP kernel on the block's own cells only, so blocks much larger than the halo
+        (2000-4000 cells) keep the overlap cost small.  With fewer than 8 blocks there is one
+        task per (block, epoch) (reduced by a max over the epochs), so that 2+ workers stay
+        busy.  Memory per task: one epoch of (sat, y, x) float32 heights on the extended block
+        plus (threshold, y, x) float32; the numpy path (no chunks) holds that (float64
+        floors) for the whole map.
 
     Returns
     -------
@@ -631,17 +809,24 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
     min_el = _min_el(el, mask)
     floor_lim = _limit(floor_m, "floor_m", surface, -np.inf)
     ceil_lim = _limit(ceiling_m, "ceiling_m", surface, np.inf)
-    data = _surface_array(surface, chunks)
+    data, depth = _surface_array(surface, chunks, min_el, cell, n_max, thr.size)
     fn = visibility_fn or _default_visibility()
 
-    def run(block: np.ndarray, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
-        return coverage_floor_numpy(block, az_grid, el, cell, thr, kind, mask, fn, origin)
-
     if isinstance(data, da.Array):
-        depth = _halo_cells(data, min_el, cell)
-        raw = _overlap_map(data, depth, run, ((thr.size,),), np.float64)
+        data, dy, dx = _overlap_prepare(data, depth)
+        n_epochs = az.shape[0]
+        if n_epochs > 1 and data.npartitions < _EPOCH_SPLIT_BELOW_BLOCKS:
+            epoch_sets: list[tuple[int, ...] | None] = [(t,) for t in range(n_epochs)]
+        else:
+            epoch_sets = [None]
+        runs = [functools.partial(_floor_block, az_grid_deg=az_grid, el_deg=el, cell_m=cell,
+                                  thresholds=thr, kind=kind, mask_deg=mask, visibility_fn=fn,
+                                  epochs=ep, dtype=np.float32) for ep in epoch_sets]
+        parts = _overlap_maps(data, depth, [_as_block_fn(r) for r in runs], ((thr.size,),),
+                              np.float32)
+        raw = parts[0] if len(parts) == 1 else da.stack(parts).max(axis=0)
     else:
-        raw = run(data)
+        raw = coverage_floor_numpy(data, az_grid, el, cell, thr, kind, mask, fn)
     lib = da if isinstance(raw, da.Array) else np
     floor = lib.maximum(raw, floor_lim)
     unflyable = lib.isinf(raw) | ~(floor <= ceil_lim)  # never reached, or above the ceiling
@@ -694,20 +879,20 @@ def _section_array(surface: xr.DataArray, az: np.ndarray, el: np.ndarray, cell: 
                    alts: np.ndarray, mask: float, chunks: Any,
                    visibility_fn: VisibilityFn | None) -> Any:
     az_grid = _grid_azimuth(az, surface)
-    data = _surface_array(surface, chunks)
+    n_max = int(max(np.sum(np.isfinite(el) & (el >= mask), axis=1).max(), 0))
+    data, depth = _surface_array(surface, chunks, _min_el(el, mask), cell, n_max,
+                                 az.shape[0] * alts.size * 6)
     fn = visibility_fn or _default_visibility()
-
-    def run(block: np.ndarray, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
-        return dop_section_numpy(block, az_grid, el, cell, alts, mask, fn, origin)
-
     if isinstance(data, da.Array):
-        depth = _halo_cells(data, _min_el(el, mask), cell)
-        return _overlap_map(data, depth, run, ((az.shape[0],), (alts.size,), (6,)), np.float32)
-    return run(data)
+        run = functools.partial(_section_block, az_grid_deg=az_grid, el_deg=el, cell_m=cell,
+                                altitudes_m=alts, mask_deg=mask, visibility_fn=fn)
+        return _overlap_map(data, depth, _as_block_fn(run),
+                            ((az.shape[0],), (alts.size,), (6,)), np.float32)
+    return dop_section_numpy(data, az_grid, el, cell, alts, mask, fn)
 
 
 def dop_section(surface: xr.DataArray, az_deg: Any, el_deg: Any, altitudes_m: Any, *,
-                mask_deg: float = 5.0, chunks: int | tuple[int, int] | None = None,
+                mask_deg: float = 5.0, chunks: Chunks = None,
                 visibility_fn: VisibilityFn | None = None) -> xr.Dataset:
     """Number of visible satellites and DOPs on horizontal sections at absolute altitudes [m]
     (surface vertical datum), per epoch.
@@ -740,7 +925,7 @@ def dop_section(surface: xr.DataArray, az_deg: Any, el_deg: Any, altitudes_m: An
 
 def dop_volume(surface: xr.DataArray, az_deg: Any, el_deg: Any, z_m: Any, *,
                dop: str = "PDOP", reduce: str | None = "max", mask_deg: float = 5.0,
-               chunks: int | tuple[int, int] | None = None,
+               chunks: Chunks = None,
                visibility_fn: VisibilityFn | None = None) -> xr.DataArray:
     """3D DOP volume on (z, y, x) levels ``z_m`` [m] (the "digital morphing map" of seed 003:
     its isosurface DOP = D is the coverage floor).

@@ -80,7 +80,7 @@ DEFAULT_LINES_PER_CELL = 1
 # numba kernel
 # ----------------------------------------------------------------------------------------
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _line_tables(p_top, n_sweep, m, kappa, lines_per_cell, family):
     """Per sweep step ``k`` (normalised sweep coordinate ``P = p_top - k``) the geometry
     of the lines of one family, identical for every line of the family (they are integer
@@ -135,7 +135,7 @@ def _line_tables(p_top, n_sweep, m, kappa, lines_per_cell, family):
     return lo, hi, q0, case, kp_lo, kp_hi, kP, own, r0, w1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _update_lines(G, L, rlo, rhi, n, cs, klo, khi, kp):
     """One sweep step for ``n`` lines: ``L`` = requirement at the line points (cells ahead
     of them folded in) [m, relative], ``G`` = running max over every crossed cell."""
@@ -159,7 +159,7 @@ def _update_lines(G, L, rlo, rhi, n, cs, klo, khi, kp):
 _STRIP = 32  # sweep steps per block of the transposed output
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _scan_kernel(h, out, sa, sb, sweep0, cross0, m, kappa, lines_per_cell, interp, out_t):
     """Visibility heights [m] of one direction over ``h`` (n_sweep, n_cross), sweeping
     along axis 0, written into ``out`` (same shape).

@@ -461,3 +461,27 @@ def test_write_coverage_outputs(tmp_path, rdam, sky):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     with pytest.raises(InputError, match="coverage_floor"):
         write_coverage_outputs(xr.Dataset(), tmp_path)
+
+
+def test_auto_chunks_and_many_blocks_equal_unchunked():
+    """chunks="auto" and a >= 8-block split give the unchunked result bit for bit."""
+    from skyroute.stages.coverage import coverage_maps
+
+    g = Grid.from_bounds("EPSG:32635", 385000, 6671000, 385000 + 2 * 300, 6671000 + 2 * 260, 2.0)
+    rng = np.random.default_rng(7)
+    surf = np.zeros(g.shape)
+    for _ in range(40):  # random flat-topped blocks
+        r, c = rng.integers(0, g.ny - 20), rng.integers(0, g.nx - 20)
+        surf[r:r + rng.integers(4, 20), c:c + rng.integers(4, 20)] = rng.uniform(5, 40)
+    da = g.dataarray(surf.astype(np.float32), "surface", units="m", vertical_datum="test")
+    az = xr.DataArray(rng.uniform(0, 360, (2, 9)), dims=("time", "sat"))
+    el = xr.DataArray(rng.uniform(30, 85, (2, 9)), dims=("time", "sat"))  # halo < block size
+    ref = coverage_maps(da, az, el, thresholds=(3.0, 5.0), mask_deg=5.0)
+    auto = coverage_maps(da, az, el, thresholds=(3.0, 5.0), mask_deg=5.0, chunks="auto")
+    many = coverage_maps(da, az, el, thresholds=(3.0, 5.0), mask_deg=5.0, chunks=(90, 100))
+    for other in (auto, many):
+        np.testing.assert_array_equal(np.asarray(other["coverage_floor"].values, np.float64),
+                                      np.asarray(ref["coverage_floor"].values, np.float64))
+        np.testing.assert_array_equal(other["unflyable"].values, ref["unflyable"].values)
+    with pytest.raises(InputError, match="chunks"):
+        coverage_maps(da, az, el, chunks="big")

@@ -70,6 +70,23 @@ _RATIO_MEMO: dict[str, float] = {}   # energy_ratio_lb_dirs memo (shared by the 
 _WINDS_MEMO: dict[str, np.ndarray] = {}
 _RATIO_LOCK = threading.Lock()
 
+
+def _memoised(store: dict, key: str, make, limit: int):
+    """``store[key]``, computed by ``make()`` on a miss (thread-safe; cleared past ``limit``)."""
+    with _RATIO_LOCK:
+        value = store.get(key)
+    if value is None:
+        value = make()
+        with _RATIO_LOCK:
+            if len(store) > limit:
+                store.clear()
+            store[key] = value
+    return value
+
+
+def _finite_ratio(r: float) -> float:
+    return 1.0 if not np.isfinite(r) else float(r)
+
 COST_NAMES = ("C_l", "C_r", "C_d", "C_e")
 
 
@@ -664,15 +681,8 @@ class PlanningProblem:
         winds = self._wind_samples_cached()
         key = hashlib.sha1(b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes() for a in
                                     (winds, self._seg_args[-2], self._seg_args[-1], d))).hexdigest()
-        with _RATIO_LOCK:
-            r = _RATIO_MEMO.get(key)
-        if r is None:
-            r = _ratio_kernel(d, winds, self._seg_args[-2], self._seg_args[-1])
-            r = 1.0 if not np.isfinite(r) else float(r)
-            with _RATIO_LOCK:
-                if len(_RATIO_MEMO) > 4096:
-                    _RATIO_MEMO.clear()
-                _RATIO_MEMO[key] = r
+        r = _memoised(_RATIO_MEMO, key, lambda: _finite_ratio(
+            _ratio_kernel(d, winds, self._seg_args[-2], self._seg_args[-1])), 4096)
         return min(1.0, r) * ENERGY_LB_SAFETY
 
     def wind_samples_dense(self, per_gap: int = WIND_INTERP_SAMPLES) -> np.ndarray:
@@ -698,38 +708,19 @@ class PlanningProblem:
         key = "dense" + hashlib.sha1(wkey.encode() + b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes()
                                                                for a in (self._seg_args[-2], self._seg_args[-1], d))
                                      ).hexdigest()
-        with _RATIO_LOCK:
-            r = _RATIO_MEMO.get(key)
-        if r is None:
-            dkey = "densewinds" + wkey
-            with _RATIO_LOCK:
-                winds = _WINDS_MEMO.get(dkey)
-            if winds is None:
-                winds = self.wind_samples_dense()
-                with _RATIO_LOCK:
-                    if len(_WINDS_MEMO) > 16:
-                        _WINDS_MEMO.clear()
-                    _WINDS_MEMO[dkey] = winds
-            r = _ratio_kernel(d, winds, self._seg_args[-2], self._seg_args[-1])
-            r = 1.0 if not np.isfinite(r) else float(r)
-            with _RATIO_LOCK:
-                if len(_RATIO_MEMO) > 4096:
-                    _RATIO_MEMO.clear()
-                _RATIO_MEMO[key] = r
+
+        def make() -> float:
+            winds = _memoised(_WINDS_MEMO, "densewinds" + wkey, self.wind_samples_dense, 16)
+            return _finite_ratio(_ratio_kernel(d, winds, self._seg_args[-2], self._seg_args[-1]))
+
+        r = _memoised(_RATIO_MEMO, key, make, 4096)
         return r * ENERGY_LB_DENSE_SAFETY
 
     def _wind_samples_cached(self) -> np.ndarray:
         ws = self.__dict__.get("_winds_cache")
         if ws is None:
             key = hashlib.sha1(self.wind_uvw.tobytes() + self.wind_z_agl_m.tobytes()).hexdigest()
-            with _RATIO_LOCK:
-                ws = _WINDS_MEMO.get(key)
-            if ws is None:
-                ws = self.wind_samples()
-                with _RATIO_LOCK:
-                    if len(_WINDS_MEMO) > 16:
-                        _WINDS_MEMO.clear()
-                    _WINDS_MEMO[key] = ws
+            ws = _memoised(_WINDS_MEMO, key, self.wind_samples, 16)
             object.__setattr__(self, "_winds_cache", ws)
         return ws
 

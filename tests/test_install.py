@@ -53,6 +53,10 @@ def test_built_wheel_installs_and_runs(tmp_path):
     assert "skyroute/catalogs/scenarios/helsinki-medical.yaml" in names
     assert "skyroute/catalogs/data/helsinki_center.osm.pbf" in names
     assert not any(n.startswith(("pipeline/", "stages/")) for n in names)
+    # every source file of the three folders is in the wheel (sub-packages included)
+    for folder in ("pipeline", "stages", "catalogs"):
+        for f in (REPO / folder).rglob("*.py"):
+            assert f"skyroute/{f.relative_to(REPO).as_posix()}" in names, f"{f} missing from the wheel"
     # a fresh venv that sees this environment's dependencies but not the editable skyroute
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(with_pip=False).create(env_dir)
@@ -70,3 +74,10 @@ def test_built_wheel_installs_and_runs(tmp_path):
     out = subprocess.run([str(py), "-m", "skyroute.pipeline.cli", "scenarios"], cwd=tmp_path,
                          capture_output=True, text=True, check=True)
     assert "helsinki-medical" in out.stdout
+    # every stage module imports from the installed wheel
+    mods = sorted("skyroute." + ".".join(f.relative_to(REPO).with_suffix("").parts)
+                  for folder in ("pipeline", "stages") for f in (REPO / folder).rglob("*.py")
+                  if f.name != "__init__.py")
+    code = "import importlib, sys; [importlib.import_module(m) for m in sys.argv[1:]]; print('ok')"
+    out = subprocess.run([str(py), "-c", code, *mods], cwd=tmp_path, capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]

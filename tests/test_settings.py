@@ -10,7 +10,7 @@ import yaml
 from skyroute.pipeline.errors import ScenarioError, UnknownNameError
 from skyroute.pipeline.settings import load_scenario, parse_scenario, scenario_paths
 
-KNOWN = ["helsinki-medical", "rotterdam-canyon", "monaco-helipads", "san-gabriel-mountains"]
+KNOWN = ["helsinki-medical", "helsinki-traffic", "rotterdam-canyon", "monaco-helipads", "san-gabriel-mountains"]
 
 
 def _raw(name="helsinki-medical"):

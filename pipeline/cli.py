@@ -125,10 +125,10 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
 
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
     out_dir = out_dir or Path("skyroute-out") / sc.name / "maps"
-    targets = [t for t in ("surface", "environment", "wind", "clearance", "traffic")]
     from skyroute.pipeline.graph import stages_for
 
-    targets = [s.name for s in stages_for(sc) if s.name in targets]
+    wanted = ("surface", "environment", "wind", "clearance", "traffic")
+    targets = [s.name for s in stages_for(sc) if s.name in wanted]
     result = run_scenario(sc, cache=Cache(cache_dir), targets=targets, scheduler=scheduler,
                           progress=not quiet and sys.stderr.isatty())
     files = write_map_geotiffs(result, out_dir)

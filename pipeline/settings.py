@@ -361,8 +361,6 @@ def _semantic_problems(sc: Scenario) -> list[str]:
             problems.append(f"mission.{name}: altitude {p.alt_agl_m:g} m is above constraints.max_altitude_agl_m {cmax:g}")
         if p.alt_agl_m < cmin:
             problems.append(f"mission.{name}: altitude {p.alt_agl_m:g} m is below constraints.min_altitude_agl_m {cmin:g}")
-    if not sc.data.almanacs:
-        pass  # GNSS stages simply do not apply
     return problems
 
 

@@ -113,14 +113,21 @@ def _capsules_of(intr: Intruder, a: float, b: float):
 
 
 @numba.njit(cache=True)
+def _bucket_box(bb, c, ox, oy, b, nbx, nby):
+    """Bucket index range (bx0, by0, bx1, by1), clipped to the index, of capsule ``c``'s box."""
+    bx0 = min(max(int(math.floor((bb[c, 0] - ox) / b)), 0), nbx - 1)
+    by0 = min(max(int(math.floor((bb[c, 1] - oy) / b)), 0), nby - 1)
+    bx1 = min(max(int(math.floor((bb[c, 2] - ox) / b)), 0), nbx - 1)
+    by1 = min(max(int(math.floor((bb[c, 3] - oy) / b)), 0), nby - 1)
+    return bx0, by0, bx1, by1
+
+
+@numba.njit(cache=True)
 def _count_buckets(bb, ox, oy, b, nbx, nby, sl, counts):
     """bb: (m, 4) xmin, ymin, xmax, ymax of each capsule; counts[key + 1] += 1 per bucket hit."""
     m = bb.shape[0]
     for c in range(m):
-        bx0 = min(max(int(math.floor((bb[c, 0] - ox) / b)), 0), nbx - 1)
-        by0 = min(max(int(math.floor((bb[c, 1] - oy) / b)), 0), nby - 1)
-        bx1 = min(max(int(math.floor((bb[c, 2] - ox) / b)), 0), nbx - 1)
-        by1 = min(max(int(math.floor((bb[c, 3] - oy) / b)), 0), nby - 1)
+        bx0, by0, bx1, by1 = _bucket_box(bb, c, ox, oy, b, nbx, nby)
         for by in range(by0, by1 + 1):
             for bx in range(bx0, bx1 + 1):
                 counts[(sl[c] * nby + by) * nbx + bx + 1] += 1
@@ -132,10 +139,7 @@ def _fill_buckets(bb, ox, oy, b, nbx, nby, sl, start):
     fill = start.copy()
     entries = np.empty(start[-1], dtype=np.int64)
     for c in range(m):
-        bx0 = min(max(int(math.floor((bb[c, 0] - ox) / b)), 0), nbx - 1)
-        by0 = min(max(int(math.floor((bb[c, 1] - oy) / b)), 0), nby - 1)
-        bx1 = min(max(int(math.floor((bb[c, 2] - ox) / b)), 0), nbx - 1)
-        by1 = min(max(int(math.floor((bb[c, 3] - oy) / b)), 0), nby - 1)
+        bx0, by0, bx1, by1 = _bucket_box(bb, c, ox, oy, b, nbx, nby)
         for by in range(by0, by1 + 1):
             for bx in range(bx0, bx1 + 1):
                 key = (sl[c] * nby + by) * nbx + bx

@@ -159,6 +159,13 @@ def _split_long_legs(w, times, max_leg_s):
     return np.array(out_w), np.array(out_t)
 
 
+def _sample_times(duration_s: float, dt_s: float) -> np.ndarray:
+    """The output sampling of a trajectory: 0..duration in equal steps of at most ``dt_s`` [s]
+    (also what the smoothing and retiming checks look at, so they see the validator's chords)."""
+    n = max(int(math.ceil(duration_s / dt_s - 1e-9)), 1)
+    return np.linspace(0.0, duration_s, n + 1)
+
+
 def _add_accel_legs(w, times, accel_mps2: float):
     """Trapezoidal speed profile at the ends: the chain starts and ends at rest, so the first
     (last) leg gets a waypoint at the end (start) of an acceleration (deceleration) phase at
@@ -215,8 +222,7 @@ def _smooth(problem, w, seg_t, t0_s, occupancy, spacing_m, max_iter, fpa_tol_deg
             bad_ch |= _conflicts(occupancy, p[:-1], t0_s + t[:-1], p[1:], t0_s + t[1:])
         bad_out = np.zeros(0, dtype=int)
         if sample_dt_s:
-            T = traj.duration_s
-            to = np.linspace(0.0, T, max(int(math.ceil(T / sample_dt_s - 1e-9)), 1) + 1)
+            to = _sample_times(traj.duration_s, sample_dt_s)
             po = traj.sample(to)
             do = np.diff(po, axis=0)
             steep = np.abs(do[:, 2]) > tan_a * np.hypot(do[:, 0], do[:, 1]) + 1e-9
@@ -363,8 +369,7 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     for _ in range(max_retime_iter):
         if msg:
             break
-        T = traj.duration_s
-        tt = np.linspace(0.0, T, max(int(math.ceil(T / sample_dt_s)), 1) + 1)
+        tt = _sample_times(traj.duration_s, sample_dt_s)
         air = np.linalg.norm(traj.velocity(tt) - wind_of(traj.sample(tt)), axis=1)
         if air.max() <= 0.97 * veh.max_airspeed_mps:
             break
@@ -374,8 +379,7 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
         reasons.append(msg)
     # output samples
     T = traj.duration_s
-    n = max(int(math.ceil(T / sample_dt_s - 1e-9)), 1)
-    tau = np.linspace(0.0, T, n + 1)
+    tau = _sample_times(T, sample_dt_s)
     p = traj.sample(tau)
     v = traj.velocity(tau)
     t_abs = t0 + tau

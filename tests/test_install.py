@@ -42,8 +42,10 @@ def test_editable_install_imports_from_the_repo(tmp_path):
 @pytest.mark.slow
 def test_built_wheel_installs_and_runs(tmp_path):
     wheel_dir = tmp_path / "wheel"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-w", str(wheel_dir),
-                    str(REPO)], check=True, capture_output=True, text=True)
+    # build with isolation, as a user's `pip install .` does: the build backend comes from
+    # pyproject's build-system (setuptools>=77 for the SPDX licence string), not this venv
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-w", str(wheel_dir), str(REPO)],
+                   check=True, capture_output=True, text=True)
     wheels = list(wheel_dir.glob("skyroute-*.whl"))
     assert len(wheels) == 1
     import zipfile

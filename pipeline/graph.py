@@ -11,16 +11,21 @@ the heavy graph executes, chunk by chunk, with a progress bar) and hands the *ca
 opened lazily, to the stages that depend on it.
 
 Cache key of a stage = stable hash of (stage name, code version, settings, keys of its inputs);
-the code version hashes the source of the modules the stage declares, so editing a stage's code
-recomputes it and its dependants only.
+the code version hashes the source of the stage function and its settings selector and of every
+``skyroute`` module in their import closure (:func:`code_closure`: imports at any depth, inside
+function bodies too, found by reading the sources with :mod:`ast`, never by importing them), so
+editing any code a stage runs recomputes it and its dependants only.
 """
 
 from __future__ import annotations
 
+import ast
 import contextlib
+import functools
 import hashlib
 import importlib
 import importlib.util
+import inspect
 import logging
 import sys
 import time
@@ -61,17 +66,102 @@ class Stage:
     description: str = ""
 
     def code_version(self) -> str:
-        mods = {self.func.__module__, *self.code_modules}
+        """Hash of the stage function's and selector's source and of every ``skyroute`` module
+        they (transitively) import; ``code_modules`` adds modules reached only dynamically."""
         h = hashlib.sha256(f"{self.name}:{self.version}".encode())
-        for m in sorted(mods):
-            # read the module's source without importing it (a cache hit needs no heavy imports)
-            spec = importlib.util.find_spec(m)
-            if spec is not None and spec.origin and spec.origin.endswith(".py"):
-                with open(spec.origin, "rb") as f:
-                    h.update(f.read())
-            else:
-                h.update(SKYROUTE_VERSION.encode())
+        mods: set[str] = set(self.code_modules)
+        for fn in (self.func, self.select):
+            src, mods_fn = _function_imports(fn)
+            h.update(src.encode())
+            mods |= mods_fn
+        for m in sorted(code_closure(mods)):
+            h.update(m.encode())
+            h.update(_module_source(m) or SKYROUTE_VERSION.encode())
         return h.hexdigest()[:16]
+
+
+_PACKAGE = "skyroute"
+
+
+@functools.cache
+def _module_file(name: str) -> str | None:
+    """Path of a ``skyroute`` module's source, found without importing the module itself."""
+    try:
+        spec = importlib.util.find_spec(name)
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.origin or not spec.origin.endswith(".py"):
+        return None
+    return spec.origin
+
+
+def _module_source(name: str) -> bytes | None:
+    path = _module_file(name)
+    if path is None:
+        return None
+    with open(path, "rb") as f:
+        return f.read()
+
+
+def _imports_in(tree: ast.AST, module: str, is_package: bool) -> set[str]:
+    """``skyroute`` modules imported anywhere in ``tree`` (``from pkg import sub`` counts ``sub``
+    when it is a module; relative imports resolved against ``module``)."""
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name.split(".")[0] == _PACKAGE}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = module.split(".")
+                parts = parts if is_package else parts[:-1]
+                parts = parts[:len(parts) - (node.level - 1)]
+                base = ".".join([*parts, *([base] if base else [])])
+            if base.split(".")[0] != _PACKAGE:
+                continue
+            out.add(base)
+            out |= {f"{base}.{a.name}" for a in node.names if _module_file(f"{base}.{a.name}")}
+    return out
+
+
+def code_closure(modules: set[str] | Sequence[str]) -> set[str]:
+    """Every ``skyroute`` module reachable from ``modules`` by imports (any depth, function
+    bodies included), read from the sources with :mod:`ast`."""
+    seen: set[str] = set()
+    todo = [m for m in modules if m.split(".")[0] == _PACKAGE]
+    while todo:
+        m = todo.pop()
+        if m in seen:
+            continue
+        seen.add(m)
+        path = _module_file(m)
+        if path is None:
+            continue
+        with open(path, "rb") as f:
+            tree = ast.parse(f.read(), filename=path)
+        todo.extend(_imports_in(tree, m, path.endswith("__init__.py")) - seen)
+    return {m for m in seen if _module_file(m) is not None}
+
+
+def _function_imports(fn: Callable[..., Any]) -> tuple[str, set[str]]:
+    """(source of ``fn``, the ``skyroute`` modules it uses): imports inside its body, and the
+    names it reads that its module bound by a top-level ``skyroute`` import."""
+    try:
+        src = inspect.getsource(fn)
+    except (OSError, TypeError):  # pragma: no cover - built without sources
+        return repr(fn), set()
+    mod = inspect.getmodule(fn)
+    modname = mod.__name__ if mod else ""
+    tree = ast.parse(inspect.cleandoc("\n" + src) if src[:1].isspace() else src)
+    used = _imports_in(tree, modname, False)
+    names = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
+    if mod is not None:
+        for name in names:
+            obj = getattr(mod, name, None)
+            owner = obj.__name__ if inspect.ismodule(obj) else getattr(obj, "__module__", None)
+            if isinstance(owner, str) and owner.split(".")[0] == _PACKAGE and owner != modname:
+                used.add(owner)
+    return src, used
 
 
 REGISTRY: dict[str, Stage] = {}

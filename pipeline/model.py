@@ -9,9 +9,11 @@ Python process (no ``hash()``).
 from __future__ import annotations
 
 import dataclasses
+import enum
 import hashlib
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +41,8 @@ def _canonical(obj: Any) -> Any:
     if isinstance(obj, (set, frozenset)):
         return sorted(_canonical(v) for v in obj)
     if isinstance(obj, Path):
-        return {"__path__": str(obj), "sha256": file_digest(obj) if obj.is_file() else None}
+        digest = file_digest(obj) if obj.is_file() else dir_digest(obj) if obj.is_dir() else None
+        return {"__path__": str(obj), "sha256": digest}
     if isinstance(obj, np.ndarray):
         return {"__ndarray__": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest(),
                 "dtype": str(obj.dtype), "shape": list(obj.shape)}
@@ -52,7 +55,16 @@ def _canonical(obj: Any) -> Any:
         return obj.isoformat()
     if obj is None or isinstance(obj, (str, int, bool)):
         return obj
-    return repr(obj)
+    if isinstance(obj, enum.Enum):
+        return {"__enum__": type(obj).__name__, "value": _canonical(obj.value)}
+    if isinstance(obj, bytes):
+        return {"__bytes__": hashlib.sha256(obj).hexdigest()}
+    if hasattr(obj, "to_wkt") and type(obj).__module__.startswith("pyproj"):
+        return {"__crs__": obj.to_wkt()}
+    # as pangeo-forge does: a type without a canonical form would hash by its repr, which may
+    # hide its content (or change between processes): refuse it
+    raise TypeError(f"stable_hash: no canonical form for {type(obj).__module__}.{type(obj).__qualname__}; "
+                    "convert it to plain values (str, number, list, dict, Path, ndarray) in the settings")
 
 
 _DIGESTS: dict[tuple[str, int, int], str] = {}
@@ -72,11 +84,25 @@ def file_digest(path: str | Path) -> str:
     return _DIGESTS[key]
 
 
+def dir_digest(path: str | Path) -> str:
+    """SHA-256 over a folder's files (relative paths and contents, sorted; e.g. a zarr store)."""
+    root = Path(path)
+    h = hashlib.sha256()
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames.sort()
+        for name in sorted(filenames):
+            f = Path(dirpath) / name
+            h.update(f.relative_to(root).as_posix().encode() + b"\0")
+            h.update(file_digest(f).encode())
+    return h.hexdigest()
+
+
 def stable_hash(*parts: Any, length: int = 20) -> str:
     """Stable hex digest of ``parts`` (settings models, dicts, paths, arrays, scalars).
 
-    Files named by :class:`pathlib.Path` contribute their content, so editing a data file
-    changes every key that depends on it.
+    Files and folders named by :class:`pathlib.Path` contribute their content, so editing a data
+    file changes every key that depends on it.  A type with no canonical form raises ``TypeError``
+    (never a ``repr`` that could hide its content).
     """
     payload = json.dumps(_canonical(list(parts)), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(payload.encode()).hexdigest()[:length]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from skyroute.pipeline import graph
 from skyroute.pipeline.graph import REGISTRY, Stage, _load_registry, code_closure
 
@@ -52,3 +54,35 @@ def test_editing_a_module_deep_in_the_closure_changes_only_dependent_stages(monk
     changed = {n for n in before if before[n] != after[n]}
     assert "plan" in changed and "traffic" in changed
     assert not changed & {"surface", "satellites", "wind", "clearance", "coverage"}
+
+
+def test_stable_hash_refuses_unknown_types_and_hashes_folders_by_content(tmp_path):
+    from skyroute.pipeline.model import stable_hash
+
+    class Opaque:
+        pass
+
+    with pytest.raises(TypeError, match="no canonical form for .*Opaque"):
+        stable_hash({"x": Opaque()})
+    d = tmp_path / "store.zarr"
+    (d / "a").mkdir(parents=True)
+    (d / "a" / "0.0").write_bytes(b"chunk")
+    h1 = stable_hash(d)
+    (d / "a" / "0.0").write_bytes(b"chunk2")  # same names, new content
+    assert stable_hash(d) != h1
+    (d / "a" / "0.0").write_bytes(b"chunk")
+    assert stable_hash(d) == h1
+    (d / "b").write_bytes(b"")
+    assert stable_hash(d) != h1
+
+
+def test_every_catalog_scenario_has_hashable_stage_settings():
+    from skyroute.pipeline.model import stable_hash
+    from skyroute.pipeline.settings import load_scenario, scenario_paths
+
+    _load_registry()
+    for name in scenario_paths():
+        sc = load_scenario(name)
+        for st in REGISTRY.values():
+            if st.applies(sc):
+                assert len(stable_hash(st.select(sc))) == 20, (name, st.name)

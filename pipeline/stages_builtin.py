@@ -318,6 +318,7 @@ class PlanSettings(FrozenModel):
     goal_agl_m: float
     start_time_utc: str
     vehicle: str
+    vehicle_profile: dict  # the profile's content, so editing the vehicle YAML recomputes the plan
     weights: tuple[float, float, float, float]
     planner: str
     time_budget_s: float
@@ -333,8 +334,10 @@ class PlanSettings(FrozenModel):
 
 
 def _plan_settings(sc: Scenario) -> PlanSettings:
+    from skyroute.stages.vehicle import load_vehicle
+
     m, p = sc.mission, sc.planner
-    return PlanSettings(
+    return PlanSettings(vehicle_profile=load_vehicle(sc.vehicle).model_dump(mode="json"),
         start_xy=sc.point_xy(m.start), start_agl_m=m.start.alt_agl_m, goal_xy=sc.point_xy(m.goal),
         goal_agl_m=m.goal.alt_agl_m, start_time_utc=m.start_time_utc.isoformat(), vehicle=sc.vehicle,
         weights=p.weights, planner=p.name, time_budget_s=p.time_budget_s, seed=p.seed, max_tries=p.max_tries,

@@ -86,3 +86,25 @@ def test_every_catalog_scenario_has_hashable_stage_settings():
         for st in REGISTRY.values():
             if st.applies(sc):
                 assert len(stable_hash(st.select(sc))) == 20, (name, st.name)
+
+
+def test_editing_the_vehicle_yaml_changes_the_plan_key(tmp_path):
+    import yaml
+
+    from skyroute.pipeline.model import stable_hash
+    from skyroute.pipeline.settings import load_scenario, parse_scenario
+    from skyroute.stages.vehicle import load_vehicle
+
+    _load_registry()
+    sc = load_scenario("helsinki-medical")
+    prof = load_vehicle(sc.vehicle).model_dump(mode="json")
+    keys = []
+    for capacity in (prof["battery_capacity_mah"], prof["battery_capacity_mah"] * 0.9):
+        f = tmp_path / "vehicle.yaml"  # the same file, edited: only its content changes
+        f.write_text(yaml.safe_dump({**prof, "battery_capacity_mah": capacity}))
+        raw = yaml.safe_load(sc.source_path.read_text())
+        raw["vehicle"] = str(f)
+        sc2 = parse_scenario(raw, base=sc.source_path.parent)
+        keys.append({n: stable_hash(st.select(sc2)) for n, st in REGISTRY.items() if st.applies(sc2)})
+    changed = {n for n in keys[0] if keys[0][n] != keys[1][n]}
+    assert changed == {"plan"}

@@ -3,6 +3,12 @@
 An entry is the folder ``<root>/stages/<stage>-<key>/`` holding ``data.zarr`` and the manifest
 ``skyroute.json``, where ``key`` is a stable hash of the stage
 name, its code version, its settings and the keys of its inputs (see :mod:`skyroute.pipeline.graph`).
+
+Integrity: the manifest lists every file of the zarr store with its size, modification time and
+SHA-256.  :meth:`Cache.get` checks sizes and modification times (a ``stat`` per file, no reading:
+warm runs stay fast) and re-hashes only a file whose time changed (copied or overwritten); an
+entry with a missing, resized or altered file is damaged: it is removed with a warning and the
+stage recomputes.
 Writes go to ``<root>/tmp/`` and are renamed into place only once the zarr store and its
 manifest (``skyroute.json``) are complete; ``os.rename`` of a directory is atomic on one
 filesystem, so a run killed at any moment leaves at worst an orphan under ``tmp/`` that no
@@ -16,6 +22,7 @@ filesystem path.
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import json
 import logging
 import os
@@ -91,6 +98,12 @@ class Cache:
             return None
         if manifest.get("key") != key or manifest.get("stage") != stage:
             return None
+        damage = _damage(p / "data.zarr", manifest.get("files"))
+        if damage:
+            log.warning("cache entry %s is damaged (%s); removing it, the stage will be recomputed",
+                        p.name, damage)
+            shutil.rmtree(p, ignore_errors=True)
+            return None
         return CacheEntry(stage, key, p, manifest)
 
     def open(self, entry: CacheEntry, chunks: Any = "auto") -> xr.Dataset:
@@ -117,7 +130,8 @@ class Cache:
             else:
                 compute(delayed)
             manifest = {**manifest, "stage": stage, "key": key,
-                        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds")}
+                        "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+                        "files": _file_table(tmp / "data.zarr")}
             (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1, default=str))
             _fsync_dir(tmp)
             try:
@@ -171,6 +185,42 @@ class Cache:
                 shutil.rmtree(p, ignore_errors=True)
                 n += 1
         return n
+
+
+def _file_table(store: Path) -> dict[str, list]:
+    """``{relative path: [size, mtime_ns, sha256]}`` of every file of a zarr store."""
+    out = {}
+    for f in sorted(store.rglob("*")):
+        if f.is_file():
+            st = f.stat()
+            out[f.relative_to(store).as_posix()] = [st.st_size, st.st_mtime_ns, _sha256(f)]
+    return out
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _damage(store: Path, files: dict[str, list] | None) -> str:
+    """Why the store differs from its file table ("" when intact; entries written before the
+    table existed are taken as they are)."""
+    if files is None:
+        return ""
+    for rel, (size, mtime_ns, digest) in files.items():
+        f = store / rel
+        try:
+            st = f.stat()
+        except OSError:
+            return f"{rel} is missing"
+        if st.st_size != size:
+            return f"{rel} has {st.st_size} bytes, {size} written"
+        if st.st_mtime_ns != mtime_ns and _sha256(f) != digest:
+            return f"{rel} was modified"
+    return ""
 
 
 def _pid_alive(pid: int) -> bool:

@@ -108,3 +108,34 @@ def test_editing_the_vehicle_yaml_changes_the_plan_key(tmp_path):
         keys.append({n: stable_hash(st.select(sc2)) for n, st in REGISTRY.items() if st.applies(sc2)})
     changed = {n for n in keys[0] if keys[0][n] != keys[1][n]}
     assert changed == {"plan"}
+
+
+def test_a_damaged_chunk_is_dropped_and_recomputed(tmp_path, helsinki, caplog):
+    import logging
+
+    import numpy as np
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.graph import run_pipeline
+
+    cache = Cache(tmp_path / "cache")
+    clean = run_pipeline(helsinki, cache=cache, targets=["clearance"])
+    want = {n: clean[n].load() for n in ("surface", "clearance")}
+    entry = cache.get("surface", clean.records[0].key)
+    chunk = max((f for f in (entry.path / "data.zarr" / "surface").rglob("*") if f.is_file()),
+                key=lambda f: f.stat().st_size)
+    raw = bytearray(chunk.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF  # one byte flipped, same size: a silent overwrite
+    chunk.write_bytes(bytes(raw))
+    with caplog.at_level(logging.WARNING, logger="skyroute.cache"):
+        again = run_pipeline(helsinki, cache=cache, targets=["clearance"])
+    assert "damaged" in caplog.text and "was modified" in caplog.text
+    hits = {r.name: r.cache_hit for r in again.records}
+    assert hits["surface"] is False and hits["clearance"] is True  # same key: dependants reused
+    for n, ds in want.items():
+        for v in ds.data_vars:
+            np.testing.assert_array_equal(again[n][v].values, ds[v].values)
+    # a file removed from an entry is damage too
+    entry = cache.get("clearance", again.records[-1].key)
+    next(f for f in (entry.path / "data.zarr").rglob("*") if f.is_file() and f.name != "zarr.json").unlink()
+    assert cache.get("clearance", again.records[-1].key) is None

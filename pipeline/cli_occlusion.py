@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from skyroute.pipeline.errors import DataError
+from skyroute.pipeline.errors import CRSError, DataError
 
 
 @click.command("visibility-height")
@@ -43,12 +43,18 @@ def visibility_height_command(surface_path: Path, az_deg: float, el_deg: float, 
         raise DataError(f"{surface_path} has {da.sizes['band']} bands; give a one-band surface")
     if "band" in da.dims:
         da = da.squeeze("band", drop=True)
+    crs = da.rio.crs
+    if crs is None or not crs.is_projected:
+        raise CRSError(f"{surface_path} is in {'no CRS' if crs is None else repr(crs.to_string())}, not a "
+                       "projected CRS in metres: reproject it first, e.g. `gdalwarp -t_srs EPSG:326NN "
+                       f"{surface_path.name} out.tif` with its UTM zone")
     da = da.astype(np.float32)
     vh = visibility_height(da, az_deg, el_deg, azimuth="grid",
                            fill_nan="nearest" if fill_nan else None)
     vh = vh.drop_vars([c for c in ("azimuth_deg", "grid_azimuth_deg", "elevation_deg")
                        if c in vh.coords])
     try:
+        out_path.parent.mkdir(parents=True, exist_ok=True)
         vh.rio.to_raster(out_path, dtype="float32")
     except Exception as exc:
         raise DataError(f"cannot write {out_path}: {exc}") from exc

@@ -118,6 +118,10 @@ class MissionPoint(FrozenModel):
         xy = self.x is not None and self.y is not None
         if ll == xy:
             raise ValueError("give either lon and lat [deg] or x and y [m]")
+        if ll and not -90.0 <= self.lat <= 90.0:
+            raise ValueError(f"latitude {self.lat:g} out of [-90, 90] deg")
+        if ll and not -180.0 <= self.lon <= 180.0:
+            raise ValueError(f"longitude {self.lon:g} out of [-180, 180] deg")
         return self
 
 
@@ -396,5 +400,8 @@ def load_scenario(name_or_path: str | Path = DEFAULT_SCENARIO) -> Scenario:
     try:
         raw = yaml.safe_load(p.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:
-        raise ScenarioError(str(p), [f"<file>: not valid YAML: {exc}"]) from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ScenarioError(str(p), [f"<file>: not valid YAML{where}: {what}"]) from None
     return parse_scenario(raw, source=str(p), base=p.parent)

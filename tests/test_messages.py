@@ -1,0 +1,53 @@
+"""Input messages: one clear line that says what is wrong and how to fix it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio
+import yaml
+from click.testing import CliRunner
+from rasterio.transform import from_origin
+
+from skyroute.pipeline.cli import main
+from skyroute.pipeline.errors import ScenarioError
+from skyroute.pipeline.settings import load_scenario, parse_scenario
+
+
+def test_yaml_syntax_error_names_file_line_and_column(tmp_path):
+    f = tmp_path / "broken.yaml"
+    f.write_text("name: x\naoi: [1,\n")
+    with pytest.raises(ScenarioError, match=r"(?s)broken\.yaml.*not valid YAML at line 3, column 1: expected the node"):
+        load_scenario(f)
+
+
+@pytest.mark.parametrize(("key", "value", "msg"), [("lat", 95.0, r"latitude 95 out of \[-90, 90\]"),
+                                                   ("lon", -190.0, r"longitude -190 out of \[-180, 180\]")])
+def test_mission_point_out_of_range_is_named(key, value, msg):
+    sc = load_scenario("helsinki-medical")
+    raw = yaml.safe_load(sc.source_path.read_text())
+    raw["mission"]["start"][key] = value
+    with pytest.raises(ScenarioError, match=r"mission\.start: " + msg):
+        parse_scenario(raw, base=sc.source_path.parent)
+
+
+def _tif(path, crs, res):
+    a = np.random.default_rng(0).random((40, 40), dtype=np.float32) * 10
+    with rasterio.open(path, "w", driver="GTiff", width=40, height=40, count=1, dtype="float32", crs=crs,
+                       transform=from_origin(24.9 if crs == "EPSG:4326" else 385000, 60.2 if crs == "EPSG:4326"
+                                             else 6672000, res, res)) as d:
+        d.write(a, 1)
+
+
+def test_visibility_height_refuses_a_geographic_surface_and_creates_the_out_folder(tmp_path):
+    geo, utm = tmp_path / "geo.tif", tmp_path / "utm.tif"
+    _tif(geo, "EPSG:4326", 1e-4)
+    _tif(utm, "EPSG:32635", 1.0)
+    r = CliRunner().invoke(main, ["visibility-height", "--surface", str(geo), "--az-deg", "10", "--el-deg", "20",
+                                  "--out", str(tmp_path / "vh.tif")])
+    assert r.exit_code == 2 and "not a projected CRS in metres: reproject it first" in r.output
+    out = tmp_path / "new" / "folder" / "vh.tif"
+    r = CliRunner().invoke(main, ["visibility-height", "--surface", str(utm), "--az-deg", "10", "--el-deg", "20",
+                                  "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert out.is_file()

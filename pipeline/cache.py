@@ -85,9 +85,10 @@ class Cache:
                              "pass --cache-dir or set SKYROUTE_CACHE_DIR to a writable folder") from exc
 
     # -- read
-    def get(self, stage: str, key: str) -> CacheEntry | None:
+    def get(self, stage: str, key: str, touch: bool = True) -> CacheEntry | None:
         """The complete entry for (stage, key), or None.  An entry is trusted only when its
-        manifest exists and names the same key."""
+        manifest exists and names the same key and its files are intact; ``touch`` records the
+        use (for :meth:`prune`)."""
         p = self.path_for(stage, key)
         mf = p / MANIFEST
         if not mf.is_file():
@@ -104,6 +105,11 @@ class Cache:
                         p.name, damage)
             shutil.rmtree(p, ignore_errors=True)
             return None
+        if touch:
+            try:
+                os.utime(mf)  # last use, for least-recently-used pruning
+            except OSError:
+                pass
         return CacheEntry(stage, key, p, manifest)
 
     def open(self, entry: CacheEntry, chunks: Any = "auto") -> xr.Dataset:
@@ -155,7 +161,7 @@ class Cache:
         if self.stages_dir.is_dir():
             for p in sorted(self.stages_dir.iterdir()):
                 stage, _, key = p.name.rpartition("-")
-                e = self.get(stage, key)
+                e = self.get(stage, key, touch=False)
                 if e is not None:
                     out.append(e)
         return out
@@ -172,6 +178,24 @@ class Cache:
                 shutil.rmtree(p, ignore_errors=True)
         n += self.clean_tmp(all_=stage is None)
         return n
+
+    def prune(self, max_size_bytes: int) -> list[CacheEntry]:
+        """Remove least-recently-used entries until the cache holds at most ``max_size_bytes``
+        (last use = the last :meth:`get` of the entry); returns the entries removed."""
+        if max_size_bytes < 0:
+            raise CacheError(f"--max-size must be >= 0, got {max_size_bytes} bytes")
+        entries = sorted(self.entries(), key=lambda e: (e.path / MANIFEST).stat().st_mtime_ns)
+        sizes = {e.path: e.size_bytes for e in entries}
+        total = sum(sizes.values())
+        removed = []
+        for e in entries:
+            if total <= max_size_bytes:
+                break
+            shutil.rmtree(e.path, ignore_errors=True)
+            total -= sizes[e.path]
+            removed.append(e)
+        self.clean_tmp()
+        return removed
 
     def clean_tmp(self, all_: bool = False) -> int:
         """Remove temporaries of processes that no longer run (or all of them)."""

@@ -254,6 +254,38 @@ def cache_clear(cache_dir, stage) -> None:
     click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'} from {c.root}")
 
 
+_SIZE_UNITS = {"": 1, "B": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
+
+
+def parse_size(text: str) -> int:
+    """``"10G"``, ``"500M"``, ``"1.5T"``, ``"1024"`` -> bytes (binary units; a trailing B or iB is allowed)."""
+    import re
+
+    from skyroute.pipeline.errors import InputError
+
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([KMGT]?)(?:i?B)?\s*", text, flags=re.IGNORECASE)
+    if not m:
+        raise InputError(f"--max-size {text!r} is not a size: give e.g. 10G, 500M or a number of bytes")
+    return int(float(m.group(1)) * _SIZE_UNITS[m.group(2).upper()])
+
+
+@cache_group.command("prune")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+@click.option("--max-size", required=True, help="Keep at most this much (e.g. 10G, 500M): the least "
+              "recently used entries go first.")
+def cache_prune(cache_dir, max_size) -> None:
+    """Remove least-recently-used cache entries until the cache fits in --max-size."""
+    from skyroute.pipeline.cache import Cache
+
+    limit = parse_size(max_size)
+    c = Cache(cache_dir)
+    removed = c.prune(limit)
+    left = sum(e.size_bytes for e in c.entries())
+    click.echo(f"removed {len(removed)} entr{'y' if len(removed) == 1 else 'ies'} "
+               f"({', '.join(f'{e.stage}-{e.key}' for e in removed) or 'none'}); "
+               f"{left / 1e6:.2f} MB left in {c.root}")
+
+
 # Commands contributed by the stage modules (each file defines one click command).
 _PLUGINS = {
     "skyroute.pipeline.cli_gnss": "sky_command",

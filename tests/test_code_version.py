@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from skyroute.pipeline import graph
@@ -139,3 +140,30 @@ def test_a_damaged_chunk_is_dropped_and_recomputed(tmp_path, helsinki, caplog):
     entry = cache.get("clearance", again.records[-1].key)
     next(f for f in (entry.path / "data.zarr").rglob("*") if f.is_file() and f.name != "zarr.json").unlink()
     assert cache.get("clearance", again.records[-1].key) is None
+
+
+def test_cache_prune_removes_least_recently_used_first(tmp_path):
+    import os
+    import time
+
+    import xarray as xr
+    from click.testing import CliRunner
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.cli import main, parse_size
+
+    assert parse_size("10G") == 10 << 30 and parse_size("1.5M") == int(1.5 * (1 << 20)) and parse_size("12") == 12
+    cache = Cache(tmp_path / "c")
+    for i, name in enumerate(("a", "b", "c")):
+        ds = xr.Dataset({"v": ("x", np.random.default_rng(i).random(20000))})
+        cache.write(name, f"k{i}", ds, {})
+        os.utime(cache.path_for(name, f"k{i}") / "skyroute.json", ns=(i * 10**9, i * 10**9))
+    time.sleep(0.01)
+    assert cache.get("a", "k0") is not None  # a use: "a" becomes the most recent
+    size = {e.stage: e.size_bytes for e in cache.entries()}
+    r = CliRunner().invoke(main, ["cache", "prune", "--cache-dir", str(cache.root),
+                                  "--max-size", str(size["a"] + size["c"])])
+    assert r.exit_code == 0, r.output
+    assert sorted(e.stage for e in cache.entries()) == ["a", "c"]  # b was the least recently used
+    r = CliRunner().invoke(main, ["cache", "prune", "--cache-dir", str(cache.root), "--max-size", "lots"])
+    assert r.exit_code == 2 and "is not a size" in r.output

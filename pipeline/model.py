@@ -67,20 +67,54 @@ def _canonical(obj: Any) -> Any:
                     "convert it to plain values (str, number, list, dict, Path, ndarray) in the settings")
 
 
-_DIGESTS: dict[tuple[str, int, int], str] = {}
+_DIGESTS: dict[str, str] = {}
+_DIGESTS_LOADED: list[Path] = []
+
+
+def _digest_memo_path() -> Path:
+    env = os.environ.get("SKYROUTE_CACHE_DIR")
+    root = Path(env).expanduser() if env else Path.home() / ".cache" / "skyroute"
+    return root / "digests.json"
+
+
+def _load_digest_memo() -> None:
+    path = _digest_memo_path()
+    if _DIGESTS_LOADED and _DIGESTS_LOADED[-1] == path:
+        return
+    _DIGESTS_LOADED.append(path)
+    try:
+        memo = json.loads(path.read_text())
+        if isinstance(memo, dict):
+            _DIGESTS.update({k: v for k, v in memo.items() if isinstance(v, str)})
+    except (OSError, ValueError):
+        pass
+
+
+def _save_digest_memo() -> None:
+    path = _digest_memo_path()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(_DIGESTS))
+        os.replace(tmp, path)  # atomic: a reader sees the old or the new memo, never half of one
+    except OSError:
+        pass  # a read-only cache folder only costs re-hashing
 
 
 def file_digest(path: str | Path) -> str:
-    """SHA-256 of a file's content (memoised on path, size and mtime)."""
+    """SHA-256 of a file's content, memoised on (path, size, mtime) in memory and in
+    ``<cache root>/digests.json`` so big inputs are not re-read on every run."""
     p = Path(path)
     st = p.stat()
-    key = (str(p.resolve()), st.st_size, st.st_mtime_ns)
+    key = f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}"
+    _load_digest_memo()
     if key not in _DIGESTS:
         h = hashlib.sha256()
         with open(p, "rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
         _DIGESTS[key] = h.hexdigest()
+        _save_digest_memo()
     return _DIGESTS[key]
 
 

@@ -167,3 +167,33 @@ def test_cache_prune_removes_least_recently_used_first(tmp_path):
     assert sorted(e.stage for e in cache.entries()) == ["a", "c"]  # b was the least recently used
     r = CliRunner().invoke(main, ["cache", "prune", "--cache-dir", str(cache.root), "--max-size", "lots"])
     assert r.exit_code == 2 and "is not a size" in r.output
+
+
+def test_file_digests_persist_between_processes(tmp_path):
+    import hashlib
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
+    f = tmp_path / "big.bin"
+    f.write_bytes(b"x" * 1000)
+    code = ("import sys; from skyroute.pipeline import model; print(model.file_digest(sys.argv[1]));"
+            "print(len(model._DIGESTS))")
+    out = subprocess.run([sys.executable, "-c", code, str(f)], capture_output=True, text=True, check=True,
+                         env=env)
+    assert out.stdout.split()[0] == hashlib.sha256(b"x" * 1000).hexdigest()
+    memo = (tmp_path / "cache" / "digests.json").read_text()
+    assert str(f.resolve()) in memo
+    # a second process reads the memo: no re-hash (proved by a memo entry that is not the real digest)
+    table = json.loads(memo)
+    table = {k: ("0" * 64 if k.startswith(str(f.resolve())) else v) for k, v in table.items()}
+    (tmp_path / "cache" / "digests.json").write_text(json.dumps(table))
+    out = subprocess.run([sys.executable, "-c", code, str(f)], capture_output=True, text=True, check=True,
+                         env=env)
+    assert out.stdout.split()[0] == "0" * 64
+    f.write_bytes(b"y" * 1000)  # a new size/mtime: hashed again
+    out = subprocess.run([sys.executable, "-c", code, str(f)], capture_output=True, text=True, check=True,
+                         env=env)
+    assert out.stdout.split()[0] == hashlib.sha256(b"y" * 1000).hexdigest()

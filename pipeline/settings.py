@@ -312,7 +312,8 @@ def _problems_from(exc: ValidationError) -> list[str]:
         loc = ".".join(str(p) for p in err["loc"] if not str(p).startswith("function-"))
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
-            msg = "unknown key (check the spelling; see the catalog README for valid keys)"
+            msg = ("unknown key (check the spelling; valid keys: catalogs/README.md or "
+                   "`python -m skyroute.pipeline.settings_reference`)")
         elif err["type"] == "missing":
             msg = "required key is missing"
         out.append(f"{loc or '<root>'}: {msg}")

@@ -51,3 +51,24 @@ def test_visibility_height_refuses_a_geographic_surface_and_creates_the_out_fold
                                   "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert out.is_file()
+
+
+def test_catalog_readme_lists_every_scenario_key():
+    from pathlib import Path
+
+    from skyroute.pipeline.settings_reference import reference_markdown, scenario_keys
+
+    readme = Path(__file__).resolve().parents[1] / "catalogs" / "README.md"
+    assert readme.read_text() == reference_markdown(), (
+        "catalogs/README.md is out of date: python -m skyroute.pipeline.settings_reference > catalogs/README.md")
+    keys = [k for k, *_ in scenario_keys()]
+    for k in ("mission.start.alt_agl_m", "planner.weights", "traffic.intruders[].waypoints", "gnss.window_min"):
+        assert k in keys
+
+
+def test_unknown_key_points_to_the_key_reference():
+    sc = load_scenario("helsinki-medical")
+    raw = yaml.safe_load(sc.source_path.read_text())
+    raw["planner"]["wieghts"] = [1, 0, 0, 0]
+    with pytest.raises(ScenarioError, match=r"planner\.wieghts: unknown key .*catalogs/README\.md"):
+        parse_scenario(raw, base=sc.source_path.parent)

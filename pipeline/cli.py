@@ -32,7 +32,17 @@ class SkyrouteGroup(click.Group):
             ctx.exit(2)
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Python warnings as one clean ``warning: <text>`` line (no source line, no category)."""
+    text = " ".join(str(message).split())
+    print(f"warning: {text}", file=file or sys.stderr, flush=True)
+
+
 def _setup_logging(verbose: int) -> None:
+    import warnings
+
+    if verbose < 2:  # -vv keeps Python's own format (file and line) for debugging
+        warnings.showwarning = _show_warning
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, stream=sys.stderr,
                         format="%(asctime)s level=%(levelname)s logger=%(name)s %(message)s")

@@ -72,3 +72,13 @@ def test_unknown_key_points_to_the_key_reference():
     raw["planner"]["wieghts"] = [1, 0, 0, 0]
     with pytest.raises(ScenarioError, match=r"planner\.wieghts: unknown key .*catalogs/README\.md"):
         parse_scenario(raw, base=sc.source_path.parent)
+
+
+def test_python_warnings_become_one_clean_line(tmp_path):
+    import subprocess
+    import sys
+
+    code = ("import sys, warnings; from skyroute.pipeline import cli; cli._setup_logging(0);"
+            "warnings.warn('almanac.txt: unhealthy satellites excluded (health != 0): G05', UserWarning)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stderr.strip() == "warning: almanac.txt: unhealthy satellites excluded (health != 0): G05"

@@ -108,6 +108,14 @@ def test_detection_ignores_nofly_cells_and_uses_the_tolerance(bare):
     ds["risk_cost"][10, 10] = 1e-13        # within 1e-12: still uniform
     ds["landing_cost"][10, 10] = 0.5 + 1e-9  # beyond: varies
     assert set(degenerate_cost_terms(ds, (0.0, 0.0, 0.0))) == {"C_r", "C_e"}
+    # a no-fly zone limited to 30..60 m above ground stays flyable below and above: its cells count
+    zone = xr.Dataset({"risk_cost": (("y", "x"), np.zeros(g.shape)), "landing_cost": (("y", "x"), land),
+                       "nofly": (("y", "x"), nofly), "nofly_floor_m": (("y", "x"), np.where(nofly, 30.0, np.nan)),
+                       "nofly_ceiling_m": (("y", "x"), np.where(nofly, 60.0, np.nan))})
+    assert "C_d" not in degenerate_cost_terms(zone)
+    zone["nofly_floor_m"][:] = np.where(nofly, 0.0, np.nan)
+    zone["nofly_ceiling_m"][:] = np.where(nofly, np.inf, np.nan)
+    assert "C_d" in degenerate_cost_terms(zone)
     # wind maps: zero everywhere is degenerate, any non-zero component is not
     z = xr.Dataset({k: (("z", "y", "x"), np.zeros((2, 3, 4))) for k in "uvw"})
     assert "zero everywhere" in degenerate_cost_terms(env, z)["C_e"]

@@ -10,8 +10,8 @@ the data source making the term meaningful.  Any degenerate term is reported as 
 Detection is from the rasters the planner integrates (:mod:`skyroute.stages.planning.problem`),
 never from the scenario's settings:
 
-* ``C_r``: ``risk_cost`` takes one value (within ``atol``) over the flyable cells (not
-  ``nofly``, finite cost).  Typical cause: no land use, so every cell is at the default level 4
+* ``C_r``: ``risk_cost`` takes one value (within ``atol``) over the flyable cells (finite
+  cost, not ``nofly`` from the ground up without ceiling; altitude-limited zones stay flyable).  Typical cause: no land use, so every cell is at the default level 4
   and the min-max normalised cost is 0;
 * ``C_d``: ``landing_cost`` likewise (no landing site: cost 1 everywhere, so ``C_d = C_l``);
 * ``C_e``: the wind is zero everywhere (or there is no wind map): the energy ratio
@@ -74,8 +74,12 @@ def degenerate_cost_terms(environment: xr.Dataset | None, wind=None, *, atol: fl
     else:
         risk = np.asarray(environment["risk_cost"].values, dtype=float)
         fly = np.isfinite(risk)
-        if "nofly" in environment:
-            fly &= ~np.asarray(environment["nofly"].values, dtype=bool)
+        if "nofly" in environment:   # cells forbidden at every altitude (not altitude-limited zones)
+            nofly = np.asarray(environment["nofly"].values, dtype=bool)
+            if "nofly_floor_m" in environment and "nofly_ceiling_m" in environment:
+                lo = np.nan_to_num(np.asarray(environment["nofly_floor_m"].values, dtype=float), nan=0.0)
+                nofly &= (lo <= 0) & np.isinf(np.asarray(environment["nofly_ceiling_m"].values, dtype=float))
+            fly &= ~nofly
         r = _uniform(risk[fly], atol)
         if r is not None:
             levels = ""

@@ -109,6 +109,7 @@ def test_detection_ignores_nofly_cells_and_uses_the_tolerance(bare):
     ds["landing_cost"][10, 10] = 0.5 + 1e-9  # beyond: varies
     assert set(degenerate_cost_terms(ds, (0.0, 0.0, 0.0))) == {"C_r", "C_e"}
     # a no-fly zone limited to 30..60 m above ground stays flyable below and above: its cells count
+    land = np.where(nofly & (np.arange(g.nx) == 0), 0.9, 0.5)   # differs only on no-fly cells
     zone = xr.Dataset({"risk_cost": (("y", "x"), np.zeros(g.shape)), "landing_cost": (("y", "x"), land),
                        "nofly": (("y", "x"), nofly), "nofly_floor_m": (("y", "x"), np.where(nofly, 30.0, np.nan)),
                        "nofly_ceiling_m": (("y", "x"), np.where(nofly, 60.0, np.nan))})

@@ -51,3 +51,8 @@ class CacheError(SkyrouteError):
 
 class PlanningError(SkyrouteError):
     """A planner could not produce a flyable plan; the message gives the reasons."""
+
+
+class DegenerateCostError(InputError):
+    """The cost weights select only terms that are the same per metre everywhere (e.g. risk with
+    no land use): every path would score alike; the message names the data source to add."""

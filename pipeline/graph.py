@@ -64,6 +64,10 @@ class Stage:
     code_modules: tuple[str, ...] = ()
     version: str = "1"
     description: str = ""
+    # cheap check of the stage's settings against early outputs, run as soon as the stages of
+    # ``precheck_after`` that run have finished (before the long ones): fail fast on bad input
+    precheck: Callable[[Scenario, dict[str, xr.Dataset]], None] | None = None
+    precheck_after: tuple[str, ...] = ()
 
     def code_version(self) -> str:
         """Hash of the stage function's and selector's source and of every ``skyroute`` module
@@ -297,6 +301,16 @@ def stage_key(stage: Stage, scenario: Scenario, input_keys: Sequence[str]) -> st
     return stable_hash(stage.name, stage.code_version(), stage.select(scenario), list(input_keys))
 
 
+def _run_prechecks(pending: list[Stage], todo: list[Stage], scenario: Scenario,
+                   datasets: dict[str, xr.Dataset]) -> None:
+    """Run (once) every pending precheck whose ``precheck_after`` stages are done."""
+    names = {s.name for s in todo}
+    for s in list(pending):
+        if all(d in datasets for d in s.precheck_after if d in names):
+            pending.remove(s)
+            s.precheck(scenario, datasets)  # type: ignore[misc]
+
+
 def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Sequence[str] | None = None,
                  scheduler: str = "threads", workers: int | None = None, progress: bool = False,
                  force: Sequence[str] = ()) -> RunResult:
@@ -309,6 +323,8 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
     with scheduler_context(scheduler, workers) as client:
         compute = _computer(client, progress)
         todo = stages_for(scenario, targets)
+        prechecks = [s for s in todo if s.precheck is not None]
+        _run_prechecks(prechecks, todo, scenario, result.datasets)
         for i, st in enumerate(todo, 1):
             t0 = time.perf_counter()
             key = stage_key(st, scenario, [keys[d] for d in st.inputs]
@@ -338,5 +354,6 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                 log.info("stage=%s key=%s status=cache-hit", st.name, key)
             result.datasets[st.name] = cache.open(entry)
             result.records.append(StageRecord(st.name, key, hit, time.perf_counter() - t0, str(entry.path)))
+            _run_prechecks(prechecks, todo, scenario, result.datasets)
     result.seconds = time.perf_counter() - t_all
     return result

@@ -364,9 +364,20 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
                            s.start_time_utc)
 
 
+def plan_precheck(sc: Scenario, datasets: dict[str, xr.Dataset]) -> None:
+    """Refuse, before the coverage and planning work, weights that select only degenerate
+    cost terms (:mod:`skyroute.stages.planning.degenerate`; the plan stage repeats the check
+    and lists the degenerate terms in its ``warnings``)."""
+    from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
+
+    check_cost_terms(sc.planner.weights, degenerate_cost_terms(datasets.get("environment"), datasets.get("wind")))
+
+
 register(Stage("plan", plan_stage, _plan_settings, inputs=("surface", "environment", "clearance"),
                optional_inputs=("wind", "coverage", "satellites", "traffic"),
+               precheck=plan_precheck, precheck_after=("environment", "wind"),
                code_modules=("skyroute.stages.planning.strategic", "skyroute.stages.planning.problem",
+                             "skyroute.stages.planning.degenerate",
                              "skyroute.stages.planning.step1", "skyroute.stages.planning.grid_planner",
                              "skyroute.stages.planning.bitstar", "skyroute.stages.planning.rrt",
                              "skyroute.stages.planning.step3", "skyroute.stages.planning.validate",

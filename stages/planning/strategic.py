@@ -19,6 +19,7 @@ line (Helsinki: 15.7 k and 3.8 k cells), so no such bound holds and every level 
 from __future__ import annotations
 
 import copy
+import json
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -29,6 +30,7 @@ import pandas as pd
 import xarray as xr
 
 from skyroute.pipeline.errors import InputError, PlanningError
+from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
 from skyroute.stages.planning.grid_planner import STEP_CELLS, shared_heuristic
 from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz_from_agl
 from skyroute.stages.planning.rrt import Step2Result, deconflict
@@ -47,6 +49,7 @@ class StrategicPlan:
     step1: list[Step1Result] = field(default_factory=list)
     step2: list[Step2Result | None] = field(default_factory=list)
     compute_s: float = 0.0
+    warnings: list[str] = field(default_factory=list)   # degenerate cost terms (stages.planning.degenerate)
 
     @property
     def reason(self) -> str:
@@ -72,8 +75,15 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     planner is deterministic: the same inputs and ``seed`` give the same plan (BIT* stops on
     an iteration count, :func:`~skyroute.stages.planning.step1.bitstar_iterations`).
     ``step_cells``: A* lattice step [cells]; ``max_iterations``: BIT* stop rule per level (see
-    :func:`~skyroute.stages.planning.step1.plan_step1`; 0 = wall clock, not reproducible)."""
+    :func:`~skyroute.stages.planning.step1.plan_step1`; 0 = wall clock, not reproducible).
+
+    Cost terms that are the same per metre everywhere are listed in ``warnings`` of the result;
+    weights that select only such terms raise
+    :class:`~skyroute.pipeline.errors.DegenerateCostError` before any planning
+    (:mod:`skyroute.stages.planning.degenerate`)."""
     t0 = time.perf_counter()
+    wind_map = wind.load() if wind is not None else None
+    cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
     veh = load_vehicle(vehicle)
     surf = surface[["terrain", "surface"]].load()
     surface_2d = surf["surface"].values
@@ -81,7 +91,6 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     nofly = clearance["nofly"].load() if "nofly" in clearance else None
     risk = environment["risk_cost"].load() if environment is not None else None
     land = environment["landing_cost"].load() if environment is not None else None
-    wind_map = wind.load() if wind is not None else None
     sky = satellites.load() if satellites is not None else None
     occ = TrafficOccupancy.from_dataset(traffic.load()) if traffic is not None else None
     start = xyz_from_agl(surf, *start_xy, start_agl_m)
@@ -125,7 +134,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
             solved = dict(zip(todo, pool.map(one_level, todo), strict=True))
     else:
         solved = {i: one_level(i) for i in todo}
-    plan = StrategicPlan(None, [])
+    plan = StrategicPlan(None, [], warnings=cost_warnings)
     for i, j in enumerate(first_of):
         s1, s2, cand = solved[j] if i == j else _relabel(solved[j], problems[j], problems[i])
         plan.step1.append(s1)
@@ -207,7 +216,8 @@ def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_ut
     chosen = -1 if plan.chosen is None else next(i for i, c in enumerate(cands) if c is plan.chosen)
     ds.attrs.update({"chosen_level": chosen, "crs": str(crs), "vertical_datum": vertical_datum,
                      "start_time_utc": pd.Timestamp(start_time_utc).isoformat(), "compute_s": plan.compute_s,
-                     "reason": plan.reason, "title": "skyroute strategic plan"})
+                     "reason": plan.reason, "title": "skyroute strategic plan",
+                     "warnings": json.dumps(list(plan.warnings))})
     if plan.chosen is not None:
         c = plan.chosen
         ds = ds.assign_coords(sample=np.arange(c.t_s.size))

@@ -23,7 +23,8 @@ every face whose normal points up) is a roof face.  Terrain: a ``TINRelief``, wh
 one, is the ground (each cell the TIN's maximum over the cell, the same rasterisation as roofs;
 conservative for altitude floors); otherwise each building's ``TerrainHeight`` attribute
 (preferred: some LoD2 models put the ground surface at z = 0) or its ``GroundSurface`` heights,
-interpolated linearly between buildings (nearest outside their hull).
+interpolated linearly on the points' Delaunay triangles, each cell the maximum over the cell
+(nearest point outside their hull): :func:`terrain_from_points`.
 
 Rasterisation (conservative: a cell's value holds for every point of the cell)
 -----------------------------------------------------------------------------
@@ -59,7 +60,8 @@ import numpy as np
 import shapely
 import xarray as xr
 from pyproj import CRS, Transformer
-from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+from scipy.interpolate import NearestNDInterpolator
+from scipy.spatial import Delaunay, QhullError
 
 from skyroute.pipeline.errors import DataError, InputError
 from skyroute.stages.grid import Grid, warp_to_grid
@@ -272,17 +274,25 @@ def polygon_max(polygons, grid: Grid, owner=None) -> tuple[np.ndarray, np.ndarra
     perimeter and area in cells, not with the grid.
     """
     rings = [np.asarray(r, np.float64).reshape(-1, 3) for poly in polygons for r in poly]
-    nring = np.array([len(poly) for poly in polygons], np.int64)
+    if not rings:
+        return np.full(grid.shape, np.nan), np.full(grid.shape, -1, np.int32)
+    P = np.vstack(rings)
+    ring_off = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+    poly_off = np.concatenate([[0], np.cumsum([len(poly) for poly in polygons])]).astype(np.int64)
+    own = np.arange(len(polygons)) if owner is None else np.asarray(owner)
+    return _polygon_max_flat(P, ring_off, poly_off, own, grid)
+
+
+def _polygon_max_flat(P: np.ndarray, ring_off: np.ndarray, poly_off: np.ndarray, owner: np.ndarray,
+                      grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`polygon_max` on flat arrays: vertices ``P`` (n, 3), ring k = ``P[ring_off[k]:ring_off[k+1]]``,
+    polygon p = rings ``poly_off[p]:poly_off[p+1]``."""
     top = np.full(grid.shape, -np.inf)
     index = np.full(grid.shape, -1, np.int32)
-    if rings:
-        P = np.vstack(rings)
-        ring_off = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
-        poly_off = np.concatenate([[0], np.cumsum(nring)]).astype(np.int64)
-        own = (np.arange(len(polygons)) if owner is None else np.asarray(owner)).astype(np.int32)
-        _polygon_max_kernel(np.ascontiguousarray(P[:, 0]), np.ascontiguousarray(P[:, 1]),
-                            np.ascontiguousarray(P[:, 2]), ring_off, poly_off, own,
-                            float(grid.x0), float(grid.y1), float(grid.resolution_m), top, index)
+    _polygon_max_kernel(np.ascontiguousarray(P[:, 0], np.float64), np.ascontiguousarray(P[:, 1], np.float64),
+                        np.ascontiguousarray(P[:, 2], np.float64), np.ascontiguousarray(ring_off, np.int64),
+                        np.ascontiguousarray(poly_off, np.int64), np.ascontiguousarray(owner, np.int32),
+                        float(grid.x0), float(grid.y1), float(grid.resolution_m), top, index)
     top[index < 0] = np.nan
     return top, index
 
@@ -488,22 +498,35 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
 
 
 def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None = None) -> np.ndarray:
-    """Terrain [m] interpolated linearly from scattered ground points, nearest outside their hull.
+    """Terrain [m] from scattered ground points ``(n, 3)``: linear on their Delaunay triangles, each
+    cell the maximum of that surface over the cell (:func:`polygon_max`; conservative for floors,
+    like the surface); cells outside the points' hull take the nearest point's height.
 
     ``tin`` (CityJSON ``TINRelief``, :attr:`BuildingRaster.terrain`): where finite, it replaces
-    the interpolation (the TIN's maximum over the cell, conservative for floors)."""
-    if len(points) < 3:
-        out = np.zeros(grid.shape)
-    else:
-        # thin to one point per cell to keep the triangulation small
-        row, col = grid.index_of(points[:, 0], points[:, 1])
-        key = row * (grid.nx + 1) + col
-        _, first = np.unique(key, return_index=True)
-        pts = points[first]
-        X, Y = np.meshgrid(grid.x, grid.y)
-        lin = LinearNDInterpolator(pts[:, :2], pts[:, 2])(X, Y)
-        near = NearestNDInterpolator(pts[:, :2], pts[:, 2])(X, Y)
-        out = np.where(np.isfinite(lin), lin, near)
+    the interpolation (the TIN's maximum over the cell)."""
+    out = np.zeros(grid.shape)
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts):
+        # one point per distinct (x, y): the highest
+        order = np.lexsort((-pts[:, 2], pts[:, 1], pts[:, 0]))
+        pts = pts[order]
+        first = np.r_[True, np.any(np.diff(pts[:, :2], axis=0) != 0, axis=1)]
+        pts = pts[first]
+        lin = np.full(grid.shape, np.nan)
+        if len(pts) >= 3:
+            try:
+                tri = Delaunay(pts[:, :2])
+            except QhullError:  # collinear points: no triangle
+                tri = None
+            if tri is not None:
+                n = len(tri.simplices)
+                lin, _ = _polygon_max_flat(pts[tri.simplices.ravel()], np.arange(0, 3 * n + 1, 3),
+                                           np.arange(n + 1), np.zeros(n, np.int32), grid)
+        out = lin
+        miss = ~np.isfinite(lin)
+        if miss.any():
+            r, c = np.nonzero(miss)
+            out[r, c] = NearestNDInterpolator(pts[:, :2], pts[:, 2])(grid.x[c], grid.y[r])
     if tin is not None:
         out = np.where(np.isfinite(tin), tin, out)
     return out

@@ -281,3 +281,48 @@ def test_tin_relief_is_the_terrain_max_over_each_cell(tmp_path):
     assert np.all(terr - best <= 2 * slope + 1e-5)
     assert np.all(ds["surface"].values >= ds["terrain"].values)
     assert ds["surface"].values.max() == pytest.approx(18.0, abs=1e-5)
+
+
+# ------------------------------------------------------------------ shipped DSM fixture
+
+
+def test_rotterdam_dsm_fixture_matches_its_generator():
+    """tests/data/rotterdam_dsm_0p5m.tif is what its generator makes (float32 rounded up), in
+    EPSG:28992 / NAP, and is >= the roof faces (constrained-Delaunay oracle) inside every cell."""
+    import importlib.util
+
+    import rasterio
+
+    here = __import__("pathlib").Path(__file__).resolve().parent / "data"
+    spec = importlib.util.spec_from_file_location("make_rotterdam_dsm", here / "make_rotterdam_dsm.py")
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    with rasterio.open(gen.OUT) as src:
+        dsm = src.read(1)
+        assert src.crs.to_epsg() == 28992 and src.tags()["VERTICAL_DATUM"] == "NAP"
+        assert src.res == (0.5, 0.5) and src.shape == (500, 500) and src.dtypes[0] == "float32"
+        assert tuple(src.bounds) == gen.BOUNDS
+    assert gen.OUT.stat().st_size < 1_000_000
+    ref, grid = gen.compute()
+    np.testing.assert_array_equal(dsm, ref)
+    # independent: roofs at random points of random cells never exceed the fixture
+    cj = json.loads(ROTTERDAM.read_text())
+    V = np.asarray(cj["vertices"], float) * cj["transform"]["scale"] + cj["transform"]["translate"]
+    xmin, ymin, xmax, ymax = grid.bounds
+    roofs = []
+    for obj in cj["CityObjects"].values():
+        g = obj["geometry"][0]
+        types = [s["type"] for s in g["semantics"]["surfaces"]]
+        for face, v in zip(g["boundaries"], g["semantics"]["values"], strict=True):
+            P = V[np.asarray(face[0])]
+            if types[v] == "RoofSurface" and P[:, 0].max() >= xmin and P[:, 0].min() <= xmax \
+                    and P[:, 1].max() >= ymin and P[:, 1].min() <= ymax:
+                roofs.append(P)
+    rng = np.random.default_rng(11)
+    rows, cols = rng.integers(0, grid.ny, 20000), rng.integers(0, grid.nx, 20000)
+    rr, cc, x, y = _random_points_in_cells(grid, rows, cols, 1, rng)
+    z = _face_heights_at(roofs, x, y)
+    ok = np.isfinite(z)
+    assert ok.sum() > 5000
+    assert np.all(dsm[rr[ok], cc[ok]] >= z[ok] - 1e-9)
+    assert float(dsm.max()) == pytest.approx(41.158, abs=1e-3)  # the district's tallest roof vertex

@@ -368,6 +368,15 @@ def cityjson_crs(cj: dict) -> CRS:
 
 
 def _surfaces(geom: dict):
+    """Yield (outer ring vertex indices, semantic type or None) of every surface of a CityJSON
+    geometry (MultiSurface, CompositeSurface, Solid, Multi/CompositeSolid)."""
+    if geom["type"] == "TIN":
+        return
+    for rings, stype in _surface_rings(geom):
+        yield rings[0], stype
+
+
+def _surface_rings(geom: dict):
     """Yield (rings: vertex-index lists, outer ring first; semantic type or None) of every surface
     of a CityJSON geometry (MultiSurface, CompositeSurface, TIN, Solid, Multi/CompositeSolid)."""
     gtype = geom["type"]
@@ -445,7 +454,7 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
             continue
         if otype == "TINRelief":
             for g in geoms:
-                tin_faces.extend(rings for rings, _ in _surfaces(g) if len(rings[0]) >= 3)
+                tin_faces.extend(rings for rings, _ in _surface_rings(g) if len(rings[0]) >= 3)
             continue
         if otype not in ("Building", "BuildingPart"):
             continue
@@ -454,7 +463,7 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
         ids.append(oid)
         th = (obj.get("attributes") or {}).get("TerrainHeight")
         th_of.append(float(th) if th is not None else np.nan)
-        for rings, stype in _surfaces(g):
+        for rings, stype in _surface_rings(g):
             if len(rings[0]) >= 3:
                 faces.append(rings)
                 ftype.append(stype)

@@ -261,7 +261,7 @@ def test_tin_relief_is_the_terrain_max_over_each_cell(tmp_path):
             tris += [[[a, b, c]], [[a, c, d]]]
     Vh, faces, sem = _gable_house(15.2, 16.7, 8.0, 6.0, 9.0 + 5, 13.0 + 5, 17.0)
     base = len(tin_v)
-    objs = {"relief": {"type": "TINRelief", "geometry": [{"type": "CompositeSurface", "lod": "1", "boundaries": tris}]},
+    objs = {"relief": {"type": "TINRelief", "geometry": [{"type": "TIN", "lod": "1", "boundaries": tris}]},
             "house": {"type": "Building", "geometry": [{"type": "MultiSurface", "lod": "2", "semantics": sem,
                       "boundaries": [[[base + i for i in ring] for ring in f] for f in faces]}]}}
     path = tmp_path / "tin.city.json"

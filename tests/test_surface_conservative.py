@@ -326,3 +326,30 @@ def test_rotterdam_dsm_fixture_matches_its_generator():
     assert ok.sum() > 5000
     assert np.all(dsm[rr[ok], cc[ok]] >= z[ok] - 1e-9)
     assert float(dsm.max()) == pytest.approx(41.158, abs=1e-3)  # the district's tallest roof vertex
+
+
+def test_delft_lod1_solids_every_point_of_a_cell_is_covered(shared_data):
+    """Real LoD1 solids without semantics (CityJSON 2.0, EPSG:7415 compound CRS): the highest
+    non-vertical face of any building over random points inside each cell <= the cell."""
+    path = shared_data / "city" / "delft_lod1.city.json"
+    cj = json.loads(path.read_text())
+    V = np.asarray(cj["vertices"], float) * cj["transform"]["scale"] + cj["transform"]["translate"]
+    grid = Grid.from_bounds("EPSG:28992", 84700, 447450, 85000, 447700, 1.0)
+    br, _ = cityjson_buildings(path, grid)
+    faces = []
+    for o in cj["CityObjects"].values():
+        if o["type"] != "Building":
+            continue
+        for g in o["geometry"]:
+            for shell in g["boundaries"]:
+                for f in shell:
+                    P = V[np.asarray(f[0])]
+                    if shapely.Polygon(P[:, :2]).area > 1e-6:  # any orientation: the max is the roof
+                        faces.append(P)
+    rng = np.random.default_rng(4)
+    rows, cols = np.nonzero(np.isfinite(br.top))
+    rr, cc, x, y = _random_points_in_cells(grid, rows, cols, 3, rng)
+    z = _face_heights_at(faces, x, y)
+    ok = np.isfinite(z)
+    assert ok.sum() > 5000
+    assert np.all(br.top[rr[ok], cc[ok]] >= z[ok] - 1e-9)

@@ -17,16 +17,35 @@ default for its ``building=*`` type in :data:`DEFAULT_HEIGHT_BY_TYPE_M` (generic
 ``min_height`` / ``building:min_level`` are ignored: a bridge-like part is filled to the ground,
 which is conservative for collision and occlusion.
 
-CityJSON (1.0 / 1.1 / 2.0, LoD1 or LoD2, Building and BuildingPart): every non-vertical upper
-surface (``RoofSurface``, or for LoD1 every face that is not the ground) is rasterised as a plane;
-a cell takes the highest roof height at its four corners (clamped to the face's own z range), so
-it is never lower than the roof over it.  Terrain comes from each building's ``TerrainHeight``
-attribute (preferred: some LoD2 models put the ground surface at z = 0) or its ``GroundSurface``
-heights, interpolated linearly between buildings.
+CityJSON (1.0 / 1.1 / 2.0, LoD1 or LoD2, Building and BuildingPart): every upper surface
+(``RoofSurface`` / ``OuterCeilingSurface`` / ``OuterFloorSurface``, or for LoD1 without semantics
+every face whose normal points up) is a roof face.  Terrain: a ``TINRelief``, where the file has
+one, is the ground (each cell the TIN's maximum over the cell, the same rasterisation as roofs;
+conservative for altitude floors); otherwise each building's ``TerrainHeight`` attribute
+(preferred: some LoD2 models put the ground surface at z = 0) or its ``GroundSurface`` heights,
+interpolated linearly on the points' Delaunay triangles, each cell the maximum over the cell
+(nearest point outside their hull): :func:`terrain_from_points`.
 
-Rasterisation: a cell belongs to a footprint when its centre is inside (OSM footprints with
-:func:`rasterio.features.rasterize`, CityJSON roof faces with the compiled scanline fill
-:func:`~skyroute.stages.grid.ring_cells`, identical cell for cell).
+Rasterisation (conservative: a cell's value holds for every point of the cell)
+-----------------------------------------------------------------------------
+Cells are closed squares; a polygon *touches* a cell when the two share any point (a sliver or
+a corner counts).  :func:`polygon_max` (compiled kernel) gives each cell the maximum over every
+touching polygon of the polygon's height over the part inside the cell:
+
+* OSM footprints are flat polygons (holes respected): every touched cell takes the building's
+  height, the highest building where several touch it (``all_touched`` semantics, including
+  the cells that only touch a footprint's edge or corner, which GDAL's ``all_touched`` leaves out);
+* a CityJSON roof face is the plane of its outer ring (Newell normal through the vertex mean); a
+  linear function's maximum over the face-cell intersection lies at one of its vertices: the
+  face's vertices in the cell, its edges' crossings of the cell sides and the cell corners inside
+  the face, all three visited.  A non-planar face adds its largest vertex deviation from that
+  plane (an upper bound of any triangulation of it), clamped to the face's z range; a vertical or
+  degenerate face typed as roof gives its top along its trace.  A ridge keeps its height in
+  every cell it crosses (sampling faces at cell centres and corners cut thin roof parts).
+
+The cost grows with the polygons' perimeter and area in cells (vertices, grid-line crossings,
+interior cell corners), not with the grid.  :func:`~skyroute.stages.grid.ring_cells` (centre-in
+scanline fill) stays for land use, where a cell takes the class at its centre.
 """
 
 from __future__ import annotations
@@ -36,17 +55,16 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
-import rasterio
-import rasterio.features
-import rasterio.warp
 import shapely
 import xarray as xr
 from pyproj import CRS, Transformer
-from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+from scipy.interpolate import NearestNDInterpolator
+from scipy.spatial import Delaunay, QhullError
 
 from skyroute.pipeline.errors import DataError, InputError
-from skyroute.stages.grid import Grid, ring_cells, warp_to_grid
+from skyroute.stages.grid import Grid, warp_to_grid
 from skyroute.stages.osm import read_osm
 
 STOREY_HEIGHT_M = 3.0
@@ -87,7 +105,10 @@ def osm_building_height(tags: dict[str, str], storey_height_m: float = STOREY_HE
 
 @dataclass(frozen=True)
 class BuildingRaster:
-    """Rasterised buildings: ``top`` [m] (NaN where none), ``index`` (-1 where none) and a table."""
+    """Rasterised buildings: ``top`` [m] (NaN where none), ``index`` (-1 where none) and a table.
+
+    ``terrain`` [m] (CityJSON with a ``TINRelief`` only): the TIN's maximum over each cell, NaN
+    where the TIN does not reach the cell; None otherwise."""
 
     top: np.ndarray
     index: np.ndarray
@@ -95,6 +116,185 @@ class BuildingRaster:
     heights_m: np.ndarray
     sources: np.ndarray
     absolute: bool  # True: ``top`` is an absolute height; False: height above ground
+    terrain: np.ndarray | None = None
+
+
+# --------------------------------------------------------------------------- polygon-over-cell maxima
+#: Cells are closed squares: a point within this many cells [1] of a grid line counts on both sides
+#: (absorbs the ~1e-11 rounding of map coordinates; never shrinks a footprint).
+_EDGE_EPS_CELLS = 1e-9
+#: A face whose unit normal has |n_z| below this is treated as vertical: its cells take its top.
+_STEEP_NZ = 1e-3
+
+
+@numba.njit(cache=True)
+def _put(top, index, owner, u, v, z):  # pragma: no cover - compiled
+    """Raise every cell whose closed square holds the grid point (u, v) [cells] to ``z``."""
+    ny, nx = top.shape
+    eps = _EDGE_EPS_CELLS
+    c0 = max(int(np.ceil(u - 1.0 - eps)), 0)
+    c1 = min(int(np.floor(u + eps)), nx - 1)
+    r0 = max(int(np.ceil(v - 1.0 - eps)), 0)
+    r1 = min(int(np.floor(v + eps)), ny - 1)
+    for r in range(r0, r1 + 1):
+        for c in range(c0, c1 + 1):
+            if z > top[r, c]:
+                top[r, c] = z
+                index[r, c] = owner
+
+
+@numba.njit(cache=True)
+def _polygon_max_kernel(xs, ys, zs, ring_off, poly_off, owner, x0, y1, res, top, index):  # pragma: no cover
+    """For every polygon p (rings ``ring_off[poly_off[p]:poly_off[p+1]]``, the first one outer,
+    vertices (xs, ys, zs) [m]): every cell whose closed square meets the polygon (even-odd rule)
+    takes max(current, upper bound of the polygon's height over the cell), owner ``owner[p]``.
+
+    Height: the Newell plane of the outer ring through its vertex mean, plus the largest vertex
+    deviation from that plane, clamped to the polygon's z range (exact for a planar face; an upper
+    bound of every triangulation of a non-planar one).  A linear function's maximum over the
+    polygon-cell intersection lies at one of its vertices: the polygon's vertices in the cell, its
+    edges' crossings of the cell's sides and the cell corners inside the polygon -- all three
+    sets are visited, so the bound holds for every point of the cell."""
+    eps = _EDGE_EPS_CELLS
+    nmax = 1
+    for p in range(poly_off.size - 1):
+        nmax = max(nmax, ring_off[poly_off[p + 1]] - ring_off[poly_off[p]])
+    cross = np.empty(nmax, np.float64)
+    for p in range(poly_off.size - 1):
+        rs, re_ = poly_off[p], poly_off[p + 1]
+        vs, ve = ring_off[rs], ring_off[re_]
+        os_, oe = ring_off[rs], ring_off[rs + 1]
+        if oe - os_ < 3:
+            continue
+        own = owner[p]
+        # Newell normal and vertex mean of the outer ring
+        nx_ = 0.0
+        ny_ = 0.0
+        nz_ = 0.0
+        cx = 0.0
+        cy = 0.0
+        cz = 0.0
+        for i in range(os_, oe):
+            j = i + 1 if i + 1 < oe else os_
+            nx_ += (ys[i] - ys[j]) * (zs[i] + zs[j])
+            ny_ += (zs[i] - zs[j]) * (xs[i] + xs[j])
+            nz_ += (xs[i] - xs[j]) * (ys[i] + ys[j])
+            cx += xs[i]
+            cy += ys[i]
+            cz += zs[i]
+        m = oe - os_
+        cx /= m
+        cy /= m
+        cz /= m
+        nn = np.sqrt(nx_ * nx_ + ny_ * ny_ + nz_ * nz_)
+        zlo = zs[vs]
+        zhi = zs[vs]
+        for i in range(vs, ve):
+            zlo = min(zlo, zs[i])
+            zhi = max(zhi, zs[i])
+        steep = nn == 0.0 or abs(nz_) < _STEEP_NZ * nn
+        a = 0.0
+        b = 0.0
+        dev = 0.0
+        if not steep:
+            a = -nx_ / nz_
+            b = -ny_ / nz_
+            for i in range(vs, ve):
+                dev = max(dev, abs(zs[i] - (cz + a * (xs[i] - cx) + b * (ys[i] - cy))))
+        # 1. the polygon's vertices
+        umin = np.inf
+        umax = -np.inf
+        vmin = np.inf
+        vmax = -np.inf
+        for i in range(vs, ve):
+            u = (xs[i] - x0) / res
+            v = (y1 - ys[i]) / res
+            umin = min(umin, u)
+            umax = max(umax, u)
+            vmin = min(vmin, v)
+            vmax = max(vmax, v)
+            z = zhi if steep else min(max(cz + a * (xs[i] - cx) + b * (ys[i] - cy) + dev, zlo), zhi)
+            _put(top, index, own, u, v, z)
+        # 2. every ring edge's crossings of the grid lines x = x0 + k res and y = y1 - k res
+        for q in range(rs, re_):
+            s0, s1 = ring_off[q], ring_off[q + 1]
+            for i in range(s0, s1):
+                j = i + 1 if i + 1 < s1 else s0
+                ua = (xs[i] - x0) / res
+                ub = (xs[j] - x0) / res
+                va = (y1 - ys[i]) / res
+                vb = (y1 - ys[j]) / res
+                if ua != ub:
+                    for k in range(int(np.ceil(min(ua, ub) - eps)), int(np.floor(max(ua, ub) + eps)) + 1):
+                        t = min(max((k - ua) / (ub - ua), 0.0), 1.0)
+                        x = xs[i] + t * (xs[j] - xs[i])
+                        y = ys[i] + t * (ys[j] - ys[i])
+                        z = zhi if steep else min(max(cz + a * (x - cx) + b * (y - cy) + dev, zlo), zhi)
+                        _put(top, index, own, float(k), va + t * (vb - va), z)
+                if va != vb:
+                    for k in range(int(np.ceil(min(va, vb) - eps)), int(np.floor(max(va, vb) + eps)) + 1):
+                        t = min(max((k - va) / (vb - va), 0.0), 1.0)
+                        x = xs[i] + t * (xs[j] - xs[i])
+                        y = ys[i] + t * (ys[j] - ys[i])
+                        z = zhi if steep else min(max(cz + a * (x - cx) + b * (y - cy) + dev, zlo), zhi)
+                        _put(top, index, own, ua + t * (ub - ua), float(k), z)
+        # 3. grid nodes (cell corners) strictly inside: scanline along each grid row line, even-odd
+        #    over all rings (nodes on the boundary were visited as edge crossings)
+        ny, nx = top.shape
+        for k in range(max(int(np.ceil(vmin)), 0), min(int(np.floor(vmax)), ny) + 1):
+            yk = y1 - k * res
+            nc = 0
+            for q in range(rs, re_):
+                s0, s1 = ring_off[q], ring_off[q + 1]
+                for i in range(s0, s1):
+                    j = i + 1 if i + 1 < s1 else s0
+                    if (ys[i] > yk) != (ys[j] > yk):
+                        cross[nc] = (xs[i] + (yk - ys[i]) * (xs[j] - xs[i]) / (ys[j] - ys[i]) - x0) / res
+                        nc += 1
+            if nc < 2:
+                continue
+            cs = np.sort(cross[:nc])
+            for w in range(0, nc - 1, 2):
+                for c in range(max(int(np.ceil(cs[w])), 0), min(int(np.floor(cs[w + 1])), nx) + 1):
+                    x = x0 + c * res
+                    z = zhi if steep else min(max(cz + a * (x - cx) + b * (yk - cy) + dev, zlo), zhi)
+                    _put(top, index, own, float(c), float(k), z)
+
+
+def polygon_max(polygons, grid: Grid, owner=None) -> tuple[np.ndarray, np.ndarray]:
+    """Rasterise 3-D polygons conservatively: each cell of ``grid`` takes the highest point [m] of
+    every polygon over the cell's closed square (NaN where no polygon touches it) and the
+    ``owner`` (default: polygon number; -1 where none) of the polygon giving that maximum.
+
+    ``polygons``: a sequence of polygons, each a sequence of rings (the first the outer one, then
+    holes), each ring an ``(n, 3)`` array of map x, y [m] and z [m] (not closed; a flat footprint
+    has a constant z).  Planes, deviations and the candidate points are described in
+    :func:`_polygon_max_kernel`; a compiled kernel visits each polygon's vertices, its edges'
+    grid-line crossings and its interior cell corners, so the cost grows with the polygons'
+    perimeter and area in cells, not with the grid.
+    """
+    rings = [np.asarray(r, np.float64).reshape(-1, 3) for poly in polygons for r in poly]
+    if not rings:
+        return np.full(grid.shape, np.nan), np.full(grid.shape, -1, np.int32)
+    P = np.vstack(rings)
+    ring_off = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+    poly_off = np.concatenate([[0], np.cumsum([len(poly) for poly in polygons])]).astype(np.int64)
+    own = np.arange(len(polygons)) if owner is None else np.asarray(owner)
+    return _polygon_max_flat(P, ring_off, poly_off, own, grid)
+
+
+def _polygon_max_flat(P: np.ndarray, ring_off: np.ndarray, poly_off: np.ndarray, owner: np.ndarray,
+                      grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`polygon_max` on flat arrays: vertices ``P`` (n, 3), ring k = ``P[ring_off[k]:ring_off[k+1]]``,
+    polygon p = rings ``poly_off[p]:poly_off[p+1]``."""
+    top = np.full(grid.shape, -np.inf)
+    index = np.full(grid.shape, -1, np.int32)
+    _polygon_max_kernel(np.ascontiguousarray(P[:, 0], np.float64), np.ascontiguousarray(P[:, 1], np.float64),
+                        np.ascontiguousarray(P[:, 2], np.float64), np.ascontiguousarray(ring_off, np.int64),
+                        np.ascontiguousarray(poly_off, np.int64), np.ascontiguousarray(owner, np.int32),
+                        float(grid.x0), float(grid.y1), float(grid.resolution_m), top, index)
+    top[index < 0] = np.nan
+    return top, index
 
 
 def _to_grid_geoms(geoms, src_crs: CRS, grid: Grid):
@@ -105,7 +305,8 @@ def _to_grid_geoms(geoms, src_crs: CRS, grid: Grid):
 
 
 def osm_buildings(path: str | Path, grid: Grid, storey_height_m: float = STOREY_HEIGHT_M) -> BuildingRaster:
-    """Rasterise the building footprints of an OSM extract with their heights above ground."""
+    """Rasterise the building footprints of an OSM extract with their heights above ground
+    (every cell touched by a footprint, the highest building where several touch it)."""
     feats = [f for f in read_osm(path, keys=["building", "building:part"]) if f.kind == "area"]
     xmin, ymin, xmax, ymax = grid.bounds
     ids, hs, srcs, geoms = [], [], [], []
@@ -123,17 +324,21 @@ def osm_buildings(path: str | Path, grid: Grid, storey_height_m: float = STOREY_
 
 
 def _rasterize_flat(grid: Grid, geoms, heights, ids, sources, absolute: bool) -> BuildingRaster:
-    order = np.argsort(heights, kind="stable")  # highest last, so it wins where footprints overlap
-    top = np.full(grid.shape, np.nan, dtype=np.float64)
-    index = np.full(grid.shape, -1, dtype=np.int32)
-    if len(order):
-        index = rasterio.features.rasterize(
-            ((geoms[i], int(i)) for i in order), out_shape=grid.shape, transform=grid.transform,
-            fill=-1, dtype="int32",
-        )
-        has = index >= 0
-        top[has] = np.asarray(heights, dtype=np.float64)[index[has]]
-    return BuildingRaster(top, index, np.asarray(ids, np.int64), np.asarray(heights, np.float64),
+    """Flat-topped footprints (shapely (Multi)Polygons in the grid CRS, ``heights`` [m]): every cell
+    whose closed square meets a footprint (holes respected) takes the highest such height
+    (:func:`polygon_max`); ``index`` names the building giving it."""
+    heights = np.asarray(heights, dtype=np.float64)
+    polys, owner = [], []
+    for i, g in enumerate(geoms):
+        for part in getattr(g, "geoms", [g]):
+            if part.is_empty or part.geom_type != "Polygon":
+                continue
+            rings = [part.exterior, *part.interiors]
+            polys.append([np.column_stack([np.asarray(r.coords)[:-1, :2], np.full(len(r.coords) - 1, heights[i])])
+                          for r in rings])
+            owner.append(i)
+    top, index = polygon_max(polys, grid, owner)
+    return BuildingRaster(top, index, np.asarray(ids, np.int64), heights,
                           np.asarray(sources, dtype=object).astype(str), absolute)
 
 
@@ -163,13 +368,23 @@ def cityjson_crs(cj: dict) -> CRS:
 
 
 def _surfaces(geom: dict):
-    """Yield (ring vertex indices of the outer ring, semantic type or None) of a CityJSON geometry."""
+    """Yield (outer ring vertex indices, semantic type or None) of every surface of a CityJSON
+    geometry (MultiSurface, CompositeSurface, Solid, Multi/CompositeSolid)."""
+    if geom["type"] == "TIN":
+        return
+    for rings, stype in _surface_rings(geom):
+        yield rings[0], stype
+
+
+def _surface_rings(geom: dict):
+    """Yield (rings: vertex-index lists, outer ring first; semantic type or None) of every surface
+    of a CityJSON geometry (MultiSurface, CompositeSurface, TIN, Solid, Multi/CompositeSolid)."""
     gtype = geom["type"]
     b = geom["boundaries"]
     sem = geom.get("semantics") or {}
     stypes = [s.get("type") for s in sem.get("surfaces", [])]
     values = sem.get("values")
-    if gtype in ("MultiSurface", "CompositeSurface"):
+    if gtype in ("MultiSurface", "CompositeSurface", "TIN"):
         polys = [(p, (values[i] if values is not None else None)) for i, p in enumerate(b)]
     elif gtype == "Solid":
         polys = []
@@ -187,13 +402,35 @@ def _surfaces(geom: dict):
     else:
         return
     for p, v in polys:
-        yield p[0], (stypes[v] if (v is not None and v < len(stypes)) else None)
+        yield p, (stypes[v] if (v is not None and v < len(stypes)) else None)
+
+
+def _newell_normals(V: np.ndarray, faces: list[list[list[int]]]) -> np.ndarray:
+    """Unit Newell normals ``(n, 3)`` of the outer rings of ``faces`` (zero for degenerate rings)."""
+    outer = [f[0] for f in faces]
+    lengths = np.array([len(r) for r in outer], np.int64)
+    if not len(outer):
+        return np.zeros((0, 3))
+    idx = np.concatenate([np.asarray(r, np.int64) for r in outer])
+    off = np.concatenate([[0], np.cumsum(lengths)])
+    nxt = np.arange(idx.size) + 1
+    nxt[off[1:] - 1] = off[:-1]
+    a, b = V[idx], V[idx[nxt]]
+    terms = np.column_stack([(a[:, 1] - b[:, 1]) * (a[:, 2] + b[:, 2]), (a[:, 2] - b[:, 2]) * (a[:, 0] + b[:, 0]),
+                             (a[:, 0] - b[:, 0]) * (a[:, 1] + b[:, 1])])
+    n = np.add.reduceat(terms, off[:-1], axis=0)
+    n[lengths < 3] = 0.0
+    nn = np.linalg.norm(n, axis=1)
+    return np.divide(n, nn[:, None], out=np.zeros_like(n), where=nn[:, None] > 0)
 
 
 def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np.ndarray]:
-    """Rasterise CityJSON Building/BuildingPart roofs (absolute heights [m]) on ``grid``.
+    """Rasterise CityJSON Building/BuildingPart roofs (absolute heights [m]) on ``grid``: each cell
+    takes the highest point of every roof face over the cell (:func:`polygon_max`).
 
-    Returns the raster and ground points ``(n, 3)`` (x, y, z in the grid CRS) for terrain.
+    Returns the raster and ground points ``(n, 3)`` (x, y, z in the grid CRS) for terrain; a
+    ``TINRelief`` gives ``raster.terrain`` (its maximum over each cell) and its vertices as ground
+    points as well.
     """
     p = Path(path)
     cj = _read_cityjson(p)
@@ -204,102 +441,104 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
         t = Transformer.from_crs(src, grid.crs, always_xy=True)
         V[:, 0], V[:, 1] = t.transform(V[:, 0], V[:, 1])
     objs = cj["CityObjects"]
-    r = grid.resolution_m
-    top = np.full(grid.shape, -np.inf)
-    index = np.full(grid.shape, -1, dtype=np.int32)
     ids: list[str] = []
-    heights: list[float] = []
-    ground: list[np.ndarray] = []
-    roof_rings: list[np.ndarray] = []
-    roof_normals: list[np.ndarray] = []
-    roof_owner: list[int] = []
+    th_of: list[float] = []     # TerrainHeight attribute per building (NaN if absent)
+    faces: list[list[list[int]]] = []
+    ftype: list[str | None] = []
+    fowner: list[int] = []
+    tin_faces: list[list[list[int]]] = []
     for oid, obj in objs.items():
-        if obj.get("type") not in ("Building", "BuildingPart"):
-            continue
+        otype = obj.get("type")
         geoms = obj.get("geometry") or []
         if not geoms:
+            continue
+        if otype == "TINRelief":
+            for g in geoms:
+                tin_faces.extend(rings for rings, _ in _surface_rings(g) if len(rings[0]) >= 3)
+            continue
+        if otype not in ("Building", "BuildingPart"):
             continue
         g = max(geoms, key=lambda gg: float(gg.get("lod", 0)))
         bidx = len(ids)
         ids.append(oid)
-        roofs, floor_pts = [], []
-        for ring, stype in _surfaces(g):
-            P = V[np.asarray(ring)]
-            if len(P) < 3:
-                continue
-            nrm = np.zeros(3)  # Newell normal
-            for i in range(len(P)):
-                a, b = P[i], P[(i + 1) % len(P)]
-                nrm += [(a[1] - b[1]) * (a[2] + b[2]), (a[2] - b[2]) * (a[0] + b[0]), (a[0] - b[0]) * (a[1] + b[1])]
-            nn = np.linalg.norm(nrm)
-            if nn == 0:
-                continue
-            nrm /= nn
-            if stype == "GroundSurface" or (stype is None and nrm[2] < -0.5):
-                floor_pts.append(P)
-                continue
-            if stype in ("WallSurface", "ClosureSurface") or abs(nrm[2]) < 1e-3:
-                continue
-            if stype is None or stype in ("RoofSurface", "OuterCeilingSurface", "OuterFloorSurface"):
-                if nrm[2] > 0 or stype is not None:
-                    roofs.append((P, nrm))
-        zmax_b = max((float(P[:, 2].max()) for P, _ in roofs), default=np.nan)
-        heights.append(zmax_b)
         th = (obj.get("attributes") or {}).get("TerrainHeight")
-        if th is not None and (roofs or floor_pts):
-            P = np.vstack([pp for pp, _ in roofs] + floor_pts)
-            ground.append(np.column_stack([P[:, 0], P[:, 1], np.full(len(P), float(th))]))
-        elif floor_pts:
-            ground.append(np.vstack(floor_pts))
-        for P, nrm in roofs:
-            roof_rings.append(P)
-            roof_normals.append(nrm)
-            roof_owner.append(bidx)
-    # every roof face at once: cells whose centre is inside (compiled scanline fill), the face's
-    # plane at the cell's four corners, the highest value per cell (clamped to the face's z range)
-    if roof_rings:
-        lengths = np.array([len(P) for P in roof_rings])
-        offsets = np.concatenate([[0], np.cumsum(lengths)])
-        allP = np.vstack(roof_rings)
-        ring, rr, cc = ring_cells(allP[:, 0], allP[:, 1], offsets, grid)
-        P0 = np.array([P[0] for P in roof_rings])[ring]
-        N = np.array(roof_normals)[ring]
-        zlo = np.array([P[:, 2].min() for P in roof_rings])[ring]
-        zhi = np.array([P[:, 2].max() for P in roof_rings])[ring]
-        xc = grid.x0 + (cc + 0.5) * r
-        yc = grid.y1 - (rr + 0.5) * r
-        zc = np.full(xc.shape, -np.inf)
-        for dx in (-r / 2, r / 2):
-            for dy in (-r / 2, r / 2):
-                z = P0[:, 2] - (N[:, 0] * (xc + dx - P0[:, 0]) + N[:, 1] * (yc + dy - P0[:, 1])) / N[:, 2]
-                zc = np.maximum(zc, z)
-        zc = np.clip(zc, zlo, zhi)
-        cell = rr * grid.nx + cc
-        order = np.lexsort((zc, cell))  # by cell, then height: the last of each cell is its max
-        last = np.r_[cell[order][1:] != cell[order][:-1], True]
-        sel = order[last]
-        top.ravel()[cell[sel]] = zc[sel]
-        index.ravel()[cell[sel]] = np.asarray(roof_owner)[ring[sel]]
-    top[~np.isfinite(top)] = np.nan
+        th_of.append(float(th) if th is not None else np.nan)
+        for rings, stype in _surface_rings(g):
+            if len(rings[0]) >= 3:
+                faces.append(rings)
+                ftype.append(stype)
+                fowner.append(bidx)
+    nrm = _newell_normals(V, faces)
+    st = np.array(ftype, dtype=object)
+    nz = nrm[:, 2] if len(faces) else np.zeros(0)
+    degenerate = ~np.any(nrm != 0, axis=1) if len(faces) else np.zeros(0, bool)
+    is_floor = ~degenerate & ((st == "GroundSurface") | ((st == None) & (nz < -0.5)))  # noqa: E711
+    # roofs: every face typed as one (vertical or degenerate ones too: their trace takes their top),
+    # and untyped faces that face up (LoD1 solids without semantics; untyped walls are skipped)
+    is_roof = ~is_floor & (np.isin(st, ["RoofSurface", "OuterCeilingSurface", "OuterFloorSurface"])
+                           | ((st == None) & (nz >= _STEEP_NZ)))  # noqa: E711
+    roof_i = np.flatnonzero(is_roof)
+    owner = np.asarray(fowner, np.int64)
+    heights = np.full(len(ids), np.nan)
+    for i in roof_i:  # highest roof vertex per building
+        heights[owner[i]] = np.fmax(heights[owner[i]], V[np.asarray(faces[i][0]), 2].max())
+    top, index = polygon_max([[V[np.asarray(r)] for r in faces[i]] for i in roof_i], grid, owner[roof_i])
+    # ground points: the building's TerrainHeight under its roof and floor vertices, else its floors
+    ground: list[np.ndarray] = []
+    for bidx in range(len(ids)):
+        sel = np.flatnonzero((owner == bidx) & (is_roof | is_floor)) if len(faces) else np.zeros(0, np.int64)
+        if not sel.size:
+            continue
+        if np.isfinite(th_of[bidx]):
+            P = V[np.concatenate([np.asarray(faces[i][0]) for i in sel])]
+            ground.append(np.column_stack([P[:, 0], P[:, 1], np.full(len(P), th_of[bidx])]))
+        else:
+            fl = [i for i in sel if is_floor[i]]
+            if fl:
+                ground.append(V[np.concatenate([np.asarray(faces[i][0]) for i in fl])])
+    tin = None
+    if tin_faces:
+        tin, _ = polygon_max([[V[np.asarray(r)] for r in f] for f in tin_faces], grid)
+        ground.append(V[np.unique(np.concatenate([np.asarray(f[0]) for f in tin_faces]))])
     gpts = np.vstack(ground) if ground else np.zeros((0, 3))
-    raster = BuildingRaster(top, index, np.arange(len(ids), dtype=np.int64), np.asarray(heights, np.float64),
-                            np.asarray(["cityjson:" + i for i in ids]), absolute=True)
+    raster = BuildingRaster(top, index, np.arange(len(ids), dtype=np.int64), heights,
+                            np.asarray(["cityjson:" + i for i in ids]), absolute=True, terrain=tin)
     return raster, gpts
 
 
-def terrain_from_points(points: np.ndarray, grid: Grid) -> np.ndarray:
-    """Terrain [m] interpolated linearly from scattered ground points, nearest outside their hull."""
-    if len(points) < 3:
-        return np.zeros(grid.shape)
-    # thin to one point per cell to keep the triangulation small
-    row, col = grid.index_of(points[:, 0], points[:, 1])
-    key = row * (grid.nx + 1) + col
-    _, first = np.unique(key, return_index=True)
-    pts = points[first]
-    X, Y = np.meshgrid(grid.x, grid.y)
-    lin = LinearNDInterpolator(pts[:, :2], pts[:, 2])(X, Y)
-    near = NearestNDInterpolator(pts[:, :2], pts[:, 2])(X, Y)
-    return np.where(np.isfinite(lin), lin, near)
+def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None = None) -> np.ndarray:
+    """Terrain [m] from scattered ground points ``(n, 3)``: linear on their Delaunay triangles, each
+    cell the maximum of that surface over the cell (:func:`polygon_max`; conservative for floors,
+    like the surface); cells outside the points' hull take the nearest point's height.
+
+    ``tin`` (CityJSON ``TINRelief``, :attr:`BuildingRaster.terrain`): where finite, it replaces
+    the interpolation (the TIN's maximum over the cell)."""
+    out = np.zeros(grid.shape)
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if len(pts):
+        # one point per distinct (x, y): the highest
+        order = np.lexsort((-pts[:, 2], pts[:, 1], pts[:, 0]))
+        pts = pts[order]
+        first = np.r_[True, np.any(np.diff(pts[:, :2], axis=0) != 0, axis=1)]
+        pts = pts[first]
+        lin = np.full(grid.shape, np.nan)
+        if len(pts) >= 3:
+            try:
+                tri = Delaunay(pts[:, :2])
+            except QhullError:  # collinear points: no triangle
+                tri = None
+            if tri is not None:
+                n = len(tri.simplices)
+                lin, _ = _polygon_max_flat(pts[tri.simplices.ravel()], np.arange(0, 3 * n + 1, 3),
+                                           np.arange(n + 1), np.zeros(n, np.int32), grid)
+        out = lin
+        miss = ~np.isfinite(lin)
+        if miss.any():
+            r, c = np.nonzero(miss)
+            out[r, c] = NearestNDInterpolator(pts[:, :2], pts[:, 2])(grid.x[c], grid.y[r])
+    if tin is not None:
+        out = np.where(np.isfinite(tin), tin, out)
+    return out
 
 
 def terrain_from_dem(path: str | Path, grid: Grid) -> np.ndarray:
@@ -343,7 +582,7 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
         terrain = terrain_from_dem(terrain_path, grid)
         datum = vertical_datum or "EGM96 geoid"
     elif len(ground_pts):
-        terrain = terrain_from_points(ground_pts, grid)
+        terrain = terrain_from_points(ground_pts, grid, braster.terrain)
         datum = vertical_datum or "source data heights (CityJSON; NAP for Dutch data)"
     else:
         terrain = np.zeros(grid.shape)

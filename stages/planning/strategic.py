@@ -62,7 +62,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                    min_agl_m: float = 0.0, max_agl_m: float = 120.0, dop_kind: str = "PDOP",
                    intruders: list[Intruder] | None = None, d_c_m: float = 0.0, dt_c_s: float = 0.0,
                    uere_m: float = 3.0, workers: int | None = None, step_cells: int = STEP_CELLS,
-                   max_iterations: int | None = None) -> StrategicPlan:
+                   max_iterations: int | None = None, battery_reserve_pct: float = 0.0) -> StrategicPlan:
     """Plan the mission for every coverage level of ``coverage`` (one level without GNSS data).
 
     Levels with identical floor and coverage arrays are solved once.  With ``planner="astar"``
@@ -72,7 +72,8 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     planner is deterministic: the same inputs and ``seed`` give the same plan (BIT* stops on
     an iteration count, :func:`~skyroute.stages.planning.step1.bitstar_iterations`).
     ``step_cells``: A* lattice step [cells]; ``max_iterations``: BIT* stop rule per level (see
-    :func:`~skyroute.stages.planning.step1.plan_step1`; 0 = wall clock, not reproducible)."""
+    :func:`~skyroute.stages.planning.step1.plan_step1`; 0 = wall clock, not reproducible).
+    ``battery_reserve_pct`` [%]: energy kept in the battery (STEP I and III use the rest)."""
     t0 = time.perf_counter()
     veh = load_vehicle(vehicle)
     surf = surface[["terrain", "surface"]].load()
@@ -105,14 +106,16 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         problem, d = problems[i], levels[i][0]
         tl = time.perf_counter()
         s1 = plan_step1(problem, planner=planner, time_budget_s=time_budget_s, seed=seed, max_tries=max_tries,
-                        step_cells=step_cells, max_iterations=max_iterations, h2=h2)
+                        step_cells=step_cells, max_iterations=max_iterations, h2=h2,
+                        battery_reserve_pct=battery_reserve_pct)
         if not s1.solved:
             return s1, None, _empty(problem.label, d, [f"STEP I: {s1.reason or s1.status}"], tl, s1.status)
         s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=max(time_budget_s, 1.0))
         if s2.status == "failed":
             return s1, s2, _empty(problem.label, d, [f"STEP II: {s2.reason}"], tl, s2.status)
         cand = step3(problem, s2, sky, surface_2d, start_time_utc=start_time_utc, occupancy=occ,
-                     intruders=intruders, label=problem.label, gnss_sigma_m=uere_m)
+                     intruders=intruders, label=problem.label, gnss_sigma_m=uere_m,
+                     battery_reserve_pct=battery_reserve_pct)
         cand.compute_time_s = time.perf_counter() - tl
         return s1, s2, cand
 

@@ -236,6 +236,8 @@ def smooth_with_clearance(waypoints, times, is_clear: Callable[[np.ndarray], np.
 _LINE, _ARC = 0, 1
 STOP_TURN_RAD = math.radians(175.0)   # turns sharper than this always stop (tiny, slow fillets)
 PASS_TURN_RAD = 1e-9                  # straighter than this: no corner at all
+MIN_SAMPLE_GAP_S = 0.01               # [s] smallest interval between two output samples
+_MIN_PHASE_S = 1e-9                   # [s] shorter phases (float rounding) are dropped
 
 
 @dataclass(frozen=True)
@@ -338,11 +340,24 @@ class CornerTrajectory:
     def sample_times(self, dt_s: float, min_gap_s: float = 0.1) -> np.ndarray:
         """Output times: every ``dt_s`` [s] plus every piece and phase boundary (so no chord
         spans two pieces, and the speed is linear between samples: the trapezoidal length is
-        exact); a regular time closer than ``min_gap_s`` to a boundary is dropped."""
+        exact); a regular time closer than ``min_gap_s`` to a boundary is dropped, and of
+        boundaries closer than :data:`MIN_SAMPLE_GAP_S` only the first is kept (float rounding
+        of positions ~1e6 m would dominate a finite difference over a shorter interval; the
+        piece skipped is then shorter than v_max x 10 ms)."""
         n = max(int(math.ceil(self.duration_s / dt_s - 1e-9)), 1)
         reg = np.linspace(0.0, self.duration_s, n + 1)
-        k = np.unique(np.concatenate([self.piece_t_s, self.phase_t0_s]))
-        near = np.min(np.abs(reg[:, None] - k[None, :]), axis=1) < min_gap_s
+        out = [0.0]
+        for x in np.unique(np.concatenate([self.piece_t_s, self.phase_t0_s, [self.duration_s]])):
+            if x - out[-1] >= MIN_SAMPLE_GAP_S:
+                out.append(float(x))
+        if out[-1] != self.duration_s:          # the end point replaces a boundary just before it
+            if len(out) > 1 and self.duration_s - out[-1] < MIN_SAMPLE_GAP_S:
+                out[-1] = self.duration_s
+            else:
+                out.append(self.duration_s)
+        k = np.array(out)
+        gap = max(min_gap_s, MIN_SAMPLE_GAP_S)
+        near = np.min(np.abs(reg[:, None] - k[None, :]), axis=1) < gap
         return np.unique(np.concatenate([reg[~near], k]))
 
 
@@ -533,13 +548,13 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
             s1 = max((vp * vp - v0 * v0) / (2 * a_max), 0.0)
             s3 = max((vp * vp - v1 * v1) / (2 * a_max), 0.0)
             s2 = max(lk - s1 - s3, 0.0)
-            if s1 > 0:
+            if (vp - v0) / a_max > _MIN_PHASE_S:
                 rows.append((t, _LINE, p0, e1, e2, 0.0, v0, a_max, 0.0))
                 t += (vp - v0) / a_max
-            if s2 > 0:
+            if s2 / vp > _MIN_PHASE_S:
                 rows.append((t, _LINE, p0, e1, e2, s1, vp, 0.0, 0.0))
                 t += s2 / vp
-            if s3 > 0:
+            if (vp - v1) / a_max > _MIN_PHASE_S:
                 rows.append((t, _LINE, p0, e1, e2, s1 + s2, vp, -a_max, 0.0))
                 t += (vp - v1) / a_max
         piece_t.append(t)

@@ -12,7 +12,8 @@ violation as a readable string (an empty list means the plan is valid):
 * flight-path angle of every chord between consecutive samples <= ``alpha`` (tolerance
   ``tol_deg``, numerical only); chords with less than :data:`MIN_HORIZONTAL_M` of horizontal
   motion are exempt (a hover or a stop has no defined angle) but obey the vertical rates;
-* vertical speed of every chord ``dz / dt`` within ``[-max_descent_rate_mps, max_climb_rate_mps]``;
+* vertical speed of every chord ``dz / dt`` within ``[-max_descent_rate_mps, max_climb_rate_mps]``
+  (chord speeds: plus the float rounding of the difference, 4 eps |p| / dt);
 * acceleration: twice the second divided difference of three consecutive samples, a weighted
   mean of the trajectory's acceleration over their interval (Peano kernel of mass 1, so its
   norm cannot exceed the maximum of |a|), must not exceed ``max_acceleration_mps2`` (plus
@@ -214,13 +215,15 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
             out.append(f"flight-path angle above {veh.max_flight_path_angle_deg} deg (up to {float(fpa[bad].max()):.2f} "
                        f"deg) on chords starting at {_where(np.r_[bad, False], t, p)}")
         dt = np.diff(t)
+        scale = float(np.abs(p).max())
         with np.errstate(divide="ignore", invalid="ignore"):
             vz = d[:, 2] / dt
-        bad = ~(vz <= veh.max_climb_rate_mps + tol_mps)
+            tol_v = tol_mps + 4.0 * np.finfo(float).eps * scale / dt     # float rounding of the difference
+        bad = ~(vz <= veh.max_climb_rate_mps + tol_v)
         if bad.any():
             out.append(f"climb rate above {veh.max_climb_rate_mps} m/s (up to {float(np.nanmax(vz)):.2f} m/s) on "
                        f"chords starting at {_where(np.r_[bad, False], t, p)}")
-        bad = ~(vz >= -veh.max_descent_rate_mps - tol_mps)
+        bad = ~(vz >= -veh.max_descent_rate_mps - tol_v)
         if bad.any():
             out.append(f"descent rate above {veh.max_descent_rate_mps} m/s (up to {float(-np.nanmin(vz)):.2f} m/s) on "
                        f"chords starting at {_where(np.r_[bad, False], t, p)}")
@@ -228,7 +231,7 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
             with np.errstate(divide="ignore", invalid="ignore"):
                 v = d / dt[:, None]
                 acc = 2.0 * (v[1:] - v[:-1]) / (dt[1:] + dt[:-1])[:, None]
-                rnd = 8.0 * np.finfo(float).eps * float(np.abs(p).max()) * 2.0 / (dt[1:] * dt[:-1])
+                rnd = 16.0 * np.finfo(float).eps * scale / (dt[1:] * dt[:-1])
             an = np.linalg.norm(acc, axis=1)
             bad = ~(an <= veh.max_acceleration_mps2 + tol_mps2 + rnd)
             if bad.any():
@@ -245,7 +248,9 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
             with np.errstate(divide="ignore", invalid="ignore"):
                 v = np.diff(p, axis=0) / dt[:, None]
             air = np.linalg.norm(v - w[:-1], axis=1)
-            bad = ~(air <= veh.max_airspeed_mps + tol_mps)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tol_v = tol_mps + 4.0 * np.finfo(float).eps * float(np.abs(p).max()) / dt
+            bad = ~(air <= veh.max_airspeed_mps + tol_v)
             if bad.any():
                 out.append(f"airspeed above {veh.max_airspeed_mps} m/s (up to {float(np.nanmax(air)):.2f} m/s) on chords "
                            f"starting at {_where(np.r_[bad, False], t, p)}")

@@ -2,6 +2,8 @@
 
     python benchmarks/bench_table2.py                          # the three cities
     python benchmarks/bench_table2.py --cases helsinki-medical --cache /tmp/perf-cache
+    python benchmarks/bench_table2.py --plan-times helsinki-medical,helsinki-traffic,monaco-helipads,\
+        rotterdam-canyon,san-gabriel-mountains         # plan stage time per shipped scenario
 
 For each scenario and each weight set (1,0,0,0), (0,1,0,0), (0,0,1,0), (0,0,0,1) the whole
 strategic plan (every GNSS level, STEP I-III, the scenario's planner) runs on the cached maps
@@ -57,8 +59,13 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", default="helsinki-medical,monaco-helipads,rotterdam-canyon")
     ap.add_argument("--cache", default="/tmp/perf-cache", help="pipeline cache folder of the maps")
+    ap.add_argument("--plan-times", default="", help="comma-separated scenarios: only time their plan stage "
+                    "with the scenario's own settings (e.g. every catalog scenario)")
     a = ap.parse_args()
     cache = Cache(a.cache)
+    if a.plan_times:
+        plan_times(a.plan_times.split(","), cache)
+        return
     warm = False
     for name in a.cases.split(","):
         sc, d, s, prep = case_inputs(name, cache)
@@ -82,6 +89,22 @@ def main() -> None:
         flat = [k for k, sp in zip(TERMS, spread, strict=True) if sp < 1e-3]
         if flat:
             print(f"  degenerate term(s) on this scenario (same value in every plan): {', '.join(flat)}")
+
+
+def plan_times(names: list[str], cache: Cache) -> None:
+    """Wall time of the plan stage (maps cached, kernels warm) with each scenario's settings."""
+    print(f"{'scenario':>24} {'maps_s':>7} {'plan_s':>7} {'flyable':>8} {'label':>6} {'f [m]':>9} {'energy_Wh':>10}")
+    warm = False
+    for name in names:
+        sc, d, s, prep = case_inputs(name, cache)
+        if not warm:
+            run_plan(d, s)
+            warm = True
+        plan, t = run_plan(d, s, battery_reserve_pct=s.battery_reserve_pct)
+        c = plan.chosen
+        print(f"{name:>24} {prep:7.1f} {t:7.2f} {str(c is not None):>8} {c.label if c else '-':>6} "
+              f"{c.f if c else float('nan'):9.1f} {c.energy_Wh if c else float('nan'):10.2f}"
+              + ("" if c else f"  {plan.reason}"), flush=True)
 
 
 if __name__ == "__main__":

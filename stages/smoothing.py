@@ -1,4 +1,11 @@
-"""Minimum-snap polynomial trajectories through a polygonal chain (seed 000 step III, ref. [50];
+"""Trajectories through a polygonal chain.
+
+STEP III flies the chain with :func:`corner_trajectory` (circular fillets within the
+flight-path-angle cone or stops, timed exactly under the vehicle's hard limits; see its
+docstring).  The minimum-snap polynomials below are kept as a library function (they keep the
+velocity through a corner, so they cannot bound the flight-path angle near a hairpin).
+
+Minimum-snap polynomial trajectories through a polygonal chain (seed 000 step III, ref. [50];
 Richter, Bry & Roy, "Polynomial trajectory planning for aggressive quadrotor flight in dense
 indoor environments", ISRR 2013, section 3, unconstrained QP).
 

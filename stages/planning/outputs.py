@@ -90,7 +90,7 @@ def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_dat
                          "geometry": {"type": "MultiPoint",
                                       "coordinates": [[float(a), float(b), float(z)]
                                                       for a, b, z in zip(wl, wa, wp[:, 2], strict=True)]},
-                         "properties": {"name": "polynomial waypoints", "vertical_datum": vertical_datum,
+                         "properties": {"name": "trajectory piece boundaries", "vertical_datum": vertical_datum,
                                         "heights_are_ellipsoidal": False, "map_crs": crs_txt,
                                         "map_xyz_m": wp.tolist(), "times_utc": utc_of(start_time_utc, knots),
                                         "t_s": knots.tolist()}})

@@ -1,6 +1,7 @@
 """The whole strategic planner (seed 000 section III): for every GNSS coverage level D_j,
 STEP I (optimised polygonal chain), STEP II (deconfliction against known traffic) and STEP III
-(minimum-snap smoothing, navigation-error check, eq. 15 costs); then the choice of the flyable
+(corner smoothing and retiming within the vehicle's hard limits, navigation-error check, eq. 15
+costs); then the choice of the flyable
 candidate with minimum f.
 
 :func:`plan_strategic` takes the pipeline's datasets (surface, satellites, coverage, environment,

@@ -9,6 +9,7 @@ import csv
 import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pandas as pd
@@ -355,3 +356,29 @@ def test_step3_hairpin_chain_is_flown_within_every_limit(problem, sky):
     d = np.diff(cand.xyz_m, axis=0)
     hh = np.hypot(d[:, 0], d[:, 1])
     assert np.all(np.abs(d[:, 2]) <= math.tan(math.radians(15)) * hh + 1e-9)   # every written chord
+
+
+def test_step3_rechecks_traffic_at_the_retimed_schedule(problem, sky):
+    """STEP II's constant-speed schedule passes in front of a crossing drone; the retimed
+    trajectory (at rest at the start, so later everywhere) meets it: not flyable, and the reason
+    says where and when."""
+    a, b = np.array([X0 + 100, Y0 + 300, 30.0]), np.array([X0 + 900, Y0 + 300, 30.0])
+    prob = dataclasses.replace(problem, start_xyz=tuple(a), goal_xyz=tuple(b))
+    free = step3(prob, deconflict(prob, np.array([a, b]), None), sky, surface(), start_time_utc=START)
+    assert free.flyable, free.reasons
+    tr = free.trajectory
+    tt = np.linspace(0, tr.duration_s, 200001)
+    t_x = float(tt[np.argmin(np.abs(tr.sample(tt)[:, 0] - (X0 + 500)))])   # retimed passage at x = 500
+    crossing = Intruder("crosser", np.array([t_x - 10, t_x + 10]),
+                        np.array([[500, 500, 30], [500, 100, 30.0]]) + [X0, Y0, 0], 2.0)
+    occ = build_occupancy([crossing], 200.0, 1000, 2.0, 0.2)     # 0.2 s slices: capsules ~8 m long
+    s2 = deconflict(prob, np.array([a, b]), occ)
+    assert s2.status == "unchanged"                  # STEP II's own schedule is conflict-free
+    c = step3(prob, s2, sky, surface(), start_time_utc=START, occupancy=occ, intruders=[crossing])
+    assert not c.flyable
+    msg = next(r for r in c.reasons if r.startswith("traffic:"))
+    m = re.search(r"at t = ([\d.]+) s near \(([\d.]+), ([\d.]+), ([\d.]+)\)", msg)
+    assert "after retiming" in msg and m, msg
+    assert abs(float(m.group(1)) - t_x) < 1.0
+    assert math.hypot(float(m.group(2)) - (X0 + 500), float(m.group(3)) - (Y0 + 300)) < 10.0
+    assert any("crosser" in r for r in c.reasons)    # the independent validator agrees

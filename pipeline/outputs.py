@@ -106,7 +106,7 @@ def revalidate(result: RunResult, chosen) -> list[str]:
                          clearance_floor_m=clear["obstacle_floor_m"].values, gnss_floor_m=gnss,
                          min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
                          nofly=clear["nofly"].values, wind=wind, intruders=intr, d_c_m=sc.traffic.margin_m,
-                         dt_c_s=sc.traffic.time_margin_s, tol_deg=3.0 + 1e-6)
+                         dt_c_s=sc.traffic.time_margin_s, battery_reserve_pct=sc.constraints.battery_reserve_pct)
 
 
 def _previous_outputs(out_dir: Path) -> dict[str, str]:

@@ -139,10 +139,16 @@ class Mission(FrozenModel):
 
 
 class Constraints(FrozenModel):
+    """Airspace and operating constraints.  ``max_altitude_agl_m`` may not exceed the
+    vehicle's ``max_altitude_m`` (a scenario that asks more is an error listing both); when it
+    is not given, the vehicle's maximum applies (120 m at most).  ``battery_reserve_pct`` [%]:
+    energy kept in the battery, the plan may use ``battery * (1 - reserve / 100)``."""
+
     min_altitude_agl_m: NonNegFloat = 0.0
     max_altitude_agl_m: PositiveFloat = 120.0
     nofly_zones: Path | None = None
     level5_nofly: bool = False
+    battery_reserve_pct: Annotated[float, Field(ge=0, lt=100)] = 0.0
 
     @model_validator(mode="after")
     def _order(self) -> Constraints:
@@ -342,6 +348,8 @@ def _semantic_problems(sc: Scenario) -> list[str]:
 
     if sc.vehicle not in known_vehicles() and not Path(sc.vehicle).is_file():
         problems.append(f"vehicle: unknown vehicle {sc.vehicle!r}; known vehicles: {', '.join(known_vehicles())}")
+    else:
+        problems.extend(_vehicle_altitude_problems(sc))
     try:
         grid = sc.grid
     except Exception as exc:  # CRSError / InputError
@@ -369,6 +377,33 @@ def _semantic_problems(sc: Scenario) -> list[str]:
     return problems
 
 
+def _vehicle_max_altitude_m(sc: Scenario) -> float | None:
+    from skyroute.stages.vehicle import load_vehicle
+
+    try:
+        return float(load_vehicle(sc.vehicle).max_altitude_m)
+    except Exception:  # an unreadable vehicle is reported by its own check
+        return None
+
+
+def _vehicle_altitude_problems(sc: Scenario) -> list[str]:
+    vmax = _vehicle_max_altitude_m(sc)
+    cmax = sc.constraints.max_altitude_agl_m
+    if vmax is None or "max_altitude_agl_m" not in sc.constraints.model_fields_set or cmax <= vmax:
+        return []
+    return [f"constraints.max_altitude_agl_m: {cmax:g} m AGL exceeds the maximum altitude of vehicle "
+            f"{sc.vehicle!r}, {vmax:g} m AGL; lower it to <= {vmax:g}"]
+
+
+def _clamp_default_max_altitude(sc: Scenario) -> Scenario:
+    """No ``max_altitude_agl_m`` given: the vehicle's maximum applies when it is lower."""
+    vmax = _vehicle_max_altitude_m(sc)
+    c = sc.constraints
+    if vmax is None or "max_altitude_agl_m" in c.model_fields_set or c.max_altitude_agl_m <= vmax:
+        return sc
+    return sc.model_copy(update={"constraints": c.model_copy(update={"max_altitude_agl_m": vmax})})
+
+
 def parse_scenario(raw: Any, source: str = "<scenario>", base: Path | None = None) -> Scenario:
     """Validate a scenario mapping (already parsed YAML).  Raises ScenarioError with every problem."""
     if not isinstance(raw, dict):
@@ -379,6 +414,7 @@ def parse_scenario(raw: Any, source: str = "<scenario>", base: Path | None = Non
         sc = Scenario.model_validate(raw)
     except ValidationError as exc:
         raise ScenarioError(source, _problems_from(exc)) from None
+    sc = _clamp_default_max_altitude(sc)
     problems = _semantic_problems(sc)
     if problems:
         raise ScenarioError(source, problems)

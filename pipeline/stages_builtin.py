@@ -331,6 +331,7 @@ class PlanSettings(FrozenModel):
     d_c_m: float
     dt_c_s: float
     uere_m: float = 3.0
+    battery_reserve_pct: float = 0.0
 
 
 def _plan_settings(sc: Scenario) -> PlanSettings:
@@ -343,7 +344,8 @@ def _plan_settings(sc: Scenario) -> PlanSettings:
         weights=p.weights, planner=p.name, time_budget_s=p.time_budget_s, seed=p.seed, max_tries=p.max_tries,
         min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
         dop_kind=sc.gnss.dop_kind, intruders=tuple(i.model_dump() for i in sc.traffic.intruders),
-        d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s, uere_m=sc.gnss.uere_m)
+        d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s, uere_m=sc.gnss.uere_m,
+        battery_reserve_pct=sc.constraints.battery_reserve_pct)
 
 
 def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Dataset, wind: xr.Dataset | None,
@@ -359,7 +361,7 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
                           start_time_utc=s.start_time_utc, vehicle=s.vehicle, weights=s.weights, planner=s.planner,
                           time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, min_agl_m=s.min_agl_m,
                           max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m,
-                          dt_c_s=s.dt_c_s, uere_m=s.uere_m)
+                          dt_c_s=s.dt_c_s, uere_m=s.uere_m, battery_reserve_pct=s.battery_reserve_pct)
     return plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),
                            s.start_time_utc)
 

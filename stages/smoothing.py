@@ -1,4 +1,11 @@
-"""Minimum-snap polynomial trajectories through a polygonal chain (seed 000 step III, ref. [50];
+"""Trajectories through a polygonal chain.
+
+STEP III flies the chain with :func:`corner_trajectory` (circular fillets within the
+flight-path-angle cone or stops, timed exactly under the vehicle's hard limits; see its
+docstring).  The minimum-snap polynomials below are kept as a library function (they keep the
+velocity through a corner, so they cannot bound the flight-path angle near a hairpin).
+
+Minimum-snap polynomial trajectories through a polygonal chain (seed 000 step III, ref. [50];
 Richter, Bry & Roy, "Polynomial trajectory planning for aggressive quadrotor flight in dense
 indoor environments", ISRR 2013, section 3, unconstrained QP).
 
@@ -227,4 +234,345 @@ def smooth_with_clearance(waypoints, times, is_clear: Callable[[np.ndarray], np.
                         f"{max_iter} midpoint insertions; raise max_iter or use the polygonal chain")
 
 
-__all__ = ["MinSnapTrajectory", "insert_midpoints_where", "min_snap", "smooth_with_clearance"]
+
+
+# --------------------------------------------------------------------------------------------
+# Corner-filleted chain with an exact speed profile (STEP III, hard vehicle limits)
+# --------------------------------------------------------------------------------------------
+
+_LINE, _ARC = 0, 1
+STOP_TURN_RAD = math.radians(175.0)   # turns sharper than this always stop (tiny, slow fillets)
+PASS_TURN_RAD = 1e-9                  # straighter than this: no corner at all
+MIN_SAMPLE_GAP_S = 0.01               # [s] smallest interval between two output samples
+_MIN_PHASE_S = 1e-9                   # [s] shorter phases (float rounding) are dropped
+
+
+@dataclass(frozen=True)
+class KinematicLimits:
+    """Hard limits of the trajectory (tolerance 0): ``max_flight_path_angle_deg`` [deg],
+    ``max_airspeed_mps`` [m/s] (|v_ground - wind|), ``max_climb_rate_mps`` /
+    ``max_descent_rate_mps`` [m/s] (positive), ``max_acceleration_mps2`` [m/s^2] (3-D norm)."""
+
+    max_flight_path_angle_deg: float
+    max_airspeed_mps: float
+    max_climb_rate_mps: float
+    max_descent_rate_mps: float
+    max_acceleration_mps2: float
+
+    @classmethod
+    def of(cls, vehicle) -> KinematicLimits:
+        """The limits of a :class:`~skyroute.stages.vehicle.VehicleProfile`."""
+        return cls(vehicle.max_flight_path_angle_deg, vehicle.max_airspeed_mps, vehicle.max_climb_rate_mps,
+                   vehicle.max_descent_rate_mps, vehicle.max_acceleration_mps2)
+
+
+@dataclass(frozen=True)
+class CornerTrajectory:
+    """Straight lines and circular fillet arcs, timed by phases of constant tangential
+    acceleration (lines) or constant speed (arcs).
+
+    Phase ``i`` starts at ``phase_t0_s[i]`` [s]; lines: ``p = origin + (s0 + v0 tau + a tau^2 / 2) e1``;
+    arcs (radius ``R``, start ``origin``, start tangent ``e1``, unit normal ``e2`` towards the
+    centre): ``phi = (v0 tau) / R``, ``p = origin + R sin(phi) e1 + R (1 - cos(phi)) e2``.
+    ``piece_t_s``: times of the piece boundaries (every point where a line meets an arc or a
+    stop corner); ``waypoints`` the positions there; ``corner_kind`` per interior chain vertex:
+    ``"arc"``, ``"stop"`` or ``"pass"`` (collinear)."""
+
+    phase_t0_s: np.ndarray
+    kind: np.ndarray
+    origin: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    s0: np.ndarray
+    v0: np.ndarray
+    a: np.ndarray
+    radius_m: np.ndarray
+    duration_s: float
+    piece_t_s: np.ndarray
+    waypoints: np.ndarray
+    corner_kind: tuple[str, ...]
+    corner_reason: tuple[str, ...]
+
+    @property
+    def knots_s(self) -> np.ndarray:
+        """Times of the piece boundaries [s] (0 ... duration)."""
+        return self.piece_t_s
+
+    @property
+    def segment_times_s(self) -> np.ndarray:
+        """Durations of the pieces [s]."""
+        return np.diff(self.piece_t_s)
+
+    def _eval(self, t, order: int) -> np.ndarray:
+        t = np.clip(np.atleast_1d(np.asarray(t, dtype=float)), 0.0, self.duration_s)
+        i = np.clip(np.searchsorted(self.phase_t0_s, t, side="right") - 1, 0, self.phase_t0_s.size - 1)
+        tau = t - self.phase_t0_s[i]
+        e1, e2, o = self.e1[i], self.e2[i], self.origin[i]
+        v0, a, s0, R = self.v0[i], self.a[i], self.s0[i], self.radius_m[i]
+        line = self.kind[i] == _LINE
+        out = np.zeros((t.size, 3))
+        # lines
+        if order == 0:
+            s = s0 + v0 * tau + 0.5 * a * tau * tau
+            out = o + s[:, None] * e1
+        elif order == 1:
+            out = (v0 + a * tau)[:, None] * e1
+        else:
+            out = a[:, None] * e1
+        arc = ~line
+        if arc.any():
+            Ra = R[arc]
+            phi = v0[arc] * tau[arc] / Ra
+            sp, cp = np.sin(phi)[:, None], np.cos(phi)[:, None]
+            if order == 0:
+                out[arc] = o[arc] + Ra[:, None] * (sp * e1[arc] + (1 - cp) * e2[arc])
+            elif order == 1:
+                out[arc] = v0[arc][:, None] * (cp * e1[arc] + sp * e2[arc])
+            else:
+                out[arc] = (v0[arc] ** 2 / Ra)[:, None] * (-sp * e1[arc] + cp * e2[arc])
+        return out
+
+    def sample(self, t) -> np.ndarray:
+        """Position (m, 3) [m] at times ``t`` [s] (clipped to [0, duration])."""
+        return self._eval(t, 0)
+
+    def velocity(self, t) -> np.ndarray:
+        """Velocity (m, 3) [m/s]."""
+        return self._eval(t, 1)
+
+    def acceleration(self, t) -> np.ndarray:
+        """Acceleration (m, 3) [m/s^2] (right-continuous at phase changes)."""
+        return self._eval(t, 2)
+
+    def sample_times(self, dt_s: float, min_gap_s: float = 0.1) -> np.ndarray:
+        """Output times: every ``dt_s`` [s] plus every piece and phase boundary (so no chord
+        spans two pieces, and the speed is linear between samples: the trapezoidal length is
+        exact); a regular time closer than ``min_gap_s`` to a boundary is dropped, and of
+        boundaries closer than :data:`MIN_SAMPLE_GAP_S` only the first is kept (float rounding
+        of positions ~1e6 m would dominate a finite difference over a shorter interval; the
+        piece skipped is then shorter than v_max x 10 ms)."""
+        n = max(int(math.ceil(self.duration_s / dt_s - 1e-9)), 1)
+        reg = np.linspace(0.0, self.duration_s, n + 1)
+        out = [0.0]
+        for x in np.unique(np.concatenate([self.piece_t_s, self.phase_t0_s, [self.duration_s]])):
+            if x - out[-1] >= MIN_SAMPLE_GAP_S:
+                out.append(float(x))
+        if out[-1] != self.duration_s:          # the end point replaces a boundary just before it
+            if len(out) > 1 and self.duration_s - out[-1] < MIN_SAMPLE_GAP_S:
+                out[-1] = self.duration_s
+            else:
+                out.append(self.duration_s)
+        k = np.array(out)
+        gap = max(min_gap_s, MIN_SAMPLE_GAP_S)
+        near = np.min(np.abs(reg[:, None] - k[None, :]), axis=1) < gap
+        return np.unique(np.concatenate([reg[~near], k]))
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def _cone_ok(u1: np.ndarray, u2: np.ndarray, tan_a: float) -> bool:
+    """Every non-negative combination ``c = (1-s) u1 + s u2`` (s in [0, 1]) has a flight-path
+    angle <= alpha: ``q(s) = tan^2(alpha) |c_h|^2 - c_z^2 >= 0``, a quadratic in s checked
+    exactly at its end points and its stationary point."""
+    h1, h2, z1, z2 = u1[:2], u2[:2], u1[2], u2[2]
+    dh, dz = h2 - h1, z2 - z1
+    t2 = tan_a * tan_a
+    c2 = t2 * float(dh @ dh) - dz * dz          # q(s) = c2 s^2 + c1 s + c0
+    c1 = 2 * (t2 * float(h1 @ dh) - z1 * dz)
+    c0 = t2 * float(h1 @ h1) - z1 * z1
+    cand = [0.0, 1.0]
+    if c2 != 0.0:
+        s = -c1 / (2 * c2)
+        if 0.0 < s < 1.0:
+            cand.append(s)
+    tol = 1e-12
+    return all(c2 * s * s + c1 * s + c0 >= -tol for s in cand)
+
+
+def _airspeed_cap(u: np.ndarray, winds: np.ndarray, v_max: float) -> float:
+    """Largest ground speed v along unit ``u`` with |v u - w| <= v_max for every wind w (k, 3):
+    ``v <= u.w + sqrt((u.w)^2 - |w|^2 + v_max^2)``.  Also for every wind in their convex hull
+    (|v u - w| is convex in w)."""
+    uw = winds @ u
+    disc = uw * uw - np.einsum("ij,ij->i", winds, winds) + v_max * v_max
+    if np.any(disc < 0):
+        return 0.0
+    return float(np.min(uw + np.sqrt(disc)))
+
+
+def _vertical_cap(uz_max: float, uz_min: float, lim: KinematicLimits) -> float:
+    cap = math.inf
+    if uz_max > 0:
+        cap = min(cap, lim.max_climb_rate_mps / uz_max)
+    if uz_min < 0:
+        cap = min(cap, lim.max_descent_rate_mps / -uz_min)
+    return cap
+
+
+def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=np.zeros((1, 3)),
+                      fillet_ok: Callable[[np.ndarray, np.ndarray, np.ndarray], bool] | None = None,
+                      max_shrink: int = 6) -> CornerTrajectory:
+    """Fly the polygonal chain ``waypoints`` (n, 3) [m] from rest to rest within ``limits``.
+
+    Geometry: each interior vertex P (incoming unit u1, outgoing u2, turn angle theta) becomes
+    a circular arc tangent to both legs, cut back ``d`` = half the shorter adjacent leg
+    (radius ``d / tan(theta / 2)``), if (a) every tangent of the arc -- a non-negative
+    combination of u1 and u2 -- is within the flight-path-angle cone (:func:`_cone_ok`,
+    exact) and (b) ``fillet_ok(A, P, B)`` accepts the triangle A P B that contains the arc
+    (e.g. a clearance check of every cell under it); ``d`` is halved up to ``max_shrink``
+    times for (b).  Otherwise the vehicle stops at P (speed 0: the direction may change).
+    Every chord between two points of one piece is then a non-negative combination of u1, u2
+    (arc) or parallel to the leg (line), so it is within the angle limit.
+
+    Timing (exact, closed form): lines accelerate / cruise / decelerate at the acceleration
+    limit; arcs are flown at constant speed ``v <= sqrt(a_max R)`` (normal acceleration only).
+    The speed of each piece is capped by ``leg_speed_mps`` (n-1,) [m/s] (the legs' target
+    ground speeds), the airspeed limit for every wind vector of ``winds`` (k, 3) [m/s]
+    (:func:`_airspeed_cap`; on an arc with the bound |c| >= cos(theta / 2) of the tangents'
+    combinations) and the vertical-rate limits; node speeds come from one forward and one
+    backward pass (|v_1^2 - v_0^2| <= 2 a L on lines, equal speeds at both ends of an arc)."""
+    w = np.asarray(waypoints, dtype=float)
+    if w.ndim != 2 or w.shape[1] != 3 or w.shape[0] < 2 or not np.isfinite(w).all():
+        raise InputError(f"waypoints must be finite with shape (n >= 2, 3) [m]; got {w.shape}")
+    legs = np.diff(w, axis=0)
+    length = np.linalg.norm(legs, axis=1)
+    vleg = np.broadcast_to(np.asarray(leg_speed_mps, dtype=float), (legs.shape[0],)).copy()
+    keep = length > 1e-9                     # drop repeated points
+    if not keep.all():
+        w = np.concatenate([w[:1], w[1:][keep]])
+        vleg, legs, length = vleg[keep], legs[keep], length[keep]
+    if w.shape[0] < 2:
+        raise InputError("waypoints must contain two distinct points")
+    if not (np.isfinite(vleg).all() and (vleg > 0).all()):
+        raise InputError("leg_speed_mps must be finite and > 0 [m/s]")
+    winds = np.atleast_2d(np.asarray(winds, dtype=float))
+    a_max = float(limits.max_acceleration_mps2)
+    tan_a = math.tan(math.radians(limits.max_flight_path_angle_deg))
+    u = legs / length[:, None]
+    nl = u.shape[0]
+    cut = np.zeros(w.shape[0])                  # cut-back d at each vertex (0: no arc)
+    kinds: list[str] = []
+    why: list[str] = []
+    for i in range(1, w.shape[0] - 1):
+        u1, u2 = u[i - 1], u[i]
+        cth = float(np.clip(u1 @ u2, -1.0, 1.0))
+        th = math.acos(cth)
+        if th < PASS_TURN_RAD:
+            kinds.append("pass")
+            why.append("")
+            continue
+        if th > STOP_TURN_RAD:
+            kinds.append("stop")
+            why.append(f"turn {math.degrees(th):.0f} deg")
+            continue
+        if not _cone_ok(u1, u2, tan_a):
+            kinds.append("stop")
+            why.append("a fillet would exceed the flight-path angle")
+            continue
+        d = 0.5 * min(length[i - 1], length[i])
+        ok = False
+        for _ in range(max_shrink + 1):
+            if fillet_ok is None or fillet_ok(w[i] - d * u1, w[i], w[i] + d * u2):
+                ok = True
+                break
+            d *= 0.5
+        if ok:
+            cut[i] = d
+            kinds.append("arc")
+            why.append("")
+        else:
+            kinds.append("stop")
+            why.append("no clearance for a fillet")
+    # pieces: (kind, start point, length, cap, e1, e2, R)
+    pieces = []
+    node_cap = [0.0]                            # speed cap at each piece boundary
+    for k in range(nl):
+        a_pt = w[k] + cut[k] * u[k]
+        b_pt = w[k + 1] - cut[k + 1] * u[k]
+        lk = float(np.linalg.norm(b_pt - a_pt))
+        cap = min(vleg[k], _airspeed_cap(u[k], winds, limits.max_airspeed_mps),
+                  _vertical_cap(u[k][2], u[k][2], limits))
+        if not cap > 0:
+            raise PlanningError(f"leg {k} ({w[k].round(1).tolist()} -> {w[k + 1].round(1).tolist()}): the wind "
+                                f"exceeds the airspeed limit {limits.max_airspeed_mps} m/s, no ground speed is possible")
+        if lk > 1e-9:
+            pieces.append((_LINE, a_pt, lk, cap, u[k], np.zeros(3), 0.0))
+            node_cap.append(cap)
+        if k + 1 < w.shape[0] - 1:
+            kind = kinds[k]
+            if kind == "arc":
+                u1, u2 = u[k], u[k + 1]
+                cth = float(np.clip(u1 @ u2, -1.0, 1.0))
+                th = math.acos(cth)
+                n = _unit(u2 - cth * u1)
+                R = cut[k + 1] / math.tan(th / 2)
+                ch = math.cos(th / 2)
+                vcap = min(vleg[k], vleg[k + 1], math.sqrt(a_max * R),
+                           ch * min(_airspeed_cap(u1, winds, limits.max_airspeed_mps),
+                                    _airspeed_cap(u2, winds, limits.max_airspeed_mps)),
+                           _vertical_cap(max(u1[2], u2[2]) / (ch if max(u1[2], u2[2]) > 0 else 1.0),
+                                         min(u1[2], u2[2]) / (ch if min(u1[2], u2[2]) < 0 else 1.0), limits))
+                pieces.append((_ARC, b_pt, R * th, vcap, u1, n, R))
+                node_cap[-1] = min(node_cap[-1], vcap)
+                node_cap.append(vcap)
+            elif kind == "stop":
+                node_cap[-1] = 0.0
+            else:   # pass: the next line's cap applies at the joint too
+                nxt = min(vleg[k + 1], _airspeed_cap(u[k + 1], winds, limits.max_airspeed_mps),
+                          _vertical_cap(u[k + 1][2], u[k + 1][2], limits))
+                node_cap[-1] = min(node_cap[-1], nxt)
+    node_cap[-1] = 0.0
+    v = np.array(node_cap, dtype=float)
+    # node j is the start of piece j; node j + 1 its end
+    for j, pc in enumerate(pieces):                     # forward
+        if pc[0] == _LINE:
+            v[j + 1] = min(v[j + 1], math.sqrt(v[j] ** 2 + 2 * a_max * pc[2]))
+        else:
+            v[j + 1] = min(v[j + 1], v[j])
+    for j in range(len(pieces) - 1, -1, -1):            # backward
+        pc = pieces[j]
+        if pc[0] == _LINE:
+            v[j] = min(v[j], math.sqrt(v[j + 1] ** 2 + 2 * a_max * pc[2]))
+        else:
+            v[j] = min(v[j], v[j + 1])
+    # phases
+    rows = []       # (t0, kind, origin, e1, e2, s0, v0, a, R)
+    t = 0.0
+    piece_t = [0.0]
+    pts = [pieces[0][1]]
+    for j, (kind, p0, lk, cap, e1, e2, R) in enumerate(pieces):
+        v0, v1 = float(v[j]), float(v[j + 1])
+        if kind == _ARC:
+            if not v0 > 0:
+                raise PlanningError("internal: a fillet arc got speed 0")
+            rows.append((t, _ARC, p0, e1, e2, 0.0, v0, 0.0, R))
+            t += lk / v0
+        else:
+            vp = min(cap, math.sqrt(0.5 * (v0 * v0 + v1 * v1) + a_max * lk))
+            vp = max(vp, v0, v1)
+            s1 = max((vp * vp - v0 * v0) / (2 * a_max), 0.0)
+            s3 = max((vp * vp - v1 * v1) / (2 * a_max), 0.0)
+            s2 = max(lk - s1 - s3, 0.0)
+            if (vp - v0) / a_max > _MIN_PHASE_S:
+                rows.append((t, _LINE, p0, e1, e2, 0.0, v0, a_max, 0.0))
+                t += (vp - v0) / a_max
+            if s2 / vp > _MIN_PHASE_S:
+                rows.append((t, _LINE, p0, e1, e2, s1, vp, 0.0, 0.0))
+                t += s2 / vp
+            if (vp - v1) / a_max > _MIN_PHASE_S:
+                rows.append((t, _LINE, p0, e1, e2, s1 + s2, vp, -a_max, 0.0))
+                t += (vp - v1) / a_max
+        piece_t.append(t)
+        pts.append(pieces[j + 1][1] if j + 1 < len(pieces) else w[-1])
+    cols = list(zip(*rows, strict=True))
+    return CornerTrajectory(
+        phase_t0_s=np.array(cols[0]), kind=np.array(cols[1], dtype=np.int8), origin=np.array(cols[2]),
+        e1=np.array(cols[3]), e2=np.array(cols[4]), s0=np.array(cols[5]), v0=np.array(cols[6]),
+        a=np.array(cols[7]), radius_m=np.array(cols[8]), duration_s=float(t), piece_t_s=np.array(piece_t),
+        waypoints=np.array(pts), corner_kind=tuple(kinds), corner_reason=tuple(why))
+
+
+__all__ = ["CornerTrajectory", "KinematicLimits", "MinSnapTrajectory", "corner_trajectory", "insert_midpoints_where",
+           "min_snap", "smooth_with_clearance"]

@@ -11,6 +11,11 @@ Derived quantities (properties of :class:`VehicleProfile`):
 * ``rotor.thrust_coefficient`` C_t (eq. 8), ``rotor.blade_drag_coefficient`` C_d,
   ``rotor.solidity`` sigma = 2 B_b / (pi AR_b) (text after eq. 9), ``rotor.blade_angle_rad``;
 * ``battery_energy_j`` = capacity [mAh] * 3.6 * voltage [V] [J].
+
+Hard kinematic limits (tolerance 0 in STEP III and in the validator): ``max_airspeed_mps``,
+``max_flight_path_angle_deg``, ``max_climb_rate_mps`` / ``max_descent_rate_mps`` (vertical
+speed [m/s], both positive) and ``max_acceleration_mps2`` (norm of the 3-D acceleration
+[m/s^2]).  They are required: a profile without them does not load.
 """
 
 from __future__ import annotations
@@ -149,6 +154,10 @@ class VehicleProfile(FrozenModel):
     min_altitude_m: float = 0.0
     max_altitude_m: float
     imu: ImuSpec
+    # hard kinematic limits of the smoothed trajectory (STEP III, :mod:`skyroute.stages.smoothing`)
+    max_climb_rate_mps: Pos                            # vertical speed up [m/s]
+    max_descent_rate_mps: Pos                          # vertical speed down [m/s] (a positive number)
+    max_acceleration_mps2: Pos                         # |d^2 p / dt^2| [m/s^2], 3-D norm
     # not in Table I
     min_ground_speed_mps: NonNeg = 0.0                 # v_min of eq. 3
     battery_voltage_v: Pos

@@ -9,6 +9,7 @@ import csv
 import dataclasses
 import json
 import math
+import re
 
 import numpy as np
 import pandas as pd
@@ -110,7 +111,7 @@ def test_candidate_flyable_and_valid(cand, problem, traffic):
     assert cand.max_sigma_p_m <= problem.vehicle.max_position_error_m
     assert validate_plan(cand, grid=problem.grid, terrain_m=problem.terrain_m, vehicle=problem.vehicle,
                          floor_m=problem.floor_m, ceiling_m=problem.ceiling_m, wind=np.array([3.0, 0, 0]),
-                         intruders=it, d_c_m=D_C, dt_c_s=DT_C, tol_deg=3.0) == []
+                         intruders=it, d_c_m=D_C, dt_c_s=DT_C) == []
 
 
 def test_eq15_costs_against_dense_integration(cand, problem):
@@ -205,7 +206,7 @@ def test_failed_step2_and_choose(cand, problem, sky):
 def test_validate_plan_finds_every_violation(cand, problem, traffic):
     it, _ = traffic
     kw = dict(grid=problem.grid, terrain_m=problem.terrain_m, vehicle=problem.vehicle, floor_m=problem.floor_m,
-              ceiling_m=problem.ceiling_m, intruders=it, d_c_m=D_C, dt_c_s=DT_C, tol_deg=3.0)
+              ceiling_m=problem.ceiling_m, intruders=it, d_c_m=D_C, dt_c_s=DT_C)
     p = cand.xyz_m.copy()
     p[10:20, 2] = 5.0                                   # below the 10 m floor (and a steep dive)
     msgs = validate_plan((cand.t_s, p), **kw)
@@ -268,3 +269,116 @@ def test_write_plan_round_trips(cand, tmp_path, problem):
     # no flyable plan: only the candidates table, with the reasons
     files = write_plan(None, [other], problem.grid, tmp_path / "none", START, "x")
     assert set(files) == {"candidates.csv"}
+
+
+# ------------------------------------------------------------------ hard limits (issue 9)
+
+
+def _line(t, v, p0=(X0 + 100, Y0 + 300, 50.0), a=(0.0, 0.0, 0.0)):
+    """Samples of p0 + v t + a t^2 / 2 at times t."""
+    t = np.asarray(t, float)[:, None]
+    return np.asarray(p0) + np.asarray(v) * t + 0.5 * np.asarray(a) * t * t
+
+
+def _kw(problem, **extra):
+    return dict(grid=problem.grid, terrain_m=problem.terrain_m, vehicle=problem.vehicle, **extra)
+
+
+@pytest.mark.parametrize("what, v, a, wind, flagged", [
+    # flight-path angle 15 deg: 15.05 flagged, 14.95 not (tolerance 0)
+    ("flight-path angle", [10 * math.cos(math.radians(15.05)), 0, 10 * math.sin(math.radians(15.05))], 0, 0, True),
+    ("flight-path angle", [10 * math.cos(math.radians(14.95)), 0, 10 * math.sin(math.radians(14.95))], 0, 0, False),
+    # descent 5 m/s: 5.02 flagged, 4.98 not (19 m/s horizontal keeps the angle below 15 deg)
+    ("descent rate", [19.0, 0, -5.02], 0, 0, True),
+    ("descent rate", [19.0, 0, -4.98], 0, 0, False),
+    # climb 6 m/s at 23 m/s ground speed needs a tail wind to stay below the airspeed limit
+    ("climb rate", [23.0, 0, 6.02], 0, 5.0, True),
+    ("climb rate", [23.0, 0, 5.98], 0, 5.0, False),
+    # acceleration 3 m/s^2 along the track
+    ("acceleration", [5.0, 0, 0], 3.01, 0, True),
+    ("acceleration", [5.0, 0, 0], 2.99, 0, False),
+    # airspeed 23 m/s = |v_ground - wind|: 10 m/s east into a 13.05 m/s head wind
+    ("airspeed", [10.0, 0, 0], 0, -13.05, True),
+    ("airspeed", [10.0, 0, 0], 0, -12.95, False),
+])
+def test_validator_flags_each_limit_by_a_little(problem, what, v, a, wind, flagged):
+    t = np.arange(0.0, 4.0, 0.5)
+    p = _line(t, v, a=(a, 0, 0))
+    msgs = validate_plan((t, p), **_kw(problem, wind=np.array([wind, 0.0, 0.0])))
+    hit = [m for m in msgs if m.startswith(what)]
+    assert bool(hit) == flagged, msgs
+    assert len(msgs) == len(hit)            # nothing else is violated
+
+
+def test_validator_exempts_short_horizontal_chords_from_the_angle(problem):
+    t = np.array([0.0, 1.0, 2.0])
+    p = _line(t, [1.5, 0, 1.0])                       # 34 deg but 1.5 m horizontal per chord
+    assert validate_plan((t, p), **_kw(problem)) == []
+    p = _line(t, [0.0, 0, 6.5])                       # vertical: no angle, but 6.5 m/s > 6 m/s climb
+    assert any(m.startswith("climb rate") for m in validate_plan((t, p), **_kw(problem)))
+
+
+def test_validator_battery_reserve(problem):
+    veh = problem.vehicle
+    t = np.array([0.0, 1.0])
+    cand = dataclasses.make_dataclass("C", ["t_s", "xyz_m", "energy_J"])(t, _line(t, [5.0, 0, 0]),
+                                                                        0.81 * veh.battery_energy_j)
+    assert validate_plan(cand, **_kw(problem)) == []
+    msgs = validate_plan(cand, **_kw(problem), battery_reserve_pct=20.0)
+    assert len(msgs) == 1 and "20 % reserve" in msgs[0]
+    with pytest.raises(InputError, match="battery_reserve_pct"):
+        validate_plan(cand, **_kw(problem), battery_reserve_pct=100.0)
+
+
+def test_step3_hairpin_chain_is_flown_within_every_limit(problem, sky):
+    """A chain with a 138 deg hairpin at the end of a 14.5 deg climb, then a 15 deg descent:
+    flyable, the validator (tolerance 0) and a dense check of the continuous trajectory agree."""
+    a = np.array([X0 + 100, Y0 + 250, 20.0])
+    b = a + [160, 0, 160 * math.tan(math.radians(14.5))]
+    hd = math.radians(138)
+    c = b + [100 * math.cos(hd), 100 * math.sin(hd), -100 * math.tan(math.radians(15))]
+    d = c + [250, 20, 0]
+    chain = np.array([a, b, c, d])
+    prob = dataclasses.replace(problem, start_xyz=tuple(a), goal_xyz=tuple(d))
+    assert prob.motion_valid(chain[:-1], chain[1:]).all()
+    s2 = deconflict(prob, chain, None)
+    cand = step3(prob, s2, sky, surface(), start_time_utc=START)
+    assert cand.flyable, cand.reasons
+    tr = cand.trajectory
+    tt = np.linspace(0, tr.duration_s, 100001)
+    v, acc = tr.velocity(tt), tr.acceleration(tt)
+    veh = prob.vehicle
+    h = np.hypot(v[:, 0], v[:, 1])
+    assert np.all(np.abs(v[:, 2]) <= math.tan(math.radians(veh.max_flight_path_angle_deg)) * h + 1e-9)
+    assert np.all(np.linalg.norm(acc, axis=1) <= veh.max_acceleration_mps2 + 1e-9)
+    assert np.all(np.linalg.norm(v - [3.0, 0, 0], axis=1) <= veh.max_airspeed_mps + 1e-9)
+    assert prob.state_valid(tr.sample(tt)).all()
+    d = np.diff(cand.xyz_m, axis=0)
+    hh = np.hypot(d[:, 0], d[:, 1])
+    assert np.all(np.abs(d[:, 2]) <= math.tan(math.radians(15)) * hh + 1e-9)   # every written chord
+
+
+def test_step3_rechecks_traffic_at_the_retimed_schedule(problem, sky):
+    """STEP II's constant-speed schedule passes in front of a crossing drone; the retimed
+    trajectory (at rest at the start, so later everywhere) meets it: not flyable, and the reason
+    says where and when."""
+    a, b = np.array([X0 + 100, Y0 + 300, 30.0]), np.array([X0 + 900, Y0 + 300, 30.0])
+    prob = dataclasses.replace(problem, start_xyz=tuple(a), goal_xyz=tuple(b))
+    free = step3(prob, deconflict(prob, np.array([a, b]), None), sky, surface(), start_time_utc=START)
+    assert free.flyable, free.reasons
+    tr = free.trajectory
+    tt = np.linspace(0, tr.duration_s, 200001)
+    t_x = float(tt[np.argmin(np.abs(tr.sample(tt)[:, 0] - (X0 + 500)))])   # retimed passage at x = 500
+    crossing = Intruder("crosser", np.array([t_x - 10, t_x + 10]),
+                        np.array([[500, 500, 30], [500, 100, 30.0]]) + [X0, Y0, 0], 2.0)
+    occ = build_occupancy([crossing], 200.0, 1000, 2.0, 0.2)     # 0.2 s slices: capsules ~8 m long
+    s2 = deconflict(prob, np.array([a, b]), occ)
+    assert s2.status == "unchanged"                  # STEP II's own schedule is conflict-free
+    c = step3(prob, s2, sky, surface(), start_time_utc=START, occupancy=occ, intruders=[crossing])
+    assert not c.flyable
+    msg = next(r for r in c.reasons if r.startswith("traffic:"))
+    m = re.search(r"at t = ([\d.]+) s near \(([\d.]+), ([\d.]+), ([\d.]+)\)", msg)
+    assert "after retiming" in msg and m, msg
+    assert abs(float(m.group(1)) - t_x) < 1.0
+    assert math.hypot(float(m.group(2)) - (X0 + 500), float(m.group(3)) - (Y0 + 300)) < 10.0
+    assert any("crosser" in r for r in c.reasons)    # the independent validator agrees

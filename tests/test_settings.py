@@ -58,7 +58,8 @@ def test_every_problem_is_reported_with_its_yaml_path():
     assert "mission.start: altitude 900 m is above constraints.max_altitude_agl_m 150" in msg
     assert "mission.goal: point" in msg and "outside the AOI" in msg
     assert "data.buildings.path: data file not found" in msg and "nope.osm.pbf" in msg
-    assert len(ei.value.problems) == 3
+    assert "max_altitude_agl_m: 150 m AGL exceeds the maximum altitude of vehicle 'dji-m300-rtk', 80 m" in msg
+    assert len(ei.value.problems) == 4
 
 
 def test_type_errors_are_collected_with_paths():

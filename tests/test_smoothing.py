@@ -171,3 +171,145 @@ def test_bad_input():
         min_snap(np.zeros((3, 3)), [1.0, 0.0])
     with pytest.raises(InputError, match=r"shape \(n >= 2, 3\)"):
         min_snap(np.zeros((3, 2)), [1.0, 1.0])
+
+
+# ------------------------------------------------------------------ corner trajectory (STEP III)
+from skyroute.stages.smoothing import (  # noqa: E402
+    KinematicLimits,
+    _airspeed_cap,
+    _cone_ok,
+    corner_trajectory,
+)
+
+LIM = KinematicLimits(max_flight_path_angle_deg=15.0, max_airspeed_mps=23.0, max_climb_rate_mps=6.0,
+                      max_descent_rate_mps=5.0, max_acceleration_mps2=3.0)
+TAN15 = np.tan(np.radians(15.0))
+
+
+def _dir(heading_deg, fpa_deg):
+    h, a = np.radians(heading_deg), np.radians(fpa_deg)
+    return np.array([np.cos(a) * np.cos(h), np.cos(a) * np.sin(h), np.sin(a)])
+
+
+def _dense_limits_hold(traj, wind, lim=LIM, n=200001):
+    """Brute-force check of every limit on a dense time grid, from the trajectory's own
+    position samples (finite differences) and its analytic derivatives."""
+    t = np.linspace(0.0, traj.duration_s, n)
+    p = traj.sample(t)
+    v = traj.velocity(t)
+    a = traj.acceleration(t)
+    # the analytic velocity is the derivative of the positions (central differences)
+    fd = (p[2:] - p[:-2]) / (t[2:] - t[:-2])[:, None]
+    assert np.max(np.linalg.norm(fd - v[1:-1], axis=1)) < 1e-3
+    sp = np.linalg.norm(v, axis=1)
+    moving = sp > 1e-9
+    h = np.hypot(v[:, 0], v[:, 1])
+    assert np.all(np.abs(v[moving, 2]) <= TAN15 * h[moving] + 1e-9)              # tangent angle
+    assert np.all(v[:, 2] <= lim.max_climb_rate_mps + 1e-9)
+    assert np.all(v[:, 2] >= -lim.max_descent_rate_mps - 1e-9)
+    assert np.all(np.linalg.norm(a, axis=1) <= lim.max_acceleration_mps2 + 1e-9)
+    assert np.all(np.linalg.norm(v - wind, axis=1) <= lim.max_airspeed_mps + 1e-9)
+    # chords of a coarse sampling (every 0.5 s + boundaries): angle with horizontal >= 2 m
+    ts = traj.sample_times(0.5)
+    ps = traj.sample(ts)
+    d = np.diff(ps, axis=0)
+    hh = np.hypot(d[:, 0], d[:, 1])
+    assert np.all(np.abs(d[:, 2]) <= TAN15 * hh + 1e-9)
+    return t, p, v
+
+
+def test_corner_trajectory_hairpin_climb_descend_within_every_limit():
+    """A 138 deg hairpin where a 15 deg climb turns into a 15 deg descent (the w_l = 0 chains of
+    issue 9): no tolerance anywhere; ends at rest on the chain's end points."""
+    w = np.array([[0.0, 0.0, 50.0]])
+    w = np.vstack([w, w[-1] + 80 * _dir(0, 15), ])
+    w = np.vstack([w, w[-1] + 60 * _dir(138, -15), w[-1] + 60 * _dir(138, -15) + 90 * _dir(60, 0)])
+    wind = np.array([4.0, -2.0, 0.0])
+    traj = corner_trajectory(w, 10.0, LIM, winds=wind[None, :])
+    t, p, v = _dense_limits_hold(traj, wind)
+    np.testing.assert_allclose(p[0], w[0], atol=1e-9)
+    np.testing.assert_allclose(p[-1], w[-1], atol=1e-6)
+    assert np.linalg.norm(v[0]) == 0 and np.linalg.norm(v[-1]) < 1e-9
+    # climb -> descent: the tangents' combinations pass through level flight, the arc is in the cone
+    assert traj.corner_kind == ("arc", "arc")
+    # every point lies on the chain or inside the triangle of a rounded corner: distance to the
+    # chain's polyline is at most the cut-back of that corner (half the shorter leg)
+    seg_d = []
+    for a, b in zip(w[:-1], w[1:], strict=True):
+        ab = b - a
+        s = np.clip(((p - a) @ ab) / (ab @ ab), 0, 1)
+        seg_d.append(np.linalg.norm(a + s[:, None] * ab - p, axis=1))
+    assert np.min(seg_d, axis=0).max() <= 0.5 * 60 + 1e-9
+    # climb -> climb through a hairpin: any rounding would be steeper than 15 deg, so it stops
+    w2 = np.vstack([w[:2], w[1] + 60 * _dir(138, 14.9), w[1] + 60 * _dir(138, 14.9) + 50 * _dir(60, 0)])
+    traj = corner_trajectory(w2, 10.0, LIM, winds=wind[None, :])
+    assert traj.corner_kind[0] == "stop" and "flight-path angle" in traj.corner_reason[0]
+    _dense_limits_hold(traj, wind)
+
+
+def test_corner_trajectory_straight_leg_is_time_optimal_closed_form():
+    """One level leg from rest to rest, cruise 10 m/s: T = L / v + v / a (trapezoid)."""
+    w = np.array([[0.0, 0.0, 30.0], [500.0, 0.0, 30.0]])
+    traj = corner_trajectory(w, 10.0, LIM)
+    assert traj.duration_s == pytest.approx(500 / 10 + 10 / 3.0, rel=1e-12)
+    # a leg too short to reach cruise: triangle, T = 2 sqrt(L / a)
+    traj = corner_trajectory(np.array([[0.0, 0, 0], [12.0, 0, 0]]), 10.0, LIM)
+    assert traj.duration_s == pytest.approx(2 * np.sqrt(12 / 3.0), rel=1e-12)
+    # climbing at 14 deg: the vertical speed caps the cruise (6 / sin 14 deg = 24.8 > 23: airspeed)
+    w = np.array([[0.0, 0, 0], [1000 * np.cos(np.radians(14)), 0, 1000 * np.sin(np.radians(14))]])
+    traj = corner_trajectory(w, 30.0, LIM)
+    assert np.max(np.linalg.norm(traj.velocity(np.linspace(0, traj.duration_s, 999)), axis=1)) == pytest.approx(23.0)
+    traj = corner_trajectory(w, 30.0, LIM, winds=np.array([[5.0, 0, 0]]))     # tail wind: 6 m/s climb binds
+    vz = traj.velocity(np.linspace(0, traj.duration_s, 999))[:, 2]
+    assert vz.max() == pytest.approx(6.0)
+
+
+def test_corner_trajectory_flat_turn_is_an_arc_at_the_lateral_limit():
+    w = np.array([[0.0, 0, 40], [100.0, 0, 40], [100.0, 100.0, 40]])
+    traj = corner_trajectory(w, 20.0, LIM)
+    assert traj.corner_kind == ("arc",)
+    R = 50.0 / np.tan(np.radians(45))                       # cut-back 50 m, 90 deg turn
+    arc = traj.kind == 1
+    assert traj.radius_m[arc][0] == pytest.approx(R)
+    assert traj.v0[arc][0] == pytest.approx(np.sqrt(3.0 * R))  # v^2 / R = a_max
+    _dense_limits_hold(traj, np.zeros(3))
+    # no clearance under the corner: the vehicle stops there instead
+    traj = corner_trajectory(w, 20.0, LIM, fillet_ok=lambda a, p, b: False)
+    assert traj.corner_kind == ("stop",)
+    assert np.linalg.norm(traj.velocity(traj.piece_t_s[1])) == 0.0
+    _dense_limits_hold(traj, np.zeros(3))
+
+
+def test_cone_test_against_dense_sampling():
+    rng = np.random.default_rng(7)
+    agree = 0
+    for _ in range(400):
+        u1 = _dir(rng.uniform(0, 360), rng.uniform(-15, 15))
+        u2 = _dir(rng.uniform(0, 360), rng.uniform(-15, 15))
+        s = np.linspace(0, 1, 20001)[:, None]
+        c = (1 - s) * u1 + s * u2
+        brute = np.all(np.abs(c[:, 2]) <= TAN15 * np.hypot(c[:, 0], c[:, 1]) + 1e-12)
+        agree += brute == _cone_ok(u1, u2, TAN15)
+    assert agree == 400
+
+
+def test_airspeed_cap_against_bisection():
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        u = _dir(rng.uniform(0, 360), rng.uniform(-15, 15))
+        winds = rng.uniform(-8, 8, (4, 3))
+        cap = _airspeed_cap(u, winds, 23.0)
+        lo, hi = 0.0, 100.0
+        for _ in range(200):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if np.all(np.linalg.norm(mid * u - winds, axis=1) <= 23.0) else (lo, mid)
+        assert cap == pytest.approx(lo, abs=1e-9)
+
+
+def test_corner_trajectory_bad_input():
+    with pytest.raises(InputError, match="waypoints"):
+        corner_trajectory(np.zeros((1, 3)), 10.0, LIM)
+    with pytest.raises(InputError, match="leg_speed_mps"):
+        corner_trajectory(np.array([[0.0, 0, 0], [10.0, 0, 0]]), 0.0, LIM)
+    with pytest.raises(PlanningError, match="wind exceeds the airspeed"):
+        corner_trajectory(np.array([[0.0, 0, 0], [10.0, 0, 0]]), 10.0, LIM, winds=np.array([[-30.0, 0, 0]]))

@@ -6,9 +6,11 @@
   properties state ``vertical_datum`` and ``heights_are_ellipsoidal: false``.  Its properties
   also carry ``times_utc`` (ISO 8601 UTC per vertex), ``t_s``, ``alt_agl_m``, ``sigma_p_m``
   and the map-CRS coordinates (``map_crs``, ``map_xyz_m``: [x, y, z] per vertex); feature 2
-  is a ``MultiPoint`` of the polynomial's waypoints (same conventions).
+  is a ``MultiPoint`` of the trajectory's piece boundaries (same conventions).
 * ``waypoints.csv``: one row per trajectory sample: ``t_utc, t_s, x_m, y_m, z_m, lon, lat,
-  alt_agl_m, sigma_p_m``.
+  alt_agl_m, sigma_p_m``; ``t_s`` and the map coordinates at full float precision (shortest
+  round-trip repr), so the written samples meet the vehicle limits exactly (mm / ms rounding
+  alone makes a 0.1 s chord look 0.01 deg steeper or 0.2 m/s^2 harder than it is).
 * ``candidates.csv``: one row per candidate D_j (seed 000 Tables II-III): ``label,
   dop_threshold, C_l_m, C_r_m, C_d_m, C_e_m, f_m, flyable, max_sigma_p_m, energy_Wh,
   flight_time_s, compute_time_s, chosen, reasons``.
@@ -90,7 +92,7 @@ def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_dat
                          "geometry": {"type": "MultiPoint",
                                       "coordinates": [[float(a), float(b), float(z)]
                                                       for a, b, z in zip(wl, wa, wp[:, 2], strict=True)]},
-                         "properties": {"name": "polynomial waypoints", "vertical_datum": vertical_datum,
+                         "properties": {"name": "trajectory piece boundaries", "vertical_datum": vertical_datum,
                                         "heights_are_ellipsoidal": False, "map_crs": crs_txt,
                                         "map_xyz_m": wp.tolist(), "times_utc": utc_of(start_time_utc, knots),
                                         "t_s": knots.tolist()}})
@@ -146,7 +148,7 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
     p = candidate.xyz_m
     lon, lat = tr.transform(p[:, 0], p[:, 1])
     utc = utc_of(start_time_utc, candidate.t_s)
-    wrows = [[utc[i], f"{candidate.t_s[i]:.3f}", f"{p[i, 0]:.3f}", f"{p[i, 1]:.3f}", f"{p[i, 2]:.3f}",
+    wrows = [[utc[i], repr(float(candidate.t_s[i])), repr(float(p[i, 0])), repr(float(p[i, 1])), repr(float(p[i, 2])),
               f"{lon[i]:.9f}", f"{lat[i]:.9f}", f"{candidate.alt_agl_m[i]:.3f}", _fmt(candidate.sigma_p_m[i], 4)]
              for i in range(p.shape[0])]
     files["waypoints.csv"] = out / "waypoints.csv"

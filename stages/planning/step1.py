@@ -115,7 +115,8 @@ def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, se
 
 def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s: float = 5.0, seed: int = 0,
                max_tries: int = 3, refine: bool = True, step_cells: int = STEP_CELLS,
-               max_iterations: int | None = None, h2: np.ndarray | None = None) -> Step1Result:
+               max_iterations: int | None = None, h2: np.ndarray | None = None,
+               battery_reserve_pct: float = 0.0) -> Step1Result:
     """STEP I on one level: plan, check the energy, re-plan with larger w_l if needed.
 
     ``planner``: one of :data:`PLANNERS`; ``time_budget_s`` [s] > 0: BIT*'s budget per try
@@ -127,6 +128,7 @@ def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s
     ``refine``: shortcut + vertex relaxation of the chain (never increases f); ``step_cells``:
     A* lattice step; ``h2``: precomputed A* heuristic table for the first try
     (:func:`~skyroute.stages.planning.grid_planner.shared_heuristic`).
+    ``battery_reserve_pct`` [%]: the chain may use ``battery * (1 - reserve / 100)``.
     Raises UnknownNameError / InputError for a bad planner / budget.
     """
     _check(planner, time_budget_s)
@@ -136,7 +138,9 @@ def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s
     why = problem.endpoint_problem()
     if why:
         return _empty(problem, planner, "no_solution", why, t0)
-    battery = problem.vehicle.battery_energy_j
+    if not 0 <= battery_reserve_pct < 100:
+        raise InputError(f"battery_reserve_pct {battery_reserve_pct} must be in [0, 100) [%]")
+    battery = problem.vehicle.battery_energy_j * (1.0 - battery_reserve_pct / 100.0)
     w = list(problem.weights)
     best = None
     info: dict = {"tries": []}
@@ -164,7 +168,7 @@ def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s
     if pc["energy_J"] > battery:
         status = "energy_infeasible"
         reason = (f"{problem.label}: the best path needs {pc['energy_J'] / 3600:.1f} Wh, more than the battery's "
-                  f"{battery / 3600:.1f} Wh after {len(info['tries'])} tries with increasing w_l (N_t = {max_tries})")
+                  f"usable {battery / 3600:.1f} Wh after {len(info['tries'])} tries with increasing w_l (N_t = {max_tries})")
     return Step1Result(wp, {k: pc[k] for k in COST_NAMES}, pc["f"], pc["energy_J"], pc["time_s"],
                        time.perf_counter() - t0, status, reason, problem.label, planner, len(info["tries"]),
                        wused, info)

@@ -3,17 +3,25 @@ seed 001 section 3.1).
 
 For each STEP II chain (one per GNSS coverage level D_j):
 
-1. **Minimum-snap trajectory** (:func:`~skyroute.stages.smoothing.min_snap`, Richter et al.)
-   through the chain with the STEP II segment times, so every waypoint is reached at the time
-   STEP II deconflicted.  Legs longer than ``max_leg_s`` are first split at equal times (the
-   chain's own constant-speed timing) so the polynomial keeps close to the chain's speed and
-   timing.  The curve is re-checked on samples about ``check_spacing_m`` apart:
-   ``problem.state_valid`` (floors, ceiling, no-fly, wind), flight-path angle of the chords,
-   and the traffic occupancy of every chord at its times (exact capsule test); a segment with
-   a violation gets a midpoint waypoint at half its time (Richter et al. section 5, as
-   :func:`~skyroute.stages.smoothing.smooth_with_clearance`, but time-aware because the
-   traffic check needs the sample times) and the problem is re-solved, at most
-   ``max_insert_iter`` times.
+1. **Flyable trajectory by construction** (:func:`~skyroute.stages.smoothing.corner_trajectory`).
+   The STEP II chain already respects the static bounds and the flight-path angle on every
+   leg (STEP I and II check each straight motion exactly).  STEP III keeps it and only rounds
+   corners: each vertex becomes a circular arc tangent to both legs when every tangent of the
+   arc (a non-negative combination of the two leg directions) is inside the flight-path-angle
+   cone (an exact quadratic test) and every cell under the triangle that contains the arc
+   admits its altitudes; otherwise the vehicle stops at the vertex (138 deg hairpins, turns
+   while climbing at the angle limit).  Time is then optimal along this path under the
+   acceleration limit (lines: accelerate / cruise / decelerate; arcs: constant speed with
+   ``v^2 / R <= a_max``), the legs' STEP II ground speeds, the airspeed limit for every wind
+   that can occur along the chain (|v_ground - wind| <= v_max) and the climb / descent rate
+   limits -- closed form, no tolerance.  Why not minimum-snap with midpoint insertion: its
+   curve keeps its velocity through a corner, so near a hairpin it climbs at 19-22 deg
+   whatever the number of inserted points, and a retiming loop cannot fix the geometry; a
+   corridor-constrained QP would need iterated checks.  Here every bound holds on the
+   continuous trajectory, and on every chord of the samples (the output samples include each
+   piece boundary, so a chord lies on one line -- parallel to its leg -- or on one arc).
+   The traffic check is re-done on the retimed trajectory (exact capsule test on chords about
+   ``check_spacing_m`` apart), since its times differ from STEP II's.
 2. **Navigation error** along the samples (every ``sample_dt_s``): at each sample the
    satellites of the nearest almanac epoch of ``sky`` above the elevation mask are in line of
    sight iff the sample altitude is >= their visibility height in the sample's cell
@@ -54,7 +62,7 @@ from skyroute.stages.navigation import DEFAULT_UERE_M, navigation_error
 from skyroute.stages.occlusion import grid_azimuth_deg, visibility_heights_numpy
 from skyroute.stages.planning.rrt import Step2Result, _conflicts
 from skyroute.stages.planning.validate import validate_plan
-from skyroute.stages.smoothing import MinSnapTrajectory, insert_midpoints_where, min_snap
+from skyroute.stages.smoothing import CornerTrajectory, KinematicLimits, corner_trajectory
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
 
 __all__ = ["Candidate", "choose", "explain_no_plan", "step3", "wind_sampler", "line_of_sight"]
@@ -90,7 +98,7 @@ class Candidate:
     reasons: list[str] = field(default_factory=list)
     waypoints: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     segment_times_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    trajectory: MinSnapTrajectory | None = None
+    trajectory: CornerTrajectory | None = None
     step2_status: str = ""
     dp_max_m: float = float("nan")
 
@@ -148,98 +156,57 @@ def _cells(grid, pts):
     return np.clip(r, 0, grid.ny - 1), np.clip(c, 0, grid.nx - 1), inside
 
 
-def _split_long_legs(w, times, max_leg_s):
-    w, t = np.asarray(w, float), np.asarray(times, float)
-    out_w, out_t = [w[0]], []
-    for k in range(t.size):
-        n = max(1, int(math.ceil(t[k] / max_leg_s - 1e-9)))
-        for j in range(1, n + 1):
-            out_w.append(w[k] + (w[k + 1] - w[k]) * (j / n))
-            out_t.append(t[k] / n)
-    return np.array(out_w), np.array(out_t)
+def _wind_vectors(problem, pts) -> np.ndarray:
+    """Every wind vector (k, 3) [m/s] of the problem's wind map that can apply inside the
+    bounding box of ``pts`` (m, 3): all levels of every wind column whose cell meets the box.
+    The wind at any point of the box is one of them or a linear interpolation of two (same
+    column, adjacent levels), so a bound that holds for all of them and is convex in the wind
+    holds everywhere in the box."""
+    w4 = np.asarray(problem.wind_uvw, float)
+    if w4.shape == (3,):
+        return w4[None, :]
+    wg = problem.wind_grid or problem.grid
+    p = np.asarray(pts, float).reshape(-1, 3)
+    c0, c1 = (np.clip(np.floor((np.array([p[:, 0].min(), p[:, 0].max()]) - wg.x0) / wg.resolution_m).astype(int),
+                      0, wg.nx - 1))
+    r0, r1 = (np.clip(np.floor((wg.y1 - np.array([p[:, 1].max(), p[:, 1].min()])) / wg.resolution_m).astype(int),
+                      0, wg.ny - 1))
+    return w4[:, r0:r1 + 1, c0:c1 + 1, :].reshape(-1, 3)
 
 
-def _sample_times(duration_s: float, dt_s: float) -> np.ndarray:
-    """The output sampling of a trajectory: 0..duration in equal steps of at most ``dt_s`` [s]
-    (also what the smoothing and retiming checks look at, so they see the validator's chords)."""
-    n = max(int(math.ceil(duration_s / dt_s - 1e-9)), 1)
-    return np.linspace(0.0, duration_s, n + 1)
+def _fillet_checker(problem):
+    """``ok(A, P, B)``: every cell under the bounding box of the triangle A P B (which contains
+    the fillet arc) is inside the map, has a finite floor <= the lowest corner altitude and a
+    ceiling >= the highest, and every wind of those columns is within the vehicle's limit --
+    conservative for every point of the arc."""
+    g = problem.grid
+    floor, ceil = problem.floor_m, problem.ceiling_m
+    wmax = problem.vehicle.max_wind_mps
+
+    def ok(a, p, b) -> bool:
+        tri = np.stack([a, p, b])
+        c = np.floor((np.array([tri[:, 0].min(), tri[:, 0].max()]) - g.x0) / g.resolution_m).astype(int)
+        r = np.floor((g.y1 - np.array([tri[:, 1].max(), tri[:, 1].min()])) / g.resolution_m).astype(int)
+        if c[0] < 0 or r[0] < 0 or c[1] >= g.nx or r[1] >= g.ny:
+            return False
+        f = floor[r[0]:r[1] + 1, c[0]:c[1] + 1]
+        h = ceil[r[0]:r[1] + 1, c[0]:c[1] + 1]
+        if not np.isfinite(f).all() or f.max() > tri[:, 2].min() or h.min() < tri[:, 2].max():
+            return False
+        return bool(np.linalg.norm(_wind_vectors(problem, tri), axis=1).max() <= wmax)
+
+    return ok
 
 
-def _add_accel_legs(w, times, accel_mps2: float):
-    """Trapezoidal speed profile at the ends: the chain starts and ends at rest, so the first
-    (last) leg gets a waypoint at the end (start) of an acceleration (deceleration) phase at
-    ``accel_mps2`` [m/s^2]; the phase takes 2 d / v instead of d / v, so the schedule of the
-    rest of the chain shifts by d / v = v / (2 a) only (a few seconds at cruise speed)."""
-    w, t = np.asarray(w, float), np.asarray(times, float)
-    if t.size == 0 or accel_mps2 <= 0:
-        return w, t
-    out_w, out_t = list(w), list(t)
-    # last leg first, so the indices of the first one stay valid
-    for k, at_start in ((t.size - 1, False), (0, True)):
-        length = float(np.linalg.norm(out_w[k + 1] - out_w[k]))
-        if length <= 0:
-            continue
-        v = length / out_t[k]
-        d = min(v * v / (2 * accel_mps2), 0.45 * length)
-        if d <= 0:
-            continue
-        frac = d / length if at_start else 1 - d / length
-        mid = out_w[k] + (out_w[k + 1] - out_w[k]) * frac
-        t_ramp = 2 * d / v
-        t_rest = (length - d) / v
-        out_w.insert(k + 1, mid)
-        out_t[k:k + 1] = [t_ramp, t_rest] if at_start else [t_rest, t_ramp]
-    return np.array(out_w), np.array(out_t)
-
-
-def _check_samples(traj: MinSnapTrajectory, spacing_m: float):
-    """Sample times of each segment (about spacing_m apart along the chord)."""
-    chord = np.linalg.norm(np.diff(traj.waypoints, axis=0), axis=1)
-    counts = np.maximum(4, np.ceil(chord / spacing_m).astype(int) + 1)
-    knots = traj.knots_s
-    ts = [knots[k] + np.linspace(0.0, traj.segment_times_s[k], c)[:-1] for k, c in enumerate(counts)]
-    seg = [np.full(c - 1, k) for k, c in enumerate(counts)]
-    t = np.concatenate(ts + [[traj.duration_s]])
-    s = np.concatenate(seg + [[len(counts) - 1]])
-    return t, s
-
-
-def _smooth(problem, w, seg_t, t0_s, occupancy, spacing_m, max_iter, fpa_tol_deg, sample_dt_s=None):
-    """Min-snap with time-aware midpoint insertion; returns (traj, message or '').
-    Chords are checked at ``spacing_m`` and, if given, at the output sampling ``sample_dt_s``
-    (the validator's chords), so the output passes the same flight-path-angle rule."""
-    tan_a = math.tan(math.radians(problem.vehicle.max_flight_path_angle_deg + fpa_tol_deg))
-    for it in range(max_iter + 1):
-        traj = min_snap(w, seg_t)
-        t, seg = _check_samples(traj, spacing_m)
-        p = traj.sample(t)
-        bad_pt = ~np.asarray(problem.state_valid(p), bool)
-        d = np.diff(p, axis=0)
-        h = np.hypot(d[:, 0], d[:, 1])
-        bad_ch = np.abs(d[:, 2]) > tan_a * h + 1e-9
-        if occupancy is not None:
-            bad_ch |= _conflicts(occupancy, p[:-1], t0_s + t[:-1], p[1:], t0_s + t[1:])
-        bad_out = np.zeros(0, dtype=int)
-        if sample_dt_s:
-            to = _sample_times(traj.duration_s, sample_dt_s)
-            po = traj.sample(to)
-            do = np.diff(po, axis=0)
-            steep = np.abs(do[:, 2]) > tan_a * np.hypot(do[:, 0], do[:, 1]) + 1e-9
-            knots = np.concatenate([[0.0], np.cumsum(traj.segment_times_s)])
-            bad_out = np.clip(np.searchsorted(knots, to[:-1][steep], side="right") - 1, 0, len(knots) - 2)
-        bad = np.unique(np.concatenate([seg[bad_pt], seg[:-1][bad_ch], bad_out]))
-        if bad.size == 0:
-            return traj, ""
-        if it < max_iter:
-            w, seg_t = insert_midpoints_where(w, seg_t, bad)
-    what = []
-    if bad_pt.any():
-        what.append(f"{int(bad_pt.sum())} sample(s) outside the static bounds")
-    if bad_ch.any():
-        what.append(f"{int(bad_ch.sum())} chord(s) too steep or in a reserved traffic volume")
-    return traj, (f"smoothed trajectory still violates the bounds after {max_iter} midpoint insertions "
-                  f"({', '.join(what)})")
+def _retimed_conflicts(occupancy, traj: CornerTrajectory, t0_s: float, spacing_m: float):
+    """Traffic re-check of the retimed trajectory: the exact capsule test on chords about
+    ``spacing_m`` apart (every piece boundary included).  Returns (times, points, bad chords)."""
+    vmax = max(float(np.max(np.abs(traj.v0))), 1e-3)
+    t = traj.sample_times(spacing_m / vmax, min_gap_s=0.0)
+    p = traj.sample(t)
+    if occupancy is None:
+        return t, p, np.zeros(t.size - 1, bool)
+    return t, p, _conflicts(occupancy, p[:-1], t0_s + t[:-1], p[1:], t0_s + t[1:])
 
 
 def _sky_times_s(sky: xr.Dataset, start_time_utc) -> np.ndarray:
@@ -316,35 +283,31 @@ def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc
 
 def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d, *, start_time_utc=None,
           occupancy: TrafficOccupancy | None = None, intruders: list[Intruder] | None = None,
-          sample_dt_s: float = 0.5, check_spacing_m: float = 1.0, max_insert_iter: int = 10,
-          max_leg_s: float = 10.0, gnss_sigma_m: float = DEFAULT_UERE_M, gnss_period_s: float = 1.0,
-          warmup_s: float = 60.0, fpa_tol_deg: float = 3.0, label: str | None = None,
-          max_retime_iter: int = 8, accel_mps2: float = 2.0) -> Candidate:
-    """Smooth, check and cost one STEP II chain (see the module docstring).
+          sample_dt_s: float = 0.5, check_spacing_m: float = 1.0, gnss_sigma_m: float = DEFAULT_UERE_M,
+          gnss_period_s: float = 1.0, warmup_s: float = 60.0, label: str | None = None,
+          battery_reserve_pct: float = 0.0) -> Candidate:
+    """Smooth, retime, check and cost one STEP II chain (see the module docstring).
 
     ``sky``: :func:`~skyroute.stages.almanac.sky_geometry` Dataset (time, sat) or None (no
     GNSS data: sigma_p is not computed, the candidate is not flyable for lack of navigation
     evidence); ``surface_2d``: (ny, nx) surface heights [m] on ``problem.grid`` (terrain +
     buildings, for the occlusions); ``start_time_utc``: UTC of mission time 0 (default: the
-    first sky epoch).  ``occupancy`` / ``intruders``: traffic (capsule maps for the smoothing
-    re-check; raw tracks for the independent validation, margins from ``occupancy``).
-    ``sample_dt_s`` [s]: output sampling; ``check_spacing_m`` [m]: clearance re-check spacing.
-    ``gnss_period_s`` [s]: GNSS update period; ``warmup_s`` [s]: the navigation filter runs
-    this long at the start point before take-off (no initial-convergence transient in
-    sigma_p).  ``fpa_tol_deg`` [deg]: tolerance on the flight-path angle of the *smooth*
-    curve (the chain respects alpha exactly; min-snap rounding of a sharp vertical corner
-    overshoots it by up to ~2 deg whatever the number of inserted midpoints).
-    ``max_retime_iter``: how many 10 % stretches of the schedule may bring the airspeed of the
-    smooth curve below the vehicle limit.
-    ``accel_mps2`` [m/s^2]: take-off and landing legs get a constant-acceleration ramp.
+    first sky epoch).  ``occupancy`` / ``intruders``: traffic (capsule maps for the re-check
+    of the retimed trajectory; raw tracks for the independent validation, margins from
+    ``occupancy``).  ``sample_dt_s`` [s]: output sampling (piece boundaries are added);
+    ``check_spacing_m`` [m]: traffic re-check spacing.  ``gnss_period_s`` [s]: GNSS update
+    period; ``warmup_s`` [s]: the navigation filter runs this long at the start point before
+    take-off (no initial-convergence transient in sigma_p).  ``battery_reserve_pct`` [%]: the
+    energy must not exceed ``battery * (1 - reserve / 100)``.  Vehicle limits have no
+    tolerance (1e-6 numerical in the validator).
     """
     t_start = time.perf_counter()
     lab = label if label is not None else (getattr(problem, "label", "") or "candidate")
     dop = getattr(problem, "dop_threshold", None)
-    if not (sample_dt_s > 0 and check_spacing_m > 0 and max_leg_s > 0 and gnss_period_s > 0):
-        raise InputError("sample_dt_s, check_spacing_m, max_leg_s and gnss_period_s must be > 0")
-    if not (warmup_s >= 0 and 0 <= fpa_tol_deg < 30):
-        raise InputError("warmup_s must be >= 0 [s] and fpa_tol_deg in [0, 30) [deg]")
+    if not (sample_dt_s > 0 and check_spacing_m > 0 and gnss_period_s > 0):
+        raise InputError("sample_dt_s, check_spacing_m and gnss_period_s must be > 0")
+    if not (warmup_s >= 0 and 0 <= battery_reserve_pct < 100):
+        raise InputError("warmup_s must be >= 0 [s] and battery_reserve_pct in [0, 100) [%]")
     if not isinstance(step2_result, Step2Result):
         raise InputError(f"step2_result must be a Step2Result, got {type(step2_result).__name__}")
     if not step2_result.ok:
@@ -357,29 +320,26 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
         return _empty(lab, dop, ["STEP II chain has non-positive or infinite segment times"], t_start,
                       step2_result.status)
     reasons: list[str] = []
-    w, seg_t = _add_accel_legs(w, seg_t, accel_mps2)
-    w, seg_t = _split_long_legs(w, seg_t, max_leg_s)
-    traj, msg = _smooth(problem, w, seg_t, t0, occupancy, check_spacing_m, max_insert_iter, fpa_tol_deg,
-                        sample_dt_s)
-    wind_of = wind_sampler(problem)
-    # time allocation: the take-off and landing ramps keep the minimum-snap curve near the
-    # chain's speeds; where it still exceeds the airspeed limit (headwind legs), the whole
-    # schedule is stretched by 10 % and re-solved (uniform scaling divides every velocity by
-    # the same factor, so this converges; the traffic re-check runs on the new schedule)
-    for _ in range(max_retime_iter):
-        if msg:
-            break
-        tt = _sample_times(traj.duration_s, sample_dt_s)
-        air = np.linalg.norm(traj.velocity(tt) - wind_of(traj.sample(tt)), axis=1)
-        if air.max() <= 0.97 * veh.max_airspeed_mps:
-            break
-        traj, msg = _smooth(problem, np.asarray(traj.waypoints, float), np.asarray(traj.segment_times_s) * 1.1,
-                            t0, occupancy, check_spacing_m, max_insert_iter, fpa_tol_deg, sample_dt_s)
-    if msg:
-        reasons.append(msg)
+    leg_speed = np.linalg.norm(np.diff(w, axis=0), axis=1) / seg_t
+    try:
+        traj = corner_trajectory(w, np.maximum(leg_speed, 1e-3), KinematicLimits.of(veh),
+                                 winds=_wind_vectors(problem, w), fillet_ok=_fillet_checker(problem))
+    except PlanningError as exc:
+        return _empty(lab, dop, [f"STEP III: {exc}"], t_start, step2_result.status)
+    tc, pc, bad = _retimed_conflicts(occupancy, traj, t0, check_spacing_m)
+    if bad.any():
+        k = int(np.argmax(bad))
+        reasons.append(f"traffic: after retiming to the vehicle limits the trajectory enters a reserved traffic "
+                       f"volume at t = {t0 + tc[k]:.1f} s near ({pc[k, 0]:.1f}, {pc[k, 1]:.1f}, {pc[k, 2]:.1f}) "
+                       f"({int(bad.sum())} chord(s))")
+    bad_pt = ~np.asarray(problem.state_valid(pc), bool)
+    if bad_pt.any():   # cannot happen by construction; reported rather than hidden
+        k = int(np.argmax(bad_pt))
+        reasons.append(f"static bounds: the trajectory leaves the admissible volume at t = {t0 + tc[k]:.1f} s: "
+                       f"{problem.explain_invalid(pc[k])}")
     # output samples
     T = traj.duration_s
-    tau = _sample_times(T, sample_dt_s)
+    tau = traj.sample_times(sample_dt_s)
     p = traj.sample(tau)
     v = traj.velocity(tau)
     t_abs = t0 + tau
@@ -405,11 +365,13 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     f = wl * L + wr * C_r + wd * C_d + we * C_e
     energy = float(trapezoid(pw, tau))
     air = np.linalg.norm(va, axis=1)
-    if energy > veh.battery_energy_j:
-        reasons.append(f"energy {energy / 3600:.1f} Wh exceeds the battery {veh.battery_energy_j / 3600:.1f} Wh")
-    if np.max(air) > veh.max_airspeed_mps:
+    usable = veh.battery_energy_j * (1.0 - battery_reserve_pct / 100.0)
+    if energy > usable:
+        reasons.append(f"energy {energy / 3600:.1f} Wh exceeds the usable battery {usable / 3600:.1f} Wh "
+                       f"({veh.battery_energy_j / 3600:.1f} Wh less the {battery_reserve_pct:g} % reserve)")
+    if np.max(air) > veh.max_airspeed_mps + 1e-6:   # cannot happen by construction
         reasons.append(f"airspeed reaches {float(np.max(air)):.1f} m/s > v_max {veh.max_airspeed_mps} m/s on the "
-                       f"smoothed trajectory")
+                       f"retimed trajectory")
     # navigation error
     sigma = np.full(tau.size, np.nan)
     nvis = np.zeros(tau.size, int)
@@ -445,7 +407,7 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
                          intruders=intruders or (), d_c_m=occupancy.d_c_m if occupancy is not None else 0.0,
                          dt_c_s=occupancy.dt_c_s if occupancy is not None else 0.0,
                          start_xyz=step2_result.waypoints[0], goal_xyz=step2_result.waypoints[-1],
-                         tol_deg=fpa_tol_deg + 1e-6)
+                         battery_reserve_pct=battery_reserve_pct)
     reasons.extend(f"validation: {m}" for m in viol if "navigation error" not in m and "battery" not in m)
     cand.flyable = not reasons
     cand.dp_max_m = float(veh.max_position_error_m)

@@ -1,6 +1,7 @@
 """The whole strategic planner (seed 000 section III): for every GNSS coverage level D_j,
 STEP I (optimised polygonal chain), STEP II (deconfliction against known traffic) and STEP III
-(minimum-snap smoothing, navigation-error check, eq. 15 costs); then the choice of the flyable
+(corner smoothing and retiming within the vehicle's hard limits, navigation-error check, eq. 15
+costs); then the choice of the flyable
 candidate with minimum f.
 
 :func:`plan_strategic` takes the pipeline's datasets (surface, satellites, coverage, environment,
@@ -65,7 +66,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                    min_agl_m: float = 0.0, max_agl_m: float = 120.0, dop_kind: str = "PDOP",
                    intruders: list[Intruder] | None = None, d_c_m: float = 0.0, dt_c_s: float = 0.0,
                    uere_m: float = 3.0, workers: int | None = None, step_cells: int = STEP_CELLS,
-                   max_iterations: int | None = None) -> StrategicPlan:
+                   max_iterations: int | None = None, battery_reserve_pct: float = 0.0) -> StrategicPlan:
     """Plan the mission for every coverage level of ``coverage`` (one level without GNSS data).
 
     Levels with identical floor and coverage arrays are solved once.  With ``planner="astar"``
@@ -80,7 +81,8 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     Cost terms that are the same per metre everywhere are listed in ``warnings`` of the result;
     weights that select only such terms raise
     :class:`~skyroute.pipeline.errors.DegenerateCostError` before any planning
-    (:mod:`skyroute.stages.planning.degenerate`)."""
+    (:mod:`skyroute.stages.planning.degenerate`).
+    ``battery_reserve_pct`` [%]: energy kept in the battery (STEP I and III use the rest)."""
     t0 = time.perf_counter()
     wind_map = wind.load() if wind is not None else None
     cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
@@ -114,14 +116,16 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         problem, d = problems[i], levels[i][0]
         tl = time.perf_counter()
         s1 = plan_step1(problem, planner=planner, time_budget_s=time_budget_s, seed=seed, max_tries=max_tries,
-                        step_cells=step_cells, max_iterations=max_iterations, h2=h2)
+                        step_cells=step_cells, max_iterations=max_iterations, h2=h2,
+                        battery_reserve_pct=battery_reserve_pct)
         if not s1.solved:
             return s1, None, _empty(problem.label, d, [f"STEP I: {s1.reason or s1.status}"], tl, s1.status)
         s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=max(time_budget_s, 1.0))
         if s2.status == "failed":
             return s1, s2, _empty(problem.label, d, [f"STEP II: {s2.reason}"], tl, s2.status)
         cand = step3(problem, s2, sky, surface_2d, start_time_utc=start_time_utc, occupancy=occ,
-                     intruders=intruders, label=problem.label, gnss_sigma_m=uere_m)
+                     intruders=intruders, label=problem.label, gnss_sigma_m=uere_m,
+                     battery_reserve_pct=battery_reserve_pct)
         cand.compute_time_s = time.perf_counter() - tl
         return s1, s2, cand
 

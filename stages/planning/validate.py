@@ -9,14 +9,23 @@ violation as a readable string (an empty list means the plan is valid):
   GNSS coverage floor (``D_j``), any combined floor, AGL minimum / maximum, no-fly cells: the
   altitude of each sample against the cell that contains it (the planners' nearest-cell
   convention; the ``"cell"`` clearance floor is conservative anywhere in the cell);
-* flight-path angle of every chord between consecutive samples <= ``alpha``;
+* flight-path angle of every chord between consecutive samples <= ``alpha`` (tolerance
+  ``tol_deg``, numerical only); chords with less than :data:`MIN_HORIZONTAL_M` of horizontal
+  motion are exempt (a hover or a stop has no defined angle) but obey the vertical rates;
+* vertical speed of every chord ``dz / dt`` within ``[-max_descent_rate_mps, max_climb_rate_mps]``
+  (chord speeds: plus the float rounding of the difference, 4 eps |p| / dt);
+* acceleration: twice the second divided difference of three consecutive samples, a weighted
+  mean of the trajectory's acceleration over their interval (Peano kernel of mass 1, so its
+  norm cannot exceed the maximum of |a|), must not exceed ``max_acceleration_mps2`` (plus
+  the float rounding of the difference, ~8 eps |p| / dt^2);
 * wind: |wind| <= ``max_wind_mps`` at every sample; airspeed |v - w| <= ``max_airspeed_mps``
-  (v from finite differences of the samples);
+  (v the chord's mean velocity, w the wind at its first sample);
 * traffic (seed 000 eq. 1 without the slicing): at each sample time ``t`` the position must be
   farther than ``r_i + d_c`` from every point intruder ``i`` occupies during
   ``[t - dt_c, t + dt_c]`` (exact point-to-polyline distance on the linearly interpolated
   intruder track, brute force over all intruders);
-* energy <= battery and sigma_p <= dp_max when the candidate carries them.
+* energy <= battery * (1 - ``battery_reserve_pct`` / 100) and sigma_p <= dp_max when the
+  candidate carries them.
 
 A candidate is any object with ``t_s`` (m,) [s since mission start] and ``xyz_m`` (m, 3) [m]
 (e.g. :class:`~skyroute.stages.planning.step3.Candidate`), or a tuple ``(t_s, xyz_m)``.
@@ -37,6 +46,7 @@ from skyroute.stages.vehicle import VehicleProfile, load_vehicle
 __all__ = ["validate_plan", "intruder_clearance_m"]
 
 _MAX_LISTED = 5  # sample indices quoted per violation
+MIN_HORIZONTAL_M = 2.0  # [m] chords with less horizontal motion are exempt from the angle limit
 
 
 def _raster(a, grid: Grid, what: str) -> np.ndarray | None:
@@ -124,7 +134,7 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
                   nofly=None, wind: np.ndarray | Callable | None = None,
                   intruders: Iterable[Intruder | Mapping] = (), d_c_m: float = 0.0, dt_c_s: float = 0.0,
                   start_xyz=None, goal_xyz=None, tol_m: float = 1e-6, tol_deg: float = 1e-6,
-                  tol_mps: float = 1e-6) -> list[str]:
+                  tol_mps: float = 1e-6, tol_mps2: float = 1e-6, battery_reserve_pct: float = 0.0) -> list[str]:
     """Every violation of the bounds by the trajectory samples of ``candidate`` (see module doc).
 
     Rasters (``(ny, nx)`` arrays or DataArrays on ``grid`` [m], datum of the surface):
@@ -134,7 +144,9 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
     limits.  ``wind``: (3,) [m/s] or callable ``points (m,3) -> (m,3)``.  ``intruders``:
     :class:`~skyroute.stages.traffic.Intruder` or scenario records, with spatial margin
     ``d_c_m`` [m] and time margin ``dt_c_s`` [s].  ``start_xyz`` / ``goal_xyz``: expected end
-    points (checked within 1 cm).  Returns a list of messages; empty = valid.
+    points (checked within 1 cm).  ``tol_*``: numerical tolerances only (vehicle limits are
+    hard).  ``battery_reserve_pct`` [%]: energy reserve kept in the battery.  Returns a list
+    of messages; empty = valid.
     """
     veh = load_vehicle(vehicle)
     t, p = _samples(candidate)
@@ -193,16 +205,38 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
         bad = nf[r, c]
         if bad.any():
             out.append(f"inside a no-fly zone: {_where(bad, ti, pi)}")
-    # flight-path angle of the chords
+    # flight-path angle and vertical speed of the chords, acceleration of sample triples
     if t.size > 1:
         d = np.diff(p, axis=0)
         h = np.hypot(d[:, 0], d[:, 1])
-        long_enough = np.hypot(h, d[:, 2]) > 1e-6
         fpa = np.degrees(np.arctan2(np.abs(d[:, 2]), h))
-        bad = long_enough & (fpa > veh.max_flight_path_angle_deg + tol_deg)
+        bad = (h >= MIN_HORIZONTAL_M) & (fpa > veh.max_flight_path_angle_deg + tol_deg)
         if bad.any():
             out.append(f"flight-path angle above {veh.max_flight_path_angle_deg} deg (up to {float(fpa[bad].max()):.2f} "
                        f"deg) on chords starting at {_where(np.r_[bad, False], t, p)}")
+        dt = np.diff(t)
+        scale = float(np.abs(p).max())
+        with np.errstate(divide="ignore", invalid="ignore"):
+            vz = d[:, 2] / dt
+            tol_v = tol_mps + 4.0 * np.finfo(float).eps * scale / dt     # float rounding of the difference
+        bad = ~(vz <= veh.max_climb_rate_mps + tol_v)
+        if bad.any():
+            out.append(f"climb rate above {veh.max_climb_rate_mps} m/s (up to {float(np.nanmax(vz)):.2f} m/s) on "
+                       f"chords starting at {_where(np.r_[bad, False], t, p)}")
+        bad = ~(vz >= -veh.max_descent_rate_mps - tol_v)
+        if bad.any():
+            out.append(f"descent rate above {veh.max_descent_rate_mps} m/s (up to {float(-np.nanmin(vz)):.2f} m/s) on "
+                       f"chords starting at {_where(np.r_[bad, False], t, p)}")
+        if t.size > 2:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                v = d / dt[:, None]
+                acc = 2.0 * (v[1:] - v[:-1]) / (dt[1:] + dt[:-1])[:, None]
+                rnd = 16.0 * np.finfo(float).eps * scale / (dt[1:] * dt[:-1])
+            an = np.linalg.norm(acc, axis=1)
+            bad = ~(an <= veh.max_acceleration_mps2 + tol_mps2 + rnd)
+            if bad.any():
+                out.append(f"acceleration above {veh.max_acceleration_mps2} m/s^2 (up to {float(np.nanmax(an)):.2f} "
+                           f"m/s^2) at {_where(np.r_[False, bad, False], t, p)}")
     w = _wind_at(wind, p)
     if w is not None:
         ws = np.linalg.norm(w, axis=1)
@@ -214,7 +248,9 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
             with np.errstate(divide="ignore", invalid="ignore"):
                 v = np.diff(p, axis=0) / dt[:, None]
             air = np.linalg.norm(v - w[:-1], axis=1)
-            bad = ~(air <= veh.max_airspeed_mps + tol_mps)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tol_v = tol_mps + 4.0 * np.finfo(float).eps * float(np.abs(p).max()) / dt
+            bad = ~(air <= veh.max_airspeed_mps + tol_v)
             if bad.any():
                 out.append(f"airspeed above {veh.max_airspeed_mps} m/s (up to {float(np.nanmax(air)):.2f} m/s) on chords "
                            f"starting at {_where(np.r_[bad, False], t, p)}")
@@ -234,9 +270,13 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
             err = float(np.linalg.norm(p[idx] - np.asarray(want, float)))
             if err > 0.01:
                 out.append(f"trajectory {name} {p[idx].round(2).tolist()} is {err:.2f} m from the mission {name}")
+    if not 0 <= battery_reserve_pct < 100:
+        raise InputError(f"battery_reserve_pct {battery_reserve_pct} must be in [0, 100) [%]")
+    usable = veh.battery_energy_j * (1.0 - battery_reserve_pct / 100.0)
     e = getattr(candidate, "energy_J", None)
-    if e is not None and np.ndim(e) == 0 and math.isfinite(float(e)) and float(e) > veh.battery_energy_j:
-        out.append(f"energy {float(e) / 3600:.1f} Wh exceeds the battery {veh.battery_energy_j / 3600:.1f} Wh")
+    if e is not None and np.ndim(e) == 0 and math.isfinite(float(e)) and float(e) > usable:
+        out.append(f"energy {float(e) / 3600:.1f} Wh exceeds the usable battery {usable / 3600:.1f} Wh "
+                   f"({veh.battery_energy_j / 3600:.1f} Wh less the {battery_reserve_pct:g} % reserve)")
     sig = getattr(candidate, "sigma_p_m", None)
     if sig is not None and np.size(sig):
         s = np.asarray(sig, float)

@@ -1,0 +1,128 @@
+"""Every shipped scenario flies within the vehicle's hard limits (issue 9), seed 000 Table II in
+structure on helsinki-medical, and the scenario rules that tie the constraints to the vehicle.
+
+Oracles: plain finite differences of the written samples against the vehicle profile (no
+planner or validator code), and the four single-term plans compared with each other."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from skyroute.pipeline.cache import Cache
+from skyroute.pipeline.errors import ScenarioError
+from skyroute.pipeline.outputs import revalidate
+from skyroute.pipeline.runner import run_scenario
+from skyroute.pipeline.settings import load_scenario, parse_scenario, scenario_paths
+from skyroute.stages.planning.strategic import plan_from_dataset, plan_strategic
+from skyroute.stages.vehicle import load_vehicle
+
+CATALOG = sorted(scenario_paths())
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """One stage cache for the module: the Table II test reuses helsinki-medical's maps."""
+    return Cache(tmp_path_factory.mktemp("catalog-cache"))
+
+
+def _limits_hold(t, p, veh) -> None:
+    """Hard limits on every chord / sample triple of the written samples (tolerance: float
+    rounding of the differences only)."""
+    d = np.diff(p, axis=0)
+    dt = np.diff(t)
+    h = np.hypot(d[:, 0], d[:, 1])
+    tan_a = math.tan(math.radians(veh.max_flight_path_angle_deg))
+    long = h >= 2.0                                            # shorter chords: no defined angle
+    assert np.all(np.abs(d[long, 2]) <= tan_a * h[long] + 1e-6)
+    eps = 4 * np.finfo(float).eps * np.abs(p).max() / dt
+    assert np.all(d[:, 2] / dt <= veh.max_climb_rate_mps + 1e-6 + eps)
+    assert np.all(d[:, 2] / dt >= -veh.max_descent_rate_mps - 1e-6 - eps)
+    v = d / dt[:, None]
+    acc = 2 * (v[1:] - v[:-1]) / (dt[1:] + dt[:-1])[:, None]
+    rnd = 16 * np.finfo(float).eps * np.abs(p).max() / (dt[1:] * dt[:-1])
+    assert np.all(np.linalg.norm(acc, axis=1) <= veh.max_acceleration_mps2 + 1e-6 + rnd)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", CATALOG)
+def test_every_catalog_scenario_flies(name, cache):
+    sc = load_scenario(name)
+    veh = load_vehicle(sc.vehicle)
+    assert sc.constraints.max_altitude_agl_m <= veh.max_altitude_m
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = run_scenario(sc, cache=cache, targets=["plan"])
+    ds = res["plan"].load()
+    chosen, cands = plan_from_dataset(ds)
+    assert chosen is not None and chosen.flyable, ds.attrs["reason"]
+    assert revalidate(res, chosen) == []
+    _limits_hold(np.asarray(chosen.t_s), np.asarray(chosen.xyz_m), veh)
+    usable = veh.battery_energy_j * (1 - sc.constraints.battery_reserve_pct / 100)
+    assert chosen.energy_J <= usable
+    assert np.all(chosen.alt_agl_m <= sc.constraints.max_altitude_agl_m + 1e-6)
+
+
+WEIGHT_SETS = ((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+
+
+@pytest.mark.slow
+def test_table2_single_term_plans_minimise_their_own_term(cache):
+    """Seed 000 Table II in structure on helsinki-medical (loosest GNSS level D = 4, one level
+    per plan to keep the test short; ``benchmarks/bench_table2.py`` runs every level on three
+    cities): each single-term plan flies and has the lowest value of its own term among the
+    four plans (2 % slack)."""
+    sc = load_scenario("helsinki-medical")
+    maps = ["surface", "environment", "clearance", "wind", "coverage", "satellites"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = run_scenario(sc, cache=cache, targets=maps)
+    cov = r["coverage"]
+    cov = cov.sel(threshold=[float(cov["threshold"].max())])
+    m = sc.mission
+    rows = []
+    for w in WEIGHT_SETS:
+        plan = plan_strategic(r["surface"], r["environment"], r["wind"], r["clearance"], cov, r["satellites"], None,
+                              start_xy=sc.point_xy(m.start), start_agl_m=m.start.alt_agl_m,
+                              goal_xy=sc.point_xy(m.goal), goal_agl_m=m.goal.alt_agl_m,
+                              start_time_utc=m.start_time_utc.isoformat(), vehicle=sc.vehicle, weights=w,
+                              planner="astar", min_agl_m=sc.constraints.min_altitude_agl_m,
+                              max_agl_m=sc.constraints.max_altitude_agl_m)
+        c = plan.chosen
+        assert c is not None, f"weights {w}: {plan.reason}"
+        rows.append([c.C_l, c.C_r, c.C_d, c.C_e])
+    tab = np.array(rows)
+    for j in range(4):
+        assert tab[j, j] <= 1.02 * tab[:, j].min(), (j, tab)
+    # no term is degenerate here: each column varies between the plans
+    assert np.all(tab.max(axis=0) > 1.05 * tab.min(axis=0)), tab
+
+
+def _raw(name: str) -> dict:
+    import yaml
+
+    return yaml.safe_load(scenario_paths()[name].read_text())
+
+
+def test_max_agl_above_the_vehicle_is_an_error():
+    raw = _raw("helsinki-medical")
+    raw["constraints"]["max_altitude_agl_m"] = 120
+    base = scenario_paths()["helsinki-medical"].parent
+    with pytest.raises(ScenarioError, match=r"max_altitude_agl_m: 120 m AGL exceeds the maximum altitude of "
+                                            r"vehicle 'dji-m300-rtk', 80 m AGL"):
+        parse_scenario(raw, "x.yaml", base)
+    # not given: the vehicle's maximum applies
+    del raw["constraints"]["max_altitude_agl_m"]
+    assert parse_scenario(raw, "x.yaml", base).constraints.max_altitude_agl_m == 80.0
+
+
+def test_battery_reserve_setting():
+    raw = _raw("helsinki-medical")
+    base = scenario_paths()["helsinki-medical"].parent
+    assert parse_scenario(raw, "x.yaml", base).constraints.battery_reserve_pct == 0.0
+    raw["constraints"]["battery_reserve_pct"] = 100
+    with pytest.raises(ScenarioError, match="battery_reserve_pct"):
+        parse_scenario(raw, "x.yaml", base)

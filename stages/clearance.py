@@ -21,7 +21,9 @@ No-fly zones: a 2-D mask (unlimited in altitude) is dilated by ``r_p`` (same dis
 and the same two modes).  An altitude-limited volume ``mask x [zmin, zmax]`` becomes, per
 cell, a forbidden altitude interval ``[zmin - L, zmax + L]`` with ``L = sqrt(r_p^2 - d_h^2)``
 (exact sphere-vs-box test) -- :func:`nofly_volume`.  Altitude limits above ground are the
-rasters ``terrain + min_agl`` and ``terrain + max_agl`` (:func:`altitude_bounds`).
+rasters ``terrain + min_agl`` and ``terrain_min + max_agl`` (:func:`altitude_bounds`), with
+``terrain`` the highest and ``terrain_min`` the lowest ground over each cell, so that both hold at
+every point of the cell.
 """
 
 from __future__ import annotations
@@ -202,30 +204,39 @@ def nofly_volume(mask: xr.DataArray, radius_m: float, zmin_m: float = -np.inf, z
     return ds
 
 
-def altitude_bounds(terrain: xr.DataArray, min_agl_m: float, max_agl_m: float) -> xr.Dataset:
-    """Altitude limits above ground as rasters: ``floor_m = terrain + min_agl_m`` and
-    ``ceiling_m = terrain + max_agl_m`` [m, datum of the terrain]."""
+def altitude_bounds(terrain: xr.DataArray, min_agl_m: float, max_agl_m: float,
+                    terrain_min: xr.DataArray | None = None) -> xr.Dataset:
+    """Altitude limits above ground as rasters that hold at every point of a cell:
+    ``floor_m = terrain + min_agl_m`` with ``terrain`` the highest ground over the cell, and
+    ``ceiling_m = terrain_min + max_agl_m`` with ``terrain_min`` the lowest (``terrain`` when
+    None: a ground known at one height per cell) [m, datum of the terrain]."""
     _check_raster(terrain, "terrain")
+    if terrain_min is None:
+        terrain_min = terrain
+    elif _check_raster(terrain_min, "terrain_min") != Grid.from_dataarray(terrain):
+        raise InputError("terrain_min must be on the grid of terrain")
+    elif bool((terrain_min > terrain).any()):
+        raise InputError("terrain_min is above terrain somewhere: give the lowest and the highest ground per cell")
     if not (np.isfinite(min_agl_m) and np.isfinite(max_agl_m) and 0 <= min_agl_m < max_agl_m):
         raise InputError(f"altitude limits need 0 <= min_agl_m < max_agl_m, got {min_agl_m}, {max_agl_m} m")
     datum = terrain.attrs.get("vertical_datum", "")
     fl = (terrain + float(min_agl_m)).rename("floor_m")
     fl.attrs = {"units": "m", "long_name": f"minimum altitude ({min_agl_m} m above ground)", "vertical_datum": datum}
-    ce = (terrain + float(max_agl_m)).rename("ceiling_m")
+    ce = (terrain_min + float(max_agl_m)).rename("ceiling_m")
     ce.attrs = {"units": "m", "long_name": f"maximum altitude ({max_agl_m} m above ground)", "vertical_datum": datum}
     return xr.Dataset({"floor_m": fl, "ceiling_m": ce}, attrs={"min_agl_m": float(min_agl_m),
                                                              "max_agl_m": float(max_agl_m)})
 
 
 def clearance_dataset(surface: xr.DataArray, radius_m: float, terrain: xr.DataArray | None = None,
-                      min_agl_m: float = 0.0, max_agl_m: float = np.inf, nofly: xr.DataArray | None = None,
+                      terrain_min: xr.DataArray | None = None, min_agl_m: float = 0.0, max_agl_m: float = np.inf, nofly: xr.DataArray | None = None,
                       volumes: list[tuple[xr.DataArray, float, float]] | None = None,
                       mode: str = "cell") -> xr.Dataset:
     """Everything a planner needs for O(1) fixed-obstacle checks, on the surface grid:
 
     * ``obstacle_floor_m``: :func:`clearance_floor` of ``surface``;
     * ``min_altitude_m`` = max(obstacle floor, terrain + min_agl), ``max_altitude_m`` =
-      terrain + max_agl (+inf without limit) [m];
+      terrain_min + max_agl (+inf without limit) [m] (:func:`altitude_bounds`);
     * ``nofly``: :func:`dilate_nofly` of the unlimited no-fly mask (False if none);
     * for each altitude-limited volume ``(mask, zmin_m, zmax_m)`` of ``volumes``:
       ``volume_bottom_m``/``volume_top_m`` with a leading ``volume`` dim (:func:`nofly_volume`).
@@ -237,7 +248,7 @@ def clearance_dataset(surface: xr.DataArray, radius_m: float, terrain: xr.DataAr
     if terrain is None:
         terrain = surface
     if np.isfinite(max_agl_m):
-        ab = altitude_bounds(terrain, min_agl_m, max_agl_m)
+        ab = altitude_bounds(terrain, min_agl_m, max_agl_m, terrain_min=terrain_min)
         lo, hi = ab["floor_m"], ab["ceiling_m"]
     else:
         if not (np.isfinite(min_agl_m) and min_agl_m >= 0):

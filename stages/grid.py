@@ -165,10 +165,11 @@ def warp_to_grid(path, grid: Grid, *, what: str, resampling: str = "bilinear",
     ``require_overlap``: a raster that does not intersect the grid is a :class:`DataError`.
 
     ``resampling="max"`` / ``"min"``: the max (min) over every source pixel whose footprint
-    overlaps the target cell's footprint (:func:`footprint_resample`), not GDAL's
-    ``Resampling.max``, which only sees source pixels whose *centres* fall in the target cell
-    and so lowers obstacles when the target is finer than the source or misaligned.  A target
-    cell touching a nodata pixel is NaN.  Surfaces and grounds are resampled this way."""
+    overlaps the target cell's footprint (:func:`footprint_resample`).  GDAL's
+    ``Resampling.max`` (3.10) gives the same between grids of one CRS, but between rotated CRSs
+    it misses pixels that overlap the target cell only partly and lowers obstacles
+    (tests/test_grid.py).  A target cell touching a nodata pixel is NaN.  Surfaces and grounds
+    are resampled this way."""
     if resampling in ("max", "min"):
         win = read_window(path, grid, what=what, require_overlap=require_overlap)
         return footprint_resample(win.values, win.transform, win.crs, grid, how=resampling)

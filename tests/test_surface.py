@@ -9,6 +9,8 @@ import osmium
 import pytest
 import rasterio
 import shapely
+import xarray as xr
+from affine import Affine
 from pyproj import Transformer
 
 from skyroute.pipeline.errors import DataError, InputError
@@ -117,25 +119,204 @@ def test_rotterdam_roofs_match_cityjson(shared_data):
     assert float(ds["surface"].max()) == pytest.approx(V[:, 2].max(), abs=0.01)
 
 
-def test_dem_is_resampled_bilinearly(shared_data):
-    from scipy.interpolate import RegularGridInterpolator
+def _box_oracle(src, T, grid, how="max"):
+    """Independent footprint max/min for a north-up source on the grid's CRS: pixel j spans
+    [T.c + j a, T.c + (j + 1) a]; it counts for a cell when the two intervals overlap (> 1e-6 m)
+    on both axes."""
+    sy, sx = src.shape
+    xl = T.c + np.arange(sx) * T.a
+    yt = T.f + np.arange(sy) * T.e
+    out = np.full(grid.shape, np.nan)
+    r = grid.resolution_m
+    red = np.max if how == "max" else np.min
+    cols = [(xl + T.a > grid.x0 + j * r + 1e-6) & (xl < grid.x0 + (j + 1) * r - 1e-6) for j in range(grid.nx)]
+    for i in range(grid.ny):
+        Y1 = grid.y1 - i * r
+        line = red(src[(yt > Y1 - r + 1e-6) & (yt + T.e < Y1 - 1e-6)], axis=0)
+        out[i] = [red(line[c]) for c in cols]
+    return out
 
-    path = shared_data / "terrain" / "srtm_bigtujunga30m_utm11.tif"
+
+def test_dem_is_the_max_and_min_over_each_cell(shared_data):
+    path = CATALOG_DATA / "srtm_bigtujunga30m_utm11.tif"
     with rasterio.open(path) as src:
         b = src.bounds
         dem = src.read(1).astype(float)
         T = src.transform
-        grid = Grid.from_bounds(src.crs.to_string(), b.left + 3000, b.bottom + 3000, b.left + 9000, b.bottom + 6000, 30.0)
-    ds = build_surface(grid, terrain_path=path)
-    # independent bilinear interpolation between DEM pixel centres
-    xc = T.c + (np.arange(dem.shape[1]) + 0.5) * T.a
-    yc = T.f + (np.arange(dem.shape[0]) + 0.5) * T.e
-    interp = RegularGridInterpolator((yc[::-1], xc), dem[::-1])
-    X, Y = np.meshgrid(grid.x, grid.y)
-    ref = interp(np.column_stack([Y.ravel(), X.ravel()])).reshape(X.shape)
-    np.testing.assert_allclose(ds["terrain"].values, ref, atol=0.05)
+        crs = src.crs.to_string()
+    for res, dx in ((30.0, 7.3), (45.0, 0.0), (12.5, 3.1)):
+        grid = Grid.from_bounds(crs, b.left + 3000 + dx, b.bottom + 3000 + dx, b.left + 4500, b.bottom + 4000, res)
+        ds = build_surface(grid, terrain_path=path, vertical_datum="EGM96 geoid")
+        hi, lo = _box_oracle(dem, T, grid, "max"), _box_oracle(dem, T, grid, "min")
+        np.testing.assert_array_equal(ds["terrain"].values, hi.astype(np.float32))
+        np.testing.assert_array_equal(ds["terrain_min"].values, lo.astype(np.float32))
+        assert (hi - lo).max() > 5.0   # mountains: the two bounds differ
     assert ds.attrs["vertical_datum"] == "EGM96 geoid"
     assert ds["surface"].rio.crs.to_epsg() == 32611
+
+
+# ------------------------------------------------------------------ data.surface (DSM)
+DSM_T = Affine(0.5, 0.0, 92000.25, 0.0, -0.5, 437120.25)
+DSM_SHAPE = (240, 240)   # 120 m x 120 m of 0.5 m pixels
+
+
+def _true_dsm():
+    """A 0.5 m DSM of a little town on a gentle slope: two buildings (one with a pitched roof and
+    a glass roof part), 30 tree crowns, a 0.5 m wide 40 m mast; heights in 'NAP'."""
+    rng = np.random.default_rng(11)
+    ny, nx = DSM_SHAPE
+    ii, jj = np.mgrid[0:ny, 0:nx]
+    z = 1.0 + 0.01 * jj + 0.005 * ii
+    z[60:100, 50:110] = 18.0                                   # flat roof, 20 m x 30 m
+    z[140:180, 120:170] = 12.0 + 0.2 * np.minimum(jj - 120, 170 - jj)[140:180, 120:170]   # pitched roof
+    n = 0
+    while n < 30:                                              # tree crowns 2-6 m wide, 6-14 m tall
+        ci, cj, rad, h = rng.integers(20, 220), rng.integers(20, 220), rng.uniform(4, 12), rng.uniform(6, 14)
+        if 185 < ci < 230 and 15 < cj < 75:                    # not over the pond (a NoData hole)
+            continue
+        d = np.hypot(ii - ci, jj - cj)
+        z = np.where(d < rad, np.maximum(z, z[ci, cj] + h * np.sqrt(np.clip(1 - (d / rad) ** 2, 0, 1))), z)
+        n += 1
+    z[120, 200] = 41.0                                         # mast: one 0.5 m pixel
+    return z
+
+
+def _write_dsm(path, z, holes=True, transform=DSM_T, crs="EPSG:28992"):
+    """Write ``z`` with NoData holes: a glass roof part (true height below its rim), a pond, and a
+    strip along the file's edge (outside the extent)."""
+    z = z.astype(np.float32).copy()
+    if holes:
+        z[70:80, 60:75] = -9999.0         # glass roof inside the flat roof
+        z[200:215, 30:60] = -9999.0       # pond on the ground
+        z[0:3, 100:140] = -9999.0         # NoData strip on the file's north edge
+    with rasterio.open(path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0], count=1, dtype="float32",
+                       crs=crs, transform=transform, nodata=-9999.0) as dst:
+        dst.write(z, 1)
+    return path
+
+
+def _dsm_grid(res, x0=92010.3, y0=437010.7, size=100.0):
+    return Grid.from_bounds("EPSG:28992", x0, y0, x0 + size, y0 + size, res)
+
+
+def test_dsm_holes_are_filled_with_their_rim_max_then_footprint_max(tmp_path):
+    z = _true_dsm()
+    path = _write_dsm(tmp_path / "dsm.tif", z)
+    filled = z.copy()
+    for sl in ((slice(70, 80), slice(60, 75)), (slice(200, 215), slice(30, 60))):
+        ring = z[sl[0].start - 1:sl[0].stop + 1, sl[1].start - 1:sl[1].stop + 1].copy()
+        ring[1:-1, 1:-1] = -np.inf
+        filled[sl] = ring.max()
+    for res in (1.0, 2.0, 0.4):
+        grid = _dsm_grid(res)
+        ds = build_surface(grid, surface_path=path, surface_datum="NAP")
+        ref = _box_oracle(filled.astype(np.float32).astype(float), DSM_T, grid)
+        np.testing.assert_array_equal(ds["surface"].values, ref.astype(np.float32))
+        assert float(ds["surface"].max()) == 41.0                # the mast survives every resolution
+        assert np.all(ds["surface"].values >= _box_oracle(z, DSM_T, grid) - 1e-5)  # above the true DSM
+    assert ds.attrs["vertical_datum"] == "NAP"
+    assert "NoData holes inside the extent: 2 (fill-max)" in ds.attrs["dsm"]
+
+
+def test_dsm_tiles_and_vrt_read_like_one_file(tmp_path):
+    z = _true_dsm()
+    one = build_surface(_dsm_grid(1.0), surface_path=_write_dsm(tmp_path / "all.tif", z), surface_datum="NAP")
+    tiles = []
+    for k, (rs, cs) in enumerate([(slice(0, 130), slice(0, 110)), (slice(0, 130), slice(110, 240)),
+                                  (slice(130, 240), slice(0, 110)), (slice(130, 240), slice(110, 240))]):
+        zt = z.copy()
+        _write_dsm(tmp_path / "full.tif", zt)   # holes applied, then cut
+        with rasterio.open(tmp_path / "full.tif") as src:
+            part = src.read(1)[rs, cs]
+        T = DSM_T * Affine.translation(cs.start, rs.start)
+        p = tmp_path / f"tile{k}.tif"
+        with rasterio.open(p, "w", driver="GTiff", width=part.shape[1], height=part.shape[0], count=1,
+                           dtype="float32", crs="EPSG:28992", transform=T, nodata=-9999.0) as dst:
+            dst.write(part, 1)
+        tiles.append((p, rs, cs))
+    many = build_surface(_dsm_grid(1.0), surface_path=[t[0] for t in tiles], surface_datum="NAP")
+    xr.testing.assert_equal(one[["surface", "terrain", "terrain_min"]], many[["surface", "terrain", "terrain_min"]])
+    srcs = "".join(
+        f"<SimpleSource><SourceFilename relativeToVRT='1'>{p.name}</SourceFilename><SourceBand>1</SourceBand>"
+        f"<SrcRect xOff='0' yOff='0' xSize='{cs.stop - cs.start}' ySize='{rs.stop - rs.start}'/>"
+        f"<DstRect xOff='{cs.start}' yOff='{rs.start}' xSize='{cs.stop - cs.start}' ySize='{rs.stop - rs.start}'/>"
+        f"<NODATA>-9999</NODATA></SimpleSource>" for p, rs, cs in tiles)
+    vrt = tmp_path / "dsm.vrt"
+    vrt.write_text(
+        f"<VRTDataset rasterXSize='240' rasterYSize='240'><SRS>EPSG:28992</SRS>"
+        f"<GeoTransform>{DSM_T.c}, 0.5, 0, {DSM_T.f}, 0, -0.5</GeoTransform>"
+        f"<VRTRasterBand dataType='Float32' band='1'><NoDataValue>-9999</NoDataValue>{srcs}</VRTRasterBand></VRTDataset>")
+    via_vrt = build_surface(_dsm_grid(1.0), surface_path=vrt, surface_datum="NAP")
+    xr.testing.assert_equal(one[["surface", "terrain"]], via_vrt[["surface", "terrain"]])
+
+
+def test_dsm_nodata_policies_and_extent_messages(tmp_path):
+    z = _true_dsm()
+    path = _write_dsm(tmp_path / "dsm.tif", z)
+    with pytest.raises(DataError, match=r"data.surface: 2 NoData hole\(s\) inside the raster's extent cover .* nodata is 'error'"):
+        build_surface(_dsm_grid(1.0), surface_path=path, surface_datum="NAP", surface_nodata="error")
+    # the AOI reaching over the NoData strip on the file's edge: outside the extent, not a hole
+    with pytest.raises(DataError, match=r"data.surface: covers only 9\d\.\d % of the AOI: \d+ cells are outside the raster's extent"):
+        build_surface(Grid.from_bounds("EPSG:28992", 92040, 437020, 92100, 437120, 1.0), surface_path=path,
+                      surface_datum="NAP")
+    with pytest.raises(DataError, match="covers only"):
+        build_surface(Grid.from_bounds("EPSG:28992", 91990, 437020, 92050, 437100, 1.0), surface_path=path,
+                      surface_datum="NAP")
+    # fill-nearest: every hole pixel takes the value of a valid pixel at the minimum distance
+    from skyroute.stages.grid import fill_holes, read_window_holes
+
+    grid = _dsm_grid(1.0)
+    assert np.isfinite(build_surface(grid, surface_path=path, surface_datum="NAP",
+                                     surface_nodata="fill-nearest")["surface"].values).all()
+    win, holes = read_window_holes(path, grid, what="DSM")
+    near = fill_holes(win, holes, "fill-nearest")
+    c0, r0 = int(round((win.transform.c - DSM_T.c) / 0.5)), int(round((DSM_T.f - win.transform.f) / 0.5))
+    with rasterio.open(path) as src:
+        raw = src.read(1, masked=True).filled(np.nan).astype(float)
+    valid = np.argwhere(np.isfinite(raw))
+    hole_px = np.argwhere(holes.interior)
+    assert len(hole_px) == 10 * 15 + 15 * 30
+    for i, j in hole_px[::23]:
+        d = np.hypot(valid[:, 0] - (i + r0), valid[:, 1] - (j + c0))
+        best = valid[np.abs(d - d.min()) < 1e-9]
+        assert any(near[i, j] == raw[a_, b_] for a_, b_ in best)
+    with pytest.raises(InputError, match="vertical_datum is required"):
+        build_surface(_dsm_grid(1.0), surface_path=path, surface_datum=None)
+    with pytest.raises(InputError, match="differs from data.terrain.vertical_datum"):
+        build_surface(_dsm_grid(1.0), surface_path=path, surface_datum="NAP",
+                      terrain_path=path, vertical_datum="EGM96 geoid")
+    with pytest.raises(DataError, match="does not intersect surface DSM"):
+        build_surface(Grid.from_bounds("EPSG:28992", 0, 0, 100, 100, 1.0), surface_path=path, surface_datum="NAP")
+
+
+def test_ground_from_dsm_is_a_grey_opening_and_finds_the_buildings(tmp_path):
+    from skyroute.stages.surface import ground_from_dsm
+
+    rng = np.random.default_rng(2)
+    a = rng.normal(0, 1, (30, 40)).cumsum(axis=1)
+    g = ground_from_dsm(a, 1.0, 5.0)
+    pad = np.pad(a, 2, mode="edge")
+    ero = np.array([[pad[i:i + 5, j:j + 5].min() for j in range(40)] for i in range(30)])
+    pad = np.pad(ero, 2, mode="edge")
+    ref = np.array([[pad[i:i + 5, j:j + 5].max() for j in range(40)] for i in range(30)])
+    np.testing.assert_allclose(g, ref)
+    assert np.all(g <= a)
+    z = _true_dsm()
+    ds = build_surface(_dsm_grid(1.0), surface_path=_write_dsm(tmp_path / "dsm.tif", z, holes=False),
+                       surface_datum="NAP")
+    grid = _dsm_grid(1.0)
+    slope = _box_oracle(1.0 + 0.01 * np.arange(240)[None] + 0.005 * np.arange(240)[:, None], DSM_T, grid)
+    roof = _box_oracle(np.pad(np.ones((40, 60)), ((60, 140), (50, 130))), DSM_T, grid, "min") > 0
+    # the ground under the flat roof is the slope (window 60 m > 30 m building), up to the
+    # opening's bias on a slope: the lowest point around the roof, <= slope x roof width (0.3 m)
+    err = ds["terrain"].values[roof] - slope[roof]
+    assert err.min() > -0.02 and err.max() < 0.3
+    assert ds["dsm_building"].values[roof].all()
+    assert not ds["dsm_building"].values[~roof & (slope > 0)].all()
+    assert json.loads(ds.attrs["warnings"])[0].startswith("surface: no DEM (data.terrain): the ground is derived")
+    assert "grey opening with a 60 m square window" in ds.attrs["ground_source"]
+    assert np.all(ds["terrain_min"].values <= ds["terrain"].values)
+    assert np.all(ds["terrain"].values <= ds["surface"].values)
 
 
 def test_dataset_conventions(helsinki_surface):

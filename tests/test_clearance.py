@@ -213,3 +213,37 @@ def test_bad_input(srtm_patch):
         C.altitude_bounds(srtm_patch, 100.0, 50.0)
     with pytest.raises(InputError, match="zmin_m <= zmax_m"):
         C.nofly_volume(srtm_patch > 1000, 5.0, 80.0, 50.0)
+
+
+def test_agl_floor_and_ceiling_hold_at_every_point_of_the_cell():
+    """The minimum-AGL floor uses the highest DEM pixel under the cell, the maximum-AGL ceiling
+    the lowest: at random points inside cells (misaligned 45 m grid on the 30 m SRTM), the
+    ground under the point (its DEM pixel) is <= floor - min_agl and >= ceiling - max_agl."""
+    import rasterio
+
+    from skyroute.pipeline.settings import catalog_dir
+    from skyroute.stages.surface import build_surface
+
+    path = catalog_dir() / "data" / "srtm_bigtujunga30m_utm11.tif"
+    with rasterio.open(path) as src:
+        dem, T, b = src.read(1).astype(float), src.transform, src.bounds
+        crs = src.crs.to_string()
+    g = Grid.from_bounds(crs, b.left + 2017, b.bottom + 3011, b.left + 5000, b.bottom + 6000, 45.0)
+    ds = build_surface(g, terrain_path=path, vertical_datum="EGM96 geoid")
+    ab = C.altitude_bounds(ds["terrain"], 30.0, 120.0, terrain_min=ds["terrain_min"])
+    rng = np.random.default_rng(4)
+    n = 20000
+    r, c = rng.integers(0, g.ny, n), rng.integers(0, g.nx, n)
+    x = g.x0 + (c + rng.uniform(0, 1, n)) * g.resolution_m
+    y = g.y1 - (r + rng.uniform(0, 1, n)) * g.resolution_m
+    col, row = ~T * (x, y)
+    ground = dem[np.floor(row).astype(int), np.floor(col).astype(int)]
+    assert np.all(ab["floor_m"].values[r, c] - 30.0 >= ground - 1e-4)
+    assert np.all(ab["ceiling_m"].values[r, c] - 120.0 <= ground + 1e-4)
+    # both bounds are tight: some point of each cell sits on them (max / min over the cell)
+    assert np.isclose(ab["floor_m"].values[r, c] - 30.0, ground, atol=1e-3).mean() > 0.1
+    # a centre-sampled (or bilinear) ground would not hold: it is above some point's ground by metres
+    centre = dem[np.floor((~T * (g.x[c], g.y[r]))[1]).astype(int), np.floor((~T * (g.x[c], g.y[r]))[0]).astype(int)]
+    assert (ground - centre).max() > 5.0
+    with pytest.raises(InputError, match="terrain_min is above terrain"):
+        C.altitude_bounds(ds["terrain_min"], 30.0, 120.0, terrain_min=ds["terrain"])

@@ -348,3 +348,91 @@ def test_bad_inputs(tmp_path, helsinki):
         build_surface(g, buildings_path=bad, buildings_format="cityjson")
     with pytest.raises(InputError, match="resolution 0 m must be positive"):
         Grid.from_bounds(g.crs, 0, 0, 10, 10, 0)
+
+
+def _dsm_scenario(tmp_path, dsm_path, res, extra_data=""):
+    yaml_text = f"""
+name: my-dsm
+aoi: {{crs: "EPSG:28992", bounds: [92010.3, 437010.7, 92110.3, 437110.7], resolution_m: {res}}}
+data:
+  surface: {{path: {dsm_path.name}, vertical_datum: NAP}}
+{extra_data}mission:
+  start: {{x: 92015, y: 437015, alt_agl_m: 30}}
+  goal: {{x: 92100, y: 437100, alt_agl_m: 30}}
+  start_time_utc: 2020-01-03T12:00:00Z
+constraints: {{min_altitude_agl_m: 0, max_altitude_agl_m: 80}}
+"""
+    p = tmp_path / f"my-dsm-{res:g}.yaml"
+    p.write_text(yaml_text)
+    return p
+
+
+def _prism_clearance_at_cells(true_z, T, grid, z_cell):
+    """Exact distance [m] from every point of each cell's square at altitude ``z_cell`` to the
+    nearest 0.5 m prism of ``true_z`` (clipped to the grid's extent, the clearance contract),
+    by brute force over the prisms within reach."""
+    sy, sx = true_z.shape
+    xl = T.c + np.arange(sx) * T.a
+    yt = T.f + np.arange(sy) * T.e
+    bx0, by0, bx1, by1 = grid.bounds
+    px0, px1 = np.maximum(xl, bx0), np.minimum(xl + T.a, bx1)
+    py1, py0 = np.minimum(yt, by1), np.maximum(yt + T.e, by0)
+    colok, rowok = px1 > px0, py1 > py0
+    r = grid.resolution_m
+    out = np.empty(grid.shape)
+    for i in range(grid.ny):
+        Y1 = grid.y1 - i * r
+        rows = rowok & (py0 < Y1 + 6) & (py1 > Y1 - r - 6)
+        dy = np.maximum(np.maximum(py0[rows] - Y1, (Y1 - r) - py1[rows]), 0.0)[:, None]
+        zz = true_z[rows]
+        for j in range(grid.nx):
+            X0 = grid.x0 + j * r
+            cols = colok & (px0 < X0 + r + 6) & (px1 > X0 - 6)
+            dx = np.maximum(np.maximum(px0[cols] - (X0 + r), X0 - px1[cols]), 0.0)[None, :]
+            dz = np.maximum(z_cell[i, j] - zz[:, cols], 0.0)
+            out[i, j] = np.sqrt(dx * dx + dy * dy + dz * dz).min()
+    return out
+
+
+def test_plan_on_my_own_dsm_from_a_scenario_yaml(tmp_path):
+    """A user's DSM with NoData holes through run_scenario: surface, environment, clearance; the
+    exact sphere-prism clearance over the true 0.5 m DSM is >= r_p at every cell's lowest allowed
+    altitude, at 1 m and 2 m; DSM roofs are level 3 in the risk map; the derived ground is a warning."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.stages.vehicle import load_vehicle
+
+    z = _true_dsm()
+    dsm = _write_dsm(tmp_path / "town_dsm.tif", z)
+    r_p = load_vehicle("dji-m300-rtk").r_p_m
+    for res in (1.0, 2.0):
+        sc = load_scenario(_dsm_scenario(tmp_path, dsm, res))
+        out = run_scenario(sc, cache=Cache(tmp_path / "cache"), targets=["clearance"])
+        surf, clr, env = out["surface"].load(), out["clearance"].load(), out["environment"].load()
+        grid = sc.grid
+        lo = clr["min_altitude_m"].values
+        d = _prism_clearance_at_cells(z, DSM_T, grid, lo)
+        assert d.min() >= r_p - 1e-4, (res, d.min())
+        assert d.min() < r_p + 0.6              # and tight somewhere
+        assert np.all(clr["max_altitude_m"].values == surf["terrain_min"].values + np.float32(80.0))
+        assert np.all(lo >= surf["terrain"].values)
+        roofs = surf["dsm_building"].values
+        assert roofs.sum() > 100
+        lv = env["risk_level"].values
+        assert np.all(lv[roofs] == 3) and np.all(lv[~roofs] == 4)
+        assert "ground is derived from the DSM" in json.loads(surf.attrs["warnings"])[0]
+
+
+def test_dsm_scenario_errors(tmp_path):
+    from skyroute.pipeline.errors import ScenarioError
+
+    dsm = _write_dsm(tmp_path / "town_dsm.tif", _true_dsm())
+    dem = tmp_path / "dem.tif"
+    dem.write_bytes(dsm.read_bytes())
+    p = _dsm_scenario(tmp_path, dsm, 1.0, extra_data="  terrain: {path: dem.tif, vertical_datum: EGM96 geoid}\n")
+    with pytest.raises(ScenarioError, match="data.surface.vertical_datum: 'NAP' differs from data.terrain.vertical_datum"):
+        load_scenario(p)
+    p.write_text(p.read_text().replace("vertical_datum: NAP", "nodata: fill-min").replace(
+        "  terrain: {path: dem.tif, vertical_datum: EGM96 geoid}\n", ""))
+    with pytest.raises(ScenarioError, match=r"(?s)data.surface.vertical_datum: required key is missing.*data.surface.nodata"):
+        load_scenario(p)

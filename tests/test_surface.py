@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import osmium
@@ -436,3 +437,44 @@ def test_dsm_scenario_errors(tmp_path):
         "  terrain: {path: dem.tif, vertical_datum: EGM96 geoid}\n", ""))
     with pytest.raises(ScenarioError, match=r"(?s)data.surface.vertical_datum: required key is missing.*data.surface.nodata"):
         load_scenario(p)
+
+
+ROTTERDAM_DSM = Path(__file__).parent / "data" / "rotterdam_dsm_0p5m.tif"
+
+
+@pytest.mark.parametrize("res", [1.0, 2.0])
+def test_rotterdam_lod2_dsm_planned_at_1_and_2_m_keeps_r_p_everywhere(tmp_path, res):
+    """The 0.5 m DSM rasterised exactly from the Rotterdam LoD2 CityJSON (250 m x 250 m fixture
+    of tests/data), given as data.surface and planned at 1 and 2 m: the exact sphere-prism
+    clearance over the 0.5 m prisms is >= r_p at every cell's lowest allowed altitude, every
+    cell of the window."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.stages.vehicle import load_vehicle
+
+    if not ROTTERDAM_DSM.is_file():
+        pytest.skip(f"fixture {ROTTERDAM_DSM} (rasterised by tests/data/make_rotterdam_dsm.py) not present")
+    with rasterio.open(ROTTERDAM_DSM) as src:
+        z, T, b = src.read(1).astype(np.float64), src.transform, src.bounds
+    p = tmp_path / "rotterdam-dsm.yaml"
+    p.write_text(f"""
+name: rotterdam-dsm
+aoi: {{crs: "EPSG:28992", bounds: [{b.left}, {b.bottom}, {b.right}, {b.top}], resolution_m: {res}}}
+data:
+  surface: {{path: {ROTTERDAM_DSM}, vertical_datum: NAP}}
+mission:
+  start: {{x: {b.left + 5}, y: {b.bottom + 5}, alt_agl_m: 60}}
+  goal: {{x: {b.right - 5}, y: {b.top - 5}, alt_agl_m: 60}}
+  start_time_utc: 2020-01-03T12:00:00Z
+constraints: {{min_altitude_agl_m: 0, max_altitude_agl_m: 80}}
+""")
+    sc = load_scenario(p)
+    out = run_scenario(sc, cache=Cache(tmp_path / "cache"), targets=["clearance"])
+    lo = out["clearance"]["min_altitude_m"].values
+    grid = sc.grid
+    assert grid.shape == (int(250 / res), int(250 / res))
+    r_p = load_vehicle(sc.vehicle).r_p_m
+    d = _prism_clearance_at_cells(z, T, grid, lo)
+    assert d.min() >= r_p - 1e-4, d.min()
+    assert d.min() < r_p + 0.6
+    assert float(out["surface"]["surface"].max()) == pytest.approx(z.max(), abs=1e-4)

@@ -286,6 +286,40 @@ def _footprint_kernel(cx, cy, values, x0, y1, res, ny, nx, use_max, eps, out, na
                         out[r, c] = v
 
 
+@numba.njit(cache=True)
+def _box_kernel(values, sx0, sy1, spx, spy, x0, y1, res, eps, use_max, out, nan_hit):  # pragma: no cover
+    """The same for a north-up source in the grid's CRS (pixel (i, j) spans
+    [sx0 + j spx, sx0 + (j + 1) spx] x [sy1 - (i + 1) spy, sy1 - i spy]): the overlapping pixels of
+    a cell form an index block, found by interval arithmetic."""
+    sy, sx = values.shape
+    ny, nx = out.shape
+    for r in range(ny):
+        top = y1 - r * res
+        bot = top - res
+        i0 = max(int(np.floor((sy1 - top + eps) / spy)), 0)
+        i1 = min(int(np.ceil((sy1 - bot - eps) / spy)) - 1, sy - 1)
+        for c in range(nx):
+            left = x0 + c * res
+            j0 = max(int(np.floor((left + eps - sx0) / spx)), 0)
+            j1 = min(int(np.ceil((left + res - eps - sx0) / spx)) - 1, sx - 1)
+            if i1 < i0 or j1 < j0:
+                continue
+            acc = -np.inf if use_max else np.inf
+            hit = False
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    v = values[i, j]
+                    if np.isnan(v):
+                        hit = True
+                    elif use_max:
+                        if v > acc:
+                            acc = v
+                    elif v < acc:
+                        acc = v
+            out[r, c] = acc
+            nan_hit[r, c] = hit
+
+
 def pixel_corners(transform, shape: tuple[int, int], src_crs, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     """Map coordinates in ``grid``'s CRS of the ``(ny + 1, nx + 1)`` pixel corners of a raster
     with affine ``transform`` and ``shape`` in ``src_crs`` (exact affine map in the same CRS,
@@ -308,17 +342,36 @@ def footprint_resample(values: np.ndarray, transform, src_crs, grid: Grid, how: 
     source pixel whose footprint overlaps the target cell's footprint (by more than
     :data:`OVERLAP_EPS_M`) counts, whatever the two resolutions, alignments and CRSs.
 
-    Returns float64 ``grid.shape``: NaN where a cell overlaps a NaN pixel or no pixel at all.
+    Returns float64 ``grid.shape``: NaN where a cell overlaps a NaN pixel or no pixel at all (a
+    cell only partly over the raster takes the part it overlaps: pad the raster with NaN, as
+    :func:`read_window` does, to have such cells NaN).
     Conservative for obstacles (``max``: no point of the cell is higher than its value) and
     for grounds under a ceiling (``min``)."""
     if how not in ("max", "min"):
         raise InputError(f"footprint resampling {how!r} must be 'max' or 'min'")
     v = np.ascontiguousarray(values, dtype=np.float64)
-    cx, cy = pixel_corners(transform, v.shape, src_crs, grid)
     out = np.full(grid.shape, -np.inf if how == "max" else np.inf)
     nan_hit = np.zeros(grid.shape, dtype=np.bool_)
-    _footprint_kernel(cx, cy, v, grid.x0, grid.y1, grid.resolution_m, grid.ny, grid.nx, how == "max",
-                      OVERLAP_EPS_M, out, nan_hit)
+    t = transform
+    if t.b == 0 and t.d == 0 and t.a > 0 and t.e < 0 and CRS.from_user_input(src_crs) == grid.crs:
+        _box_kernel(v, t.c, t.f, t.a, -t.e, grid.x0, grid.y1, grid.resolution_m, OVERLAP_EPS_M, how == "max",
+                    out, nan_hit)
+    else:
+        if t.b == 0 and t.d == 0 and t.a > 0 and t.e < 0:   # crop to the pixels that can reach the grid
+            from rasterio.warp import transform_bounds
+
+            bx0, by0, bx1, by1 = transform_bounds(grid.crs, CRS.from_user_input(src_crs), *grid.bounds, densify_pts=21)
+            j0 = max(int(np.floor((bx0 - t.c) / t.a)) - 2, 0)
+            j1 = min(int(np.ceil((bx1 - t.c) / t.a)) + 2, v.shape[1])
+            i0 = max(int(np.floor((t.f - by1) / -t.e)) - 2, 0)
+            i1 = min(int(np.ceil((t.f - by0) / -t.e)) + 2, v.shape[0])
+            if i1 <= i0 or j1 <= j0:
+                return np.full(grid.shape, np.nan)
+            v = np.ascontiguousarray(v[i0:i1, j0:j1])
+            transform = t * Affine.translation(j0, i0)
+        cx, cy = pixel_corners(transform, v.shape, src_crs, grid)
+        _footprint_kernel(cx, cy, v, grid.x0, grid.y1, grid.resolution_m, grid.ny, grid.nx, how == "max",
+                          OVERLAP_EPS_M, out, nan_hit)
     out[nan_hit | ~np.isfinite(out)] = np.nan
     return out
 

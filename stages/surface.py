@@ -366,18 +366,24 @@ class DsmRaster:
 
 
 def ground_from_dsm(dsm: np.ndarray, pixel_m: float, window_m: float = GROUND_WINDOW_M) -> np.ndarray:
-    """Bare ground [m] under a DSM (NaN-free array, square pixels of ``pixel_m`` [m]): the grey
-    opening (erosion then dilation, :func:`scipy.ndimage.grey_opening`) with a square window of
-    side ``window_m`` [m] (odd number of pixels).  Every object narrower than the window in some
+    """Bare ground [m] under a DSM (square pixels of ``pixel_m`` [m]; NaN pixels take no part and
+    stay NaN): the grey opening (erosion then dilation, :func:`scipy.ndimage.grey_erosion` /
+    ``grey_dilation``) with a square window of side ``window_m`` [m] (odd number of pixels).  Every object narrower than the window in some
     direction (buildings, trees, masts) is removed; the result is never above the DSM.  Buildings
     wider than the window stay (their roof is taken as ground), hill tops and ridges narrower than
     the window are lowered by the opening."""
     if not (np.isfinite(window_m) and window_m > 0):
         raise InputError(f"ground window {window_m} m must be positive (wider than the largest building)")
     k = int(np.ceil(window_m / pixel_m)) | 1
-    from scipy.ndimage import grey_opening
+    from scipy.ndimage import grey_dilation, grey_erosion
 
-    return grey_opening(dsm, size=(k, k), mode="nearest")
+    # NaN (outside the extent) takes no part: +inf in the erosion (min), -inf in the dilation (max)
+    nan = np.isnan(dsm)
+    ero = grey_erosion(np.where(nan, np.inf, dsm), size=(k, k), mode="nearest")
+    ero[nan] = -np.inf
+    out = grey_dilation(ero, size=(k, k), mode="nearest")
+    out[nan] = np.nan
+    return out
 
 
 def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bool = True,
@@ -402,8 +408,7 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
         return DsmRaster(surface, None, None, None, holes.n_interior, notes)
     px = abs(win.transform.a)
     ok = np.isfinite(filled)
-    g_src = ground_from_dsm(np.where(ok, filled, np.nanmax(filled)), px, ground_window_m)
-    g_src[~ok] = np.nan
+    g_src = ground_from_dsm(filled, px, ground_window_m)
     ground = footprint_resample(g_src, win.transform, win.crs, grid, "max")
     ground_min = footprint_resample(g_src, win.transform, win.crs, grid, "min")
     high = np.where(ok, (filled - g_src > building_threshold_m).astype(np.float64), np.nan)

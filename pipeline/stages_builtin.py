@@ -25,6 +25,26 @@ class SurfaceSettings(FrozenModel):
     surface_nodata: str = "fill-max"
     ground_window_m: float = 60.0
     building_threshold_m: float = 2.5
+    raster_sources: tuple[Path, ...] = ()  # files a VRT reads: in the settings so their content is hashed
+
+
+def _vrt_sources(paths) -> tuple[Path, ...]:
+    """The files named by the VRTs among ``paths`` (``SourceFilename``), so that editing a tile
+    changes the surface stage's cache key."""
+    import xml.etree.ElementTree as ET
+
+    out: list[Path] = []
+    for p in paths:
+        if Path(p).suffix.lower() != ".vrt" or not Path(p).is_file():
+            continue
+        try:
+            root = ET.parse(p).getroot()
+        except ET.ParseError:
+            continue   # reading it reports the problem
+        for el in root.iter("SourceFilename"):
+            src = Path((el.text or "").strip())
+            out.append(Path(p).parent / src if el.get("relativeToVRT", "0") == "1" else src)
+    return tuple(out)
 
 
 def _surface_settings(sc: Scenario) -> SurfaceSettings:
@@ -39,6 +59,7 @@ def _surface_settings(sc: Scenario) -> SurfaceSettings:
             surface_paths=sc.data.surface.paths, surface_datum=sc.data.surface.vertical_datum,
             surface_nodata=sc.data.surface.nodata, ground_window_m=sc.data.surface.ground_window_m,
             building_threshold_m=sc.data.surface.building_threshold_m)),
+        raster_sources=_vrt_sources([*(sc.data.surface.paths if sc.data.surface else ()), *([t.path] if t else [])]),
     )
 
 

@@ -249,6 +249,16 @@ def test_dsm_tiles_and_vrt_read_like_one_file(tmp_path):
         f"<VRTRasterBand dataType='Float32' band='1'><NoDataValue>-9999</NoDataValue>{srcs}</VRTRasterBand></VRTDataset>")
     via_vrt = build_surface(_dsm_grid(1.0), surface_path=vrt, surface_datum="NAP")
     xr.testing.assert_equal(one[["surface", "terrain"]], via_vrt[["surface", "terrain"]])
+    # the surface stage's cache key follows the content of the tiles a VRT reads
+    from skyroute.pipeline.model import stable_hash
+    from skyroute.pipeline.stages_builtin import _surface_settings
+
+    sc = load_scenario(_dsm_scenario(tmp_path, vrt, 1.0))
+    key0 = stable_hash(_surface_settings(sc))
+    assert stable_hash(_surface_settings(load_scenario(_dsm_scenario(tmp_path, vrt, 1.0)))) == key0
+    with rasterio.open(tiles[0][0], "r+") as dst:
+        dst.write(dst.read(1) + np.float32(1.0), 1)
+    assert stable_hash(_surface_settings(load_scenario(_dsm_scenario(tmp_path, vrt, 1.0)))) != key0
 
 
 def test_dsm_nodata_policies_and_extent_messages(tmp_path):

@@ -42,7 +42,8 @@ raster's edge are outside its extent, and AOI cells outside the extent are an er
 A DSM without a DEM: the ground is the grey opening of the DSM (:func:`ground_from_dsm`, square
 window ``ground_window_m``, default 60 m, wider than the largest building), said in the attrs
 (``ground_source``) and as a stage warning; ``dsm_building`` marks cells whose every DSM pixel is
-more than ``building_threshold_m`` (2.5 m) above it, which the risk map takes as roofs (level 3).
+more than ``building_threshold_m`` (2.5 m) above it (with a DEM: the cell's lowest DSM point above
+its highest ground point), which the risk map takes as roofs (level 3).
 What a DSM cannot tell: tall vegetation (a tree canopy wider than a cell) from a roof; a building
 wider than the window from ground (its roof becomes ground: AGL floors relative to the roof, higher
 and safe; AGL ceilings also relative to the roof, too high by the building's height).
@@ -358,6 +359,7 @@ class DsmRaster:
     higher than ground + threshold); ``n_holes`` filled; ``notes`` for the attrs."""
 
     surface: np.ndarray
+    surface_min: np.ndarray
     ground: np.ndarray | None
     ground_min: np.ndarray | None
     building: np.ndarray | None
@@ -394,7 +396,7 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
     highest valid height on its rim; ``fill-nearest``; ``error``), then the max over every cell's
     footprint; with ``derive_ground`` also the ground (:func:`ground_from_dsm`, then footprint max
     and min) and the building mask (cells all of whose DSM pixels are more than
-    ``building_threshold_m`` above the derived ground)."""
+    ``building_threshold_m`` above the derived ground); ``surface_min``: the DSM's footprint min."""
     if nodata not in NODATA_POLICIES:
         raise InputError(f"{key}.nodata: {nodata!r} is not one of {', '.join(NODATA_POLICIES)}")
     win, holes = read_window_holes(path, grid, what="surface DSM")
@@ -403,9 +405,10 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
         raise DataError(msg)
     filled = fill_holes(win, holes, nodata if nodata != "error" else "fill-max")
     surface = footprint_resample(filled, win.transform, win.crs, grid, "max")
+    surface_min = footprint_resample(filled, win.transform, win.crs, grid, "min")
     notes = f"NoData holes inside the extent: {holes.n_interior} ({nodata})"
     if not derive_ground:
-        return DsmRaster(surface, None, None, None, holes.n_interior, notes)
+        return DsmRaster(surface, surface_min, None, None, None, holes.n_interior, notes)
     px = abs(win.transform.a)
     ok = np.isfinite(filled)
     g_src = ground_from_dsm(filled, px, ground_window_m)
@@ -416,7 +419,7 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
     notes += (f"; ground derived from the DSM by a grey opening with a {ground_window_m:g} m square window "
               f"({int(np.ceil(ground_window_m / px)) | 1} px of {px:g} m); buildings: more than "
               f"{building_threshold_m:g} m above it over the whole cell (tall vegetation is not told apart)")
-    return DsmRaster(surface, ground, ground_min, building, holes.n_interior, notes)
+    return DsmRaster(surface, surface_min, ground, ground_min, building, holes.n_interior, notes)
 
 
 def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | None = None,
@@ -495,10 +498,12 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
             (braster.index if braster is not None else np.full(grid.shape, -1, np.int32)).astype(np.int32),
             "building_id", units="1", long_name="index into the building dimension, -1 where no building"),
     })
-    if dsm is not None and dsm.building is not None:
+    if dsm is not None:
+        # with a DEM: the lowest DSM point of the cell above its highest ground point
+        building = dsm.building if dsm.building is not None else dsm.surface_min - terrain > building_threshold_m
         ds["dsm_building"] = grid.dataarray(
-            dsm.building, "dsm_building", units="1",
-            long_name=f"DSM more than {building_threshold_m:g} m above the derived ground over the whole cell")
+            building, "dsm_building", units="1",
+            long_name=f"DSM more than {building_threshold_m:g} m above the ground over the whole cell")
     if braster is not None:
         ds["building_osm_id"] = ("building", braster.ids, {"units": "1", "long_name": "OSM id (or CityJSON index)"})
         ds["building_height_m"] = ("building", braster.heights_m.astype(np.float32),

@@ -333,6 +333,18 @@ def test_ground_from_dsm_is_a_grey_opening_and_finds_the_buildings(tmp_path):
     assert "grey opening with a 60 m square window" in ds.attrs["ground_source"]
     assert np.all(ds["terrain_min"].values <= ds["terrain"].values)
     assert np.all(ds["terrain"].values <= ds["surface"].values)
+    # with a DEM (the slope): no derived ground, no warning; roofs = lowest DSM > highest ground + 2.5 m
+    dem = tmp_path / "dem.tif"
+    with rasterio.open(dem, "w", driver="GTiff", width=240, height=240, count=1, dtype="float64", crs="EPSG:28992",
+                       transform=DSM_T) as dst:
+        dst.write(1.0 + 0.01 * np.arange(240)[None] + 0.005 * np.arange(240)[:, None], 1)
+    ds2 = build_surface(grid, surface_path=tmp_path / "dsm.tif", surface_datum="NAP", terrain_path=dem,
+                        vertical_datum="nap")
+    np.testing.assert_array_equal(ds2["terrain"].values, slope.astype(np.float32))
+    assert "warnings" not in ds2.attrs and ds2.attrs["ground_source"].startswith("DEM")
+    low = _box_oracle(z.astype(np.float32).astype(float), DSM_T, grid, "min")
+    np.testing.assert_array_equal(ds2["dsm_building"].values, low - slope > 2.5)
+    assert ds2["dsm_building"].values[roof].all()
 
 
 def test_dataset_conventions(helsinki_surface):

@@ -16,7 +16,7 @@ from pyproj import Transformer
 
 from skyroute.pipeline.errors import DataError, InputError
 from skyroute.pipeline.settings import catalog_dir, load_scenario
-from skyroute.stages.grid import Grid
+from skyroute.stages.grid import Grid, warp_to_grid
 from skyroute.stages.surface import build_surface, osm_building_height, parse_height_m
 
 CATALOG_DATA = catalog_dir() / "data"
@@ -151,6 +151,7 @@ def test_dem_is_the_max_and_min_over_each_cell(shared_data):
         hi, lo = _box_oracle(dem, T, grid, "max"), _box_oracle(dem, T, grid, "min")
         np.testing.assert_array_equal(ds["terrain"].values, hi.astype(np.float32))
         np.testing.assert_array_equal(ds["terrain_min"].values, lo.astype(np.float32))
+        np.testing.assert_array_equal(warp_to_grid(path, grid, what="terrain", resampling="min"), lo)
         assert (hi - lo).max() > 5.0   # mountains: the two bounds differ
     assert ds.attrs["vertical_datum"] == "EGM96 geoid"
     assert ds["surface"].rio.crs.to_epsg() == 32611

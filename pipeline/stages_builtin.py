@@ -226,13 +226,46 @@ class ClearanceSettings(FrozenModel):
     radius_m: float
     min_agl_m: float
     max_agl_m: float
+    surface_paths: tuple[Path, ...] = ()   # a DSM: its floor is computed on its own prisms
+    surface_nodata: str = "fill-max"
+    has_dem: bool = False
+    raster_sources: tuple[Path, ...] = ()
 
 
 def _clearance_settings(sc: Scenario) -> ClearanceSettings:
     from skyroute.stages.vehicle import load_vehicle
 
+    d = sc.data.surface
     return ClearanceSettings(radius_m=load_vehicle(sc.vehicle).r_p_m, min_agl_m=sc.constraints.min_altitude_agl_m,
-                             max_agl_m=sc.constraints.max_altitude_agl_m)
+                             max_agl_m=sc.constraints.max_altitude_agl_m,
+                             **({} if d is None else dict(surface_paths=d.paths, surface_nodata=d.nodata,
+                                                          has_dem=sc.data.terrain is not None,
+                                                          raster_sources=_vrt_sources(d.paths))))
+
+
+def _dsm_obstacle_floor(surface: xr.Dataset, settings: ClearanceSettings):
+    """The obstacle floor with a DSM: the DSM's floor on its own prisms (exact per cell), the max
+    with the floor of the grid-resolution buildings and DEM; None to use the surface's floor."""
+    import numpy as np
+
+    from skyroute.stages.clearance import clearance_floor, dsm_clearance_floor
+
+    sp = settings.surface_paths
+    surf = surface["surface"].load()
+    native = dsm_clearance_floor(list(sp) if len(sp) > 1 else sp[0], Grid.from_dataarray(surf),
+                                 settings.radius_m, settings.surface_nodata)
+    if native is None:
+        return None
+    parts = [np.nan_to_num(native, nan=-np.inf)]
+    bid = surface["building_id"].values
+    if (bid >= 0).any():
+        parts.append(clearance_floor(surf.where(bid >= 0, -1e300), settings.radius_m).values)
+    if settings.has_dem:
+        parts.append(clearance_floor(surface["terrain"].load(), settings.radius_m).values)
+    floor = np.maximum.reduce(parts)
+    if not np.isfinite(floor).all():
+        floor = np.where(np.isfinite(floor), floor, clearance_floor(surf, settings.radius_m).values)
+    return floor
 
 
 def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: ClearanceSettings) -> xr.Dataset:
@@ -258,7 +291,8 @@ def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: C
             volumes.append((env["nofly"].copy(data=m), base + lo, base + hi))
     ds = clearance_dataset(surface["surface"].load(), settings.radius_m, terrain=terrain,
                            terrain_min=terrain_min, min_agl_m=settings.min_agl_m, max_agl_m=settings.max_agl_m,
-                           nofly=env["nofly"].copy(data=unlimited), volumes=volumes or None)
+                           nofly=env["nofly"].copy(data=unlimited), volumes=volumes or None,
+                           obstacle_floor=_dsm_obstacle_floor(surface, settings) if settings.surface_paths else None)
     datum = surface["surface"].attrs.get("vertical_datum", "")
     for v in ds.data_vars.values():
         v.attrs.setdefault("units", "1" if v.dtype == bool else "m")
@@ -268,7 +302,7 @@ def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: C
 
 
 register(Stage("clearance", clearance_stage, _clearance_settings, inputs=("surface", "environment"),
-               code_modules=("skyroute.stages.clearance",),
+               code_modules=("skyroute.stages.clearance", "skyroute.stages.grid"),
                description="obstacle clearance floor for the vehicle sphere, AGL bounds, no-fly"))
 
 

@@ -231,7 +231,7 @@ def altitude_bounds(terrain: xr.DataArray, min_agl_m: float, max_agl_m: float,
 def clearance_dataset(surface: xr.DataArray, radius_m: float, terrain: xr.DataArray | None = None,
                       terrain_min: xr.DataArray | None = None, min_agl_m: float = 0.0, max_agl_m: float = np.inf, nofly: xr.DataArray | None = None,
                       volumes: list[tuple[xr.DataArray, float, float]] | None = None,
-                      mode: str = "cell") -> xr.Dataset:
+                      mode: str = "cell", obstacle_floor: np.ndarray | None = None) -> xr.Dataset:
     """Everything a planner needs for O(1) fixed-obstacle checks, on the surface grid:
 
     * ``obstacle_floor_m``: :func:`clearance_floor` of ``surface``;
@@ -241,10 +241,18 @@ def clearance_dataset(surface: xr.DataArray, radius_m: float, terrain: xr.DataAr
     * for each altitude-limited volume ``(mask, zmin_m, zmax_m)`` of ``volumes``:
       ``volume_bottom_m``/``volume_top_m`` with a leading ``volume`` dim (:func:`nofly_volume`).
 
-    Query with :func:`is_clear`.
+    ``obstacle_floor``: a (y, x) floor [m] computed otherwise (:func:`dsm_clearance_floor`)
+    replaces :func:`clearance_floor` of ``surface``.  Query with :func:`is_clear`.
     """
     r = _check_radius(radius_m)
-    floor = clearance_floor(surface, r, mode)
+    if obstacle_floor is None:
+        floor = clearance_floor(surface, r, mode)
+    else:
+        if np.shape(obstacle_floor) != surface.shape or not np.all(np.isfinite(obstacle_floor)):
+            raise InputError(f"obstacle_floor must be a finite array of the surface's shape {surface.shape}")
+        floor = _like(surface, np.asarray(obstacle_floor, np.float64), "clearance_floor", {
+            "units": "m", "long_name": "lowest sphere-centre altitude clear of the surface",
+            "vertical_datum": surface.attrs.get("vertical_datum", ""), "radius_m": r, "mode": mode})
     if terrain is None:
         terrain = surface
     if np.isfinite(max_agl_m):
@@ -296,3 +304,47 @@ def is_clear(clearance: xr.DataArray | xr.Dataset, x, y, z) -> np.ndarray:
         hit = (z[None] >= b) & (z[None] <= t)   # NaN compares False
         ok &= ~hit.any(axis=0)
     return ok
+
+
+# ------------------------------------------------------------------ floor on a DSM's own prisms
+
+
+def clearance_floor_native(values: np.ndarray, transform, crs, grid: Grid, radius_m: float) -> np.ndarray | None:
+    """The ``"cell"`` clearance floor [m] of a raster's own prisms (``values``, NaN = no obstacle;
+    square north-up pixels, affine ``transform`` in ``crs``) computed on the raster's lattice, then
+    the max over every cell of ``grid`` (:func:`~skyroute.stages.grid.footprint_resample`).  The
+    fine floor of a pixel is the highest exact floor over its footprint, so the max over the pixels
+    overlapping a grid cell is the highest exact floor over that cell: exact per cell (no
+    quantisation to the grid's cells), where the floor of the resampled surface costs metres near
+    every edge.  NaN where no prism is in reach; None when the raster is not north-up with square
+    pixels in the grid's CRS (use :func:`clearance_floor` of the resampled surface then)."""
+    from pyproj import CRS
+
+    from skyroute.stages.grid import footprint_resample
+
+    r = _check_radius(radius_m)
+    t = transform
+    if not (t.b == 0 and t.d == 0 and t.a > 0 and np.isclose(-t.e, t.a, rtol=1e-9)
+            and CRS.from_user_input(crs) == grid.crs):
+        return None
+    di, dj, lift, pad = disc_offsets(r, float(t.a), "cell")
+    v = np.asarray(values, dtype=np.float64)
+    fine = _max_lift_numpy(np.where(np.isnan(v), -np.inf, v), di, dj, lift, pad)
+    fine[~np.isfinite(fine)] = -1e300   # no obstacle in reach: lower than anything, not NaN
+    out = footprint_resample(fine, t, crs, grid, "max")
+    out[out <= -1e299] = np.nan
+    return out
+
+
+def dsm_clearance_floor(path, grid: Grid, radius_m: float, nodata: str = "fill-max") -> np.ndarray | None:
+    """:func:`clearance_floor_native` of a DSM (GeoTIFF, VRT or tiles) read by window with a margin
+    of r_p beyond the grid, NoData holes filled as the surface stage fills them (``nodata``)."""
+    from skyroute.stages.grid import fill_holes, read_window_holes
+
+    r = _check_radius(radius_m)
+    win, holes = read_window_holes(path, grid, what="surface DSM", margin_px=32)
+    need = int(np.ceil(r / abs(win.transform.a))) + 2
+    if need > 32:
+        win, holes = read_window_holes(path, grid, what="surface DSM", margin_px=need)
+    filled = fill_holes(win, holes, "fill-nearest" if nodata == "fill-nearest" else "fill-max")
+    return clearance_floor_native(filled, win.transform, win.crs, grid, r)

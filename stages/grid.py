@@ -555,10 +555,11 @@ def find_holes(win: SourceWindow) -> Holes:
     return Holes(labels, rim_max, rim_min, outside, at_border)
 
 
-def read_window_holes(path, grid: Grid, *, what: str) -> tuple[SourceWindow, Holes]:
-    """:func:`read_window` grown until no NoData region reaches the window's border inside the
-    extent, so each region's rim is known whole; and its :func:`find_holes`."""
-    margin = 32
+def read_window_holes(path, grid: Grid, *, what: str, margin_px: int = 32) -> tuple[SourceWindow, Holes]:
+    """:func:`read_window` (at least ``margin_px`` beyond the grid) grown until no NoData region
+    reaches the window's border inside the extent, so each region's rim is known whole; and its
+    :func:`find_holes`."""
+    margin = max(int(margin_px), 1)
     while True:
         win = read_window(path, grid, what=what, margin_px=margin)
         holes = find_holes(win)

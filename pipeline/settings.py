@@ -84,6 +84,13 @@ class SurfaceSource(FrozenModel):
     ground_window_m: PositiveFloat = 60.0
     building_threshold_m: PositiveFloat = 2.5
 
+    @field_validator("path")
+    @classmethod
+    def _some(cls, v):
+        if isinstance(v, tuple) and not v:
+            raise ValueError("give a GeoTIFF, a VRT or a non-empty list of tiles")
+        return v
+
     @property
     def paths(self) -> tuple[Path, ...]:
         return self.path if isinstance(self.path, tuple) else (self.path,)

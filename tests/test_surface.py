@@ -465,6 +465,12 @@ def test_dsm_scenario_errors(tmp_path):
         "  terrain: {path: dem.tif, vertical_datum: EGM96 geoid}\n", ""))
     with pytest.raises(ScenarioError, match=r"(?s)data.surface.vertical_datum: required key is missing.*data.surface.nodata"):
         load_scenario(p)
+    p.write_text(p.read_text().replace("path: town_dsm.tif, nodata: fill-min", "path: [], vertical_datum: NAP"))
+    with pytest.raises(ScenarioError, match="data.surface.path: give a GeoTIFF, a VRT or a non-empty list of tiles"):
+        load_scenario(p)
+    p.write_text(p.read_text().replace("path: []", "path: [town_dsm.tif, missing_tile.tif]"))
+    with pytest.raises(ScenarioError, match="data.surface.path: data file not found: .*missing_tile.tif"):
+        load_scenario(p)
 
 
 ROTTERDAM_DSM = Path(__file__).parent / "data" / "rotterdam_dsm_0p5m.tif"

@@ -515,3 +515,56 @@ constraints: {{min_altitude_agl_m: 0, max_altitude_agl_m: 80}}
     k = int(np.ceil((r_p + 1) / res))
     assert np.abs(d[k:-k, k:-k] - r_p).max() < 1e-3
     assert float(out["surface"]["surface"].max()) == pytest.approx(z.max(), abs=1e-4)
+
+
+def test_dsm_in_another_crs_keeps_r_p_at_every_cell(tmp_path):
+    """The town DSM (Dutch RD, EPSG:28992) planned on a UTM 31N grid (pixels rotated by ~2 deg):
+    footprint max across CRSs, then the clearance floor; the exact distance from each cell's square
+    (at its lowest allowed altitude) to every rotated 0.5 m prism, by shapely, is >= r_p."""
+    from pyproj import Transformer
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.runner import run_scenario
+
+    z = _true_dsm()
+    dsm = _write_dsm(tmp_path / "town_dsm.tif", z)
+    cx, cy = Transformer.from_crs(28992, 32631, always_xy=True).transform(92060.0, 437060.0)
+    p = tmp_path / "utm.yaml"
+    p.write_text(f"""
+name: town-utm
+aoi: {{crs: "EPSG:32631", bounds: [{cx - 20:.1f}, {cy - 20:.1f}, {cx + 20:.1f}, {cy + 20:.1f}], resolution_m: 2.0}}
+data:
+  surface: {{path: {dsm.name}, vertical_datum: NAP}}
+mission:
+  start: {{x: {cx - 15:.1f}, y: {cy - 15:.1f}, alt_agl_m: 60}}
+  goal: {{x: {cx + 15:.1f}, y: {cy + 15:.1f}, alt_agl_m: 60}}
+  start_time_utc: 2020-01-03T12:00:00Z
+""")
+    sc = load_scenario(p)
+    out = run_scenario(sc, cache=Cache(tmp_path / "cache"), targets=["clearance"])
+    lo = out["clearance"]["min_altitude_m"].values
+    g = sc.grid
+    to_utm = Transformer.from_crs(28992, 32631, always_xy=True)
+    # every 0.5 m prism whose footprint overlaps the grid (clipped to it), as a rotated polygon
+    jj, ii = np.meshgrid(np.arange(DSM_SHAPE[1] + 1), np.arange(DSM_SHAPE[0] + 1))
+    X, Y = to_utm.transform(*(DSM_T * (jj, ii)))
+    quads = np.stack([np.stack([X[:-1, :-1], X[:-1, 1:], X[1:, 1:], X[1:, :-1]], -1),
+                      np.stack([Y[:-1, :-1], Y[:-1, 1:], Y[1:, 1:], Y[1:, :-1]], -1)], -1)
+    box = shapely.box(*g.bounds)
+    near = (quads[..., 0].max(-1) > g.bounds[0] - 6) & (quads[..., 0].min(-1) < g.bounds[2] + 6) & \
+           (quads[..., 1].max(-1) > g.bounds[1] - 6) & (quads[..., 1].min(-1) < g.bounds[3] + 6)
+    polys = shapely.intersection(shapely.polygons(quads[near]), box)
+    keep = ~shapely.is_empty(polys)
+    polys, h = polys[keep], z[near][keep]
+    tree = shapely.STRtree(polys)
+    r_p = 5.0
+    worst = np.inf
+    for i in range(g.ny):
+        for j in range(g.nx):
+            cell = shapely.box(g.x0 + 2 * j, g.y1 - 2 * (i + 1), g.x0 + 2 * (j + 1), g.y1 - 2 * i)
+            idx = tree.query(cell, predicate="dwithin", distance=r_p)
+            dh = shapely.distance(cell, polys[idx])
+            dz = np.maximum(lo[i, j] - h[idx], 0.0)
+            worst = min(worst, float(np.sqrt(dh * dh + dz * dz).min()))
+    assert worst >= r_p - 1e-4
+    assert worst < r_p + 1.0

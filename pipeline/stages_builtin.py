@@ -259,7 +259,7 @@ def _dsm_obstacle_floor(surface: xr.Dataset, settings: ClearanceSettings):
     parts = [np.nan_to_num(native, nan=-np.inf)]
     bid = surface["building_id"].values
     if (bid >= 0).any():
-        parts.append(clearance_floor(surf.where(bid >= 0, -1e300), settings.radius_m).values)
+        parts.append(clearance_floor(surf.astype("float64").where(bid >= 0, -1e300), settings.radius_m).values)
     if settings.has_dem:
         parts.append(clearance_floor(surface["terrain"].load(), settings.radius_m).values)
     floor = np.maximum.reduce(parts)

@@ -568,3 +568,51 @@ mission:
             worst = min(worst, float(np.sqrt(dh * dh + dz * dz).min()))
     assert worst >= r_p - 1e-4
     assert worst < r_p + 1.0
+
+
+def test_dsm_with_osm_buildings_and_a_dem(tmp_path):
+    """data.surface with OSM buildings and a DEM (Helsinki): surface = max of both, the DEM is the
+    ground (no warning), roofs from the DSM; the clearance floor keeps r_p from the 0.5 m DSM prisms
+    and from the grid's building prisms at every cell's lowest allowed altitude."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.runner import run_scenario
+
+    T = Affine(0.5, 0.0, 385900.25, 0.0, -0.5, 6672300.25)
+    z = _true_dsm() + 5.0
+    _write_dsm(tmp_path / "hel_dsm.tif", z, holes=False, transform=T, crs="EPSG:32635")
+    ground = 6.0 + 0.01 * np.arange(240)[None] + 0.005 * np.arange(240)[:, None]
+    with rasterio.open(tmp_path / "hel_dem.tif", "w", driver="GTiff", width=240, height=240, count=1,
+                       dtype="float64", crs="EPSG:32635", transform=T) as dst:
+        dst.write(ground, 1)
+    osm = CATALOG_DATA / "helsinki_center.osm.pbf"
+    p = tmp_path / "hel.yaml"
+    p.write_text(f"""
+name: hel-dsm
+aoi: {{crs: "EPSG:32635", bounds: [385910, 6672190, 386010, 6672290], resolution_m: 2.0}}
+data:
+  buildings: {{path: {osm}, format: osm}}
+  terrain: {{path: hel_dem.tif, vertical_datum: N2000}}
+  surface: {{path: hel_dsm.tif, vertical_datum: N2000}}
+mission:
+  start: {{x: 385915, y: 6672195, alt_agl_m: 60}}
+  goal: {{x: 386005, y: 6672285, alt_agl_m: 60}}
+  start_time_utc: 2020-01-03T12:00:00Z
+""")
+    sc = load_scenario(p)
+    out = run_scenario(sc, cache=Cache(tmp_path / "cache"), targets=["clearance"])
+    surf, lo = out["surface"].load(), out["clearance"]["min_altitude_m"].values
+    g = sc.grid
+    assert "warnings" not in surf.attrs and surf.attrs["vertical_datum"] == "N2000"
+    bid = surf["building_id"].values
+    assert (bid >= 0).sum() > 50
+    np.testing.assert_array_equal(surf["terrain"].values, _box_oracle(ground, T, g).astype(np.float32))
+    top = np.where(bid >= 0, surf["terrain"].values + surf["building_height_m"].values[np.maximum(bid, 0)], -np.inf)
+    np.testing.assert_allclose(surf["surface"].values, np.maximum(_box_oracle(z.astype(np.float32), T, g), top),
+                               rtol=0, atol=1e-4)
+    r_p = 5.0
+    assert _prism_clearance_at_cells(z, T, g, lo).min() >= r_p - 1e-4
+    # the grid's building prisms: every cell of the grid as a prism of its building top
+    bt = np.where(bid >= 0, surf["surface"].values, -1e9).astype(float)
+    d_b = _prism_clearance_at_cells(bt, g.transform, g, lo)
+    assert d_b.min() >= r_p - 1e-4
+    assert min(d_b.min(), _prism_clearance_at_cells(z, T, g, lo).min()) < r_p + 1e-3

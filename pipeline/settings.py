@@ -72,6 +72,30 @@ class TerrainSource(FrozenModel):
     vertical_datum: str = "EGM96 geoid"
 
 
+class SurfaceSource(FrozenModel):
+    """A DSM (lidar or rasterised): a GeoTIFF, a VRT or a list of tiles, read by window; its
+    vertical datum (required); the NoData policy (``fill-max``: each hole inside the extent takes
+    the highest height on its rim); the ground filter window [m] and building threshold [m] used
+    when no DEM (``data.terrain``) is given."""
+
+    path: Path | tuple[Path, ...]
+    vertical_datum: str
+    nodata: Literal["fill-max", "fill-nearest", "error"] = "fill-max"
+    ground_window_m: PositiveFloat = 60.0
+    building_threshold_m: PositiveFloat = 2.5
+
+    @field_validator("path")
+    @classmethod
+    def _some(cls, v):
+        if isinstance(v, tuple) and not v:
+            raise ValueError("give a GeoTIFF, a VRT or a non-empty list of tiles")
+        return v
+
+    @property
+    def paths(self) -> tuple[Path, ...]:
+        return self.path if isinstance(self.path, tuple) else (self.path,)
+
+
 class UniformWind(FrozenModel):
     """Vertically constant wind: ``speed_mps`` [m/s], ``direction_deg`` [deg, meteorological:
     where it blows FROM, clockwise from north], ``elevation_deg`` [deg]."""
@@ -92,6 +116,7 @@ class GriddedWind(FrozenModel):
 class DataSources(FrozenModel):
     buildings: BuildingsSource | None = None
     terrain: TerrainSource | None = None
+    surface: SurfaceSource | None = None
     landuse: Path | None = None
     landing_sites: Path | None = None
     osm_landing_sites: bool = True
@@ -332,6 +357,7 @@ def _semantic_problems(sc: Scenario) -> list[str]:
     for section, paths in (
         ("data.buildings.path", [sc.data.buildings.path] if sc.data.buildings else []),
         ("data.terrain.path", [sc.data.terrain.path] if sc.data.terrain else []),
+        ("data.surface.path", list(sc.data.surface.paths) if sc.data.surface else []),
         ("data.landuse", [sc.data.landuse] if sc.data.landuse else []),
         ("data.landing_sites", [sc.data.landing_sites] if sc.data.landing_sites else []),
         ("data.risk_tags", [sc.data.risk_tags] if sc.data.risk_tags else []),
@@ -344,6 +370,10 @@ def _semantic_problems(sc: Scenario) -> list[str]:
                 problems.append(f"{section}: data file not found: {p}")
             elif not os.access(p, os.R_OK):
                 problems.append(f"{section}: data file is not readable: {p}")
+    ds_, dt_ = sc.data.surface, sc.data.terrain
+    if ds_ is not None and dt_ is not None and ds_.vertical_datum.strip().lower() != dt_.vertical_datum.strip().lower():
+        problems.append(f"data.surface.vertical_datum: {ds_.vertical_datum!r} differs from data.terrain.vertical_datum "
+                        f"{dt_.vertical_datum!r}; convert one raster so the DSM and the DEM share a vertical datum")
     from skyroute.stages.vehicle import known_vehicles
 
     if sc.vehicle not in known_vehicles() and not Path(sc.vehicle).is_file():

@@ -20,6 +20,31 @@ class SurfaceSettings(FrozenModel):
     terrain_path: Path | None = None
     vertical_datum: str | None = None
     chunk_cells: int = 1024
+    surface_paths: tuple[Path, ...] = ()
+    surface_datum: str | None = None
+    surface_nodata: str = "fill-max"
+    ground_window_m: float = 60.0
+    building_threshold_m: float = 2.5
+    raster_sources: tuple[Path, ...] = ()  # files a VRT reads: in the settings so their content is hashed
+
+
+def _vrt_sources(paths) -> tuple[Path, ...]:
+    """The files named by the VRTs among ``paths`` (``SourceFilename``), so that editing a tile
+    changes the surface stage's cache key."""
+    import xml.etree.ElementTree as ET
+
+    out: list[Path] = []
+    for p in paths:
+        if Path(p).suffix.lower() != ".vrt" or not Path(p).is_file():
+            continue
+        try:
+            root = ET.parse(p).getroot()
+        except ET.ParseError:
+            continue   # reading it reports the problem
+        for el in root.iter("SourceFilename"):
+            src = Path((el.text or "").strip())
+            out.append(Path(p).parent / src if el.get("relativeToVRT", "0") == "1" else src)
+    return tuple(out)
 
 
 def _surface_settings(sc: Scenario) -> SurfaceSettings:
@@ -30,22 +55,31 @@ def _surface_settings(sc: Scenario) -> SurfaceSettings:
         storey_height_m=b.storey_height_m if b else 3.0,
         terrain_path=t.path if t else None, vertical_datum=t.vertical_datum if t else None,
         chunk_cells=sc.aoi.chunk_cells,
+        **({} if sc.data.surface is None else dict(
+            surface_paths=sc.data.surface.paths, surface_datum=sc.data.surface.vertical_datum,
+            surface_nodata=sc.data.surface.nodata, ground_window_m=sc.data.surface.ground_window_m,
+            building_threshold_m=sc.data.surface.building_threshold_m)),
+        raster_sources=_vrt_sources([*(sc.data.surface.paths if sc.data.surface else ()), *([t.path] if t else [])]),
     )
 
 
 def surface_stage(*, settings: SurfaceSettings) -> xr.Dataset:
-    """Digital surface model: terrain + buildings on the scenario grid (chunked)."""
+    """Digital surface model: terrain + buildings + DSM on the scenario grid (chunked)."""
     from skyroute.stages.surface import build_surface
 
+    sp = settings.surface_paths
     ds = build_surface(settings.grid, buildings_path=settings.buildings_path,
                        buildings_format=settings.buildings_format, storey_height_m=settings.storey_height_m,
-                       terrain_path=settings.terrain_path, vertical_datum=settings.vertical_datum)
+                       terrain_path=settings.terrain_path, vertical_datum=settings.vertical_datum,
+                       surface_path=(list(sp) if len(sp) > 1 else sp[0]) if sp else None,
+                       surface_datum=settings.surface_datum, surface_nodata=settings.surface_nodata,
+                       ground_window_m=settings.ground_window_m, building_threshold_m=settings.building_threshold_m)
     c = settings.chunk_cells
     return ds.chunk({"y": c, "x": c})
 
 
 register(Stage("surface", surface_stage, _surface_settings, code_modules=("skyroute.stages.surface", "skyroute.stages.osm", "skyroute.stages.grid"),
-               description="buildings + terrain -> digital surface model"))
+               description="buildings + terrain + DSM -> digital surface model"))
 
 
 # --------------------------------------------------------------------------- GNSS geometry
@@ -114,8 +148,9 @@ def _environment_settings(sc: Scenario) -> EnvironmentSettings:
     )
 
 
-def environment_stage(*, settings: EnvironmentSettings) -> xr.Dataset:
-    """Ground-risk levels and cost, no-fly mask, landing sites, distance and cost."""
+def environment_stage(surface: xr.Dataset, *, settings: EnvironmentSettings) -> xr.Dataset:
+    """Ground-risk levels and cost, no-fly mask, landing sites, distance and cost (roofs seen
+    only in a DSM, the surface's ``dsm_building``, count as buildings)."""
     import warnings
 
     from skyroute.stages.landing import environment_risk_dataset
@@ -126,11 +161,12 @@ def environment_stage(*, settings: EnvironmentSettings) -> xr.Dataset:
             settings.grid, osm_path=settings.osm_path, cityjson_path=settings.cityjson_path,
             tag_table=settings.tag_table, level5_nofly=settings.level5_nofly, nofly_zones=settings.nofly_zones,
             landing_geojson=settings.landing_geojson, osm_landing_sites=settings.osm_landing_sites,
-            default_level=settings.default_level)
+            default_level=settings.default_level,
+            building_mask=surface["dsm_building"].values if "dsm_building" in surface else None)
     return ds
 
 
-register(Stage("environment", environment_stage, _environment_settings,
+register(Stage("environment", environment_stage, _environment_settings, inputs=("surface",),
                code_modules=("skyroute.stages.risk", "skyroute.stages.landing", "skyroute.stages.osm"),
                description="risk levels 1-6, risk cost, no-fly, landing sites and landing cost"))
 
@@ -190,13 +226,46 @@ class ClearanceSettings(FrozenModel):
     radius_m: float
     min_agl_m: float
     max_agl_m: float
+    surface_paths: tuple[Path, ...] = ()   # a DSM: its floor is computed on its own prisms
+    surface_nodata: str = "fill-max"
+    has_dem: bool = False
+    raster_sources: tuple[Path, ...] = ()
 
 
 def _clearance_settings(sc: Scenario) -> ClearanceSettings:
     from skyroute.stages.vehicle import load_vehicle
 
+    d = sc.data.surface
     return ClearanceSettings(radius_m=load_vehicle(sc.vehicle).r_p_m, min_agl_m=sc.constraints.min_altitude_agl_m,
-                             max_agl_m=sc.constraints.max_altitude_agl_m)
+                             max_agl_m=sc.constraints.max_altitude_agl_m,
+                             **({} if d is None else dict(surface_paths=d.paths, surface_nodata=d.nodata,
+                                                          has_dem=sc.data.terrain is not None,
+                                                          raster_sources=_vrt_sources(d.paths))))
+
+
+def _dsm_obstacle_floor(surface: xr.Dataset, settings: ClearanceSettings):
+    """The obstacle floor with a DSM: the DSM's floor on its own prisms (exact per cell), the max
+    with the floor of the grid-resolution buildings and DEM; None to use the surface's floor."""
+    import numpy as np
+
+    from skyroute.stages.clearance import clearance_floor, dsm_clearance_floor
+
+    sp = settings.surface_paths
+    surf = surface["surface"].load()
+    native = dsm_clearance_floor(list(sp) if len(sp) > 1 else sp[0], Grid.from_dataarray(surf),
+                                 settings.radius_m, settings.surface_nodata)
+    if native is None:
+        return None
+    parts = [np.nan_to_num(native, nan=-np.inf)]
+    bid = surface["building_id"].values
+    if (bid >= 0).any():
+        parts.append(clearance_floor(surf.astype("float64").where(bid >= 0, -1e300), settings.radius_m).values)
+    if settings.has_dem:
+        parts.append(clearance_floor(surface["terrain"].load(), settings.radius_m).values)
+    floor = np.maximum.reduce(parts)
+    if not np.isfinite(floor).all():
+        floor = np.where(np.isfinite(floor), floor, clearance_floor(surf, settings.radius_m).values)
+    return floor
 
 
 def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: ClearanceSettings) -> xr.Dataset:
@@ -207,6 +276,7 @@ def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: C
     from skyroute.stages.clearance import clearance_dataset
 
     terrain = surface["terrain"].load()
+    terrain_min = surface["terrain_min"].load() if "terrain_min" in surface else terrain
     env = environment[["nofly", "nofly_floor_m", "nofly_ceiling_m"]].load()
     floor, ceil = env["nofly_floor_m"].values, env["nofly_ceiling_m"].values
     unlimited = env["nofly"].values & (np.nan_to_num(floor, nan=0.0) <= 0) & np.isinf(ceil)
@@ -220,8 +290,9 @@ def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: C
             base = float(t[m].mean())
             volumes.append((env["nofly"].copy(data=m), base + lo, base + hi))
     ds = clearance_dataset(surface["surface"].load(), settings.radius_m, terrain=terrain,
-                           min_agl_m=settings.min_agl_m, max_agl_m=settings.max_agl_m,
-                           nofly=env["nofly"].copy(data=unlimited), volumes=volumes or None)
+                           terrain_min=terrain_min, min_agl_m=settings.min_agl_m, max_agl_m=settings.max_agl_m,
+                           nofly=env["nofly"].copy(data=unlimited), volumes=volumes or None,
+                           obstacle_floor=_dsm_obstacle_floor(surface, settings) if settings.surface_paths else None)
     datum = surface["surface"].attrs.get("vertical_datum", "")
     for v in ds.data_vars.values():
         v.attrs.setdefault("units", "1" if v.dtype == bool else "m")
@@ -231,7 +302,7 @@ def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: C
 
 
 register(Stage("clearance", clearance_stage, _clearance_settings, inputs=("surface", "environment"),
-               code_modules=("skyroute.stages.clearance",),
+               code_modules=("skyroute.stages.clearance", "skyroute.stages.grid"),
                description="obstacle clearance floor for the vehicle sphere, AGL bounds, no-fly"))
 
 
@@ -300,7 +371,8 @@ def coverage_stage(surface: xr.Dataset, satellites: xr.Dataset, *, settings: Cov
     az = satellites["az_deg"].load()
     el = satellites["el_deg"].load()
     ds = coverage_maps(surface["surface"], az, el, thresholds=settings.thresholds, dop=settings.dop_kind,
-                       floor_m=terrain + settings.min_agl_m, ceiling_m=terrain + settings.max_agl_m,
+                       floor_m=terrain + settings.min_agl_m,
+                       ceiling_m=surface.get("terrain_min", terrain) + settings.max_agl_m,
                        mask_deg=settings.mask_deg, chunks="auto")
     return ds
 

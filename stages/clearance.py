@@ -21,7 +21,9 @@ No-fly zones: a 2-D mask (unlimited in altitude) is dilated by ``r_p`` (same dis
 and the same two modes).  An altitude-limited volume ``mask x [zmin, zmax]`` becomes, per
 cell, a forbidden altitude interval ``[zmin - L, zmax + L]`` with ``L = sqrt(r_p^2 - d_h^2)``
 (exact sphere-vs-box test) -- :func:`nofly_volume`.  Altitude limits above ground are the
-rasters ``terrain + min_agl`` and ``terrain + max_agl`` (:func:`altitude_bounds`).
+rasters ``terrain + min_agl`` and ``terrain_min + max_agl`` (:func:`altitude_bounds`), with
+``terrain`` the highest and ``terrain_min`` the lowest ground over each cell, so that both hold at
+every point of the cell.
 """
 
 from __future__ import annotations
@@ -202,42 +204,59 @@ def nofly_volume(mask: xr.DataArray, radius_m: float, zmin_m: float = -np.inf, z
     return ds
 
 
-def altitude_bounds(terrain: xr.DataArray, min_agl_m: float, max_agl_m: float) -> xr.Dataset:
-    """Altitude limits above ground as rasters: ``floor_m = terrain + min_agl_m`` and
-    ``ceiling_m = terrain + max_agl_m`` [m, datum of the terrain]."""
+def altitude_bounds(terrain: xr.DataArray, min_agl_m: float, max_agl_m: float,
+                    terrain_min: xr.DataArray | None = None) -> xr.Dataset:
+    """Altitude limits above ground as rasters that hold at every point of a cell:
+    ``floor_m = terrain + min_agl_m`` with ``terrain`` the highest ground over the cell, and
+    ``ceiling_m = terrain_min + max_agl_m`` with ``terrain_min`` the lowest (``terrain`` when
+    None: a ground known at one height per cell) [m, datum of the terrain]."""
     _check_raster(terrain, "terrain")
+    if terrain_min is None:
+        terrain_min = terrain
+    elif _check_raster(terrain_min, "terrain_min") != Grid.from_dataarray(terrain):
+        raise InputError("terrain_min must be on the grid of terrain")
+    elif bool((terrain_min > terrain).any()):
+        raise InputError("terrain_min is above terrain somewhere: give the lowest and the highest ground per cell")
     if not (np.isfinite(min_agl_m) and np.isfinite(max_agl_m) and 0 <= min_agl_m < max_agl_m):
         raise InputError(f"altitude limits need 0 <= min_agl_m < max_agl_m, got {min_agl_m}, {max_agl_m} m")
     datum = terrain.attrs.get("vertical_datum", "")
     fl = (terrain + float(min_agl_m)).rename("floor_m")
     fl.attrs = {"units": "m", "long_name": f"minimum altitude ({min_agl_m} m above ground)", "vertical_datum": datum}
-    ce = (terrain + float(max_agl_m)).rename("ceiling_m")
+    ce = (terrain_min + float(max_agl_m)).rename("ceiling_m")
     ce.attrs = {"units": "m", "long_name": f"maximum altitude ({max_agl_m} m above ground)", "vertical_datum": datum}
     return xr.Dataset({"floor_m": fl, "ceiling_m": ce}, attrs={"min_agl_m": float(min_agl_m),
                                                              "max_agl_m": float(max_agl_m)})
 
 
 def clearance_dataset(surface: xr.DataArray, radius_m: float, terrain: xr.DataArray | None = None,
-                      min_agl_m: float = 0.0, max_agl_m: float = np.inf, nofly: xr.DataArray | None = None,
+                      terrain_min: xr.DataArray | None = None, min_agl_m: float = 0.0, max_agl_m: float = np.inf, nofly: xr.DataArray | None = None,
                       volumes: list[tuple[xr.DataArray, float, float]] | None = None,
-                      mode: str = "cell") -> xr.Dataset:
+                      mode: str = "cell", obstacle_floor: np.ndarray | None = None) -> xr.Dataset:
     """Everything a planner needs for O(1) fixed-obstacle checks, on the surface grid:
 
     * ``obstacle_floor_m``: :func:`clearance_floor` of ``surface``;
     * ``min_altitude_m`` = max(obstacle floor, terrain + min_agl), ``max_altitude_m`` =
-      terrain + max_agl (+inf without limit) [m];
+      terrain_min + max_agl (+inf without limit) [m] (:func:`altitude_bounds`);
     * ``nofly``: :func:`dilate_nofly` of the unlimited no-fly mask (False if none);
     * for each altitude-limited volume ``(mask, zmin_m, zmax_m)`` of ``volumes``:
       ``volume_bottom_m``/``volume_top_m`` with a leading ``volume`` dim (:func:`nofly_volume`).
 
-    Query with :func:`is_clear`.
+    ``obstacle_floor``: a (y, x) floor [m] computed otherwise (:func:`dsm_clearance_floor`)
+    replaces :func:`clearance_floor` of ``surface``.  Query with :func:`is_clear`.
     """
     r = _check_radius(radius_m)
-    floor = clearance_floor(surface, r, mode)
+    if obstacle_floor is None:
+        floor = clearance_floor(surface, r, mode)
+    else:
+        if np.shape(obstacle_floor) != surface.shape or not np.all(np.isfinite(obstacle_floor)):
+            raise InputError(f"obstacle_floor must be a finite array of the surface's shape {surface.shape}")
+        floor = _like(surface, np.asarray(obstacle_floor, np.float64), "clearance_floor", {
+            "units": "m", "long_name": "lowest sphere-centre altitude clear of the surface",
+            "vertical_datum": surface.attrs.get("vertical_datum", ""), "radius_m": r, "mode": mode})
     if terrain is None:
         terrain = surface
     if np.isfinite(max_agl_m):
-        ab = altitude_bounds(terrain, min_agl_m, max_agl_m)
+        ab = altitude_bounds(terrain, min_agl_m, max_agl_m, terrain_min=terrain_min)
         lo, hi = ab["floor_m"], ab["ceiling_m"]
     else:
         if not (np.isfinite(min_agl_m) and min_agl_m >= 0):
@@ -285,3 +304,47 @@ def is_clear(clearance: xr.DataArray | xr.Dataset, x, y, z) -> np.ndarray:
         hit = (z[None] >= b) & (z[None] <= t)   # NaN compares False
         ok &= ~hit.any(axis=0)
     return ok
+
+
+# ------------------------------------------------------------------ floor on a DSM's own prisms
+
+
+def clearance_floor_native(values: np.ndarray, transform, crs, grid: Grid, radius_m: float) -> np.ndarray | None:
+    """The ``"cell"`` clearance floor [m] of a raster's own prisms (``values``, NaN = no obstacle;
+    square north-up pixels, affine ``transform`` in ``crs``) computed on the raster's lattice, then
+    the max over every cell of ``grid`` (:func:`~skyroute.stages.grid.footprint_resample`).  The
+    fine floor of a pixel is the highest exact floor over its footprint, so the max over the pixels
+    overlapping a grid cell is the highest exact floor over that cell: exact per cell (no
+    quantisation to the grid's cells), where the floor of the resampled surface costs metres near
+    every edge.  NaN where no prism is in reach; None when the raster is not north-up with square
+    pixels in the grid's CRS (use :func:`clearance_floor` of the resampled surface then)."""
+    from pyproj import CRS
+
+    from skyroute.stages.grid import footprint_resample
+
+    r = _check_radius(radius_m)
+    t = transform
+    if not (t.b == 0 and t.d == 0 and t.a > 0 and np.isclose(-t.e, t.a, rtol=1e-9)
+            and CRS.from_user_input(crs) == grid.crs):
+        return None
+    di, dj, lift, pad = disc_offsets(r, float(t.a), "cell")
+    v = np.asarray(values, dtype=np.float64)
+    fine = _max_lift_numpy(np.where(np.isnan(v), -np.inf, v), di, dj, lift, pad)
+    fine[~np.isfinite(fine)] = -1e300   # no obstacle in reach: lower than anything, not NaN
+    out = footprint_resample(fine, t, crs, grid, "max")
+    out[out <= -1e299] = np.nan
+    return out
+
+
+def dsm_clearance_floor(path, grid: Grid, radius_m: float, nodata: str = "fill-max") -> np.ndarray | None:
+    """:func:`clearance_floor_native` of a DSM (GeoTIFF, VRT or tiles) read by window with a margin
+    of r_p beyond the grid, NoData holes filled as the surface stage fills them (``nodata``)."""
+    from skyroute.stages.grid import fill_holes, read_window_holes
+
+    r = _check_radius(radius_m)
+    win, holes = read_window_holes(path, grid, what="surface DSM", margin_px=32)
+    need = int(np.ceil(r / abs(win.transform.a))) + 2
+    if need > 32:
+        win, holes = read_window_holes(path, grid, what="surface DSM", margin_px=need)
+    filled = fill_holes(win, holes, "fill-nearest" if nodata == "fill-nearest" else "fill-max")
+    return clearance_floor_native(filled, win.transform, win.crs, grid, r)

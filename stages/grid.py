@@ -162,7 +162,17 @@ def warp_to_grid(path, grid: Grid, *, what: str, resampling: str = "bilinear",
                  require_overlap: bool = True) -> np.ndarray:
     """Band 1 of a GeoTIFF reprojected to ``grid`` (float64; NaN outside the raster and at its
     nodata).  ``what`` names the layer in error messages ("terrain", "risk GeoTIFF").
-    ``require_overlap``: a raster that does not intersect the grid is a :class:`DataError`."""
+    ``require_overlap``: a raster that does not intersect the grid is a :class:`DataError`.
+
+    ``resampling="max"`` / ``"min"``: the max (min) over every source pixel whose footprint
+    overlaps the target cell's footprint (:func:`footprint_resample`).  GDAL's
+    ``Resampling.max`` (3.10) gives the same between grids of one CRS, but between rotated CRSs
+    it misses pixels that overlap the target cell only partly and lowers obstacles
+    (tests/test_grid.py).  A target cell touching a nodata pixel is NaN.  Surfaces and grounds
+    are resampled this way."""
+    if resampling in ("max", "min"):
+        win = read_window(path, grid, what=what, require_overlap=require_overlap)
+        return footprint_resample(win.values, win.transform, win.crs, grid, how=resampling)
     from pathlib import Path
 
     import rasterio
@@ -190,6 +200,415 @@ def warp_to_grid(path, grid: Grid, *, what: str, resampling: str = "bilinear",
             src_nodata=src.nodata, dst_nodata=np.nan, init_dest_nodata=True,
             resampling=getattr(rasterio.warp.Resampling, resampling))
     return out
+
+
+# ------------------------------------------------------------------ footprint-overlap resampling
+#: Two footprints overlap when they share more than a strip of this width [m]: footprints that
+#: only touch along an edge (aligned grids) do not count (float noise is ~1e-9 m).
+OVERLAP_EPS_M = 1e-6
+
+
+@numba.njit(cache=True)
+def _sat_overlap(qx, qy, X0, X1, Y0, Y1, eps):  # pragma: no cover
+    """Does the convex quadrilateral (qx, qy) overlap the box [X0, X1] x [Y0, Y1] by more than
+    ``eps`` [m]?  Separating-axis test on the box axes and the 4 edge normals."""
+    if max(qx[0], qx[1], qx[2], qx[3]) <= X0 + eps or min(qx[0], qx[1], qx[2], qx[3]) >= X1 - eps:
+        return False
+    if max(qy[0], qy[1], qy[2], qy[3]) <= Y0 + eps or min(qy[0], qy[1], qy[2], qy[3]) >= Y1 - eps:
+        return False
+    bx = (X0, X1, X1, X0)
+    by = (Y0, Y0, Y1, Y1)
+    for k in range(4):
+        ex = qx[(k + 1) % 4] - qx[k]
+        ey = qy[(k + 1) % 4] - qy[k]
+        nrm = np.hypot(ex, ey)
+        if nrm == 0.0:
+            continue
+        nx_, ny_ = -ey / nrm, ex / nrm
+        qlo, qhi = np.inf, -np.inf
+        for m in range(4):
+            v = qx[m] * nx_ + qy[m] * ny_
+            qlo = min(qlo, v)
+            qhi = max(qhi, v)
+        blo, bhi = np.inf, -np.inf
+        for m in range(4):
+            v = bx[m] * nx_ + by[m] * ny_
+            blo = min(blo, v)
+            bhi = max(bhi, v)
+        if bhi <= qlo + eps or qhi <= blo + eps:
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def _footprint_kernel(cx, cy, values, x0, y1, res, ny, nx, use_max, eps, out, nan_hit):  # pragma: no cover
+    """For every source pixel (corners ``cx/cy[i:i+2, j:j+2]`` in target coordinates), update
+    ``out`` (max or min) on every target cell whose footprint it overlaps; a NaN pixel marks
+    ``nan_hit`` instead."""
+    sy, sx = values.shape
+    qx = np.empty(4)
+    qy = np.empty(4)
+    for i in range(sy):
+        for j in range(sx):
+            qx[0] = cx[i, j]
+            qx[1] = cx[i, j + 1]
+            qx[2] = cx[i + 1, j + 1]
+            qx[3] = cx[i + 1, j]
+            qy[0] = cy[i, j]
+            qy[1] = cy[i, j + 1]
+            qy[2] = cy[i + 1, j + 1]
+            qy[3] = cy[i + 1, j]
+            xmin, xmax = qx.min(), qx.max()
+            ymin, ymax = qy.min(), qy.max()
+            if not (np.isfinite(xmin) and np.isfinite(xmax) and np.isfinite(ymin) and np.isfinite(ymax)):
+                continue
+            c0 = max(int(np.floor((xmin - x0) / res)), 0)
+            c1 = min(int(np.floor((xmax - x0) / res)), nx - 1)
+            r0 = max(int(np.floor((y1 - ymax) / res)), 0)
+            r1 = min(int(np.floor((y1 - ymin) / res)), ny - 1)
+            if c1 < c0 or r1 < r0:
+                continue
+            v = values[i, j]
+            isnan = np.isnan(v)
+            for r in range(r0, r1 + 1):
+                Y1 = y1 - r * res
+                Y0 = Y1 - res
+                for c in range(c0, c1 + 1):
+                    X0 = x0 + c * res
+                    if not _sat_overlap(qx, qy, X0, X0 + res, Y0, Y1, eps):
+                        continue
+                    if isnan:
+                        nan_hit[r, c] = True
+                    elif use_max:
+                        if v > out[r, c]:
+                            out[r, c] = v
+                    elif v < out[r, c]:
+                        out[r, c] = v
+
+
+@numba.njit(cache=True)
+def _box_kernel(values, sx0, sy1, spx, spy, x0, y1, res, eps, use_max, out, nan_hit):  # pragma: no cover
+    """The same for a north-up source in the grid's CRS (pixel (i, j) spans
+    [sx0 + j spx, sx0 + (j + 1) spx] x [sy1 - (i + 1) spy, sy1 - i spy]): the overlapping pixels of
+    a cell form an index block, found by interval arithmetic."""
+    sy, sx = values.shape
+    ny, nx = out.shape
+    for r in range(ny):
+        top = y1 - r * res
+        bot = top - res
+        i0 = max(int(np.floor((sy1 - top + eps) / spy)), 0)
+        i1 = min(int(np.ceil((sy1 - bot - eps) / spy)) - 1, sy - 1)
+        for c in range(nx):
+            left = x0 + c * res
+            j0 = max(int(np.floor((left + eps - sx0) / spx)), 0)
+            j1 = min(int(np.ceil((left + res - eps - sx0) / spx)) - 1, sx - 1)
+            if i1 < i0 or j1 < j0:
+                continue
+            acc = -np.inf if use_max else np.inf
+            hit = False
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    v = values[i, j]
+                    if np.isnan(v):
+                        hit = True
+                    elif use_max:
+                        if v > acc:
+                            acc = v
+                    elif v < acc:
+                        acc = v
+            out[r, c] = acc
+            nan_hit[r, c] = hit
+
+
+def pixel_corners(transform, shape: tuple[int, int], src_crs, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """Map coordinates in ``grid``'s CRS of the ``(ny + 1, nx + 1)`` pixel corners of a raster
+    with affine ``transform`` and ``shape`` in ``src_crs`` (exact affine map in the same CRS,
+    pyproj otherwise; pixel edges are taken straight between their projected corners)."""
+    sy, sx = shape
+    jj, ii = np.meshgrid(np.arange(sx + 1, dtype=np.float64), np.arange(sy + 1, dtype=np.float64))
+    t = transform
+    X = t.a * jj + t.b * ii + t.c
+    Y = t.d * jj + t.e * ii + t.f
+    if CRS.from_user_input(src_crs) != grid.crs:
+        tr = Transformer.from_crs(CRS.from_user_input(src_crs), grid.crs, always_xy=True)
+        X, Y = tr.transform(X, Y)
+        X, Y = np.asarray(X, np.float64), np.asarray(Y, np.float64)
+    return np.ascontiguousarray(X), np.ascontiguousarray(Y)
+
+
+def footprint_resample(values: np.ndarray, transform, src_crs, grid: Grid, how: str = "max") -> np.ndarray:
+    """Resample a raster (``values`` with NaN at nodata, affine ``transform`` in ``src_crs``) to
+    ``grid`` by the max (``how="max"``) or min over the footprint of every target cell: each
+    source pixel whose footprint overlaps the target cell's footprint (by more than
+    :data:`OVERLAP_EPS_M`) counts, whatever the two resolutions, alignments and CRSs.
+
+    Returns float64 ``grid.shape``: NaN where a cell overlaps a NaN pixel or no pixel at all (a
+    cell only partly over the raster takes the part it overlaps: pad the raster with NaN, as
+    :func:`read_window` does, to have such cells NaN).
+    Conservative for obstacles (``max``: no point of the cell is higher than its value) and
+    for grounds under a ceiling (``min``)."""
+    if how not in ("max", "min"):
+        raise InputError(f"footprint resampling {how!r} must be 'max' or 'min'")
+    v = np.ascontiguousarray(values, dtype=np.float64)
+    out = np.full(grid.shape, -np.inf if how == "max" else np.inf)
+    nan_hit = np.zeros(grid.shape, dtype=np.bool_)
+    t = transform
+    if t.b == 0 and t.d == 0 and t.a > 0 and t.e < 0 and CRS.from_user_input(src_crs) == grid.crs:
+        _box_kernel(v, t.c, t.f, t.a, -t.e, grid.x0, grid.y1, grid.resolution_m, OVERLAP_EPS_M, how == "max",
+                    out, nan_hit)
+    else:
+        if t.b == 0 and t.d == 0 and t.a > 0 and t.e < 0:   # crop to the pixels that can reach the grid
+            from rasterio.warp import transform_bounds
+
+            bx0, by0, bx1, by1 = transform_bounds(grid.crs, CRS.from_user_input(src_crs), *grid.bounds, densify_pts=21)
+            j0 = max(int(np.floor((bx0 - t.c) / t.a)) - 2, 0)
+            j1 = min(int(np.ceil((bx1 - t.c) / t.a)) + 2, v.shape[1])
+            i0 = max(int(np.floor((t.f - by1) / -t.e)) - 2, 0)
+            i1 = min(int(np.ceil((t.f - by0) / -t.e)) + 2, v.shape[0])
+            if i1 <= i0 or j1 <= j0:
+                return np.full(grid.shape, np.nan)
+            v = np.ascontiguousarray(v[i0:i1, j0:j1])
+            transform = t * Affine.translation(j0, i0)
+        cx, cy = pixel_corners(transform, v.shape, src_crs, grid)
+        _footprint_kernel(cx, cy, v, grid.x0, grid.y1, grid.resolution_m, grid.ny, grid.nx, how == "max",
+                          OVERLAP_EPS_M, out, nan_hit)
+    out[nan_hit | ~np.isfinite(out)] = np.nan
+    return out
+
+
+@dataclass(frozen=True)
+class SourceWindow:
+    """Band 1 of a raster (one file, a VRT or a list of tiles) read over a window [float64, NaN
+    at nodata]; ``inside``: pixel lies within the data's extent (a tile's bounds)."""
+
+    values: np.ndarray
+    inside: np.ndarray
+    transform: Affine
+    crs: CRS
+    full: bool  # the window holds the whole extent (no hole can reach beyond it)
+
+
+def _open_all(paths, what: str):
+    import rasterio
+
+    srcs = []
+    for p in paths:
+        if not p.is_file():
+            for s in srcs:
+                s.close()
+            raise DataError(f"{what} file not found: {p}")
+        try:
+            srcs.append(rasterio.open(p))
+        except rasterio.errors.RasterioIOError as exc:
+            for s in srcs:
+                s.close()
+            raise DataError(f"cannot read {what} raster {p}: {exc}") from exc
+    return srcs
+
+
+def read_window(path, grid: Grid, *, what: str, margin_px: int = 32, require_overlap: bool = True) -> SourceWindow:
+    """Read band 1 of ``path`` (a GeoTIFF, a VRT, or a list of tiles sharing CRS and pixel size)
+    over the window that covers ``grid`` plus ``margin_px`` pixels, at the native resolution,
+    without resampling.  Nodata -> NaN; pixels outside every tile are NaN with ``inside`` False.
+    Overlapping tiles: the highest value wins."""
+    from pathlib import Path
+
+    import rasterio.warp
+    import rasterio.windows
+
+    paths = [Path(p) for p in (path if isinstance(path, (list, tuple)) else [path])]
+    if not paths:
+        raise DataError(f"{what}: no raster file given")
+    srcs = _open_all(paths, what)
+    try:
+        crs0 = srcs[0].crs
+        if crs0 is None:
+            raise CRSError(f"{what} raster {paths[0]} has no CRS; assign one with gdal_edit.py -a_srs EPSG:...")
+        t0 = srcs[0].transform
+        if t0.b != 0 or t0.d != 0 or t0.e >= 0:
+            raise DataError(f"{what} raster {paths[0]} is not north-up; warp it first (gdalwarp)")
+        for s, p in zip(srcs[1:], paths[1:], strict=True):
+            if s.crs != crs0 or not np.allclose(s.res, srcs[0].res) or s.transform.b != 0 or s.transform.d != 0:
+                raise DataError(f"{what} tile {p} differs from {paths[0]} in CRS, pixel size or orientation; "
+                                "give tiles of one raster (or build a VRT with gdalbuildvrt)")
+        rx, ry = srcs[0].res
+        left = min(s.bounds.left for s in srcs)
+        top = max(s.bounds.top for s in srcs)
+        right = max(s.bounds.right for s in srcs)
+        bottom = min(s.bounds.bottom for s in srcs)
+        b = rasterio.warp.transform_bounds(grid.crs, crs0, *grid.bounds, densify_pts=21)
+        if require_overlap and (b[0] >= right or b[2] <= left or b[1] >= top or b[3] <= bottom):
+            raise DataError(f"the AOI {tuple(round(v) for v in grid.bounds)} does not intersect {what} "
+                            f"{paths[0] if len(paths) == 1 else f'{len(paths)} tiles'} (bounds "
+                            f"{tuple(round(v) for v in (left, bottom, right, top))} in {crs0}); fix aoi or the {what} path")
+        # window on the pixel lattice of the first tile, margin_px beyond the AOI
+        c0 = int(np.floor((b[0] - t0.c) / rx)) - margin_px
+        c1 = int(np.ceil((b[2] - t0.c) / rx)) + margin_px
+        r0 = int(np.floor((t0.f - b[3]) / ry)) - margin_px
+        r1 = int(np.ceil((t0.f - b[1]) / ry)) + margin_px
+        # never beyond one pixel outside the whole extent
+        c0 = max(c0, int(np.floor((left - t0.c) / rx)) - 1)
+        c1 = min(c1, int(np.ceil((right - t0.c) / rx)) + 1)
+        r0 = max(r0, int(np.floor((t0.f - top) / ry)) - 1)
+        r1 = min(r1, int(np.ceil((t0.f - bottom) / ry)) + 1)
+        full = (c0 <= int(np.floor((left - t0.c) / rx)) - 1 and c1 >= int(np.ceil((right - t0.c) / rx)) + 1
+                and r0 <= int(np.floor((t0.f - top) / ry)) - 1 and r1 >= int(np.ceil((t0.f - bottom) / ry)) + 1)
+        h, w = max(r1 - r0, 1), max(c1 - c0, 1)
+        wt = Affine(rx, 0.0, t0.c + c0 * rx, 0.0, -ry, t0.f - r0 * ry)
+        values = np.full((h, w), np.nan)
+        inside = np.zeros((h, w), dtype=bool)
+        for s in srcs:
+            so = (s.transform.c - wt.c) / rx
+            sr = (wt.f - s.transform.f) / ry
+            if abs(so - round(so)) > 1e-6 or abs(sr - round(sr)) > 1e-6:
+                raise DataError(f"{what} tiles are not on one pixel lattice; build a VRT with gdalbuildvrt")
+            so, sr = int(round(so)), int(round(sr))
+            # intersection of the tile with the window, in window pixels
+            a0, a1 = max(sr, 0), min(sr + s.height, h)
+            b0, b1 = max(so, 0), min(so + s.width, w)
+            if a1 <= a0 or b1 <= b0:
+                continue
+            win = rasterio.windows.Window(b0 - so, a0 - sr, b1 - b0, a1 - a0)
+            a = s.read(1, window=win, masked=True)
+            block = np.where(np.ma.getmaskarray(a), np.nan, np.ma.getdata(a).astype(np.float64))
+            block[~np.isfinite(block)] = np.nan
+            cur = values[a0:a1, b0:b1]
+            values[a0:a1, b0:b1] = np.fmax(cur, block)
+            inside[a0:a1, b0:b1] = True
+    finally:
+        for s in srcs:
+            s.close()
+    return SourceWindow(values, inside, wt, CRS.from_user_input(crs0), full)
+
+
+NODATA_POLICIES = ("fill-max", "fill-nearest", "error")
+
+
+@numba.njit(cache=True)
+def _rim_kernel(labels, values, inside, full, rim_max, rim_min, outside, at_border):  # pragma: no cover
+    """Per hole label k (labels > 0): the highest and lowest valid 8-neighbour (its rim), and
+    whether it touches a pixel outside the data's extent or the window's border."""
+    ny, nx = labels.shape
+    for i in range(ny):
+        for j in range(nx):
+            k = labels[i, j]
+            if k == 0:
+                continue
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    a, b = i + di, j + dj
+                    if a < 0 or a >= ny or b < 0 or b >= nx:
+                        if full:
+                            outside[k] = True
+                        else:
+                            at_border[k] = True
+                        continue
+                    if not inside[a, b]:
+                        outside[k] = True
+                        continue
+                    v = values[a, b]
+                    if not np.isnan(v):
+                        if v > rim_max[k]:
+                            rim_max[k] = v
+                        if v < rim_min[k]:
+                            rim_min[k] = v
+
+
+@dataclass(frozen=True)
+class Holes:
+    """NoData regions of a :class:`SourceWindow`: ``labels`` (0 = data), per label the rim
+    max/min [m] and whether it reaches outside the data's extent (``outside``)."""
+
+    labels: np.ndarray
+    rim_max: np.ndarray
+    rim_min: np.ndarray
+    outside: np.ndarray
+    at_border: np.ndarray
+
+    @property
+    def interior(self) -> np.ndarray:
+        """Pixels of NoData regions inside the extent (every neighbour region is data)."""
+        ok = ~self.outside
+        ok[0] = False
+        return ok[self.labels]
+
+    @property
+    def n_interior(self) -> int:
+        return int((~self.outside[1:]).sum())
+
+
+def find_holes(win: SourceWindow) -> Holes:
+    """Connected (8-neighbour) NoData regions of ``win`` and their rims.  A region touching a
+    pixel outside the extent (or the border of a window that holds the whole extent) counts as
+    outside the extent; ``at_border``: it touches the border of a partial window (read more)."""
+    from scipy import ndimage
+
+    nan = np.isnan(win.values) & win.inside
+    labels, n = ndimage.label(nan, structure=np.ones((3, 3), bool))
+    rim_max = np.full(n + 1, -np.inf)
+    rim_min = np.full(n + 1, np.inf)
+    outside = np.zeros(n + 1, np.bool_)
+    at_border = np.zeros(n + 1, np.bool_)
+    if n:
+        _rim_kernel(labels.astype(np.int64), win.values, win.inside, win.full, rim_max, rim_min, outside, at_border)
+    outside |= ~np.isfinite(rim_max)  # a region with no valid rim at all
+    return Holes(labels, rim_max, rim_min, outside, at_border)
+
+
+def read_window_holes(path, grid: Grid, *, what: str, margin_px: int = 32) -> tuple[SourceWindow, Holes]:
+    """:func:`read_window` (at least ``margin_px`` beyond the grid) grown until no NoData region
+    reaches the window's border inside the extent, so each region's rim is known whole; and its
+    :func:`find_holes`."""
+    margin = max(int(margin_px), 1)
+    while True:
+        win = read_window(path, grid, what=what, margin_px=margin)
+        holes = find_holes(win)
+        if win.full or not holes.at_border[1:].any():
+            return win, holes
+        margin *= 4
+
+
+def fill_holes(win: SourceWindow, holes: Holes, how: str) -> np.ndarray:
+    """``win.values`` with every NoData region inside the extent filled: ``"fill-max"`` (the
+    highest valid height on its rim), ``"fill-min"`` (the lowest; for grounds under a ceiling)
+    or ``"fill-nearest"`` (each pixel the nearest valid pixel).  Regions reaching outside the
+    extent stay NaN."""
+    v = win.values.copy()
+    interior = holes.interior
+    if not interior.any():
+        return v
+    if how == "fill-max":
+        v[interior] = holes.rim_max[holes.labels[interior]]
+    elif how == "fill-min":
+        v[interior] = holes.rim_min[holes.labels[interior]]
+    elif how == "fill-nearest":
+        from scipy.ndimage import distance_transform_edt
+
+        _, (ri, ci) = distance_transform_edt(np.isnan(v), return_indices=True)
+        v[interior] = v[ri, ci][interior]
+    else:
+        raise InputError(f"nodata policy {how!r} must be one of {NODATA_POLICIES}")
+    return v
+
+
+def coverage_problem(win: SourceWindow, holes: Holes, grid: Grid, *, what: str, key: str,
+                     holes_allowed: bool = True) -> str | None:
+    """The message for AOI cells the raster cannot give (None if every cell is covered):
+    cells outside the data's extent (or in NoData regions reaching its edge) are distinguished
+    from cells over NoData holes inside the extent (refused when ``holes_allowed`` is False)."""
+    outside_px = np.isnan(win.values) & ~holes.interior
+    out_cells = np.isnan(footprint_resample(np.where(outside_px, np.nan, 0.0), win.transform, win.crs, grid))
+    if out_cells.any():
+        return (f"{key}: covers only {100 * (1 - out_cells.mean()):.1f} % of the AOI: {int(out_cells.sum())} cells "
+                f"are outside the raster's extent (or in NoData regions that reach its edge); shrink aoi.bounds "
+                f"to the {what} or add tiles")
+    if not holes_allowed:
+        hole_cells = np.isnan(footprint_resample(np.where(holes.interior, np.nan, 0.0), win.transform, win.crs, grid))
+        if hole_cells.any():
+            return (f"{key}: {holes.n_interior} NoData hole(s) inside the raster's extent cover "
+                    f"{100 * hole_cells.mean():.2f} % of the AOI ({int(hole_cells.sum())} cells) and nodata is "
+                    f"'error'; fill them or set {key}.nodata: fill-max")
+    return None
 
 
 @numba.njit(cache=True)

@@ -234,7 +234,7 @@ def environment_risk_dataset(
     default_level: int | None = None, level5_nofly: bool = False, nofly_zones: str | Path | None = None,
     landing_geojson: str | Path | None = None, osm_landing_sites: bool = True,
     min_area_m2: float = DEFAULT_MIN_AREA_M2, normalization: str = "map",
-    landing_max_distance_m: float | None = None,
+    landing_max_distance_m: float | None = None, building_mask: np.ndarray | None = None,
 ) -> xr.Dataset:
     """Risk levels, risk cost, no-fly mask, landing sites, distance and cost in one Dataset.
 
@@ -247,7 +247,7 @@ def environment_risk_dataset(
                                    default_level=table.default_level if default_level is None else default_level)
     else:
         levels = risk_levels(grid, osm_path=osm_path, cityjson_path=cityjson_path, tag_table=table,
-                             default_level=default_level)
+                             default_level=default_level, building_mask=building_mask)
     ds = xr.Dataset({"risk_level": levels,
                      "risk_cost": risk_cost(levels, level5_nofly=level5_nofly, normalization=normalization)})  # type: ignore[arg-type]
     nofly = nofly_mask(levels, nofly_zones, level5_nofly=level5_nofly, grid=grid)

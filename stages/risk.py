@@ -349,11 +349,13 @@ def _levels_dataarray(grid: Grid, levels: np.ndarray, **extra: Any) -> xr.DataAr
 
 def risk_levels(grid: Grid, osm_path: str | Path | None = None, cityjson_path: str | Path | None = None,
                 tag_table: str | Path | Mapping | TagTable | None = None,
-                default_level: int | None = None) -> xr.DataArray:
+                default_level: int | None = None, building_mask: np.ndarray | None = None) -> xr.DataArray:
     """Ground-risk level 1..6 of every cell (int8) from OSM and/or CityJSON features.
 
-    ``default_level`` (None: the table's, 4) fills cells covered by no feature.  See the
-    module docstring for the rules and the precedence (highest level wins).
+    ``default_level`` (None: the table's, 4) fills cells covered by no feature.
+    ``building_mask``: (y, x) bool cells that are roofs by another source (a DSM's
+    ``dsm_building``), a feature of level 3 (building roofs).  See the module docstring for
+    the rules and the precedence (highest level wins).
     """
     table = load_tag_table(tag_table)
     if default_level is None:
@@ -368,6 +370,9 @@ def risk_levels(grid: Grid, osm_path: str | Path | None = None, cityjson_path: s
     if cityjson_path is not None:
         out = np.maximum(out, _cityjson_levels(cityjson_path, grid, table))
         sources.append(f"cityjson:{Path(cityjson_path).name}")
+    if building_mask is not None:
+        out = np.maximum(out, np.where(np.asarray(building_mask, bool), np.uint8(3), np.uint8(0)))
+        sources.append("dsm:buildings")
     covered = out > 0
     out[~covered] = default_level
     return _levels_dataarray(grid, out, default_level=int(default_level), tag_table=table.source,

@@ -46,6 +46,26 @@ touching polygon of the polygon's height over the part inside the cell:
 The cost grows with the polygons' perimeter and area in cells (vertices, grid-line crossings,
 interior cell corners), not with the grid.  :func:`~skyroute.stages.grid.ring_cells` (centre-in
 scanline fill) stays for land use, where a cell takes the class at its centre.
+
+DEM and DSM rasters (``data.terrain``, ``data.surface``)
+-------------------------------------------------------
+Both are read by window at their native resolution (a GeoTIFF, a VRT or a list of tiles) and
+resampled to the grid by the footprint max (:func:`~skyroute.stages.grid.footprint_resample`:
+every source pixel overlapping the cell counts, in any CRS), never bilinearly: ``surface`` is
+the highest point of the DSM over the cell (and of the buildings: surface = max of both);
+``terrain`` the highest ground over the cell (minimum-AGL floors) and ``terrain_min`` the lowest
+(maximum-AGL ceilings).  NoData: each connected region inside the extent takes the highest height
+on its rim (DSM ``nodata: fill-max``, the default; ``fill-nearest``; ``error``); a DEM's holes take
+the highest rim height for ``terrain`` and the lowest for ``terrain_min``; regions touching the
+raster's edge are outside its extent, and AOI cells outside the extent are an error saying so.
+A DSM without a DEM: the ground is the grey opening of the DSM (:func:`ground_from_dsm`, square
+window ``ground_window_m``, default 60 m, wider than the largest building), said in the attrs
+(``ground_source``) and as a stage warning; ``dsm_building`` marks cells whose every DSM pixel is
+more than ``building_threshold_m`` (2.5 m) above it (with a DEM: the cell's lowest DSM point above
+its highest ground point), which the risk map takes as roofs (level 3).
+What a DSM cannot tell: tall vegetation (a tree canopy wider than a cell) from a roof; a building
+wider than the window from ground (its roof becomes ground: AGL floors relative to the roof, higher
+and safe; AGL ceilings also relative to the roof, too high by the building's height).
 """
 
 from __future__ import annotations
@@ -64,7 +84,14 @@ from scipy.interpolate import NearestNDInterpolator
 from scipy.spatial import Delaunay, QhullError
 
 from skyroute.pipeline.errors import DataError, InputError
-from skyroute.stages.grid import Grid, warp_to_grid
+from skyroute.stages.grid import (
+    NODATA_POLICIES,
+    Grid,
+    coverage_problem,
+    fill_holes,
+    footprint_resample,
+    read_window_holes,
+)
 from skyroute.stages.osm import read_osm
 
 STOREY_HEIGHT_M = 3.0
@@ -506,13 +533,20 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
     return raster, gpts
 
 
-def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None = None) -> np.ndarray:
+def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None = None, *,
+                        lowest: bool = False) -> np.ndarray:
     """Terrain [m] from scattered ground points ``(n, 3)``: linear on their Delaunay triangles, each
     cell the maximum of that surface over the cell (:func:`polygon_max`; conservative for floors,
     like the surface); cells outside the points' hull take the nearest point's height.
+    ``lowest``: the minimum over each cell instead (for maximum-AGL ceilings; the same kernel on
+    the negated heights, exact for the linear interpolation).
 
     ``tin`` (CityJSON ``TINRelief``, :attr:`BuildingRaster.terrain`): where finite, it replaces
-    the interpolation (the TIN's maximum over the cell)."""
+    the interpolation (the TIN's maximum over the cell; ignored with ``lowest``, where the TIN's
+    vertices, which are among ``points``, are interpolated on their own Delaunay triangles)."""
+    if lowest:
+        pts = np.asarray(points, np.float64).reshape(-1, 3) * np.array([1.0, 1.0, -1.0])
+        return -terrain_from_points(pts, grid)
     out = np.zeros(grid.shape)
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     if len(pts):
@@ -541,34 +575,120 @@ def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None =
     return out
 
 
-def terrain_from_dem(path: str | Path, grid: Grid) -> np.ndarray:
-    """A GeoTIFF DEM reprojected and resampled (bilinear) to ``grid`` [m]; small nodata holes are
-    filled from the nearest valid cell; an AOI outside the DEM is an error."""
-    p = Path(path)
-    out = warp_to_grid(p, grid, what="terrain", resampling="bilinear")
-    bad = ~np.isfinite(out)
-    if bad.all():
-        raise DataError(f"terrain {p} has no valid height inside the AOI")
-    if bad.mean() > 0.05:
-        raise DataError(f"terrain {p} covers only {100 * (1 - bad.mean()):.1f} % of the AOI; shrink aoi.bounds to the DEM")
-    if bad.any():
-        from scipy.ndimage import distance_transform_edt
+def terrain_from_dem(path: str | Path | list, grid: Grid, *, key: str = "data.terrain") -> tuple[np.ndarray, np.ndarray]:
+    """A DEM (GeoTIFF, VRT or list of tiles) on ``grid`` [m] as two bounds of the ground over
+    each cell: ``(max, min)`` over every DEM pixel overlapping the cell's footprint
+    (:func:`~skyroute.stages.grid.footprint_resample`; the max for minimum-AGL floors, the min
+    for maximum-AGL ceilings).  NoData holes inside the DEM's extent take the highest (for the
+    max) / lowest (for the min) valid height on their rim; AOI cells outside the extent are an
+    error that says so (``key`` names the scenario entry)."""
+    win, holes = read_window_holes(path, grid, what="terrain")
+    msg = coverage_problem(win, holes, grid, what="terrain DEM", key=key)
+    if msg:
+        raise DataError(msg)
+    hi = footprint_resample(fill_holes(win, holes, "fill-max"), win.transform, win.crs, grid, "max")
+    lo = footprint_resample(fill_holes(win, holes, "fill-min"), win.transform, win.crs, grid, "min")
+    return hi, lo
 
-        _, (ri, ci) = distance_transform_edt(bad, return_indices=True)
-        out = out[ri, ci]
+
+#: Default side [m] of the square window of the grey opening that derives the ground from a DSM.
+GROUND_WINDOW_M = 60.0
+#: Default height [m] above the ground from which a DSM cell counts as a building (risk level 3).
+BUILDING_THRESHOLD_M = 2.5
+
+
+@dataclass(frozen=True)
+class DsmRaster:
+    """A DSM on the grid: ``surface`` (footprint max) [m]; ``ground`` / ``ground_min`` (footprint
+    max / min of the derived ground, None when not derived); ``building`` (every point of the cell
+    higher than ground + threshold); ``n_holes`` filled; ``notes`` for the attrs."""
+
+    surface: np.ndarray
+    surface_min: np.ndarray
+    ground: np.ndarray | None
+    ground_min: np.ndarray | None
+    building: np.ndarray | None
+    n_holes: int
+    notes: str
+
+
+def ground_from_dsm(dsm: np.ndarray, pixel_m: float, window_m: float = GROUND_WINDOW_M) -> np.ndarray:
+    """Bare ground [m] under a DSM (square pixels of ``pixel_m`` [m]; NaN pixels take no part and
+    stay NaN): the grey opening (erosion then dilation, :func:`scipy.ndimage.grey_erosion` /
+    ``grey_dilation``) with a square window of side ``window_m`` [m] (odd number of pixels).  Every object narrower than the window in some
+    direction (buildings, trees, masts) is removed; the result is never above the DSM.  Buildings
+    wider than the window stay (their roof is taken as ground), hill tops and ridges narrower than
+    the window are lowered by the opening."""
+    if not (np.isfinite(window_m) and window_m > 0):
+        raise InputError(f"ground window {window_m} m must be positive (wider than the largest building)")
+    k = int(np.ceil(window_m / pixel_m)) | 1
+    from scipy.ndimage import grey_dilation, grey_erosion
+
+    # NaN (outside the extent) takes no part: +inf in the erosion (min), -inf in the dilation (max)
+    nan = np.isnan(dsm)
+    ero = grey_erosion(np.where(nan, np.inf, dsm), size=(k, k), mode="nearest")
+    ero[nan] = -np.inf
+    out = grey_dilation(ero, size=(k, k), mode="nearest")
+    out[nan] = np.nan
     return out
+
+
+def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bool = True,
+                ground_window_m: float = GROUND_WINDOW_M, building_threshold_m: float = BUILDING_THRESHOLD_M,
+                key: str = "data.surface") -> DsmRaster:
+    """A DSM (GeoTIFF, VRT or list of tiles, read by window at its native resolution) on ``grid``:
+    NoData holes inside the extent follow ``nodata`` (``fill-max``: each connected hole the
+    highest valid height on its rim; ``fill-nearest``; ``error``), then the max over every cell's
+    footprint; with ``derive_ground`` also the ground (:func:`ground_from_dsm`, then footprint max
+    and min) and the building mask (cells all of whose DSM pixels are more than
+    ``building_threshold_m`` above the derived ground); ``surface_min``: the DSM's footprint min."""
+    if nodata not in NODATA_POLICIES:
+        raise InputError(f"{key}.nodata: {nodata!r} is not one of {', '.join(NODATA_POLICIES)}")
+    win, holes = read_window_holes(path, grid, what="surface DSM")
+    msg = coverage_problem(win, holes, grid, what="surface DSM", key=key, holes_allowed=nodata != "error")
+    if msg:
+        raise DataError(msg)
+    filled = fill_holes(win, holes, nodata if nodata != "error" else "fill-max")
+    surface = footprint_resample(filled, win.transform, win.crs, grid, "max")
+    surface_min = footprint_resample(filled, win.transform, win.crs, grid, "min")
+    notes = f"NoData holes inside the extent: {holes.n_interior} ({nodata})"
+    if not derive_ground:
+        return DsmRaster(surface, surface_min, None, None, None, holes.n_interior, notes)
+    px = abs(win.transform.a)
+    ok = np.isfinite(filled)
+    g_src = ground_from_dsm(filled, px, ground_window_m)
+    ground = footprint_resample(g_src, win.transform, win.crs, grid, "max")
+    ground_min = footprint_resample(g_src, win.transform, win.crs, grid, "min")
+    high = np.where(ok, (filled - g_src > building_threshold_m).astype(np.float64), np.nan)
+    building = footprint_resample(high, win.transform, win.crs, grid, "min") > 0.5
+    notes += (f"; ground derived from the DSM by a grey opening with a {ground_window_m:g} m square window "
+              f"({int(np.ceil(ground_window_m / px)) | 1} px of {px:g} m); buildings: more than "
+              f"{building_threshold_m:g} m above it over the whole cell (tall vegetation is not told apart)")
+    return DsmRaster(surface, surface_min, ground, ground_min, building, holes.n_interior, notes)
 
 
 def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | None = None,
                   storey_height_m: float = STOREY_HEIGHT_M, terrain_path=None,
-                  vertical_datum: str | None = None) -> xr.Dataset:
-    """Digital surface model of ``grid`` from buildings (OSM or CityJSON) and terrain (GeoTIFF).
+                  vertical_datum: str | None = None, surface_path=None, surface_datum: str | None = None,
+                  surface_nodata: str = "fill-max", ground_window_m: float = GROUND_WINDOW_M,
+                  building_threshold_m: float = BUILDING_THRESHOLD_M) -> xr.Dataset:
+    """Digital surface model of ``grid`` from buildings (OSM or CityJSON), terrain (a DEM) and/or
+    a DSM (``surface_path``: GeoTIFF, VRT or list of tiles; heights in ``surface_datum``).
 
-    Returns a Dataset with ``terrain``, ``surface``, ``building_id`` and a building table;
-    see the module docstring for the rules and the vertical datum.
+    Returns a Dataset with ``terrain`` (ground: max over the cell), ``terrain_min`` (ground: min
+    over the cell), ``surface`` (max of the DSM and the buildings over the cell), ``building_id``
+    and a building table; with a DSM also ``dsm_building``.  Ground: the DEM if given, else the
+    DSM's ground (:func:`ground_from_dsm`; said in the attrs and in ``warnings``), else CityJSON
+    ground points, else flat 0 m.  See the module docstring for the rules and the vertical datum.
     """
     if buildings_format not in (None, "osm", "cityjson"):
         raise InputError(f"unknown buildings format {buildings_format!r}; use 'osm' or 'cityjson'")
+    if (surface_path is not None and terrain_path is not None and vertical_datum and surface_datum
+            and vertical_datum.strip().lower() != surface_datum.strip().lower()):
+        raise InputError(f"data.surface.vertical_datum {surface_datum!r} differs from data.terrain.vertical_datum "
+                         f"{vertical_datum!r}: convert one of them so both heights are in one datum")
+    if surface_path is not None and not surface_datum:
+        raise InputError("data.surface.vertical_datum is required (e.g. 'NAP', 'EGM96 geoid', 'EGM2008')")
     ground_pts = np.zeros((0, 3))
     braster = None
     if buildings_path is not None:
@@ -578,34 +698,66 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
             braster = osm_buildings(buildings_path, grid, storey_height_m)
         if braster.index.max() < 0:
             raise DataError(f"the AOI does not intersect any building of {buildings_path}; check aoi.bounds")
+    dsm = None
+    if surface_path is not None:
+        dsm = dsm_on_grid(surface_path, grid, nodata=surface_nodata, derive_ground=terrain_path is None,
+                          ground_window_m=ground_window_m, building_threshold_m=building_threshold_m)
+    warns: list[str] = []
     if terrain_path is not None:
-        terrain = terrain_from_dem(terrain_path, grid)
+        terrain, terrain_min = terrain_from_dem(terrain_path, grid)
         datum = vertical_datum or "EGM96 geoid"
+        ground_src = "DEM (data.terrain), max / min over each cell"
+    elif dsm is not None:
+        terrain, terrain_min = dsm.ground, dsm.ground_min
+        datum = surface_datum
+        ground_src = dsm.notes.split("; ", 1)[1]
+        warns.append(f"surface: no DEM (data.terrain): the ground is derived from the DSM by a grey opening with a "
+                     f"{ground_window_m:g} m window; AGL limits, landing and the risk map's buildings use it; "
+                     "give data.terrain for a surveyed ground")
     elif len(ground_pts):
         terrain = terrain_from_points(ground_pts, grid, braster.terrain)
+        terrain_min = terrain_from_points(ground_pts, grid, lowest=True)
         datum = vertical_datum or "source data heights (CityJSON; NAP for Dutch data)"
+        ground_src = "CityJSON ground points, interpolated"
     else:
         terrain = np.zeros(grid.shape)
+        terrain_min = terrain
         datum = vertical_datum or "local ground (flat terrain, heights above ground level)"
+        ground_src = "flat 0 m"
     surface = terrain.copy()
     if braster is not None:
         has = braster.index >= 0
         top = braster.top if braster.absolute else terrain + braster.top
         surface[has] = np.maximum(terrain[has], top[has])
+    if dsm is not None:
+        surface = np.maximum(surface, dsm.surface)
     zattrs = {"units": "m", "vertical_datum": datum}
     ds = xr.Dataset({
-        "terrain": grid.dataarray(terrain.astype(np.float32), "terrain", long_name="ground height", **zattrs),
+        "terrain": grid.dataarray(terrain.astype(np.float32), "terrain",
+                                  long_name="ground height (highest over the cell)", **zattrs),
+        "terrain_min": grid.dataarray(terrain_min.astype(np.float32), "terrain_min",
+                                      long_name="ground height (lowest over the cell)", **zattrs),
         "surface": grid.dataarray(surface.astype(np.float32), "surface",
                                   long_name="top of terrain and buildings (flat-topped prism per cell)", **zattrs),
         "building_id": grid.dataarray(
             (braster.index if braster is not None else np.full(grid.shape, -1, np.int32)).astype(np.int32),
             "building_id", units="1", long_name="index into the building dimension, -1 where no building"),
     })
+    if dsm is not None:
+        # with a DEM: the lowest DSM point of the cell above its highest ground point
+        building = dsm.building if dsm.building is not None else dsm.surface_min - terrain > building_threshold_m
+        ds["dsm_building"] = grid.dataarray(
+            building, "dsm_building", units="1",
+            long_name=f"DSM more than {building_threshold_m:g} m above the ground over the whole cell")
     if braster is not None:
         ds["building_osm_id"] = ("building", braster.ids, {"units": "1", "long_name": "OSM id (or CityJSON index)"})
         ds["building_height_m"] = ("building", braster.heights_m.astype(np.float32),
                                    {"units": "m", "long_name": "building height (above ground for OSM, absolute roof top for CityJSON)"})
         ds["building_height_source"] = ("building", braster.sources.astype("U32"))
     ds.attrs.update({"title": "skyroute surface model", "vertical_datum": datum,
-                     "resolution_m": grid.resolution_m, "Conventions": "CF-1.10"})
+                     "resolution_m": grid.resolution_m, "Conventions": "CF-1.10", "ground_source": ground_src})
+    if dsm is not None:
+        ds.attrs["dsm"] = dsm.notes
+    if warns:
+        ds.attrs["warnings"] = json.dumps(warns)
     return ds

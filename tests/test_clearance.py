@@ -213,3 +213,86 @@ def test_bad_input(srtm_patch):
         C.altitude_bounds(srtm_patch, 100.0, 50.0)
     with pytest.raises(InputError, match="zmin_m <= zmax_m"):
         C.nofly_volume(srtm_patch > 1000, 5.0, 80.0, 50.0)
+
+
+def test_agl_floor_and_ceiling_hold_at_every_point_of_the_cell():
+    """The minimum-AGL floor uses the highest DEM pixel under the cell, the maximum-AGL ceiling
+    the lowest: at random points inside cells (misaligned 45 m grid on the 30 m SRTM), the
+    ground under the point (its DEM pixel) is <= floor - min_agl and >= ceiling - max_agl."""
+    import rasterio
+
+    from skyroute.pipeline.settings import catalog_dir
+    from skyroute.stages.surface import build_surface
+
+    path = catalog_dir() / "data" / "srtm_bigtujunga30m_utm11.tif"
+    with rasterio.open(path) as src:
+        dem, T, b = src.read(1).astype(float), src.transform, src.bounds
+        crs = src.crs.to_string()
+    g = Grid.from_bounds(crs, b.left + 2017, b.bottom + 3011, b.left + 5000, b.bottom + 6000, 45.0)
+    ds = build_surface(g, terrain_path=path, vertical_datum="EGM96 geoid")
+    ab = C.altitude_bounds(ds["terrain"], 30.0, 120.0, terrain_min=ds["terrain_min"])
+    rng = np.random.default_rng(4)
+    n = 20000
+    r, c = rng.integers(0, g.ny, n), rng.integers(0, g.nx, n)
+    x = g.x0 + (c + rng.uniform(0, 1, n)) * g.resolution_m
+    y = g.y1 - (r + rng.uniform(0, 1, n)) * g.resolution_m
+    col, row = ~T * (x, y)
+    ground = dem[np.floor(row).astype(int), np.floor(col).astype(int)]
+    assert np.all(ab["floor_m"].values[r, c] - 30.0 >= ground - 1e-4)
+    assert np.all(ab["ceiling_m"].values[r, c] - 120.0 <= ground + 1e-4)
+    # both bounds are tight: some point of each cell sits on them (max / min over the cell)
+    assert np.isclose(ab["floor_m"].values[r, c] - 30.0, ground, atol=1e-3).mean() > 0.1
+    # a centre-sampled (or bilinear) ground would not hold: it is above some point's ground by metres
+    centre = dem[np.floor((~T * (g.x[c], g.y[r]))[1]).astype(int), np.floor((~T * (g.x[c], g.y[r]))[0]).astype(int)]
+    assert (ground - centre).max() > 5.0
+    with pytest.raises(InputError, match="terrain_min is above terrain"):
+        C.altitude_bounds(ds["terrain_min"], 30.0, 120.0, terrain_min=ds["terrain"])
+
+
+def test_native_floor_is_the_highest_exact_floor_of_each_cell():
+    """clearance_floor_native: a 0.5 m raster's cell-mode floor, max over each grid cell, equals
+    the exact highest floor over the cell (brute force: max over the prisms within r of the cell's
+    square of h + sqrt(r^2 - gap^2)) on an aligned 1 m grid; on a misaligned 1.3 m grid it is that
+    over the cell grown to the 0.5 m pixels it overlaps; >= the oracle floor at random points."""
+    from affine import Affine
+
+    from skyroute.stages.grid import footprint_resample
+
+    rng = np.random.default_rng(8)
+    z = rng.uniform(0, 3, (60, 60))
+    z[20:24, 30:31] = 40.0                   # a 0.5 m x 2 m mast
+    z[40:50, 10:25] = 15.0
+    T = Affine(0.5, 0, 1000.0, 0, -0.5, 2000.0)
+    fine = Grid("EPSG:32635", 1000.0, 2000.0, 60, 60, 0.5).dataarray(z, "surface")
+    px0 = 1000.0 + 0.5 * np.arange(60)
+    py1 = 2000.0 - 0.5 * np.arange(60)
+    r = 5.0
+
+    def exact_over(X0, X1, Y0, Y1):
+        gy = np.maximum(np.maximum((py1 - 0.5) - Y1, Y0 - py1), 0.0)[:, None]
+        gx = np.maximum(np.maximum(px0 - X1, X0 - (px0 + 0.5)), 0.0)[None, :]
+        gap2 = gx * gx + gy * gy
+        return np.max(np.where(gap2 <= r * r, z + np.sqrt(np.maximum(r * r - gap2, 0.0)), -np.inf))
+
+    for g, snap in ((Grid("EPSG:32635", 1003.0, 1997.0, 24, 24, 1.0), False),
+                    (Grid("EPSG:32635", 1003.1, 1996.7, 18, 18, 1.3), True)):
+        got = C.clearance_floor_native(z, T, "EPSG:32635", g, r)
+        ref = np.empty(g.shape)
+        for i in range(g.ny):
+            for j in range(g.nx):
+                X0, Y1 = g.x0 + g.resolution_m * j, g.y1 - g.resolution_m * i
+                X1, Y0 = X0 + g.resolution_m, Y1 - g.resolution_m
+                if snap:
+                    X0, X1 = np.floor(X0 * 2) / 2, np.ceil(X1 * 2) / 2
+                    Y0, Y1 = np.floor(Y0 * 2) / 2, np.ceil(Y1 * 2) / 2
+                ref[i, j] = exact_over(X0, X1, Y0, Y1)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+        xs = g.x0 + rng.uniform(0, g.nx * g.resolution_m, 800)
+        ys = g.y1 - rng.uniform(0, g.ny * g.resolution_m, 800)
+        rr, cc = g.index_of(xs, ys)
+        assert np.all(got[rr, cc] >= exact_floor(fine, r, xs, ys) - 1e-9)
+        # the floor of the resampled surface: also safe, but metres higher near edges
+        coarse = C.clearance_floor(g.dataarray(footprint_resample(z, T, "EPSG:32635", g), "surface"), r).values
+        assert (coarse - got).max() > 2.0
+        assert snap or np.all(coarse[6:-6, 6:-6] >= got[6:-6, 6:-6] - 1e-9)   # (it ignores prisms off the grid)
+    assert C.clearance_floor_native(z, Affine(0.5, 0, 1000.0, 0, -0.4, 2000.0), "EPSG:32635", g, r) is None

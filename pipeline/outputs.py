@@ -103,6 +103,7 @@ def revalidate(result: RunResult, chosen) -> list[str]:
             return np.column_stack(sample_wind(wmap, p[:, 0], p[:, 1], agl))
     intr = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else ()
     return validate_plan(chosen, grid=sc.grid, terrain_m=surface["terrain"].values, vehicle=sc.vehicle,
+                         terrain_min_m=surface["terrain_min"].values if "terrain_min" in surface else None,
                          clearance_floor_m=clear["obstacle_floor_m"].values, gnss_floor_m=gnss,
                          min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
                          nofly=clear["nofly"].values, wind=wind, intruders=intr, d_c_m=sc.traffic.margin_m,

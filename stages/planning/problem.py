@@ -842,7 +842,10 @@ def build_problem(surface_ds: xr.Dataset, clearance_floor, coverage_floor_j, ris
     if cover is not None:
         floor = np.maximum(floor, np.where(np.isfinite(cover), cover, np.inf))
     floor = np.where(nf, np.inf, floor)
-    ceiling = terrain + float(max_agl_m)
+    # maximum AGL: relative to the LOWEST ground in the cell (``terrain_min`` where the surface
+    # stage has it), so the ceiling holds at every point of the cell
+    ground_low = _raster(surface_ds["terrain_min"], shape, "terrain_min") if "terrain_min" in surface_ds else terrain
+    ceiling = ground_low + float(max_agl_m)
     wuvw, wz, wg = _wind_arrays(wind, grid)
     for name, p in (("start_xyz", start_xyz), ("goal_xyz", goal_xyz)):
         if np.asarray(p, dtype=float).shape != (3,):

@@ -87,7 +87,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     wind_map = wind.load() if wind is not None else None
     cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
     veh = load_vehicle(vehicle)
-    surf = surface[["terrain", "surface"]].load()
+    surf = surface[[v for v in ("terrain", "terrain_min", "surface") if v in surface]].load()
     surface_2d = surf["surface"].values
     clear = clearance["min_altitude_m"].load()
     nofly = clearance["nofly"].load() if "nofly" in clearance else None

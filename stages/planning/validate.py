@@ -128,7 +128,7 @@ def _wind_at(wind, pts: np.ndarray) -> np.ndarray | None:
     return w
 
 
-def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile | str,
+def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile | str, terrain_min_m=None,
                   clearance_floor_m=None, gnss_floor_m=None, floor_m=None, ceiling_m=None,
                   min_agl_m: float | None = None, max_agl_m: float | None = None,
                   nofly=None, wind: np.ndarray | Callable | None = None,
@@ -138,7 +138,8 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
     """Every violation of the bounds by the trajectory samples of ``candidate`` (see module doc).
 
     Rasters (``(ny, nx)`` arrays or DataArrays on ``grid`` [m], datum of the surface):
-    ``terrain_m`` (ground, for AGL), ``clearance_floor_m``, ``gnss_floor_m`` (NaN = no
+    ``terrain_m`` (ground, for AGL; with ``terrain_min_m``, the lowest ground of each cell, the
+    maximum AGL is checked against it), ``clearance_floor_m``, ``gnss_floor_m`` (NaN = no
     altitude has coverage: forbidden), ``floor_m`` / ``ceiling_m`` (any combined bounds),
     ``nofly`` (bool). ``min_agl_m`` / ``max_agl_m`` [m] default to the vehicle's altitude
     limits.  ``wind``: (3,) [m/s] or callable ``points (m,3) -> (m,3)``.  ``intruders``:
@@ -195,6 +196,8 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
     bad = agl < lo - tol_m
     if bad.any():
         out.append(f"below the minimum altitude {lo} m AGL (lowest {float(agl[bad].min()):.2f} m): {_where(bad, ti, pi)}")
+    if terrain_min_m is not None:
+        agl = z - _raster(terrain_min_m, grid, "terrain_min_m")[r, c]
     bad = agl > hi + tol_m
     if bad.any():
         out.append(f"above the maximum altitude {hi} m AGL (highest {float(agl[bad].max()):.2f} m): {_where(bad, ti, pi)}")

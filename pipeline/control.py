@@ -161,6 +161,9 @@ def mark_reported() -> None:
 
 
 def _hard_exit(code: int) -> None:
+    if os.environ.get("SKYROUTE_DEBUG_INTERRUPT"):
+        import faulthandler
+        faulthandler.dump_traceback(all_threads=True)
     if not _printed.is_set():
         _printed.set()
         with contextlib.suppress(OSError):

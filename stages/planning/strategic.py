@@ -116,7 +116,8 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                         step_cells=step_cells, max_iterations=max_iterations, h2=h2)
         if not s1.solved:
             ticker.phase(problem.label, None)
-            return s1, None, _empty(problem.label, d, [f"STEP I: {s1.reason or s1.status}"], tl, s1.status)
+            why = (s1.reason or s1.status).removeprefix(f"{problem.label}: ")
+            return s1, None, _empty(problem.label, d, [f"STEP I: {why}"], tl, s1.status)
         ticker.phase(problem.label, "STEP II")
         s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=LEVEL_CAP_FACTOR * time_budget_s)
         if s2.status == "failed":

@@ -86,6 +86,8 @@ def test_signal_stops_run_and_cache_stays_consistent(tmp_path, clean, sig, code,
         assert (e.path / "skyroute.json").is_file()
         c.open(e).load()
     assert stage not in {e.stage for e in c.entries()}
+    if sig != signal.SIGINT:          # the resumed run does not depend on the signal: once is enough
+        return
     # a second run completes and gives the clean run's outputs
     res = _run(RUN, cache, out)
     assert res.returncode == 0, res.stderr

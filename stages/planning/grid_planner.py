@@ -407,11 +407,17 @@ _DIRS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1
 _DIRS /= np.linalg.norm(_DIRS, axis=1)[:, None]
 
 
+RELAX_MAX_SEGMENTS = 40_000   # segment evaluations of one relaxation: Helsinki's levels use ~26 k,
+#                               a 23 km mountain mission on a 30 m grid would use > 250 k (2 ms per 26)
+
+
 def relax_vertices(problem: PlanningProblem, wp: np.ndarray, step0_m: float, min_step_m: float = 0.05,
-                   max_passes: int = 30, deadline: float = math.inf) -> np.ndarray:
+                   max_passes: int = 30, deadline: float = math.inf,
+                   max_segments: int = RELAX_MAX_SEGMENTS) -> np.ndarray:
     """Pattern search on each interior vertex (26 directions, step halving): move it while the
-    two adjacent segments stay valid and their f decreases; stops (keeping every move made so
-    far) when ``time.perf_counter()`` passes ``deadline``."""
+    two adjacent segments stay valid and their f decreases.  Stops, keeping every move made so
+    far, after ``max_segments`` segment evaluations (a work bound: the same result on any
+    machine) or when ``time.perf_counter()`` passes ``deadline`` (the level's wall-clock cap)."""
     wp = np.array(wp, float)
     k = len(wp)
     if k <= 2:
@@ -419,19 +425,21 @@ def relax_vertices(problem: PlanningProblem, wp: np.ndarray, step0_m: float, min
     steps = [step0_m]
     while steps[-1] / 2 >= min_step_m:
         steps.append(steps[-1] / 2)
+    evals = 0
     for _ in range(max_passes):
         improved = False
         for i in range(1, k - 1):
             control.check()
-            if time.perf_counter() > deadline:
+            if time.perf_counter() > deadline or evals >= max_segments:
                 return wp
             fa, _ = _seg_f(problem, wp[i - 1:i], wp[i:i + 1])
             fb, _ = _seg_f(problem, wp[i:i + 1], wp[i + 1:i + 2])
             best = float(fa[0] + fb[0])
             for s in steps:
                 moved = True
-                while moved:
+                while moved and evals < max_segments:
                     moved = False
+                    evals += 2 * len(_DIRS)
                     cand = wp[i] + s * _DIRS
                     fa, _ = _seg_f(problem, np.repeat(wp[i - 1:i], len(cand), 0), cand)
                     fb, _ = _seg_f(problem, cand, np.repeat(wp[i + 1:i + 2], len(cand), 0))

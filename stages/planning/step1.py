@@ -121,7 +121,7 @@ def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, se
         t = time.perf_counter()
         wp = refine_path(problem, wp, time_limit_s=deadline - t)
         if time.perf_counter() > deadline:
-            info["stopped_by"] = "time"
+            info["refine_stopped_by"] = "time"
     return wp, info
 
 
@@ -173,7 +173,7 @@ def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s
         prob = problem if attempt == 0 else problem.with_weights(w)
         wp, inf = _solve_once(prob, planner, time_budget_s, seed + attempt, refine, step_cells, max_iterations,
                               h2 if attempt == 0 else None, deadline)
-        if inf.get("stopped_by") == "time":
+        if "time" in (inf.get("stopped_by"), inf.get("refine_stopped_by")):
             info["stopped_by"] = "time"
         if wp is None:
             info["tries"].append({"weights": tuple(w), "solved": False, **inf})

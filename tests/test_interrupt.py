@@ -33,11 +33,11 @@ def _run(args, cache: Path, out: Path, **kw) -> subprocess.CompletedProcess:
                           timeout=600, **kw)
 
 
-def _interrupt(sig: int, cache: Path, out: Path, stage: str) -> tuple[int, float, str]:
-    """Start the run, wait until ``stage`` is computing, send ``sig``; (exit code, seconds from
-    the signal to the exit, stderr)."""
+def _interrupt(sig: int, cache: Path, out: Path, stage: str, args) -> tuple[int, float, str]:
+    """Start the command, wait until ``stage`` is computing, send ``sig``; (exit code, seconds
+    from the signal to the exit, stderr)."""
     env = {**os.environ, "SKYROUTE_CACHE_DIR": str(cache)}
-    p = subprocess.Popen([*SKYROUTE, "-v", *RUN, "--out", str(out)], stdout=subprocess.DEVNULL,
+    p = subprocess.Popen([*SKYROUTE, "-v", *args, "--out", str(out)], stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, env=env)
     sel = selectors.DefaultSelector()
     sel.register(p.stderr, selectors.EVENT_READ)
@@ -48,7 +48,7 @@ def _interrupt(sig: int, cache: Path, out: Path, stage: str) -> tuple[int, float
         assert time.monotonic() < t_end and p.poll() is None, err.decode()[-2000:]
         if sel.select(timeout=1.0):
             err += os.read(p.stderr.fileno(), 65536)
-    time.sleep(1.0)                       # inside the stage's computation
+    time.sleep(1.5)                       # inside the stage's computation
     assert p.poll() is None, "the run ended before the signal"
     t0 = time.monotonic()
     p.send_signal(sig)
@@ -72,10 +72,13 @@ def clean(tmp_path_factory):
     return tmp / "out"
 
 
-@pytest.mark.parametrize("sig, code, stage", [(signal.SIGINT, 130, "coverage"), (signal.SIGTERM, 143, "coverage")])
-def test_signal_stops_run_and_cache_stays_consistent(tmp_path, clean, sig, code, stage):
+@pytest.mark.parametrize("sig, code, stage, args", [
+    (signal.SIGINT, 130, "coverage", RUN),                   # dask computation of the coverage maps
+    (signal.SIGTERM, 143, "plan", ["plan", "helsinki-medical", "-q"]),   # the planner's level threads
+])
+def test_signal_stops_run_and_cache_stays_consistent(tmp_path, clean, sig, code, stage, args):
     cache, out = tmp_path / "c", tmp_path / "out"
-    rc, dt, err = _interrupt(sig, cache, out, stage)
+    rc, dt, err = _interrupt(sig, cache, out, stage, args)
     assert rc == code, err[-2000:]
     assert dt < 2.0
     assert err.rstrip().splitlines()[-1] == "interrupted"

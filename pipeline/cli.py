@@ -151,7 +151,7 @@ def _write_folder_summary(out_dir: Path, command: str, result, files, sections: 
     """summary.json of a folder-writing command (files relative to ``out_dir``, stage warnings
     printed on stderr), removing the files an earlier summary listed that were not rewritten."""
     from skyroute.pipeline.outputs import (
-        _previous_summary,
+        previous_summary,
         relative_files,
         remove_stale,
         stage_warnings,
@@ -159,7 +159,7 @@ def _write_folder_summary(out_dir: Path, command: str, result, files, sections: 
     )
 
     rel = relative_files(out_dir, files)
-    remove_stale(Path(out_dir), _previous_summary(Path(out_dir)), rel)
+    remove_stale(Path(out_dir), previous_summary(Path(out_dir)), rel, command)
     warnings = stage_warnings(result)
     _report_warnings(warnings)
     sc = result.scenario

@@ -13,7 +13,8 @@ Signals reach Python code only when the main thread runs bytecode; while it wait
 compiled call that releases the GIL, :func:`signal_handlers` still sees the signal at once: the
 C-level handler writes the signal number to a wake-up pipe that a watcher thread reads, sets
 the flag (so the kernels stop) and arms a watchdog that ends the process with the right exit
-code if it has not exited ``grace_s`` seconds later.  Cache entries stay consistent whatever
+code if it has not exited ``grace_s`` seconds later (with ``SKYROUTE_DEBUG_INTERRUPT=1`` it
+first dumps every thread's stack on stderr: the loop that does not check the flag).  Cache entries stay consistent whatever
 happens: an entry is written under ``tmp/`` and renamed into place only when complete
 (:mod:`skyroute.pipeline.cache`).
 
@@ -35,8 +36,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-__all__ = ["Interrupted", "StopFlag", "cancelled", "check", "exit_code", "note", "progress", "progress_enabled",
-           "request_cancel", "reset", "signal_handlers", "signal_received"]
+__all__ = ["Interrupted", "StopFlag", "cancelled", "check", "exit_code", "mark_reported", "note", "progress",
+           "progress_enabled", "request_cancel", "reset", "signal_handlers", "signal_received"]
 
 RUNNING, CANCELLED, DEADLINE = 0, 1, 2   # states of a StopFlag array (element 0)
 
@@ -163,6 +164,7 @@ def mark_reported() -> None:
 def _hard_exit(code: int) -> None:
     if os.environ.get("SKYROUTE_DEBUG_INTERRUPT"):
         import faulthandler
+
         faulthandler.dump_traceback(all_threads=True)
     if not _printed.is_set():
         _printed.set()

@@ -200,7 +200,7 @@ def write_summary(out_dir: Path, command: str, files: list[str], warnings: list[
     return doc
 
 
-def _previous_summary(out_dir: Path) -> dict[str, Any]:
+def previous_summary(out_dir: Path) -> dict[str, Any]:
     try:
         doc = json.loads((out_dir / "summary.json").read_text())
         return doc if isinstance(doc, dict) else {}
@@ -208,10 +208,14 @@ def _previous_summary(out_dir: Path) -> dict[str, Any]:
         return {}
 
 
-def remove_stale(out_dir: Path, previous: dict[str, Any], files: list[str]) -> None:
-    """Remove the files a previous summary of ``out_dir`` listed that this run did not write
-    (e.g. plan.geojson of a plan that no longer flies), so the folder holds what summary.json says."""
+def remove_stale(out_dir: Path, previous: dict[str, Any], files: list[str], command: str) -> None:
+    """Remove the files the previous summary of ``out_dir`` listed that this run did not write
+    (e.g. plan.geojson of a plan that no longer flies), so the folder holds what summary.json
+    says.  Only when that summary was written by the same ``command`` (a folder shared by two
+    commands keeps the other command's files)."""
     out_dir = Path(out_dir)
+    if previous.get("command") != command:
+        return
     keep = {Path(f).as_posix() for f in files}
     for f in previous.get("files", []):
         p = out_dir / f
@@ -231,7 +235,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run") ->
     out_dir = Path(out_dir)
     (out_dir / "datasets").mkdir(parents=True, exist_ok=True)
     (out_dir / "figures").mkdir(exist_ok=True)
-    previous = _previous_summary(out_dir)
+    previous = previous_summary(out_dir)
     prev_keys = previous.get("output_keys", {})
     prev_files = previous.get("files", [])
     keys = {r.name: r.key for r in result.records}
@@ -267,7 +271,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run") ->
         files.extend(plan_files)
         sections["plan"] = plan_section(result["plan"])
     sc = result.scenario
-    remove_stale(out_dir, previous, files)
+    remove_stale(out_dir, previous, files, command)
     sections = {
         "scenario": sc.name,
         "description": sc.description,

@@ -4,6 +4,7 @@ a long wall-clock budget per level as the reference best f.
 
     python benchmarks/bench_planner.py                  # A* (1 and 2 workers) + BIT* 5 s
     python benchmarks/bench_planner.py --ref-s 60       # + BIT* 60 s per level (slow: ~3 min per case)
+    python benchmarks/bench_planner.py --scenarios all  # cold `skyroute run` and plan-stage time per scenario
 
 Cases: ``helsinki-medical`` (the scenario mission, 0.83 km) and a >= 2.5 km SW -> NE diagonal
 across ``monaco-helipads`` (both points 60 m AGL, nudged to the nearest state valid on the
@@ -24,6 +25,7 @@ import math
 import os
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -104,14 +106,69 @@ def _fmt(values, nd=0) -> str:
     return " ".join(f"{v:.{nd}f}" if np.isfinite(v) else "-" for v in values)
 
 
+def scenario_times(names: list[str], cache_root: str) -> list[tuple]:
+    """Per catalog scenario: the cold ``skyroute run`` wall time (fresh cache, a subprocess, as
+    a user runs it), then the plan stage alone with the maps cached (``--force plan``, the
+    stage's own time from summary.json), the slowest level's STEP I-III time against its
+    wall-clock cap, and the exit code (3 = no flyable plan)."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+
+    from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR
+
+    out = []
+    for name in names:
+        cache = Path(cache_root) / name
+        shutil.rmtree(cache, ignore_errors=True)
+        with tempfile.TemporaryDirectory() as tmp:
+            cmd = [sys.executable, "-m", "skyroute.pipeline.cli", "run", name, "--cache-dir", str(cache), "-q",
+                   "--out", tmp]
+            t = time.perf_counter()
+            cold = subprocess.run(cmd, capture_output=True, text=True)
+            t_cold = time.perf_counter() - t
+            t = time.perf_counter()
+            warm = subprocess.run([*cmd, "--force", "plan"], capture_output=True, text=True)
+            t_warm = time.perf_counter() - t
+            summ = json.loads((Path(tmp) / "summary.json").read_text())
+        plan_s = next(r["seconds"] for r in summ["stages"] if r["name"] == "plan")
+        sc = load_scenario(name)
+        cap = LEVEL_CAP_FACTOR * sc.planner.time_budget_s
+        levels = Cache(cache).open(Cache(cache).get("plan", next(r["key"] for r in summ["stages"]
+                                                                  if r["name"] == "plan")))
+        worst = float(np.nanmax(levels["compute_time_s"].values))
+        out.append((name, t_cold, cold.returncode, t_warm, plan_s, worst, cap, warm.returncode,
+                    summ["plan"]["status"]))
+        print(f"  {name}: cold run {t_cold:.1f} s (exit {cold.returncode}), plan stage {plan_s:.1f} s, "
+              f"slowest level {worst:.1f} s of its {cap:g} s cap", flush=True)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--scenarios", default="",
+                    help="comma-separated catalog scenarios (or 'all') for the cold-run / plan-stage timings "
+                         "(each cold run recomputes every map: minutes)")
     ap.add_argument("--ref-s", type=float, default=0.0, help="BIT* reference budget per level [s] (0 = skip)")
     ap.add_argument("--budget-s", type=float, default=5.0, help="BIT* budget per level [s] of the compared runs")
     ap.add_argument("--cases", default="helsinki,monaco")
     ap.add_argument("--cache", default="/tmp/perf-cache", help="pipeline cache folder of the maps")
     ap.add_argument("--skip-bitstar", action="store_true", help="only the grid planner (and the reference)")
     a = ap.parse_args()
+    if a.scenarios:
+        from skyroute.pipeline.settings import scenario_paths
+
+        names = list(scenario_paths()) if a.scenarios == "all" else a.scenarios.split(",")
+        rows = scenario_times(names, a.cache + "-cold")
+        load = os.getloadavg()
+        print(f"\nload average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores")
+        print(f"{'scenario':24s} {'cold run s':>10s} {'plan stage s':>12s} {'slowest level s':>15s} "
+              f"{'cap s':>6s} {'level/cap':>9s}  exit  plan")
+        for name, tc, _, _, ps, worst, cap, rc, status in rows:
+            print(f"{name:24s} {tc:10.1f} {ps:12.1f} {worst:15.1f} {cap:6.0f} {worst / cap:9.2f}  {rc:4d}  {status}")
+        return
     cache = Cache(a.cache)
     rows = []
     b = a.budget_s

@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -24,12 +25,41 @@ class SkyrouteGroup(click.Group):
     """A click group that reports SkyrouteError as a clean one-line error (exit code 2)."""
 
     def invoke(self, ctx: click.Context):
-        try:
-            return super().invoke(ctx)
-        except SkyrouteError as exc:
-            msg = str(exc)
-            click.echo(f"error: {msg}", err=True)
-            ctx.exit(2)
+        from skyroute.pipeline import control
+
+        with control.signal_handlers():
+            try:
+                return super().invoke(ctx)
+            except SkyrouteError as exc:
+                msg = str(exc)
+                click.echo(f"error: {msg}", err=True)
+                ctx.exit(2)
+            except KeyboardInterrupt:
+                # SIGINT -> 130, SIGTERM -> 143; every stage output is either complete in the
+                # cache or an orphan under its tmp/ folder (never trusted)
+                code = control.exit_code()
+                control.request_cancel()
+                control.mark_reported()
+                click.echo("interrupted", err=True)
+                if control.signal_received() is not None:
+                    sys.stdout.flush()
+                    sys.stderr.flush()
+                    os._exit(code)   # do not wait for dask's worker threads to drain their queue
+                ctx.exit(code)
+
+
+def _report_warnings(warnings: list[str]) -> None:
+    for w in warnings:
+        click.echo(f"warning: {w}", err=True)
+
+
+def _exit_if_no_plan(plan: dict | None) -> None:
+    """Exit code 3 with one line when the plan section says no candidate is flyable."""
+    from skyroute.pipeline.outputs import plan_summary_line
+
+    if plan is not None and plan["status"] != "flyable":
+        click.echo(plan_summary_line(plan), err=True)
+        sys.exit(3)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -97,9 +127,11 @@ def scenarios_command() -> None:
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
 def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force, quiet) -> None:
     """Run every stage that applies to SCENARIO (a catalog name or a YAML path; default
-    helsinki-medical) and write datasets, GeoTIFFs, figures and summary.json to --out."""
+    helsinki-medical) and write datasets, GeoTIFFs, figures and summary.json to --out.
+    Prints the chosen plan's summary line; exit code 3 (after writing every output) when no
+    candidate is flyable."""
     from skyroute.pipeline.cache import Cache
-    from skyroute.pipeline.outputs import write_run_outputs
+    from skyroute.pipeline.outputs import plan_summary_line, write_run_outputs
     from skyroute.pipeline.runner import run_scenario
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
 
@@ -108,13 +140,44 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
     result = run_scenario(sc, cache=Cache(cache_dir), targets=targets or None, scheduler=scheduler,
                           workers=workers, progress=not quiet and sys.stderr.isatty(), force=force)
     summary = write_run_outputs(result, out_dir)
+    _report_warnings(summary["warnings"])
+    plan = summary.get("plan")
     if not quiet:
         for rec in result.records:
             click.echo(f"  {rec.name:12s} {'cache' if rec.cache_hit else 'computed':8s} {rec.seconds:7.2f} s")
         click.echo(f"{sc.name}: {len(result.records)} stages, {result.cache_hits} from cache, "
                    f"{result.seconds:.2f} s -> {out_dir}")
+        if plan is not None and plan["status"] == "flyable":
+            click.echo(plan_summary_line(plan))
     else:
-        click.echo(json.dumps({"out": str(out_dir), "seconds": round(summary["seconds"], 3)}))
+        doc = {"out": str(out_dir), "seconds": round(summary["seconds"], 3)}
+        if plan is not None:
+            doc["plan"] = plan["status"]
+        click.echo(json.dumps(doc))
+    _exit_if_no_plan(plan)
+
+
+def _write_folder_summary(out_dir: Path, command: str, result, files, sections: dict) -> dict:
+    """summary.json of a folder-writing command (files relative to ``out_dir``, stage warnings
+    printed on stderr), removing the files an earlier summary listed that were not rewritten."""
+    from skyroute.pipeline.outputs import (
+        previous_summary,
+        relative_files,
+        remove_stale,
+        stage_warnings,
+        write_summary,
+    )
+
+    rel = relative_files(out_dir, files)
+    remove_stale(Path(out_dir), previous_summary(Path(out_dir)), rel, command)
+    warnings = stage_warnings(result)
+    _report_warnings(warnings)
+    sc = result.scenario
+    return write_summary(out_dir, command, rel, warnings, {
+        "scenario": sc.name,
+        "stages": [{"name": r.name, "key": r.key, "cache_hit": r.cache_hit, "seconds": round(r.seconds, 4)}
+                   for r in result.records],
+        "seconds": result.seconds, **sections})
 
 
 @main.command("maps")
@@ -143,6 +206,7 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
                           progress=not quiet and sys.stderr.isatty())
     files = write_map_geotiffs(result, out_dir)
     files.append(plot_maps_panel(result, out_dir / "maps.png"))
+    _write_folder_summary(out_dir, "maps", result, files, {"maps": {"stages": targets}})
     for f in files:
         click.echo(str(f))
 
@@ -169,7 +233,7 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
     exit code 3)."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.errors import InputError
-    from skyroute.pipeline.outputs import write_plan_outputs
+    from skyroute.pipeline.outputs import plan_section, plan_summary_line, write_plan_outputs
     from skyroute.pipeline.runner import run_scenario
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
 
@@ -199,12 +263,13 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
     result = run_scenario(sc, cache=Cache(cache_dir), targets=["plan"], scheduler=scheduler,
                           progress=not quiet and sys.stderr.isatty())
     files = write_plan_outputs(result, out_dir)
-    ds = result["plan"]
+    plan = plan_section(result["plan"])
+    _write_folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan})
     for f in files.values():
         click.echo(str(f))
-    if int(ds.attrs.get("chosen_level", -1)) < 0:
-        click.echo(f"no flyable plan: {ds.attrs.get('reason', '')}", err=True)
-        sys.exit(3)
+    if plan["status"] == "flyable":
+        click.echo(plan_summary_line(plan))
+    _exit_if_no_plan(plan)
 
 
 @main.command("coverage")
@@ -229,7 +294,12 @@ def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) ->
     out_dir = out_dir or Path("skyroute-out") / sc.name / "coverage"
     result = run_scenario(sc, cache=Cache(cache_dir), targets=["coverage"], scheduler=scheduler, workers=workers,
                           progress=not quiet and sys.stderr.isatty())
-    for f in write_coverage_outputs(result["coverage"].load(), out_dir):
+    cov = result["coverage"].load()
+    files = write_coverage_outputs(cov, out_dir)
+    _write_folder_summary(out_dir, "coverage", result, files, {"coverage": {
+        "dop_kind": str(cov.attrs.get("dop_kind", "")),
+        "thresholds": [float(t) for t in cov["coverage_floor"]["threshold"].values]}})
+    for f in files:
         click.echo(str(f))
 
 

@@ -37,6 +37,7 @@ from typing import Any
 import dask
 import xarray as xr
 
+from skyroute.pipeline import control
 from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.errors import InputError, UnknownNameError
 from skyroute.pipeline.model import stable_hash
@@ -326,6 +327,7 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
         prechecks = [s for s in todo if s.precheck is not None]
         _run_prechecks(prechecks, todo, scenario, result.datasets)
         for i, st in enumerate(todo, 1):
+            control.check()
             t0 = time.perf_counter()
             key = stage_key(st, scenario, [keys[d] for d in st.inputs]
                             + [keys.get(d, "absent") for d in st.optional_inputs])
@@ -337,7 +339,8 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                 if progress:
                     print(f"[{i}/{len(todo)}] {st.name}: computing ({st.description})", file=sys.stderr, flush=True)
                 args = [result.datasets[d] for d in st.inputs] + [result.datasets.get(d) for d in st.optional_inputs]
-                out = st.func(*args, settings=st.select(scenario))
+                with control.progress(progress):
+                    out = st.func(*args, settings=st.select(scenario))
                 if not isinstance(out, xr.Dataset):
                     raise TypeError(f"stage {st.name} returned {type(out).__name__}, not an xarray.Dataset")
                 problems = verify_dataset(out)

@@ -110,15 +110,125 @@ def revalidate(result: RunResult, chosen) -> list[str]:
                          dt_c_s=sc.traffic.time_margin_s, battery_reserve_pct=sc.constraints.battery_reserve_pct)
 
 
-def _previous_outputs(out_dir: Path) -> dict[str, str]:
+SUMMARY_SCHEMA_VERSION = 1
+
+
+def stage_warnings(result: RunResult) -> list[str]:
+    """The warnings every stage dataset of ``result`` carries (``attrs["warnings"]``, a
+    JSON-encoded list of strings), in stage order, without repeats."""
+    out: list[str] = []
+    for ds in result.datasets.values():
+        raw = ds.attrs.get("warnings")
+        if raw is None or raw == "":
+            continue
+        try:
+            items = json.loads(raw) if isinstance(raw, str) else list(raw)
+        except ValueError:
+            items = [raw]
+        if isinstance(items, str):
+            items = [items]
+        for w in items:
+            text = str(w)
+            if text and text not in out:
+                out.append(text)
+    return out
+
+
+def _num(v: Any, nd: int = 3) -> float | None:
+    v = float(v)
+    return round(v, nd) if np.isfinite(v) else None
+
+
+def plan_section(ds) -> dict[str, Any]:
+    """The ``plan`` section of ``summary.json`` from the plan stage's dataset:
+    ``status`` (``flyable`` | ``no_flyable_plan``), the chosen candidate's ``label``,
+    ``dop_threshold``, ``f_m``, ``C_l_m``, ``C_r_m``, ``C_d_m``, ``C_e_m``, ``length_m`` (3-D
+    length of the written trajectory), ``energy_Wh``, ``flight_time_s`` (None when no plan) and
+    ``reasons`` (one per level that is not flyable, "label: why"; empty when a plan flies)."""
+    chosen = int(ds.attrs.get("chosen_level", -1))
+    reasons = []
+    for i in range(ds.sizes.get("level", 0)):
+        if not bool(ds["flyable"].values[i]):
+            why = str(ds["reasons"].values[i]) or "not flyable"
+            reasons.append(f"{ds['label'].values[i]}: {why}")
+    sec: dict[str, Any] = {"status": "flyable" if chosen >= 0 else "no_flyable_plan", "label": None,
+                           "dop_threshold": None, "f_m": None, "C_l_m": None, "C_r_m": None, "C_d_m": None,
+                           "C_e_m": None, "length_m": None, "energy_Wh": None, "flight_time_s": None}
+    if chosen >= 0:
+        row = ds.isel(level=chosen)
+        xyz = np.column_stack([ds["x_m"].values, ds["y_m"].values, ds["z_m"].values])
+        sec.update(label=str(row["label"].values), dop_threshold=_num(row["dop_threshold"]),
+                   f_m=_num(row["f"]), C_l_m=_num(row["C_l"]), C_r_m=_num(row["C_r"]), C_d_m=_num(row["C_d"]),
+                   C_e_m=_num(row["C_e"]), length_m=_num(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()),
+                   energy_Wh=_num(float(row["energy_J"]) / 3600.0), flight_time_s=_num(row["flight_time_s"]))
+        reasons = []
+    else:
+        why = str(ds.attrs.get("reason", "")).removeprefix("no flyable plan: ")
+        if not reasons and why:
+            reasons = [why]
+    sec["reasons"] = reasons
+    return sec
+
+
+def plan_summary_line(sec: dict[str, Any]) -> str:
+    """One line: the chosen plan's label, f, length, energy, flight time and DOP level."""
+    if sec["status"] != "flyable":
+        return "no flyable plan: " + (" | ".join(sec["reasons"]) or "no candidate was produced")
+    dop = "no GNSS level" if sec["dop_threshold"] is None else f"DOP < {sec['dop_threshold']:g}"
+    return (f"plan {sec['label']}: f {sec['f_m']:.1f} m, length {sec['length_m']:.1f} m, "
+            f"energy {sec['energy_Wh']:.2f} Wh, flight time {sec['flight_time_s']:.1f} s, {dop}")
+
+
+def relative_files(out_dir: Path, paths) -> list[str]:
+    """``paths`` (inside ``out_dir``) relative to ``out_dir``, POSIX style."""
+    base = os.path.abspath(out_dir)
+    return [Path(os.path.relpath(os.path.abspath(p), base)).as_posix() for p in paths]
+
+
+def write_summary(out_dir: Path, command: str, files: list[str], warnings: list[str],
+                  sections: dict[str, Any]) -> dict[str, Any]:
+    """Write ``out_dir/summary.json``: ``schema_version``, ``command``, ``files`` (every file
+    written, paths relative to ``out_dir``, ``summary.json`` included), ``warnings`` and the
+    command's own ``sections``; return the document."""
+    out_dir = Path(out_dir)
+    rel = sorted({Path(f).as_posix() for f in files} | {"summary.json"})
+    doc = {"schema_version": SUMMARY_SCHEMA_VERSION, "command": command, "files": rel,
+           "warnings": list(warnings), **sections}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir / ".summary.json.tmp"
+    tmp.write_text(json.dumps(doc, indent=1, allow_nan=False))
+    os.replace(tmp, out_dir / "summary.json")
+    return doc
+
+
+def previous_summary(out_dir: Path) -> dict[str, Any]:
     try:
-        return json.loads((out_dir / "summary.json").read_text()).get("output_keys", {})
+        doc = json.loads((out_dir / "summary.json").read_text())
+        return doc if isinstance(doc, dict) else {}
     except (OSError, ValueError):
         return {}
 
 
-def write_run_outputs(result: RunResult, out_dir: Path) -> dict[str, Any]:
-    """Write links to the cached zarr datasets, GeoTIFFs, PNG figures and ``summary.json``.
+def remove_stale(out_dir: Path, previous: dict[str, Any], files: list[str], command: str) -> None:
+    """Remove the files the previous summary of ``out_dir`` listed that this run did not write
+    (e.g. plan.geojson of a plan that no longer flies), so the folder holds what summary.json
+    says.  Only when that summary was written by the same ``command`` (a folder shared by two
+    commands keeps the other command's files)."""
+    out_dir = Path(out_dir)
+    if previous.get("command") != command:
+        return
+    keep = {Path(f).as_posix() for f in files}
+    for f in previous.get("files", []):
+        p = out_dir / f
+        if f in keep or f == "summary.json" or ".." in Path(f).parts or Path(f).is_absolute():
+            continue
+        if p.is_symlink() or p.is_file():
+            p.unlink()
+
+
+def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run") -> dict[str, Any]:
+    """Write links to the cached zarr datasets, GeoTIFFs, PNG figures, the plan files and
+    ``summary.json`` (see :func:`write_summary`; with a ``plan`` section when the plan stage ran).
 
     A GeoTIFF or figure is rewritten only when the stage key it was made from changed (or the
     file is missing), so a warm re-run costs little more than reading the cache.
@@ -126,31 +236,44 @@ def write_run_outputs(result: RunResult, out_dir: Path) -> dict[str, Any]:
     out_dir = Path(out_dir)
     (out_dir / "datasets").mkdir(parents=True, exist_ok=True)
     (out_dir / "figures").mkdir(exist_ok=True)
-    previous = _previous_outputs(out_dir)
+    previous = previous_summary(out_dir)
+    prev_keys = previous.get("output_keys", {})
+    prev_files = previous.get("files", [])
     keys = {r.name: r.key for r in result.records}
     output_keys: dict[str, str] = {}
     files: list[str] = []
 
-    def produce(path: Path, stage: str, make) -> None:
-        if not (previous.get(str(path)) == keys[stage] and path.is_file()):
+    def produce(rel: str, stage: str, make) -> None:
+        path = out_dir / rel
+        if not (prev_keys.get(rel) == keys[stage] and path.is_file()):
             make(path)
-        output_keys[str(path)] = keys[stage]
-        files.append(str(path))
+        output_keys[rel] = keys[stage]
+        files.append(rel)
 
     for rec in result.records:
         link = out_dir / "datasets" / f"{rec.name}.zarr"
         if link.is_symlink() or link.exists():
             link.unlink()
         os.symlink(Path(rec.path) / "data.zarr", link)
-        files.append(str(link))
+        files.append(f"datasets/{rec.name}.zarr")
     if "surface" in result.datasets:
-        produce(out_dir / "surface.tif", "surface",
+        produce("surface.tif", "surface",
                 lambda p: result["surface"]["surface"].rio.to_raster(p, compress="deflate"))
-        produce(out_dir / "figures" / "surface.png", "surface", lambda p: plot_surface(result, p))
+        produce("figures/surface.png", "surface", lambda p: plot_surface(result, p))
+    sections: dict[str, Any] = {}
     if "plan" in result.datasets:
-        produce(out_dir / "plan" / "candidates.csv", "plan", lambda p: write_plan_outputs(result, p.parent))
+        old = [f for f in prev_files if f.startswith("plan/")]
+        if prev_keys.get("plan/") == keys["plan"] and old and all((out_dir / f).is_file() for f in old):
+            plan_files = old
+        else:
+            written = write_plan_outputs(result, out_dir / "plan")
+            plan_files = [Path(p).relative_to(out_dir).as_posix() for p in written.values()]
+        output_keys["plan/"] = keys["plan"]
+        files.extend(plan_files)
+        sections["plan"] = plan_section(result["plan"])
     sc = result.scenario
-    summary = {
+    remove_stale(out_dir, previous, files, command)
+    sections = {
         "scenario": sc.name,
         "description": sc.description,
         "crs": sc.grid.crs_wkt,
@@ -161,8 +284,7 @@ def write_run_outputs(result: RunResult, out_dir: Path) -> dict[str, Any]:
         "stages_run": [r.name for r in result.records if not r.cache_hit],
         "cache_hits": result.cache_hits,
         "seconds": result.seconds,
-        "files": files,
         "output_keys": output_keys,
+        **sections,
     }
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
-    return summary
+    return write_summary(out_dir, command, files, stage_warnings(result), sections)

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import copy
+import csv
 import json
+import os
 
+import numpy as np
 import pytest
 import rasterio
 import yaml
@@ -28,6 +31,38 @@ def _write_variant(tmp_path, edit, name="helsinki-medical"):
     out = tmp_path / "variant.yaml"
     out.write_text(yaml.safe_dump(raw))
     return out
+
+
+def listing(out) -> set[str]:
+    """Every file and symlink under ``out`` (symlinked folders not followed), relative."""
+    found = set()
+    for root, dirs, files in os.walk(out):
+        for name in files + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
+            found.add(os.path.relpath(os.path.join(root, name), out).replace(os.sep, "/"))
+    return found
+
+
+def check_summary(out, command) -> dict:
+    """summary.json's common fields; its file list is the folder's listing."""
+    s = json.loads((out / "summary.json").read_text())
+    assert s["schema_version"] == 1 and s["command"] == command
+    assert isinstance(s["warnings"], list)
+    assert set(s["files"]) == listing(out) and len(s["files"]) == len(set(s["files"]))
+    return s
+
+
+def test_stage_warnings_are_collected():
+    import xarray as xr
+
+    from skyroute.pipeline.graph import RunResult
+    from skyroute.pipeline.outputs import stage_warnings
+    from skyroute.pipeline.settings import load_scenario
+
+    r = RunResult(load_scenario("helsinki-medical"))
+    r.datasets["surface"] = xr.Dataset(attrs={"warnings": json.dumps(["surface: 3 nodata cells filled"])})
+    r.datasets["environment"] = xr.Dataset()
+    r.datasets["wind"] = xr.Dataset(attrs={"warnings": json.dumps(["wind: uniform", "surface: 3 nodata cells filled"])})
+    assert stage_warnings(r) == ["surface: 3 nodata cells filled", "wind: uniform"]
 
 
 def test_help_reads_well(runner):
@@ -63,6 +98,38 @@ def test_run_default_scenario_writes_outputs(runner, tmp_path):
     assert res2.exit_code == 0
     summary2 = json.loads((out / "summary.json").read_text())
     assert summary2["stages_run"] == [] and summary2["cache_hits"] == len(summary2["stages"])
+    check_summary(out, "run")
+    assert summary2["plan"]["status"] == "flyable"
+    # one summary line of the chosen plan, the numbers of summary.json and candidates.csv
+    p = summary2["plan"]
+    assert json.loads(res2.output)["plan"] == "flyable"
+    loud = runner.invoke(main, [a for a in args if a != "--quiet"])
+    assert loud.exit_code == 0
+    line = [ln for ln in loud.output.splitlines() if ln.startswith("plan ")]
+    assert line == [f"plan {p['label']}: f {p['f_m']:.1f} m, length {p['length_m']:.1f} m, energy "
+                    f"{p['energy_Wh']:.2f} Wh, flight time {p['flight_time_s']:.1f} s, DOP < {p['dop_threshold']:g}"]
+    row = next(r for r in csv.DictReader((out / "plan" / "candidates.csv").open()) if r["chosen"] == "true")
+    assert row["label"] == p["label"] and float(row["f_m"]) == pytest.approx(p["f_m"], abs=0.05)
+    assert float(row["energy_Wh"]) == pytest.approx(p["energy_Wh"], abs=0.005)
+    wp = np.array([[float(r[k]) for k in ("x_m", "y_m", "z_m")] for r in csv.DictReader((out / "plan" / "waypoints.csv").open())])
+    assert np.linalg.norm(np.diff(wp, axis=0), axis=1).sum() == pytest.approx(p["length_m"], abs=0.05)
+    # no flyable candidate (A* cannot finish within a 4 ms cap): exit 3 after writing every
+    # output, one reason line; the earlier plan's files are gone from the folder
+    tiny = _write_variant(tmp_path, lambda r: r["planner"].update(time_budget_s=0.001))
+    res3 = runner.invoke(main, ["run", str(tiny), "--out", str(out), "--cache-dir", str(tmp_path / "c")])
+    assert res3.exit_code == 3, res3.output
+    last = res3.output.strip().splitlines()[-1]
+    assert last.startswith("no flyable plan: D=2: ") and last.count("no flyable plan") == 1
+    assert "budget exhausted" in last and "within the budget" not in last
+    s3 = check_summary(out, "run")
+    assert s3["plan"]["status"] == "no_flyable_plan" and s3["plan"]["f_m"] is None
+    assert [r.split(":")[0] for r in s3["plan"]["reasons"]] == ["D=2", "D=3", "D=4"]
+    assert not (out / "plan" / "plan.geojson").exists() and (out / "plan" / "candidates.csv").is_file()
+    # the other folder-writing commands, from the same cache
+    for cmd in ("maps", "coverage"):
+        r = runner.invoke(main, [cmd, "--out", str(tmp_path / cmd), "--cache-dir", str(tmp_path / "c"), "-q"])
+        assert r.exit_code == 0, r.output
+        check_summary(tmp_path / cmd, cmd)
     ls = runner.invoke(main, ["cache", "ls", "--cache-dir", str(tmp_path / "c")])
     assert "surface" in ls.output and "helsinki-medical" in ls.output
     clear = runner.invoke(main, ["cache", "clear", "--cache-dir", str(tmp_path / "c")])

@@ -20,6 +20,7 @@ def planned(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("plan")
     res = CliRunner().invoke(main, ["plan", "--out", str(tmp / "out"), "--cache-dir", str(tmp / "c"), "-q"])
     assert res.exit_code == 0, res.output
+    (tmp / "output.txt").write_text(res.output)
     return tmp
 
 
@@ -33,6 +34,25 @@ def test_plan_files_and_candidate_table(planned):
     assert float(chosen[0]["f_m"]) == min(flyable_f)  # seed 000 III-C: minimum f among the flyable
     for name in ("plan.geojson", "waypoints.csv", "top_view.png", "profile.png", "sigma_p.png"):
         assert (out / name).stat().st_size > 0
+
+
+def test_plan_summary_line_and_json(planned):
+    out = planned / "out"
+    s = json.loads((out / "summary.json").read_text())
+    assert s["schema_version"] == 1 and s["command"] == "plan" and isinstance(s["warnings"], list)
+    assert sorted(s["files"]) == sorted(p.name for p in out.iterdir())
+    p = s["plan"]
+    row = next(r for r in csv.DictReader((out / "candidates.csv").open()) if r["chosen"] == "true")
+    assert p["status"] == "flyable" and p["reasons"] == [] and p["label"] == row["label"]
+    for key, col, tol in (("f_m", "f_m", 0.05), ("C_l_m", "C_l_m", 0.05), ("C_r_m", "C_r_m", 0.05),
+                          ("C_d_m", "C_d_m", 0.05), ("C_e_m", "C_e_m", 0.05), ("energy_Wh", "energy_Wh", 0.005),
+                          ("flight_time_s", "flight_time_s", 0.05), ("dop_threshold", "dop_threshold", 0.005)):
+        assert p[key] == pytest.approx(float(row[col]), abs=tol), key
+    wp = np.array([[float(r[k]) for k in ("x_m", "y_m", "z_m")] for r in csv.DictReader((out / "waypoints.csv").open())])
+    assert p["length_m"] == pytest.approx(np.linalg.norm(np.diff(wp, axis=0), axis=1).sum(), abs=0.05)
+    lines = (planned / "output.txt").read_text().splitlines()
+    assert lines[-1] == (f"plan {p['label']}: f {p['f_m']:.1f} m, length {p['length_m']:.1f} m, energy "
+                         f"{p['energy_Wh']:.2f} Wh, flight time {p['flight_time_s']:.1f} s, DOP < {p['dop_threshold']:g}")
 
 
 def test_trajectory_respects_the_maps(planned):

@@ -131,6 +131,20 @@ def test_seeded_and_reproducible(problem, occ):
     np.testing.assert_array_equal(a.times_s, b.times_s)
 
 
+def test_iteration_count_not_the_clock_decides(problem, occ):
+    """The RRT stops on its iteration count: the wall-clock cap does not change the result, and
+    a run stopped by the cap says so."""
+    a = deconflict(problem, CHAIN, occ, seed=3, time_budget_s=5.0)
+    b = deconflict(problem, CHAIN, occ, seed=3, time_budget_s=500.0)
+    assert a.status == b.status == "deconflicted" and a.iterations == b.iterations
+    np.testing.assert_array_equal(a.waypoints, b.waypoints)
+    g = CHAIN[-1]
+    hover = build_occupancy([Intruder("on-goal", np.array([0.0, 400.0]), np.array([g, g]), 5.0)], T_TOT, N_O, D_C, DT_C)
+    capped = deconflict(problem, CHAIN, hover, max_iter=100_000, time_budget_s=0.2)
+    assert capped.status == "failed" and capped.iterations < 100_000
+    assert "wall-clock cap of 0.2 s before its 100000 iterations" in capped.reason
+
+
 def test_energy_infeasible():
     veh = load_vehicle("dji-m300-rtk").model_copy(update={"battery_capacity_mah": 100.0})   # 5.3 Wh
     prob = make_problem(veh)
@@ -149,7 +163,7 @@ def test_unreachable_goal_reports_reasons(problem):
     res = deconflict(problem, CHAIN, occ, max_iter=300)
     assert res.status == "failed"
     assert "without reaching the goal" in res.reason and "traffic" in res.reason
-    assert res.iterations == 300
+    assert "its 300 iterations" in res.reason and res.iterations == 300
 
 
 def test_static_violation_of_step1_chain_is_reported(problem):

@@ -38,6 +38,7 @@ from ompl import base as ob
 from ompl import geometric as og
 from ompl import util as ou
 
+from skyroute.pipeline import control
 from skyroute.pipeline.errors import InputError
 from skyroute.stages.planning.problem import OK, PlanningProblem, _state_code, segment_eval
 
@@ -147,18 +148,17 @@ class _BitStarSetup:
 
     def solve(self, time_budget_s: float, max_iterations: int | None = None) -> tuple[bool, float]:
         t0 = time.perf_counter()
-        if max_iterations is None:
-            status = self.planner.solve(float(time_budget_s))
-        else:
-            planner = self.planner
-            n = int(max_iterations)
-            deadline = t0 + float(time_budget_s)
+        planner = self.planner
+        n = int(max_iterations) if max_iterations is not None else None
+        deadline = t0 + float(time_budget_s)
 
-            def stop() -> bool:
-                return planner.numIterations() >= n or time.perf_counter() > deadline
+        def stop() -> bool:   # iteration count, wall-clock cap, cancel request
+            return ((n is not None and planner.numIterations() >= n) or time.perf_counter() > deadline
+                    or control.cancelled())
 
-            self._ptc = ob.PlannerTerminationCondition(stop)
-            status = self.planner.solve(self._ptc)
+        self._ptc = ob.PlannerTerminationCondition(stop)
+        status = self.planner.solve(self._ptc)
+        control.check()
         dt = time.perf_counter() - t0
         return bool(status) and self.pdef.hasExactSolution(), dt
 

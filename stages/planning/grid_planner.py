@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from skyroute.pipeline import control
 from skyroute.pipeline.errors import InputError
 from skyroute.stages.planning.problem import OK, PlanningProblem, segment_eval_if_valid
 
@@ -117,7 +118,8 @@ def make_lattice(problem: PlanningProblem, step_cells: int = 4, dz_m: float | No
 
 @numba.njit(cache=True, nogil=True)
 def _astar_kernel(lx, ly, lz, valid, offs, start_links, goal_links, sx, sy, sz, gx, gy, gz, wts, rate,
-                  max_expansions, h2, use_h2, b_up, c_down, terrain, floor, ceiling, risk, landing, gprm, wind, wz, wgprm, vprm, pprm):
+                  max_expansions, h2, use_h2, b_up, c_down, stop, terrain, floor, ceiling, risk, landing, gprm, wind,
+                  wz, wgprm, vprm, pprm):
     nz, ny, nx = valid.shape
     n = nz * ny * nx
     S = n
@@ -142,6 +144,8 @@ def _astar_kernel(lx, ly, lz, valid, offs, start_links, goal_links, sx, sy, sz, 
         expanded += 1
         if expanded > max_expansions:
             break
+        if (expanded & 1023) == 1 and stop[0] != 0:   # cancelled or out of time: give up
+            return np.inf, parent, expanded
         if u == S:
             ux, uy, uz = sx, sy, sz
         else:
@@ -316,12 +320,16 @@ def heuristic_2d(problem: PlanningProblem, lattice: Lattice, col_ok: np.ndarray 
 
 
 def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_000_000,
-          heuristic: str = "dijkstra2d", h2: np.ndarray | None = None) -> dict:
+          heuristic: str = "dijkstra2d", h2: np.ndarray | None = None, time_limit_s: float | None = None) -> dict:
     """A* from start to goal on ``lattice``.  Returns ``waypoints`` (k, 3) or None, ``f`` (the
-    lattice optimum), ``expanded`` (node expansions).  ``heuristic``: ``"dijkstra2d"``
-    (:func:`heuristic_2d` plus the altitude term of :func:`vertical_rates`, default) or ``"euclid"`` (``cost_rate_lb * distance``); both are
+    lattice optimum), ``expanded`` (node expansions), ``stopped_by`` (``""``, or ``"time"`` when
+    the search ran out of ``time_limit_s`` [s] wall clock before reaching the goal: no path).
+    ``heuristic``: ``"dijkstra2d"`` (:func:`heuristic_2d` plus the altitude term of
+    :func:`vertical_rates`, default) or ``"euclid"`` (``cost_rate_lb * distance``); both are
     consistent, so the result is the lattice optimum either way.  ``h2``: a precomputed
-    ``"dijkstra2d"`` table (ny_l, nx_l) (e.g. :func:`shared_heuristic` of the loosest level)."""
+    ``"dijkstra2d"`` table (ny_l, nx_l) (e.g. :func:`shared_heuristic` of the loosest level).
+    The compiled search polls a stop flag every 1024 expansions: a cancel request
+    (:mod:`skyroute.pipeline.control`) raises ``Interrupted`` within milliseconds."""
     sx, sy, sz = problem.start_xyz
     gx, gy, gz = problem.goal_xyz
     if heuristic == "dijkstra2d":
@@ -338,13 +346,16 @@ def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_0
         b_up = c_down = 0.0
     else:
         raise InputError(f"heuristic {heuristic!r} must be 'dijkstra2d' or 'euclid'")
-    f, parent, expanded = _astar_kernel(lattice.x, lattice.y, lattice.z, lattice.valid, _OFFS,
-                                        lattice.start_links, lattice.goal_links, sx, sy, sz, gx, gy, gz,
-                                        np.asarray(problem.weights, float), float(problem.cost_rate_lb),
-                                        int(max_expansions), h2, use_h2, float(b_up), float(c_down),
-                                        *problem.seg_args)
+    with control.StopFlag(time_limit_s) as stop:
+        f, parent, expanded = _astar_kernel(lattice.x, lattice.y, lattice.z, lattice.valid, _OFFS,
+                                            lattice.start_links, lattice.goal_links, sx, sy, sz, gx, gy, gz,
+                                            np.asarray(problem.weights, float), float(problem.cost_rate_lb),
+                                            int(max_expansions), h2, use_h2, float(b_up), float(c_down),
+                                            stop.array, *problem.seg_args)
+        stop.check()
+        stopped = "time" if stop.expired and not np.isfinite(f) else ""
     if not np.isfinite(f):
-        return {"waypoints": None, "f": math.inf, "expanded": int(expanded)}
+        return {"waypoints": None, "f": math.inf, "expanded": int(expanded), "stopped_by": stopped}
     n = lattice.valid.size
     ids = []
     v = n + 1
@@ -357,7 +368,7 @@ def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_0
     if inner.size:
         pts.extend(map(tuple, lattice.xyz(inner)))
     pts.append(problem.goal_xyz)
-    return {"waypoints": np.array(pts, dtype=float), "f": float(f), "expanded": int(expanded)}
+    return {"waypoints": np.array(pts, dtype=float), "f": float(f), "expanded": int(expanded), "stopped_by": ""}
 
 
 # --------------------------------------------------------------------------- refinement
@@ -396,10 +407,17 @@ _DIRS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1
 _DIRS /= np.linalg.norm(_DIRS, axis=1)[:, None]
 
 
+RELAX_MAX_SEGMENTS = 40_000   # segment evaluations of one relaxation: Helsinki's levels use ~26 k,
+#                               a 23 km mountain mission on a 30 m grid would use > 250 k (2 ms per 26)
+
+
 def relax_vertices(problem: PlanningProblem, wp: np.ndarray, step0_m: float, min_step_m: float = 0.05,
-                   max_passes: int = 30) -> np.ndarray:
+                   max_passes: int = 30, deadline: float = math.inf,
+                   max_segments: int = RELAX_MAX_SEGMENTS) -> np.ndarray:
     """Pattern search on each interior vertex (26 directions, step halving): move it while the
-    two adjacent segments stay valid and their f decreases."""
+    two adjacent segments stay valid and their f decreases.  Stops, keeping every move made so
+    far, after ``max_segments`` segment evaluations (a work bound: the same result on any
+    machine) or when ``time.perf_counter()`` passes ``deadline`` (the level's wall-clock cap)."""
     wp = np.array(wp, float)
     k = len(wp)
     if k <= 2:
@@ -407,16 +425,21 @@ def relax_vertices(problem: PlanningProblem, wp: np.ndarray, step0_m: float, min
     steps = [step0_m]
     while steps[-1] / 2 >= min_step_m:
         steps.append(steps[-1] / 2)
+    evals = 0
     for _ in range(max_passes):
         improved = False
         for i in range(1, k - 1):
+            control.check()
+            if time.perf_counter() > deadline or evals >= max_segments:
+                return wp
             fa, _ = _seg_f(problem, wp[i - 1:i], wp[i:i + 1])
             fb, _ = _seg_f(problem, wp[i:i + 1], wp[i + 1:i + 2])
             best = float(fa[0] + fb[0])
             for s in steps:
                 moved = True
-                while moved:
+                while moved and evals < max_segments:
                     moved = False
+                    evals += 2 * len(_DIRS)
                     cand = wp[i] + s * _DIRS
                     fa, _ = _seg_f(problem, np.repeat(wp[i - 1:i], len(cand), 0), cand)
                     fb, _ = _seg_f(problem, cand, np.repeat(wp[i + 1:i + 2], len(cand), 0))
@@ -433,13 +456,15 @@ def relax_vertices(problem: PlanningProblem, wp: np.ndarray, step0_m: float, min
 
 def refine_path(problem: PlanningProblem, wp: np.ndarray, step0_m: float | None = None,
                 time_limit_s: float = np.inf) -> np.ndarray:
-    """Shortcut, relax vertices, shortcut again (f never increases; validity kept)."""
+    """Shortcut, relax vertices, shortcut again (f never increases; validity kept).  Past
+    ``time_limit_s`` [s] the vertex relaxation stops where it is (a valid, not costlier path)."""
     t0 = time.perf_counter()
     if step0_m is None:
         step0_m = 2.0 * problem.grid.resolution_m
     wp = shortcut(problem, wp)
     if time.perf_counter() - t0 < time_limit_s:
-        wp = relax_vertices(problem, wp, step0_m)
+        wp = relax_vertices(problem, wp, step0_m, deadline=t0 + time_limit_s)
+        control.check()
         wp = shortcut(problem, wp)
     return wp
 
@@ -456,18 +481,24 @@ def shared_heuristic(loosest: PlanningProblem, step_cells: int = STEP_CELLS, dz_
 
 def plan_grid(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: float | None = None,
               refine: bool = True, max_expansions: int = 50_000_000, heuristic: str = "dijkstra2d",
-              h2: np.ndarray | None = None) -> dict:
-    """A* on the lattice then (optionally) :func:`refine_path`.  Returns a dict with
-    ``waypoints`` (or None), ``lattice_f``, ``expanded``, ``lattice`` and ``compute_s``.
+              h2: np.ndarray | None = None, time_limit_s: float = math.inf) -> dict:
+    """A* on the lattice then (optionally) :func:`refine_path`, within ``time_limit_s`` [s] wall
+    clock.  Returns a dict with ``waypoints`` (or None), ``lattice_f``, ``expanded``,
+    ``lattice``, ``compute_s`` and ``stopped_by`` (``""``; ``"time"`` when the limit cut the
+    search, then no path, or the refinement, then the path refined so far).
     ``h2``: precomputed heuristic table (:func:`shared_heuristic`)."""
     t0 = time.perf_counter()
     lat = make_lattice(problem, step_cells, dz_m)
-    res = astar(problem, lat, max_expansions, heuristic, h2)
+    res = astar(problem, lat, max_expansions, heuristic, h2, time_limit_s=time_limit_s - (time.perf_counter() - t0))
     wp = res["waypoints"]
+    stopped = res["stopped_by"]
     if wp is not None and refine:
-        wp = refine_path(problem, wp)
+        left = time_limit_s - (time.perf_counter() - t0)
+        wp = refine_path(problem, wp, time_limit_s=left)
+        if time.perf_counter() - t0 > time_limit_s:
+            stopped = "time"
     return {"waypoints": wp, "lattice_f": res["f"], "expanded": res["expanded"], "lattice": lat,
-            "compute_s": time.perf_counter() - t0}
+            "compute_s": time.perf_counter() - t0, "stopped_by": stopped}
 
 
 __all__ = ["STEP_CELLS", "Lattice", "astar", "heuristic_2d", "make_lattice", "plan_grid", "refine_path",

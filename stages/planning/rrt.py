@@ -31,7 +31,10 @@ Algorithm 1:
 
 The RRT is not asymptotically optimal and uses no risk/landing costs (seed 000: they only
 shape the optimisation, which this step does not do).  Randomness comes from
-``np.random.default_rng(seed)``: a seed gives one result.
+``np.random.default_rng(seed)`` and the search stops on its iteration count ``max_iter`` (or
+when the goal enters the tree), so a seed gives one result on any machine.  The wall clock
+only caps a run (``time_budget_s``, a safety net far above the normal run time); a run stopped
+by it says so in its ``reason`` and ``notes`` (that result could depend on the machine's load).
 
 Beyond the occupancy maps' horizon ``[t0, t0 + T_tot]`` nothing is known about the traffic:
 leg pieces after the horizon are not checked (the result reports it in ``reason``).
@@ -44,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from skyroute.pipeline import control
 from skyroute.pipeline.errors import InputError
 from skyroute.stages.traffic import TrafficOccupancy
 
@@ -213,7 +217,9 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
     occupancy : traffic occupancy maps (``None``: no known traffic).
     t0_s : mission time of ``w_start`` [s] (same clock as the occupancy maps).
     seed : RNG seed (``np.random.default_rng(seed)``).
-    max_iter : K, maximum RRT iterations; time_budget_s : wall-clock limit [s] (> 0).
+    max_iter : K, the RRT's iterations: the stop rule (reproducible).
+    time_budget_s : wall-clock cap [s] (> 0), a safety net; when it stops the search first the
+        result says so (``reason``, ``notes``).
     sigma_m : standard deviation [m] of RANDOM_SAMPLE around the last feasible point
         (horizontal; ``vertical_ratio`` times it vertically).
     step_m : resolution [m] of GET_LAST_FEASIBLE along a blocked leg.
@@ -327,9 +333,13 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
     iterations = 0
     fails = 0
     goal_node = -1
+    capped = False
     for k in range(1, max_iter + 1):
-        if time.perf_counter() - t_start > time_budget_s:
-            break
+        if (k & 63) == 0:
+            control.check()
+            if time.perf_counter() - t_start > time_budget_s:
+                capped = True
+                break
         iterations = k
         wn = next_point()
         near = tree.nearest(W[wn])
@@ -367,9 +377,10 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
                 break
     elapsed = time.perf_counter() - t_start
     if goal_node < 0:
-        why = "time budget" if elapsed > time_budget_s else "maximum iterations"
+        why = (f"its wall-clock cap of {time_budget_s:g} s before its {max_iter} iterations (a result that "
+               "depends on the machine's load)" if capped else f"its {max_iter} iterations")
         rej = ", ".join(f"{n} {v}" for n, v in feas.rejects.items() if v)
-        return _failed(f"STEP II reached the {why} ({iterations} iterations, {elapsed:.2f} s, {tree.n} nodes) "
+        return _failed(f"STEP II reached {why} ({iterations} iterations, {elapsed:.2f} s, {tree.n} nodes) "
                        f"without reaching the goal; rejected legs: {rej or 'none'}", iterations, tree.n, t_start)
     idx = tree.path(goal_node)
     wp, tt, ee = tree.p[idx].copy(), tree.t[idx].copy(), tree.e[idx].copy()

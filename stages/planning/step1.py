@@ -41,6 +41,12 @@ PLANNERS = ("bitstar", "astar")
 # stopped by that cap is reported in info["tries"][i]["stopped_by"] == "time").
 BITSTAR_ITERATIONS_PER_S = 8000.0
 BITSTAR_TIME_CAP_FACTOR = 4.0
+# Every planner's level (all energy tries and the refinement) is bounded by a wall-clock cap of
+# LEVEL_CAP_FACTOR x the budget: A* stops there with no path ("budget exhausted") or with the
+# path refined so far; BIT* with its best solution.  Normal runs end well inside the cap (the
+# benchmark prints the level times against it), so the cap is a safety net that a result
+# reports when it was hit (info["stopped_by"] == "time").
+LEVEL_CAP_FACTOR = BITSTAR_TIME_CAP_FACTOR
 
 
 @dataclass
@@ -89,11 +95,14 @@ def bitstar_iterations(time_budget_s: float) -> int:
 
 
 def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, seed: int, refine: bool,
-                step_cells: int, max_iterations: int | None, h2: np.ndarray | None = None
-                ) -> tuple[np.ndarray | None, dict]:
+                step_cells: int, max_iterations: int | None, h2: np.ndarray | None = None,
+                deadline: float = math.inf) -> tuple[np.ndarray | None, dict]:
+    """One plan; ``deadline``: ``time.perf_counter()`` value at which the level's cap ends."""
+    left = deadline - time.perf_counter()
     if planner == "astar":
-        r = plan_grid(problem, step_cells=step_cells, refine=refine, h2=h2)
-        return r["waypoints"], {"lattice_f": r["lattice_f"], "expanded": r["expanded"]}
+        r = plan_grid(problem, step_cells=step_cells, refine=refine, h2=h2, time_limit_s=left)
+        return r["waypoints"], {"lattice_f": r["lattice_f"], "expanded": r["expanded"],
+                                "stopped_by": r["stopped_by"] or "completed"}
     from skyroute.stages.planning.bitstar import plan_bitstar
 
     if max_iterations is None:          # deterministic: an iteration count, wall clock as a safety cap
@@ -103,14 +112,27 @@ def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, se
         max_iterations, cap_s = None, time_budget_s
     else:
         cap_s = time_budget_s
-    r = plan_bitstar(problem, cap_s, seed=seed, max_iterations=max_iterations)
+    r = plan_bitstar(problem, max(min(cap_s, left), 1e-3), seed=seed, max_iterations=max_iterations)
     r["stopped_by"] = ("iterations" if max_iterations is not None and r["iterations"] >= max_iterations
                        else "time")
     wp = r["waypoints"]
     info = {k: v for k, v in r.items() if k != "waypoints"}
     if wp is not None and refine:
-        wp = refine_path(problem, wp)
+        t = time.perf_counter()
+        wp = refine_path(problem, wp, time_limit_s=deadline - t)
+        if time.perf_counter() > deadline:
+            info["refine_stopped_by"] = "time"
     return wp, info
+
+
+def _no_path_reason(label: str, planner: str, info: dict, cap_s: float, time_budget_s: float) -> str:
+    if info.get("stopped_by") == "time":
+        return (f"{label}: {planner} budget exhausted: no path found within the wall-clock cap of {cap_s:g} s "
+                f"({LEVEL_CAP_FACTOR:g} x the {time_budget_s:g} s budget)")
+    if planner == "astar":
+        return (f"{label}: A* searched the whole lattice ({info.get('expanded', 0)} nodes expanded): no path "
+                "from start to goal within the altitude bounds, no-fly zones, flight-path angle and wind limits")
+    return f"{label}: BIT* found no path in {info.get('iterations', 0)} iterations ({info.get('compute_s', 0):.1f} s)"
 
 
 def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s: float = 5.0, seed: int = 0,
@@ -120,7 +142,9 @@ def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s
     """STEP I on one level: plan, check the energy, re-plan with larger w_l if needed.
 
     ``planner``: one of :data:`PLANNERS`; ``time_budget_s`` [s] > 0: BIT*'s budget per try
-    (A* runs to completion); ``seed``: BIT* random seed (OMPL seed = seed + 1, OMPL ignores 0);
+    (A* runs to completion); every level, all tries and refinement included, stops at the
+    wall-clock cap ``LEVEL_CAP_FACTOR * time_budget_s`` (A*: no path, reason "budget exhausted",
+    or the path refined so far; ``info["stopped_by"] == "time"`` says the cap was hit); ``seed``: BIT* random seed (OMPL seed = seed + 1, OMPL ignores 0);
     ``max_iterations``: BIT* stops after that many iterations; None (default): after
     :func:`bitstar_iterations` (``time_budget_s``) iterations, with a wall-clock cap of
     ``BITSTAR_TIME_CAP_FACTOR * time_budget_s`` -- reproducible run to run; 0: wall clock only
@@ -135,6 +159,8 @@ def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s
     if int(max_tries) < 1:
         raise InputError(f"max_tries {max_tries} must be >= 1 (N_t)")
     t0 = time.perf_counter()
+    cap_s = LEVEL_CAP_FACTOR * float(time_budget_s)
+    deadline = t0 + cap_s
     why = problem.endpoint_problem()
     if why:
         return _empty(problem, planner, "no_solution", why, t0)
@@ -145,14 +171,19 @@ def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s
     best = None
     info: dict = {"tries": []}
     for attempt in range(int(max_tries)):
+        if attempt > 0 and time.perf_counter() >= deadline:
+            info["stopped_by"] = "time"
+            break
         prob = problem if attempt == 0 else problem.with_weights(w)
         wp, inf = _solve_once(prob, planner, time_budget_s, seed + attempt, refine, step_cells, max_iterations,
-                              h2 if attempt == 0 else None)
+                              h2 if attempt == 0 else None, deadline)
+        if "time" in (inf.get("stopped_by"), inf.get("refine_stopped_by")):
+            info["stopped_by"] = "time"
         if wp is None:
             info["tries"].append({"weights": tuple(w), "solved": False, **inf})
             if attempt == 0:
-                r = _empty(problem, planner, "no_solution",
-                           f"{problem.label}: {planner} found no path within the budget ({time_budget_s:g} s)", t0, 1)
+                r = _empty(problem, planner, "no_solution", _no_path_reason(problem.label, planner, inf, cap_s,
+                                                                            time_budget_s), t0, 1)
                 r.info = info
                 return r
             break
@@ -181,5 +212,5 @@ def step1_all_levels(problems: list[PlanningProblem], planner: str = "bitstar", 
     return [plan_step1(p, planner, time_budget_s, seed, max_tries, **kwargs) for p in problems]
 
 
-__all__ = ["BITSTAR_ITERATIONS_PER_S", "PLANNERS", "Step1Result", "bitstar_iterations", "plan_step1",
+__all__ = ["BITSTAR_ITERATIONS_PER_S", "LEVEL_CAP_FACTOR", "PLANNERS", "Step1Result", "bitstar_iterations", "plan_step1",
            "step1_all_levels"]

@@ -22,6 +22,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -30,12 +31,13 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
+from skyroute.pipeline import control
 from skyroute.pipeline.errors import InputError, PlanningError
 from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
 from skyroute.stages.planning.grid_planner import STEP_CELLS, shared_heuristic
 from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz_from_agl
 from skyroute.stages.planning.rrt import Step2Result, deconflict
-from skyroute.stages.planning.step1 import Step1Result, plan_step1
+from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, Step1Result, plan_step1
 from skyroute.stages.planning.step3 import Candidate, _empty, choose, explain_no_plan, step3
 from skyroute.stages.traffic import Intruder, TrafficOccupancy, intruders_from_records
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle
@@ -50,7 +52,7 @@ class StrategicPlan:
     step1: list[Step1Result] = field(default_factory=list)
     step2: list[Step2Result | None] = field(default_factory=list)
     compute_s: float = 0.0
-    warnings: list[str] = field(default_factory=list)   # degenerate cost terms (stages.planning.degenerate)
+    warnings: list[str] = field(default_factory=list)   # degenerate cost terms, planner caps hit
 
     @property
     def reason(self) -> str:
@@ -112,33 +114,51 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         if loosest is not None and not loosest.endpoint_problem():
             h2 = shared_heuristic(loosest, step_cells)
 
+    ticker = _Progress(planner)
+
     def one_level(i: int) -> tuple[Step1Result, Step2Result | None, Candidate]:
+        control.check()
         problem, d = problems[i], levels[i][0]
         tl = time.perf_counter()
+        ticker.phase(problem.label, "STEP I")
         s1 = plan_step1(problem, planner=planner, time_budget_s=time_budget_s, seed=seed, max_tries=max_tries,
                         step_cells=step_cells, max_iterations=max_iterations, h2=h2,
                         battery_reserve_pct=battery_reserve_pct)
         if not s1.solved:
-            return s1, None, _empty(problem.label, d, [f"STEP I: {s1.reason or s1.status}"], tl, s1.status)
-        s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=max(time_budget_s, 1.0))
+            ticker.phase(problem.label, None)
+            why = (s1.reason or s1.status).removeprefix(f"{problem.label}: ")
+            return s1, None, _empty(problem.label, d, [f"STEP I: {why}"], tl, s1.status)
+        ticker.phase(problem.label, "STEP II")
+        s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=LEVEL_CAP_FACTOR * time_budget_s)
         if s2.status == "failed":
+            ticker.phase(problem.label, None)
             return s1, s2, _empty(problem.label, d, [f"STEP II: {s2.reason}"], tl, s2.status)
+        ticker.phase(problem.label, "STEP III")
         cand = step3(problem, s2, sky, surface_2d, start_time_utc=start_time_utc, occupancy=occ,
                      intruders=intruders, label=problem.label, gnss_sigma_m=uere_m,
                      battery_reserve_pct=battery_reserve_pct)
         cand.compute_time_s = time.perf_counter() - tl
+        ticker.phase(problem.label, None)
         return s1, s2, cand
 
     # identical levels (same floor and coverage arrays) are solved once
     first_of = _identical_levels(problems)
     todo = sorted(set(first_of))
     n_workers = _n_workers(workers, len(todo), planner)
-    if n_workers > 1:
-        with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="skyroute-level") as pool:
-            solved = dict(zip(todo, pool.map(one_level, todo), strict=True))
-    else:
-        solved = {i: one_level(i) for i in todo}
-    plan = StrategicPlan(None, [], warnings=cost_warnings)
+    with ticker:
+        if n_workers > 1:
+            pool = ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="skyroute-level")
+            try:
+                solved = dict(zip(todo, pool.map(one_level, todo), strict=True))
+            except BaseException as exc:
+                if isinstance(exc, KeyboardInterrupt):
+                    control.request_cancel()
+                pool.shutdown(wait=True, cancel_futures=True)   # the running levels see the flag
+                raise
+            pool.shutdown(wait=True)
+        else:
+            solved = {i: one_level(i) for i in todo}
+    plan = StrategicPlan(None, [])
     for i, j in enumerate(first_of):
         s1, s2, cand = solved[j] if i == j else _relabel(solved[j], problems[j], problems[i])
         plan.step1.append(s1)
@@ -146,7 +166,68 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         plan.candidates.append(cand)
     plan.chosen = choose(plan.candidates)
     plan.compute_s = time.perf_counter() - t0
+    plan.warnings = [*cost_warnings, *_cap_warnings(plan, planner, time_budget_s)]
     return plan
+
+
+def _cap_warnings(plan: StrategicPlan, planner: str, time_budget_s: float) -> list[str]:
+    """One warning per level whose STEP I or STEP II was stopped by its wall-clock cap (its
+    result may then depend on the machine's load), and STEP II's notes."""
+    out = []
+    cap = LEVEL_CAP_FACTOR * time_budget_s
+    for s1, s2 in zip(plan.step1, plan.step2, strict=True):
+        if s1.info.get("stopped_by") == "time":
+            out.append(f"plan: {s1.label}: STEP I ({planner}) stopped at its wall-clock cap of {cap:g} s "
+                       f"({LEVEL_CAP_FACTOR:g} x the {time_budget_s:g} s budget); the result may depend on the "
+                       "machine's load")
+        if s2 is not None:
+            if "wall-clock cap" in s2.reason:
+                out.append(f"plan: {s1.label}: {s2.reason}")
+            out.extend(f"plan: {s1.label}: STEP II: {n}" for n in s2.notes)
+    return list(dict.fromkeys(out))
+
+
+class _Progress:
+    """Progress notes of the running levels (label, phase, planner, elapsed) every
+    ``every_s`` [s] on stderr while progress is enabled (:mod:`skyroute.pipeline.control`)."""
+
+    def __init__(self, planner: str, every_s: float = 2.0):
+        self.planner, self.every_s = planner, every_s
+        self.t0 = time.perf_counter()
+        self.running: dict[str, tuple[str, float]] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def phase(self, label: str, what: str | None) -> None:
+        with self._lock:
+            if what is None:
+                self.running.pop(label, None)
+            else:
+                start = self.running.get(label, (what, time.perf_counter()))[1]
+                self.running[label] = (what, start)
+
+    def line(self) -> str:
+        now = time.perf_counter()
+        with self._lock:
+            parts = [f"{lab} {what}{f' ({self.planner})' if what == 'STEP I' else ''} {now - t:.0f} s"
+                     for lab, (what, t) in self.running.items()]
+        return f"plan: {now - self.t0:.0f} s elapsed; running: " + ("; ".join(parts) or "-")
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.every_s):
+            control.note(self.line())
+
+    def __enter__(self) -> _Progress:
+        if control.progress_enabled():
+            self._thread = threading.Thread(target=self._loop, name="skyroute-plan-progress", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
 
 
 def _loosest(problems: list[PlanningProblem]) -> PlanningProblem | None:

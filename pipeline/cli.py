@@ -124,22 +124,24 @@ def scenarios_command() -> None:
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers for processes/distributed.")
 @click.option("--stage", "targets", multiple=True, help="Run only these stages (and what they need).")
 @click.option("--force", multiple=True, help="Recompute these stages even if cached.")
+@click.option("--link", is_flag=True, help="Link DIR/datasets/*.zarr into the cache instead of copying them "
+              "(saves space; the links break when the cache is cleared).")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
-def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force, quiet) -> None:
+def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force, link, quiet) -> None:
     """Run every stage that applies to SCENARIO (a catalog name or a YAML path; default
     helsinki-medical) and write datasets, GeoTIFFs, figures and summary.json to --out.
     Prints the chosen plan's summary line; exit code 3 (after writing every output) when no
     candidate is flyable."""
     from skyroute.pipeline.cache import Cache
-    from skyroute.pipeline.outputs import plan_summary_line, write_run_outputs
+    from skyroute.pipeline.outputs import ensure_writable_dir, plan_summary_line, write_run_outputs
     from skyroute.pipeline.runner import run_scenario
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
 
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
-    out_dir = out_dir or Path("skyroute-out") / sc.name
+    out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name)
     result = run_scenario(sc, cache=Cache(cache_dir), targets=targets or None, scheduler=scheduler,
                           workers=workers, progress=not quiet and sys.stderr.isatty(), force=force)
-    summary = write_run_outputs(result, out_dir)
+    summary = write_run_outputs(result, out_dir, link=link)
     _report_warnings(summary["warnings"])
     plan = summary.get("plan")
     if not quiet:
@@ -197,7 +199,9 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
 
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
-    out_dir = out_dir or Path("skyroute-out") / sc.name / "maps"
+    from skyroute.pipeline.outputs import ensure_writable_dir
+
+    out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "maps")
     from skyroute.pipeline.graph import stages_for
 
     wanted = ("surface", "environment", "wind", "clearance", "traffic")
@@ -259,7 +263,9 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
         planner = parse_planner({**sc.planner.model_dump(), **upd})
         assert isinstance(planner, PlannerSettings)
         sc = sc.model_copy(update={"planner": planner})
-    out_dir = out_dir or Path("skyroute-out") / sc.name / "plan"
+    from skyroute.pipeline.outputs import ensure_writable_dir
+
+    out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "plan")
     result = run_scenario(sc, cache=Cache(cache_dir), targets=["plan"], scheduler=scheduler,
                           progress=not quiet and sys.stderr.isatty())
     files = write_plan_outputs(result, out_dir)
@@ -291,7 +297,9 @@ def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) ->
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
 
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
-    out_dir = out_dir or Path("skyroute-out") / sc.name / "coverage"
+    from skyroute.pipeline.outputs import ensure_writable_dir
+
+    out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "coverage")
     result = run_scenario(sc, cache=Cache(cache_dir), targets=["coverage"], scheduler=scheduler, workers=workers,
                           progress=not quiet and sys.stderr.isatty())
     cov = result["coverage"].load()

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.graph import RunResult
 
 
@@ -226,9 +228,37 @@ def remove_stale(out_dir: Path, previous: dict[str, Any], files: list[str], comm
             p.unlink()
 
 
-def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run") -> dict[str, Any]:
-    """Write links to the cached zarr datasets, GeoTIFFs, PNG figures, the plan files and
-    ``summary.json`` (see :func:`write_summary`; with a ``plan`` section when the plan stage ran).
+def ensure_writable_dir(out_dir: Path | str, option: str = "--out") -> Path:
+    """Create ``out_dir`` and prove it writable, before any long work (one clear error otherwise)."""
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        probe = out_dir / f".skyroute-write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise InputError(f"cannot write to {option} {out_dir}: {exc.strerror or exc}; choose a folder you "
+                         "can write to") from None
+    return out_dir
+
+
+def _copy_store(src: Path, dst: Path) -> None:
+    """Copy a zarr store (atomically: a partial copy never takes the final name)."""
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(src, tmp)
+    if dst.is_symlink() or dst.is_file():
+        dst.unlink()
+    elif dst.exists():
+        shutil.rmtree(dst)
+    os.rename(tmp, dst)
+
+
+def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", link: bool = False) -> dict[str, Any]:
+    """Write copies of the cached zarr datasets (symlinks into the cache with ``link``), GeoTIFFs,
+    PNG figures, the plan files and ``summary.json`` (see :func:`write_summary`; with a ``plan``
+    section when the plan stage ran).  Copies make the folder self-contained: it survives
+    ``skyroute cache clear`` and can be archived or moved.
 
     A GeoTIFF or figure is rewritten only when the stage key it was made from changed (or the
     file is missing), so a warm re-run costs little more than reading the cache.
@@ -251,11 +281,19 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run") ->
         files.append(rel)
 
     for rec in result.records:
-        link = out_dir / "datasets" / f"{rec.name}.zarr"
-        if link.is_symlink() or link.exists():
-            link.unlink()
-        os.symlink(Path(rec.path) / "data.zarr", link)
-        files.append(f"datasets/{rec.name}.zarr")
+        rel = f"datasets/{rec.name}.zarr"
+        dst = out_dir / rel
+        src = Path(rec.path) / "data.zarr"
+        if link:
+            if dst.is_symlink() or dst.is_file():
+                dst.unlink()
+            elif dst.exists():
+                shutil.rmtree(dst)
+            os.symlink(src, dst)
+        elif not (prev_keys.get(rel) == rec.key and dst.is_dir() and not dst.is_symlink()):
+            _copy_store(src, dst)
+        output_keys[rel] = rec.key
+        files.append(rel)
     if "surface" in result.datasets:
         produce("surface.tif", "surface",
                 lambda p: result["surface"]["surface"].rio.to_raster(p, compress="deflate"))

@@ -82,3 +82,36 @@ def test_python_warnings_become_one_clean_line(tmp_path):
             "warnings.warn('almanac.txt: unhealthy satellites excluded (health != 0): G05', UserWarning)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stderr.strip() == "warning: almanac.txt: unhealthy satellites excluded (health != 0): G05"
+
+
+@pytest.mark.parametrize("bad", ["/proc/skyroute-out", "under-a-file/out"])
+def test_unwritable_out_is_refused_before_any_work(tmp_path, bad):
+    (tmp_path / "under-a-file").write_text("a file, not a folder")
+    out = bad if bad.startswith("/") else str(tmp_path / bad)
+    for cmd in (["run"], ["plan"], ["maps"], ["coverage"]):
+        r = CliRunner().invoke(main, [*cmd, "--out", out, "--cache-dir", str(tmp_path / "cache")])
+        assert r.exit_code == 2, (cmd, r.output)
+        assert r.output.startswith(f"error: cannot write to --out {out}: ") and "choose a folder" in r.output
+        assert not (tmp_path / "cache").exists()  # refused before any stage ran
+
+
+def test_run_outputs_are_copies_that_survive_cache_clear(tmp_path):
+    import json
+
+    import xarray as xr
+
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    args = ["run", "--stage", "surface", "--out", str(out), "--cache-dir", str(cache), "-q"]
+    assert CliRunner().invoke(main, args).exit_code == 0
+    store = out / "datasets" / "surface.zarr"
+    assert store.is_dir() and not store.is_symlink()
+    want = xr.open_zarr(store)["surface"].load()
+    mtime = store.stat().st_mtime_ns
+    assert CliRunner().invoke(main, args).exit_code == 0  # warm: the copy is reused
+    assert store.stat().st_mtime_ns == mtime
+    assert CliRunner().invoke(main, ["cache", "clear", "--cache-dir", str(cache)]).exit_code == 0
+    xr.testing.assert_identical(xr.open_zarr(store)["surface"].load(), want)
+    assert "datasets/surface.zarr" in json.loads((out / "summary.json").read_text())["files"]
+    # --link: symlinks into the cache, as an explicit choice
+    assert CliRunner().invoke(main, [*args, "--link"]).exit_code == 0
+    assert store.is_symlink() and store.resolve().is_relative_to(cache.resolve())

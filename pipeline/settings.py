@@ -233,6 +233,9 @@ class PlannerSettings(FrozenModel):
     time_budget_s: PositiveFloat = 5.0
     seed: int = 0
     max_tries: Annotated[int, Field(ge=1)] = 3
+    # A* lattice step [cells] (8: measured best on 2 m city grids; a coarse mountain grid whose
+    # cells span tens of metres of relief may need a finer lattice to follow a canyon)
+    step_cells: Annotated[int, Field(ge=1, le=64)] = 8
 
     @field_validator("name")
     @classmethod

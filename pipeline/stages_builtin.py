@@ -396,6 +396,7 @@ class PlanSettings(FrozenModel):
     time_budget_s: float
     seed: int
     max_tries: int
+    step_cells: int = 8
     min_agl_m: float
     max_agl_m: float
     dop_kind: str
@@ -413,7 +414,7 @@ def _plan_settings(sc: Scenario) -> PlanSettings:
     return PlanSettings(vehicle_profile=load_vehicle(sc.vehicle).model_dump(mode="json"),
         start_xy=sc.point_xy(m.start), start_agl_m=m.start.alt_agl_m, goal_xy=sc.point_xy(m.goal),
         goal_agl_m=m.goal.alt_agl_m, start_time_utc=m.start_time_utc.isoformat(), vehicle=sc.vehicle,
-        weights=p.weights, planner=p.name, time_budget_s=p.time_budget_s, seed=p.seed, max_tries=p.max_tries,
+        weights=p.weights, planner=p.name, time_budget_s=p.time_budget_s, seed=p.seed, max_tries=p.max_tries, step_cells=p.step_cells,
         min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
         dop_kind=sc.gnss.dop_kind, intruders=tuple(i.model_dump() for i in sc.traffic.intruders),
         d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s, uere_m=sc.gnss.uere_m,
@@ -431,7 +432,7 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
     plan = plan_strategic(surface, environment, wind, clearance, coverage, satellites, traffic,
                           start_xy=s.start_xy, start_agl_m=s.start_agl_m, goal_xy=s.goal_xy, goal_agl_m=s.goal_agl_m,
                           start_time_utc=s.start_time_utc, vehicle=s.vehicle, weights=s.weights, planner=s.planner,
-                          time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, min_agl_m=s.min_agl_m,
+                          time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, step_cells=s.step_cells, min_agl_m=s.min_agl_m,
                           max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m,
                           dt_c_s=s.dt_c_s, uere_m=s.uere_m, battery_reserve_pct=s.battery_reserve_pct)
     return plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),

@@ -18,13 +18,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel
 
-
-class FrozenModel(BaseModel):
-    """Base of all settings: immutable, strict about unknown keys."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
+from skyroute.stages.base import FrozenModel  # noqa: F401  (re-exported: its home is stages.base)
 
 
 def _canonical(obj: Any) -> Any:

@@ -13,7 +13,7 @@ broadcast ephemerides alike.
 * GPS weeks in YUMA/SEM are modulo 1024: :func:`resolve_gps_week` picks the latest full week
   that is not more than one year after ``reference_date`` (default: today).
 * Unhealthy satellites (health != 0) are dropped with a ``warnings.warn`` naming them.
-* Malformed files raise :class:`~skyroute.pipeline.errors.DataError` naming file and line.
+* Malformed files raise :class:`~skyroute.stages.base.DataError` naming file and line.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from skyroute.pipeline.errors import DataError, InputError
+from skyroute.stages.base import DataError, InputError
 from skyroute.stages.dop import DOP_NAMES, dop
 from skyroute.stages.orbits import (
     GPS_EPOCH,

@@ -36,7 +36,7 @@ import numpy as np
 import xarray as xr
 from scipy import ndimage
 
-from skyroute.pipeline.errors import InputError
+from skyroute.stages.base import InputError
 from skyroute.stages.grid import Grid
 
 MODES = ("cell", "centre")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from skyroute.pipeline.errors import InputError
+from skyroute.stages.base import InputError
 
 DOP_NAMES = ("gdop", "pdop", "hdop", "vdop", "tdop")
 

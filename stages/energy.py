@@ -58,7 +58,7 @@ import numba
 import numpy as np
 import xarray as xr
 
-from skyroute.pipeline.errors import InputError
+from skyroute.stages.base import InputError
 from skyroute.stages.vehicle import G0, VehicleProfile, load_vehicle
 
 RHO0 = 1.225  # ISA sea-level air density [kg/m^3]

@@ -20,7 +20,7 @@ import xarray as xr
 from affine import Affine
 from pyproj import CRS, Transformer
 
-from skyroute.pipeline.errors import CRSError, DataError, InputError
+from skyroute.stages.base import CRSError, DataError, InputError
 
 
 def resolve_crs(crs: str | int | CRS) -> CRS:

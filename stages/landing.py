@@ -48,7 +48,7 @@ import xarray as xr
 from scipy.ndimage import distance_transform_edt
 from shapely.geometry.base import BaseGeometry
 
-from skyroute.pipeline.errors import InputError
+from skyroute.stages.base import InputError
 from skyroute.stages.grid import Grid
 from skyroute.stages.risk import (
     TagTable,

@@ -51,7 +51,7 @@ import numpy as np
 import scipy.linalg
 import xarray as xr
 
-from skyroute.pipeline.errors import InputError
+from skyroute.stages.base import InputError
 from skyroute.stages.vehicle import ImuSpec, VehicleProfile, load_vehicle
 
 C_LIGHT = 299_792_458.0

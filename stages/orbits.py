@@ -23,7 +23,7 @@ import warnings
 import numpy as np
 import xarray as xr
 
-from skyroute.pipeline.errors import InputError
+from skyroute.stages.base import InputError
 
 #: GPS epoch (UTC = GPS time at this instant).
 GPS_EPOCH = np.datetime64("1980-01-06T00:00:00", "ns")

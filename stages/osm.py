@@ -18,7 +18,7 @@ import osmium
 import shapely
 from shapely.geometry.base import BaseGeometry
 
-from skyroute.pipeline.errors import DataError
+from skyroute.stages.base import DataError
 
 
 @dataclass(frozen=True)

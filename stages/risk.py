@@ -84,7 +84,7 @@ import yaml
 from pyproj import CRS, Transformer
 from shapely.geometry.base import BaseGeometry
 
-from skyroute.pipeline.errors import DataError, InputError
+from skyroute.stages.base import DataError, InputError
 from skyroute.stages.grid import Grid, ring_cells, warp_to_grid
 
 LEVELS = (1, 2, 3, 4, 5, 6)

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from skyroute.pipeline.errors import InputError, PlanningError
+from skyroute.stages.base import InputError, PlanningError
 
 N_COEF = 8  # 7th order
 N_DER = 4   # derivatives 0..3 fixed/shared at each joint
@@ -215,7 +215,7 @@ def smooth_with_clearance(waypoints, times, is_clear: Callable[[np.ndarray], np.
     ``is_clear(points (m,3)) -> bool (m,)``: segments with a violating sample get a midpoint
     waypoint (Richter et al. 2013, section 5) and the problem is re-solved, at most ``max_iter``
     times.  The polygonal chain itself is assumed clear.  Raises
-    :class:`~skyroute.pipeline.errors.PlanningError` if samples still violate after ``max_iter``."""
+    :class:`~skyroute.stages.base.PlanningError` if samples still violate after ``max_iter``."""
     w, t = _validate(waypoints, times)
     if max_iter < 0 or not sample_spacing_m > 0:
         raise InputError("max_iter must be >= 0 and sample_spacing_m > 0 [m]")

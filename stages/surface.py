@@ -83,7 +83,7 @@ from pyproj import CRS, Transformer
 from scipy.interpolate import NearestNDInterpolator
 from scipy.spatial import Delaunay, QhullError
 
-from skyroute.pipeline.errors import DataError, InputError
+from skyroute.stages.base import DataError, InputError
 from skyroute.stages.grid import (
     NODATA_POLICIES,
     Grid,

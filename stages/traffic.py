@@ -33,7 +33,7 @@ import numba
 import numpy as np
 import xarray as xr
 
-from skyroute.pipeline.errors import InputError
+from skyroute.stages.base import InputError
 from skyroute.stages.grid import Grid
 
 _MAX_BUCKETS = 2_000_000

@@ -28,8 +28,7 @@ from typing import Annotated, Literal
 import yaml
 from pydantic import Field, ValidationError, model_validator
 
-from skyroute.pipeline.errors import DataError, ScenarioError, UnknownNameError
-from skyroute.pipeline.model import FrozenModel
+from skyroute.stages.base import DataError, FrozenModel, ScenarioError, UnknownNameError
 
 Pos = Annotated[float, Field(gt=0)]
 NonNeg = Annotated[float, Field(ge=0)]
@@ -204,9 +203,9 @@ def known_vehicles() -> list[str]:
 def load_vehicle(name_or_path: str | Path | VehicleProfile) -> VehicleProfile:
     """A :class:`VehicleProfile` by catalog name (``"dji-m300-rtk"``) or YAML file path.
 
-    Raises :class:`~skyroute.pipeline.errors.UnknownNameError` for an unknown name,
-    :class:`~skyroute.pipeline.errors.DataError` for an unreadable file and
-    :class:`~skyroute.pipeline.errors.ScenarioError` (every problem listed) for invalid content.
+    Raises :class:`~skyroute.stages.base.UnknownNameError` for an unknown name,
+    :class:`~skyroute.stages.base.DataError` for an unreadable file and
+    :class:`~skyroute.stages.base.ScenarioError` (every problem listed) for invalid content.
     """
     if isinstance(name_or_path, VehicleProfile):
         return name_or_path

@@ -53,7 +53,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from skyroute.pipeline.errors import CRSError, DataError, InputError
+from skyroute.stages.base import CRSError, DataError, InputError
 from skyroute.stages.grid import Grid
 
 G0 = 9.80665  # standard gravity [m/s^2], geopotential [m^2/s^2] -> geopotential height [gpm]

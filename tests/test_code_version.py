@@ -197,3 +197,20 @@ def test_file_digests_persist_between_processes(tmp_path):
     out = subprocess.run([sys.executable, "-c", code, str(f)], capture_output=True, text=True, check=True,
                          env=env)
     assert out.stdout.split()[0] == hashlib.sha256(b"y" * 1000).hexdigest()
+
+
+def test_stages_never_import_pipeline():
+    """Layering: skyroute.stages sits below skyroute.pipeline (errors, FrozenModel and the run
+    control live in skyroute.stages.base / .control); imports inside functions count too."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "stages"
+    upward = []
+    for f in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(f.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            upward += [f"{f.relative_to(root.parent)}:{node.lineno} imports {n}" for n in names
+                       if n == "skyroute.pipeline" or n.startswith("skyroute.pipeline.")]
+    assert not upward, "\n".join(upward)

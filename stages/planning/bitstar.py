@@ -38,8 +38,8 @@ from ompl import base as ob
 from ompl import geometric as og
 from ompl import util as ou
 
-from skyroute.pipeline import control
-from skyroute.pipeline.errors import InputError
+from skyroute.stages import control
+from skyroute.stages.base import InputError
 from skyroute.stages.planning.problem import OK, PlanningProblem, _state_code, segment_eval
 
 ou.setLogLevel(ou.LOG_ERROR)

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from skyroute.pipeline.errors import DegenerateCostError
+from skyroute.stages.base import DegenerateCostError
 from skyroute.stages.planning.problem import _check_weights
 
 ATOL = 1e-12

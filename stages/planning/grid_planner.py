@@ -40,8 +40,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from skyroute.pipeline import control
-from skyroute.pipeline.errors import InputError
+from skyroute.stages import control
+from skyroute.stages.base import InputError
 from skyroute.stages.planning.problem import OK, PlanningProblem, segment_eval_if_valid
 
 STEP_CELLS = 8   # default lattice step [cells]: measured on Helsinki (2 m cells) 8 beats 6 in time
@@ -329,7 +329,7 @@ def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_0
     consistent, so the result is the lattice optimum either way.  ``h2``: a precomputed
     ``"dijkstra2d"`` table (ny_l, nx_l) (e.g. :func:`shared_heuristic` of the loosest level).
     The compiled search polls a stop flag every 1024 expansions: a cancel request
-    (:mod:`skyroute.pipeline.control`) raises ``Interrupted`` within milliseconds."""
+    (:mod:`skyroute.stages.control`) raises ``Interrupted`` within milliseconds."""
     sx, sy, sz = problem.start_xyz
     gx, gy, gz = problem.goal_xyz
     if heuristic == "dijkstra2d":

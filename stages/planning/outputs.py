@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS, Transformer
 
-from skyroute.pipeline.errors import InputError
+from skyroute.stages.base import InputError
 from skyroute.stages.grid import Grid
 from skyroute.stages.planning.step3 import Candidate, utc_of
 

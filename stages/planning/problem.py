@@ -55,7 +55,7 @@ import numba
 import numpy as np
 import xarray as xr
 
-from skyroute.pipeline.errors import InputError, PlanningError
+from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.energy import M_MINUS_FRACTION, RHO0, _power_kernel
 from skyroute.stages.grid import Grid
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle

@@ -47,8 +47,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from skyroute.pipeline import control
-from skyroute.pipeline.errors import InputError
+from skyroute.stages import control
+from skyroute.stages.base import InputError
 from skyroute.stages.traffic import TrafficOccupancy
 
 __all__ = ["Step2Result", "chain_timing", "deconflict", "leg_time_energy", "chain_conflicts"]
@@ -228,7 +228,7 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
         boxed in by a reserved volume; the paper's sampler always uses the last feasible point).
 
     Returns a :class:`Step2Result`; never raises for an unsolvable case (status ``"failed"``
-    with the reason), raises :class:`~skyroute.pipeline.errors.InputError` for bad arguments.
+    with the reason), raises :class:`~skyroute.stages.base.InputError` for bad arguments.
     """
     t_start = time.perf_counter()
     W = np.asarray(step1_waypoints, dtype=float)

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from skyroute.pipeline.errors import InputError, UnknownNameError
+from skyroute.stages.base import InputError, UnknownNameError
 from skyroute.stages.planning.grid_planner import STEP_CELLS, plan_grid, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 

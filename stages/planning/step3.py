@@ -56,7 +56,7 @@ import pandas as pd
 import xarray as xr
 from scipy.integrate import trapezoid
 
-from skyroute.pipeline.errors import InputError, PlanningError
+from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.energy import rotor_power
 from skyroute.stages.navigation import DEFAULT_UERE_M, navigation_error
 from skyroute.stages.occlusion import grid_azimuth_deg, visibility_heights_numpy

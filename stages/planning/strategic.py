@@ -31,8 +31,8 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from skyroute.pipeline import control
-from skyroute.pipeline.errors import InputError, PlanningError
+from skyroute.stages import control
+from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
 from skyroute.stages.planning.grid_planner import STEP_CELLS, shared_heuristic
 from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz_from_agl
@@ -82,7 +82,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
 
     Cost terms that are the same per metre everywhere are listed in ``warnings`` of the result;
     weights that select only such terms raise
-    :class:`~skyroute.pipeline.errors.DegenerateCostError` before any planning
+    :class:`~skyroute.stages.base.DegenerateCostError` before any planning
     (:mod:`skyroute.stages.planning.degenerate`).
     ``battery_reserve_pct`` [%]: energy kept in the battery (STEP I and III use the rest)."""
     t0 = time.perf_counter()
@@ -189,7 +189,7 @@ def _cap_warnings(plan: StrategicPlan, planner: str, time_budget_s: float) -> li
 
 class _Progress:
     """Progress notes of the running levels (label, phase, planner, elapsed) every
-    ``every_s`` [s] on stderr while progress is enabled (:mod:`skyroute.pipeline.control`)."""
+    ``every_s`` [s] on stderr while progress is enabled (:mod:`skyroute.stages.control`)."""
 
     def __init__(self, planner: str, every_s: float = 2.0):
         self.planner, self.every_s = planner, every_s

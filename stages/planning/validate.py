@@ -38,7 +38,7 @@ from collections.abc import Callable, Iterable, Mapping
 
 import numpy as np
 
-from skyroute.pipeline.errors import InputError
+from skyroute.stages.base import InputError
 from skyroute.stages.grid import Grid
 from skyroute.stages.traffic import Intruder, intruders_from_records
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle

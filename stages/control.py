@@ -1,0 +1,253 @@
+"""Process-wide run control: cancellation (SIGINT / SIGTERM) and progress notes.
+
+Cancellation
+------------
+One process-wide flag.  :func:`request_cancel` sets it (the signal handlers of
+:func:`signal_handlers` do, and so can a library user); long loops call :func:`check`, which
+raises :class:`Interrupted` (a ``KeyboardInterrupt``) once it is set.  Compiled kernels cannot
+see a Python event, so they poll a small numpy array instead: :class:`StopFlag` hands one out
+(registered here, so a cancel request sets it too) and can also set it when a wall-clock
+deadline passes (the planners' time caps).
+
+Signals reach Python code only when the main thread runs bytecode; while it waits inside a
+compiled call that releases the GIL, :func:`signal_handlers` still sees the signal at once: the
+C-level handler writes the signal number to a wake-up pipe that a watcher thread reads, sets
+the flag (so the kernels stop) and arms a watchdog that ends the process with the right exit
+code if it has not exited ``grace_s`` seconds later (with ``SKYROUTE_DEBUG_INTERRUPT=1`` it
+first dumps every thread's stack on stderr: the loop that does not check the flag).  Cache entries stay consistent whatever
+happens: an entry is written under ``tmp/`` and renamed into place only when complete
+(:mod:`skyroute.pipeline.cache`).
+
+Progress
+--------
+:func:`progress_enabled` says whether a terminal wants progress notes (the runner turns it on
+with its ``progress`` argument: stderr is a tty and ``-q`` was not given); :func:`note` prints
+one line on stderr when it is.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+
+import numpy as np
+
+__all__ = ["Interrupted", "StopFlag", "cancelled", "check", "exit_code", "mark_reported", "note", "progress",
+           "progress_enabled", "request_cancel", "reset", "signal_handlers", "signal_received"]
+
+RUNNING, CANCELLED, DEADLINE = 0, 1, 2   # states of a StopFlag array (element 0)
+
+_cancel = threading.Event()
+_lock = threading.Lock()
+_flags: set[StopFlag] = set()
+_signum: int | None = None
+_progress = False
+
+
+class Interrupted(KeyboardInterrupt):
+    """The run was cancelled (a signal or :func:`request_cancel`)."""
+
+
+def cancelled() -> bool:
+    """True once a cancel was requested."""
+    return _cancel.is_set()
+
+
+def check() -> None:
+    """Raise :class:`Interrupted` if a cancel was requested (call it between chunks of work)."""
+    if _cancel.is_set():
+        raise Interrupted("interrupted")
+
+
+def request_cancel(signum: int | None = None) -> None:
+    """Ask every running loop and kernel of this process to stop."""
+    global _signum
+    if signum is not None and _signum is None:
+        _signum = int(signum)
+    _cancel.set()
+    with _lock:
+        for f in _flags:
+            f.array[0] = CANCELLED
+
+
+def signal_received() -> int | None:
+    """The first SIGINT / SIGTERM received under :func:`signal_handlers` (None if none)."""
+    return _signum
+
+
+def exit_code(signum: int | None = None) -> int:
+    """Shell convention: 128 + signal number (SIGINT 130, SIGTERM 143); 130 without a signal."""
+    s = _signum if signum is None else signum
+    return 128 + int(s) if s is not None else 130
+
+
+def reset() -> None:
+    """Clear the cancel flag (a new command in the same process)."""
+    global _signum
+    _cancel.clear()
+    _signum = None
+
+
+class StopFlag:
+    """A one-element int8 array for compiled kernels to poll: 0 running, 1 cancelled (a cancel
+    request), 2 the wall-clock ``deadline_s`` [s from creation] passed.  Use as a context
+    manager (registers it and starts / stops the deadline timer)."""
+
+    def __init__(self, deadline_s: float | None = None):
+        self.array = np.zeros(1, dtype=np.int8)
+        self.deadline_s = deadline_s
+        self._timer: threading.Timer | None = None
+
+    def _expire(self) -> None:
+        if self.array[0] == RUNNING:
+            self.array[0] = DEADLINE
+
+    def __enter__(self) -> StopFlag:
+        with _lock:
+            _flags.add(self)
+        if _cancel.is_set():
+            self.array[0] = CANCELLED
+        if self.deadline_s is not None and np.isfinite(self.deadline_s):
+            if self.deadline_s <= 0:
+                self._expire()
+            else:
+                self._timer = threading.Timer(self.deadline_s, self._expire)
+                self._timer.daemon = True
+                self._timer.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+        with _lock:
+            _flags.discard(self)
+
+    @property
+    def state(self) -> int:
+        return int(self.array[0])
+
+    @property
+    def expired(self) -> bool:
+        return self.state == DEADLINE
+
+    def check(self) -> None:
+        """Raise :class:`Interrupted` if this flag (or the process) was cancelled."""
+        if self.state == CANCELLED:
+            raise Interrupted("interrupted")
+        check()
+
+
+# --------------------------------------------------------------------------- signals
+_handled = [0]
+
+
+def _handler(signum, frame) -> None:
+    _handled[0] += 1
+    if _handled[0] > 1:          # a second signal: stop now
+        _hard_exit(exit_code())
+    request_cancel(signum)
+    raise Interrupted("interrupted")
+
+
+_printed = threading.Event()
+
+
+def mark_reported() -> None:
+    """The command layer printed "interrupted" (the watchdog then does not print it again)."""
+    _printed.set()
+
+
+def _hard_exit(code: int) -> None:
+    if os.environ.get("SKYROUTE_DEBUG_INTERRUPT"):
+        import faulthandler
+
+        faulthandler.dump_traceback(all_threads=True)
+    if not _printed.is_set():
+        _printed.set()
+        with contextlib.suppress(OSError):
+            os.write(2, b"interrupted\n")
+    os._exit(code)
+
+
+def _watch(fd: int, grace_s: float, stop: threading.Event) -> None:
+    while not stop.is_set():
+        try:
+            data = os.read(fd, 64)
+        except OSError:
+            return
+        if not data:
+            return
+        for b in data:
+            if b in (signal.SIGINT, signal.SIGTERM):
+                request_cancel(b)
+                # the main thread normally unwinds and exits well before this
+                if not stop.wait(grace_s):
+                    _hard_exit(exit_code())
+                return
+
+
+@contextlib.contextmanager
+def signal_handlers(grace_s: float = 1.6) -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM request a cancel and raise :class:`Interrupted` in
+    the main thread; if the process has not exited ``grace_s`` [s] after the signal, it exits
+    with :func:`exit_code`.  A no-op outside the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    reset()
+    _printed.clear()
+    _handled[0] = 0
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    stop = threading.Event()
+    try:
+        old_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    except ValueError:   # pragma: no cover - not the main thread of the main interpreter
+        os.close(r)
+        os.close(w)
+        yield
+        return
+    for s in old:
+        signal.signal(s, _handler)
+    watcher = threading.Thread(target=_watch, args=(r, grace_s, stop), name="skyroute-signals", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        signal.set_wakeup_fd(old_fd)
+        if _signum is None:
+            stop.set()
+            os.close(w)      # ends the watcher's read
+            watcher.join(1.0)
+            os.close(r)
+        # after a signal the watcher keeps its watchdog armed until the process exits
+
+
+# --------------------------------------------------------------------------- progress
+def progress_enabled() -> bool:
+    """True when progress notes should be printed (a terminal, not ``-q``)."""
+    return _progress
+
+
+@contextlib.contextmanager
+def progress(enabled: bool) -> Iterator[None]:
+    """Turn progress notes on or off within the block."""
+    global _progress
+    old, _progress = _progress, bool(enabled)
+    try:
+        yield
+    finally:
+        _progress = old
+
+
+def note(text: str) -> None:
+    """Print one progress line on stderr when :func:`progress_enabled`."""
+    if _progress:
+        print(text, file=sys.stderr, flush=True)

@@ -145,18 +145,64 @@ def _fold_column(G, rlo, rhi, n, two, klo, khi):
 @numba.njit(cache=True, nogil=True)
 def _window_max(acc, G, base, nw, nc, first):
     """``acc[c] (max)= max(G[base + c .. base + c + nw - 1])`` for ``nc`` cells (``nw`` <= 4;
-    nothing if 0); ``first``: overwrite ``acc``."""
+    nothing if 0); ``first``: overwrite ``acc``.  One branch-free loop per case (SIMD)."""
     if nw <= 0:
         return
+    g0 = G[base:base + nc]
+    if first:
+        if nw == 1:
+            for c in range(nc):
+                acc[c] = g0[c]
+        elif nw == 2:
+            g1 = G[base + 1:base + 1 + nc]
+            for c in range(nc):
+                acc[c] = max(g0[c], g1[c])
+        elif nw == 3:
+            g1 = G[base + 1:base + 1 + nc]
+            g2 = G[base + 2:base + 2 + nc]
+            for c in range(nc):
+                acc[c] = max(max(g0[c], g1[c]), g2[c])
+        else:
+            g1 = G[base + 1:base + 1 + nc]
+            g2 = G[base + 2:base + 2 + nc]
+            g3 = G[base + 3:base + 3 + nc]
+            for c in range(nc):
+                acc[c] = max(max(g0[c], g1[c]), max(g2[c], g3[c]))
+    else:
+        if nw == 1:
+            for c in range(nc):
+                acc[c] = max(acc[c], g0[c])
+        elif nw == 2:
+            g1 = G[base + 1:base + 1 + nc]
+            for c in range(nc):
+                acc[c] = max(acc[c], max(g0[c], g1[c]))
+        elif nw == 3:
+            g1 = G[base + 1:base + 1 + nc]
+            g2 = G[base + 2:base + 2 + nc]
+            for c in range(nc):
+                acc[c] = max(acc[c], max(max(g0[c], g1[c]), g2[c]))
+        else:
+            g1 = G[base + 1:base + 1 + nc]
+            g2 = G[base + 2:base + 2 + nc]
+            g3 = G[base + 3:base + 3 + nc]
+            for c in range(nc):
+                acc[c] = max(acc[c], max(max(g0[c], g1[c]), max(g2[c], g3[c])))
+
+
+@numba.njit(cache=True, nogil=True)
+def _bound_row_fused(orow, rc, rn, ra, rb, rd, d2, acc, G, base, nw, kpl, nc, rev):
+    """:func:`_bound_row` with the window of the last family (``nw`` 1..3 lines of ``G`` from
+    ``base``) folded in on the fly."""
+    g0 = G[base:base + nc]
+    g1 = G[base + 1:base + 1 + nc] if nw > 1 else g0
+    g2 = G[base + 2:base + 2 + nc] if nw > 2 else g0
     for c in range(nc):
-        g = G[base + c]
-        if nw > 1:
-            g = max(g, G[base + c + 1])
-        if nw > 2:
-            g = max(g, G[base + c + 2])
-        if nw > 3:
-            g = max(g, G[base + c + 3])
-        acc[c] = g if first else max(acc[c], g)
+        a = max(acc[c], max(max(g0[c], g1[c]), g2[c]))
+        v = max(max(max(rc[c], rn[c]), max(ra[c], rb[c])), max(rd[c] - d2, kpl + a))
+        if rev:
+            orow[nc - 1 - c] = v
+        else:
+            orow[c] = v
 
 
 @numba.njit(cache=True, nogil=True)
@@ -269,15 +315,28 @@ def _scan_kernel(h, out, sa, sb, sweep0, cross0, m, kappa, n_fam, out_t):
                 rc[c] = hrow[nc - 1 - c]
         # 1. the cells of this column: neighbours, column P + 1 (prev), and the lines,
         #    which hold the columns >= P + 2
-        for f in range(n_fam):
-            _window_max(acc, G[f], q_min + d_lo[f, k] - a_min, n_w[f, k], nc, f == 0)
         orow = strip[k % _STRIP] if out_t else out[ls]
         ra = prev[pad:pad + nc]
-        if lateral:
-            _bound_row(orow, rc, row[pad + 1:pad + 1 + nc], ra, prev[pad + 1:pad + 1 + nc],
-                       prev[pad + 2:pad + 2 + nc], d2, acc, kpl[k], nc, sb < 0)
+        fl = n_fam - 1
+        if n_w[fl, k] < 1 or n_w[fl, k] > 3 or n_fam == 1:
+            for f in range(n_fam):
+                _window_max(acc, G[f], q_min + d_lo[f, k] - a_min, n_w[f, k], nc, f == 0)
+            if lateral:
+                _bound_row(orow, rc, row[pad + 1:pad + 1 + nc], ra, prev[pad + 1:pad + 1 + nc],
+                           prev[pad + 2:pad + 2 + nc], d2, acc, kpl[k], nc, sb < 0)
+            else:
+                _bound_row(orow, rc, rc, ra, ra, ra, d2, acc, kpl[k], nc, sb < 0)
         else:
-            _bound_row(orow, rc, rc, ra, ra, ra, d2, acc, kpl[k], nc, sb < 0)
+            for f in range(fl):
+                _window_max(acc, G[f], q_min + d_lo[f, k] - a_min, n_w[f, k], nc, f == 0)
+            bl = q_min + d_lo[fl, k] - a_min
+            if lateral:
+                _bound_row_fused(orow, rc, row[pad + 1:pad + 1 + nc], ra,
+                                 prev[pad + 1:pad + 1 + nc], prev[pad + 2:pad + 2 + nc], d2,
+                                 acc, G[fl], bl, n_w[fl, k], kpl[k], nc, sb < 0)
+            else:
+                _bound_row_fused(orow, rc, rc, ra, ra, ra, d2, acc, G[fl], bl, n_w[fl, k],
+                                 kpl[k], nc, sb < 0)
         # 2. fold column P + 1 into the lines over the map (others meet -inf)
         if k > 0:
             kk = k - 1
@@ -373,7 +432,7 @@ def visibility_heights_numpy(surface_2d: np.ndarray, az_grid_deg, el_deg, cell_m
 
 def shadow_halo_cells(surface_2d_or_da, min_el_deg: float, cell_m: float) -> int:
     """Cells [-] a shadow can reach at most: ``(max h - min h) / tan(min elevation)`` in cells,
-    plus 2 cells of margin (prism entry distance, line offset).  Only cells within this
+    plus 4 cells of margin (the next column, the bracketing lines up to ~2.5 cells aside).  Only cells within this
     distance can change a visibility height; the dask runner uses it as overlap depth."""
     if not 0.0 < float(min_el_deg) <= 90.0:
         raise InputError(f"min elevation {min_el_deg} deg must be in (0, 90]")
@@ -397,8 +456,8 @@ def _nan_extrema(data) -> tuple[float, float]:
 
 def _halo_from_relief(relief_m: float, min_el_deg: float, cell_m: float) -> int:
     if min_el_deg >= 90.0:
-        return 2
-    return int(math.ceil(relief_m / math.tan(math.radians(min_el_deg)) / cell_m)) + 2
+        return 4
+    return int(math.ceil(relief_m / math.tan(math.radians(min_el_deg)) / cell_m)) + 4
 
 
 # ----------------------------------------------------------------------------------------

@@ -63,12 +63,25 @@ def _own_height(h, r, c):
 def _cast_one(h, hmax, r, c, dx, dy, drop_per_cell):
     """Exact visibility height [m] of one point (row ``r``, col ``c``, fractional cells);
     ``(dx, dy)``: unit horizontal direction toward the satellite in (col, row) units;
-    ``drop_per_cell``: ray height gain [m] per cell of horizontal distance (cell tan e)."""
+    ``drop_per_cell``: ray height gain [m] per cell of horizontal distance (cell tan e).
+    A ray running along a grid line touches the cells on both sides: both are walked."""
     ny, nx = h.shape
-    v = _own_height(h, r, c)
-    big = 1e300
     cx = min(int(math.floor(c)), nx - 1)
     cy = min(int(math.floor(r)), ny - 1)
+    v = _walk(h, hmax, r, c, dx, dy, drop_per_cell, cx, cy, _own_height(h, r, c))
+    if dx == 0.0 and c == math.floor(c) and 0 < c < nx:
+        v = _walk(h, hmax, r, c, dx, dy, drop_per_cell, int(c) - 1, cy, v)
+    if dy == 0.0 and r == math.floor(r) and 0 < r < ny:
+        v = _walk(h, hmax, r, c, dx, dy, drop_per_cell, cx, int(r) - 1, v)
+    return v
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk(h, hmax, r, c, dx, dy, drop_per_cell, cx, cy, v):
+    """Amanatides-Woo walk of the ray of the point (r, c) from the cell (cy, cx), raising
+    ``v`` [m] by every cell entered."""
+    ny, nx = h.shape
+    big = 1e300
     sx = 1 if dx > 0.0 else -1
     sy = 1 if dy > 0.0 else -1
     # distance to the next vertical / horizontal grid line, and between lines
@@ -160,7 +173,8 @@ def _directions(az_grid_deg, el_deg, cell_m: float) -> tuple[np.ndarray, tuple[i
     dirs = np.empty((a.size, 3))
     dirs[:, 0] = np.sin(a)          # +col is grid east
     dirs[:, 1] = -np.cos(a)         # +row is grid south
-    dirs[np.abs(dirs[:, :2]) < 1e-15] = 0.0
+    xy = dirs[:, :2]
+    xy[np.abs(xy) < 1e-15] = 0.0    # axis directions: no sin/cos round-off drift
     dirs[:, 2] = np.inf
     lo = e < 90.0
     dirs[lo, 2] = cell_m * np.tan(np.deg2rad(e[lo]))

@@ -44,8 +44,9 @@ def _slab_t_in(r, c, dx, dy, i, j):
 
 
 @numba.njit(cache=True)
-def oracle_point(h, r, c, az_grid_deg, el_deg, cell_m):
-    """Exact visibility height [m] at the point (row r, col c) [fractional cells]."""
+def oracle_point(h, r, c, az_grid_deg, el_deg, cell_m, hmax, hmin):
+    """Exact visibility height [m] at the point (row r, col c) [fractional cells]; ``hmax``,
+    ``hmin``: the extremes of ``h`` [m]."""
     ny, nx = h.shape
     az = math.radians(az_grid_deg)
     dx = math.sin(az)
@@ -55,23 +56,26 @@ def oracle_point(h, r, c, az_grid_deg, el_deg, cell_m):
     if abs(dy) < 1e-15:
         dy = 0.0
     drop = cell_m * math.tan(math.radians(el_deg)) if el_deg < 90.0 else 1e300
-    hmax = h.max()
-    hmin = h.min()
     reach = (hmax - hmin) / drop + 2.0
     v = -1e300
-    # walk the major axis; at each index the minor span the ray covers, +-1 cell
+    # walk the major axis away from the point; at each index the minor span the ray covers,
+    # +-1 cell; stop once no farther cell can matter (h max - entry drop <= v)
     if abs(dx) >= abs(dy):
-        c_end = c + reach * dx
-        j0 = max(int(math.floor(min(c, c_end))) - 1, 0)
-        j1 = min(int(math.floor(max(c, c_end))) + 1, nx - 1)
-        for j in range(j0, j1 + 1):
-            if dx != 0.0:
-                ta = max(min((j - c) / dx, (j + 1 - c) / dx), 0.0)
-                tb = max((j - c) / dx, (j + 1 - c) / dx)
-            else:
-                ta, tb = 0.0, 0.0
+        n_idx = int(reach) + 3
+        sj = 1 if dx > 0.0 else -1
+        jc = int(math.floor(c))
+        for k in range(-1, n_idx):
+            j = jc + sj * k
+            if j < 0 or j >= nx:
+                if k >= 0:
+                    break
+                continue
+            ta = max(min((j - c) / dx, (j + 1 - c) / dx), 0.0)
+            tb = max((j - c) / dx, (j + 1 - c) / dx)
             if tb < 0.0:
                 continue
+            if hmax - ta * drop <= v:
+                break
             ra = r + ta * dy
             rb = r + tb * dy
             i0 = max(int(math.floor(min(ra, rb))) - 1, 0)
@@ -83,14 +87,21 @@ def oracle_point(h, r, c, az_grid_deg, el_deg, cell_m):
                     if w > v:
                         v = w
     else:
-        r_end = r + reach * dy
-        i0 = max(int(math.floor(min(r, r_end))) - 1, 0)
-        i1 = min(int(math.floor(max(r, r_end))) + 1, ny - 1)
-        for i in range(i0, i1 + 1):
+        n_idx = int(reach) + 3
+        si = 1 if dy > 0.0 else -1
+        ic = int(math.floor(r))
+        for k in range(-1, n_idx):
+            i = ic + si * k
+            if i < 0 or i >= ny:
+                if k >= 0:
+                    break
+                continue
             ta = max(min((i - r) / dy, (i + 1 - r) / dy), 0.0)
             tb = max((i - r) / dy, (i + 1 - r) / dy)
             if tb < 0.0:
                 continue
+            if hmax - ta * drop <= v:
+                break
             ca = c + ta * dx
             cb = c + tb * dx
             j0 = max(int(math.floor(min(ca, cb))) - 1, 0)
@@ -108,8 +119,10 @@ def oracle_point(h, r, c, az_grid_deg, el_deg, cell_m):
 def oracle_points(h, rows, cols, az_grid_deg, el_deg, cell_m):
     """:func:`oracle_point` of many points, one direction."""
     out = np.empty(rows.size)
+    hmax = h.max()
+    hmin = h.min()
     for n in numba.prange(rows.size):
-        out[n] = oracle_point(h, rows[n], cols[n], az_grid_deg, el_deg, cell_m)
+        out[n] = oracle_point(h, rows[n], cols[n], az_grid_deg, el_deg, cell_m, hmax, hmin)
     return out
 
 

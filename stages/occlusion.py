@@ -1,9 +1,11 @@
 """GNSS occlusion by the surface model: the *visibility height* of a satellite direction.
 
 For a satellite at infinity in direction (azimuth ``a``, elevation ``e``) and a surface model
-``h`` (terrain + buildings, a raster of heights [m]), the visibility height ``V`` of a cell is
-the lowest altitude above the cell centre from which the line of sight to the satellite is
-free: above ``V`` the satellite is visible, below it is occluded.  ``V >= h`` (a receiver
+``h`` (terrain + buildings, a raster of heights [m]), the visibility height ``V(p)`` of a point
+``p`` is the lowest altitude above it from which the line of sight to the satellite is free:
+above ``V`` the satellite is visible, below it is occluded.  The value stored for a cell is
+the supremum-side bound ``>= V(p)`` for every point ``p`` of the cell (see "Conservative
+bound").  ``V >= h`` (a receiver
 inside a building sees nothing), and since ``e > 0`` every cell has a finite ``V``.
 
 Surface model
@@ -15,7 +17,7 @@ Surface model
 
 Algorithm (an O(N) column scan after seed 003, section II-B)
     The rays toward one satellite are parallel, so the scan follows a family of parallel
-    *lines* in the satellite direction, one per cell across the sweep.  Along one exact
+    *lines* in the satellite direction, ``LINES_PER_CELL`` per cell across the sweep.  Along one
     line the prism traversal is exact and runs as a recurrence: sweeping from the satellite
     side, keep ``G = max(h(c) - kappa * p_in(c))`` over the cells crossed so far (``p_in`` the
     sweep coordinate where the line enters cell ``c``, ``kappa`` the height drop of the ray
@@ -28,21 +30,27 @@ Algorithm (an O(N) column scan after seed 003, section II-B)
     columns of a camera-like resampled grid; here the comparison is the running maximum
     ``G`` in the sheared (line, sweep) frame, which needs no resampling.
 
-Remaining approximation
-    A cell centre is generally not on a line.  Default (``lateral="linear"``): the cell gets
-    ``max(h(cell), requirement)`` of the two lines around its centre, linearly interpolated
-    across the sweep (weights = distances along the cross axis, < 1 cell); ``"nearest"``
-    takes the nearest of ``lines_per_cell`` lines (at most ``0.5 / lines_per_cell`` cell
-    away).  Each line value is exact for the prism model, so errors appear only where a
-    shadow edge or a steep slope runs between the line and the centre (edges roughly
-    parallel to the azimuth).  Measured against an exact prism ray caster on SRTM and the
-    Rotterdam/Helsinki surfaces (tests): 99.90 to 99.95 % identical visible/occluded
-    decisions at random cells, altitudes and directions, 99th percentile error 0.57 to
-    0.75 x ``(cell * tan(e) + 0.5 m)``, median error 0.  Also: satellites are at infinity (parallel
-    rays); the map is flat (Earth curvature ignored: an obstacle d away is d^2 / 2R too
-    high, 0.08 m at 1 km, 8 m at 10 km, so long terrain shadows at low elevation are
-    slightly too long); true azimuths become grid azimuths with the meridian convergence at
-    the map centre (one value per map, < 0.05 deg change over a few km in a UTM zone).
+Conservative bound (the contract)
+    The value stored for a cell is a bound valid for **every point of the cell**: ``>= V(p)``
+    for every ``p`` in the cell's footprint (up to float32 rounding, < 0.01 m).
+    Over-estimation is allowed and measured; under-estimation is a defect.  A cell centre is
+    generally not on a line, and points near a cell's edges see neighbouring prisms at a
+    vanishing distance, so each cell takes ``max`` of: its own height, its neighbours toward
+    the satellite (own column and the next one, at full height), and, for the columns
+    beyond, the running maxima of every scan line bracketing the cell's rays (``LINES_PER_CELL``
+    = 2 lines per cell; proof in :func:`_scan_kernel`).  Measured against the exact prism
+    caster (:mod:`skyroute.stages.raycast`) and an independent oracle (tests): zero unsafe
+    values at random interior points and on shadow edges of Helsinki, Rotterdam, Monaco,
+    SRTM and a towers city, el 5-60 deg; mean over-estimation 0.5-0.8 m on 2 m cities,
+    7-8 m on 30 m SRTM; 99.2-99.7 % of the visible/occluded decisions at cell centres agree
+    with the exact caster outside ``cell tan(e) + 0.5 m``, within 0.5 % of the best any
+    per-cell bound can do (the supremum over the cell: 99.4-99.9 %; 96-97 % on 200 m
+    towers, where cells beside a tower must carry its height).  Also: satellites are at
+    infinity (parallel rays); the map is flat (Earth curvature ignored: an obstacle d away
+    is d^2 / 2R too high, 0.08 m at 1 km, 8 m at 10 km, so long terrain shadows at low
+    elevation are slightly too long); true azimuths become grid azimuths with the meridian
+    convergence at the map centre (one value per map, < 0.05 deg change over a few km in a
+    UTM zone).
 
 Layers: the numba kernel :func:`_scan_kernel`, the numpy runner
 :func:`visibility_heights_numpy`, the dask runner :func:`visibility_heights_dask`

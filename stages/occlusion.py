@@ -214,6 +214,28 @@ def _bound_row_fused(orow, rc, rn, ra, rb, rd, d2, acc, G, base, nw, kpl, nc, re
 
 
 @numba.njit(cache=True, nogil=True)
+def _bound_row_two(orow, rc, rn, ra, rb, rd, d2, G0, b0, n0, G1, b1, n1, kpl, nc, rev):
+    """:func:`_bound_row` for two line families, their windows (``n0``, ``n1`` of 1..3 lines
+    of ``G0`` / ``G1`` from ``b0`` / ``b1``) read on the fly: one branch-free pass (a window
+    narrower than 3 re-reads its first line)."""
+    p0 = G0[b0:b0 + nc]
+    p1 = G0[b0 + 1:b0 + 1 + nc] if n0 > 1 else p0
+    p2 = G0[b0 + 2:b0 + 2 + nc] if n0 > 2 else p0
+    q0 = G1[b1:b1 + nc]
+    q1 = G1[b1 + 1:b1 + 1 + nc] if n1 > 1 else q0
+    q2 = G1[b1 + 2:b1 + 2 + nc] if n1 > 2 else q0
+    if rev:
+        for c in range(nc):
+            a = max(max(max(p0[c], p1[c]), p2[c]), max(max(q0[c], q1[c]), q2[c]))
+            orow[nc - 1 - c] = max(max(max(rc[c], rn[c]), max(ra[c], rb[c])),
+                                   max(rd[c] - d2, kpl + a))
+    else:
+        for c in range(nc):
+            a = max(max(max(p0[c], p1[c]), p2[c]), max(max(q0[c], q1[c]), q2[c]))
+            orow[c] = max(max(max(rc[c], rn[c]), max(ra[c], rb[c])), max(rd[c] - d2, kpl + a))
+
+
+@numba.njit(cache=True, nogil=True)
 def _bound_row(orow, rc, rn, ra, rb, rd, d2, acc, kpl, nc, rev):
     """``orow[c] = max(rc, rn, ra, rb, rd - d2, kpl + acc)`` for the ``nc`` cells of one
     column (written reversed if ``rev``): the own cell, its upper neighbour, the cells
@@ -326,7 +348,17 @@ def _scan_kernel(h, out, sa, sb, sweep0, cross0, m, kappa, n_fam, out_t):
         orow = strip[k % _STRIP] if out_t else out[ls]
         ra = prev[pad:pad + nc]
         fl = n_fam - 1
-        if n_w[fl, k] < 1 or n_w[fl, k] > 3 or n_fam == 1:
+        if n_fam == 2 and 1 <= n_w[0, k] <= 3 and 1 <= n_w[1, k] <= 3:
+            b0 = q_min + d_lo[0, k] - a_min
+            b1 = q_min + d_lo[1, k] - a_min
+            if lateral:
+                _bound_row_two(orow, rc, row[pad + 1:pad + 1 + nc], ra,
+                               prev[pad + 1:pad + 1 + nc], prev[pad + 2:pad + 2 + nc], d2,
+                               G[0], b0, n_w[0, k], G[1], b1, n_w[1, k], kpl[k], nc, sb < 0)
+            else:
+                _bound_row_two(orow, rc, rc, ra, ra, ra, d2, G[0], b0, n_w[0, k], G[1], b1,
+                               n_w[1, k], kpl[k], nc, sb < 0)
+        elif n_w[fl, k] < 1 or n_w[fl, k] > 3 or n_fam == 1:
             for f in range(n_fam):
                 _window_max(acc, G[f], q_min + d_lo[f, k] - a_min, n_w[f, k], nc, f == 0)
             if lateral:

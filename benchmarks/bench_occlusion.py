@@ -2,7 +2,7 @@
 
 Surface: the real SRTM DEM of Big Tujunga (30 m) tiled (mirrored, so tiles join without
 cliffs) to 4000 x 4000 cells, 8 directions at el 15..60 deg.  In the same run, single thread
-(``NUMBA_NUM_THREADS=1`` is set below), CPU time of this process, median of 5
+(``NUMBA_NUM_THREADS=1`` is set below), CPU time of this process, median of 9
 interleaved runs (3 for the marching baseline):
 
 * the conservative column scan of :mod:`skyroute.stages.occlusion` (every cell's value holds
@@ -378,7 +378,7 @@ def main() -> None:
     cpu_scan, cpu_legacy, cpu_scan1 = cpu_medians([
         lambda: visibility_heights_numpy(h, az, el, CELL_M),
         lambda: legacy_visibility_heights(h, az, el, CELL_M),
-        lambda: visibility_heights_numpy(h, az, el, CELL_M, lines_per_cell=1)], repeat=5)
+        lambda: visibility_heights_numpy(h, az, el, CELL_M, lines_per_cell=1)], repeat=9)
     rate_scan, rate_legacy, rate_scan1 = (updates / cpu_scan, updates / cpu_legacy,
                                           updates / cpu_scan1)
 
@@ -404,7 +404,7 @@ def main() -> None:
 
     print(f"surface: SRTM Big Tujunga 30 m tiled to {h.shape[0]} x {h.shape[1]} = {h.size:.3g} cells, "
           f"{az.size} directions (el {el.min():.0f}..{el.max():.0f} deg), "
-          f"NUMBA_NUM_THREADS={os.environ['NUMBA_NUM_THREADS']}, CPU s = median of 5 interleaved runs (marching: 3)")
+          f"NUMBA_NUM_THREADS={os.environ['NUMBA_NUM_THREADS']}, CPU s = median of 9 interleaved runs (marching: 3)")
     print(f"{'method':<44}{'CPU s':>9}{'updates/s/core':>17}{'vs legacy':>11}{'vs march':>10}")
     for name, cpu, rate in (("conservative scan, 2 lines/cell (default)", cpu_scan, rate_scan),
                             ("conservative scan, 1 line/cell", cpu_scan1, rate_scan1),

@@ -184,13 +184,14 @@ class Constraints(FrozenModel):
 
 class GnssSettings(FrozenModel):
     """GNSS coverage: elevation mask [deg], DOP kind and thresholds D_j, time window [min]
-    sampled every ``step_min`` from the mission start."""
+    sampled every ``step_min`` from the mission start (default every whole minute: the
+    coverage floor holds at each epoch, not in between)."""
 
     elevation_mask_deg: Annotated[float, Field(ge=0, le=60)] = 5.0
     dop_kind: Literal["GDOP", "PDOP", "HDOP", "VDOP"] = "PDOP"
     dop_thresholds: tuple[float, ...] = (2.0, 3.0, 4.0)
     window_min: NonNegFloat = 20.0
-    step_min: PositiveFloat = 5.0
+    step_min: PositiveFloat = 1.0
     uere_m: PositiveFloat = 3.0  # pseudorange error (1 sigma) of the navigation filter [m]
 
     @field_validator("dop_thresholds")

@@ -108,7 +108,8 @@ def sky(shared, rdam) -> xr.Dataset:
     lon, lat = Grid.from_dataarray(rdam).to_lonlat(91240.0, 435810.0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # one unhealthy PRN excluded
-        return sky_geometry(ALMANAC, cv.window_times("2020-01-03T08:00"), lat, lon, 0.0)
+        return sky_geometry(ALMANAC, cv.window_times("2020-01-03T08:00", step_min=5.0), lat, lon,
+                            0.0)
 
 
 @pytest.fixture(scope="module")
@@ -416,8 +417,12 @@ def test_bad_input(sky):
 
 
 def test_window_times():
+    # default: every whole minute of the window, both ends included
     t = cv.window_times("2022-04-19T11:30")
-    assert len(t) == 5 and str(t[0]) == "2022-04-19T11:30:00" and str(t[-1]) == "2022-04-19T11:50:00"
+    assert len(t) == 21 and str(t[0]) == "2022-04-19T11:30:00" and str(t[-1]) == "2022-04-19T11:50:00"
+    assert np.all(np.diff(t) == np.timedelta64(60, "s"))
+    t = cv.window_times("2022-04-19T11:30", step_min=5.0)
+    assert len(t) == 5 and str(t[-1]) == "2022-04-19T11:50:00"
     with pytest.raises(InputError, match="step_min"):
         cv.window_times("2022-04-19T11:30", step_min=0)
 
@@ -425,7 +430,7 @@ def test_window_times():
 def test_coverage_from_almanac_equals_coverage_maps(rdam, sky, cov):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        ds = cv.coverage_from_almanac(rdam, ALMANAC, "2020-01-03T08:00")
+        ds = cv.coverage_from_almanac(rdam, ALMANAC, "2020-01-03T08:00", step_min=5.0)
     # geometry seen from the map centre at the median height vs the fixture's site: < 0.01 deg
     assert np.allclose(ds["open_sky_dop"].values, cov["open_sky_dop"].values, rtol=1e-3)
     same = np.isclose(ds["coverage_floor"].values, cov["coverage_floor"].values, atol=0.05)
@@ -485,3 +490,75 @@ def test_auto_chunks_and_many_blocks_equal_unchunked():
         np.testing.assert_array_equal(other["unflyable"].values, ref["unflyable"].values)
     with pytest.raises(InputError, match="chunks"):
         coverage_maps(da, az, el, chunks="big")
+
+
+# ------------------------------------------------------------------------------------------
+# the contract: the floor holds at every point of the cell and every epoch of the window
+# ------------------------------------------------------------------------------------------
+
+def _towers(seed: int = 3, n: int = 90) -> xr.DataArray:
+    """Synthetic downtown (always available): 2 m cells, towers 10..120 m on flat ground."""
+    rng = np.random.default_rng(seed)
+    h = np.zeros((n, n), np.float32)
+    for _ in range(22):
+        w, length = rng.integers(2, 10, 2)
+        i, j = rng.integers(0, n - 10, 2)
+        h[i:i + w, j:j + length] = max(float(h[i:i + w, j:j + length].max()), rng.uniform(10, 120))
+    g = Grid.from_bounds("EPSG:28992", 91100.0, 435700.0, 91100.0 + 2 * n, 435700.0 + 2 * n, 2.0)
+    return g.dataarray(h, "surface", units="m", vertical_datum="NAP")
+
+
+CATALOG_DATA = Path(__file__).resolve().parents[1] / "catalogs" / "data"
+
+
+@pytest.mark.parametrize("which", ["towers", "rotterdam"])
+def test_floor_holds_at_every_point_and_minute(which):
+    # (cell, D_j) pairs with a finite floor; at random points of the cell 1 cm above the
+    # floor, the least-squares PDOP with EXACT line of sight (independent slab oracle) is
+    # below D_j at every whole minute of a 10 min window
+    from _prism_oracle import oracle_points
+
+    from skyroute.stages.almanac import sky_geometry
+    from skyroute.stages.occlusion import grid_azimuth_deg
+
+    if which == "towers":
+        surf = _towers()
+    else:
+        from skyroute.stages.surface import build_surface
+
+        g = Grid.from_bounds("EPSG:28992", 91100.0, 435700.0, 91300.0, 435880.0, 2.0)
+        surf = build_surface(g, buildings_path=CATALOG_DATA / "rotterdam_delfshaven_lod2.city.json",
+                             buildings_format="cityjson")["surface"]
+    lon, lat = Grid.from_dataarray(surf).to_lonlat(91200.0, 435790.0)
+    times = cv.window_times("2020-01-03T08:00", window_min=10.0)
+    assert len(times) == 11
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        sky = sky_geometry(CATALOG_DATA / "yuma_2020-01-03.txt", times, lat, lon, 0.0)
+    thr = (2.5, 3.0, 4.0, 6.0)
+    ds = cv.coverage_maps(surf, sky["az_deg"], sky["el_deg"], thresholds=thr)
+    floor = ds["coverage_floor"].values
+    h = surf.values.astype(np.float32)
+    ny, nx = h.shape
+    rng = np.random.default_rng(8)
+    jj, ii, kk = np.nonzero(np.isfinite(floor))
+    pick = rng.choice(jj.size, 150, replace=False)
+    jj, ii, kk = jj[pick], ii[pick], kk[pick]
+    pts_r = ii[:, None] + rng.uniform(0, 1, (150, 3))
+    pts_c = kk[:, None] + rng.uniform(0, 1, (150, 3))
+    z = floor[jj, ii, kk][:, None] + 0.01
+    az_all, el_all = sky["az_deg"].values, sky["el_deg"].values
+    worst = 0.0
+    for t in range(len(times)):
+        ok = np.isfinite(el_all[t]) & (el_all[t] >= 5.0)
+        az, el = az_all[t, ok], el_all[t, ok]
+        azg = np.atleast_1d(grid_azimuth_deg(az, surf))
+        vis = np.stack([oracle_points(h, pts_r.ravel(), pts_c.ravel(), a, e, 2.0)
+                        for a, e in zip(azg, el, strict=True)], axis=-1)   # (points, sat)
+        visible = vis <= np.repeat(z.ravel(), 3)[:, None]
+        dop = ref_dop_batch(np.broadcast_to(az, visible.shape), np.broadcast_to(el, visible.shape),
+                            visible)[:, 1]
+        d_j = np.repeat(np.asarray(thr)[jj], 3)
+        assert np.all(dop < d_j), f"epoch {t}: PDOP {dop[dop >= d_j][:5]} >= D_j above the floor"
+        worst = max(worst, float((dop / d_j).max()))
+    print(f"{which}: worst PDOP / D_j above the floor {worst:.3f}")

@@ -1,14 +1,20 @@
-"""Tests of skyroute.stages.occlusion against an exact prism ray caster (Amanatides-Woo)."""
+"""Tests of skyroute.stages.occlusion (conservative column scan) and skyroute.stages.raycast
+(exact prism caster) against an independent exact oracle (tests/_prism_oracle.py: every cell
+within reach tested on its own by ray/box slab intersection, no grid traversal).
+
+The contract: the value stored for a cell is >= the exact prism value at every point of the
+cell (up to 0.01 m); over-estimation is allowed and measured.
+"""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
 
-import numba
 import numpy as np
 import pytest
 import xarray as xr
+from _prism_oracle import oracle_points, shadow_edge_points
 from pyproj import Transformer
 
 from skyroute.pipeline.errors import CRSError, InputError
@@ -19,75 +25,22 @@ from skyroute.stages.occlusion import (
     visibility_height,
     visibility_heights_numpy,
 )
+from skyroute.stages.raycast import exact_visibility_height, exact_visibility_heights_numpy
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 SRTM = SHARED / "terrain" / "srtm_bigtujunga30m_utm11.tif"
-ROTTERDAM = SHARED / "city" / "rotterdam_delfshaven_lod2.city.json"
-HELSINKI = SHARED / "city" / "helsinki_center.osm.pbf"
+CATALOG = Path(__file__).resolve().parents[1] / "catalogs" / "data"
+ROTTERDAM = CATALOG / "rotterdam_delfshaven_lod2.city.json"
+HELSINKI = CATALOG / "helsinki_center.osm.pbf"
+MONACO = CATALOG / "monaco_2019-09-30.osm.pbf"
+TOL_M = 0.01  # numerical tolerance of the contract [m]
 
 
-# ----------------------------------------------------------------------------- oracle
-
-@numba.njit(cache=True)
-def prism_oracle(h, i, j, az_grid_deg, el_deg, cell_m):
-    """Exact visibility height at the centre of cell (i, j) for flat-topped prism cells:
-    walk every cell the horizontal ray crosses (Amanatides & Woo 1987 grid traversal) and
-    take max(h(i, j), h(c) - t_entry(c) * tan(e)).  Outside the grid: no obstacle."""
-    ny, nx = h.shape
-    az = math.radians(az_grid_deg)
-    dx = math.sin(az)    # columns per unit of horizontal distance (cell units)
-    dy = -math.cos(az)   # rows (row index grows southward)
-    tan_e = math.tan(math.radians(el_deg))
-    x = j + 0.5
-    y = i + 0.5
-    cx = j
-    cy = i
-    big = 1e300
-    step_x = 1 if dx > 0 else -1
-    step_y = 1 if dy > 0 else -1
-    t_dx = abs(1.0 / dx) if dx != 0 else big
-    t_dy = abs(1.0 / dy) if dy != 0 else big
-    if dx > 0:
-        t_mx = (cx + 1 - x) / dx
-    elif dx < 0:
-        t_mx = (cx - x) / dx
-    else:
-        t_mx = big
-    if dy > 0:
-        t_my = (cy + 1 - y) / dy
-    elif dy < 0:
-        t_my = (cy - y) / dy
-    else:
-        t_my = big
-    v = float(h[i, j])
-    hmax = h.max()
-    while True:
-        if t_mx < t_my:
-            t = t_mx
-            t_mx += t_dx
-            cx += step_x
-        else:
-            t = t_my
-            t_my += t_dy
-            cy += step_y
-        if cx < 0 or cx >= nx or cy < 0 or cy >= ny:
-            break
-        drop = t * cell_m * tan_e
-        if hmax - drop <= v:
-            break
-        c = h[cy, cx] - drop
-        if c > v:
-            v = c
-    return v
-
-
-# ----------------------------------------------------------------------------- real data
+# ----------------------------------------------------------------------------- surfaces
 
 @pytest.fixture(scope="module")
-def shared() -> Path:
-    if not SHARED.is_dir():
-        pytest.skip(f"shared real data folder {SHARED} is missing")
-    return SHARED
+def shared(shared_data) -> Path:
+    return shared_data
 
 
 @pytest.fixture(scope="module")
@@ -102,120 +55,207 @@ def srtm(shared) -> xr.DataArray:
     return da
 
 
-def _shared_surface(grid: Grid, path: Path, fmt: str) -> xr.DataArray:
-    """The lead's surface stage (terrain + flat-topped buildings) on ``grid``."""
+def _surface(grid: Grid, path: Path, fmt: str) -> xr.DataArray:
+    """The surface stage (terrain + flat-topped buildings) on ``grid``."""
     from skyroute.stages.surface import build_surface
 
     return build_surface(grid, buildings_path=path, buildings_format=fmt)["surface"]
 
 
-@pytest.fixture(scope="module")
-def rotterdam(shared) -> xr.DataArray:
-    # the LoD2 extent of the file (EPSG:28992), 2 m cells
-    grid = Grid.from_bounds("EPSG:28992", 90409.3, 435440.4, 91453.9, 436090.0, 2.0)
-    return _shared_surface(grid, ROTTERDAM, "cityjson")
+def _lonlat_grid(crs: str, lon0: float, lat0: float, lon1: float, lat1: float) -> Grid:
+    t = Transformer.from_crs(4326, crs, always_xy=True)
+    (x0, x1), (y0, y1) = t.transform([lon0, lon1], [lat0, lat1])
+    return Grid.from_bounds(crs, x0, y0, x1, y1, 2.0)
 
 
 @pytest.fixture(scope="module")
-def helsinki(shared) -> xr.DataArray:
-    # the OSM extract (lat 60.164..60.179, lon 24.935..24.953) in UTM 35N, 2 m cells
-    t = Transformer.from_crs(4326, "EPSG:32635", always_xy=True)
-    (x0, x1), (y0, y1) = t.transform([24.935, 24.953], [60.164, 60.179])
-    grid = Grid.from_bounds("EPSG:32635", x0, y0, x1, y1, 2.0)
-    return _shared_surface(grid, HELSINKI, "osm")
+def rotterdam() -> xr.DataArray:
+    # part of the LoD2 extent of the shipped file (EPSG:28992), 2 m cells
+    grid = Grid.from_bounds("EPSG:28992", 90900.0, 435650.0, 91400.0, 436000.0, 2.0)
+    return _surface(grid, ROTTERDAM, "cityjson")
 
 
-def compare_with_oracle(surface: xr.DataArray, el_range, z_range_m, seed, n_dir=40, n_cell=50):
-    """(agreement of visible/occluded decisions, 99th percentile of |error| / tolerance,
-    all |errors|) at random cells, altitudes and directions."""
+@pytest.fixture(scope="module")
+def helsinki() -> xr.DataArray:
+    # the centre of the shipped OSM extract in UTM 35N, 2 m cells
+    return _surface(_lonlat_grid("EPSG:32635", 24.935, 60.164, 24.947, 60.171), HELSINKI, "osm")
+
+
+@pytest.fixture(scope="module")
+def monaco() -> xr.DataArray:
+    return _surface(_lonlat_grid("EPSG:32632", 7.415, 43.730, 7.425, 43.738), MONACO, "osm")
+
+
+def towers_city(seed: int = 7, n: int = 180) -> xr.DataArray:
+    """Synthetic downtown (always available): 2 m cells, 45 rectangular towers of 10..210 m
+    on flat ground, some touching."""
+    rng = np.random.default_rng(seed)
+    h = np.zeros((n, n), np.float32)
+    for _ in range(45):
+        w, length = rng.integers(2, 14, 2)
+        i, j = rng.integers(0, n - 14, 2)
+        h[i:i + w, j:j + length] = max(float(h[i:i + w, j:j + length].max()),
+                                       rng.uniform(10.0, 210.0))
+    g = Grid.from_bounds("EPSG:32631", 600000.0, 5700000.0, 600000.0 + 2 * n, 5700000.0 + 2 * n, 2.0)
+    return g.dataarray(h, "surface", units="m", vertical_datum="EGM96")
+
+
+# ----------------------------------------------------------------------------- the contract
+
+def check_conservative(surface: xr.DataArray, seed: int, n_dir: int = 16, n_pts: int = 600,
+                       n_edge: int = 200, n_cell: int = 120, el_range=(5.0, 60.0),
+                       z_range_m: float = 50.0):
+    """Zero unsafe values at random interior points and on shadow edges; returns (share of
+    agreeing visible/occluded decisions at cell centres outside the band cell tan(el) +
+    0.5 m, the same share for the sampled supremum over each cell, mean over-estimation
+    [m] at the points)."""
     h = np.asarray(surface.values, dtype=np.float32)
     cell = Grid.from_dataarray(surface).resolution_m
+    ny, nx = h.shape
     rng = np.random.default_rng(seed)
-    agree, ratio, errs = [], [], []
+    agree, agree_sup, over = [], [], []
     for _ in range(n_dir):
-        az = rng.uniform(0.0, 360.0)
-        el = rng.uniform(*el_range)
+        az, el = rng.uniform(0.0, 360.0), rng.uniform(*el_range)
         v = visibility_heights_numpy(h, az, el, cell)[0]
-        ii = rng.integers(0, h.shape[0], n_cell)
-        jj = rng.integers(0, h.shape[1], n_cell)
-        tol = cell * math.tan(math.radians(el)) + 0.5
-        for i, j in zip(ii, jj, strict=True):
-            exact = prism_oracle(h, i, j, az, el, cell)
-            z = rng.uniform(h[i, j], h[i, j] + z_range_m)
-            agree.append((z >= exact) == (z >= v[i, j]))
-            errs.append(abs(float(v[i, j]) - exact))
-            ratio.append(errs[-1] / tol)
-    return float(np.mean(agree)), float(np.percentile(ratio, 99)), np.asarray(errs)
+        er, ec = shadow_edge_points(h, az, el, cell, n_edge, rng)
+        r = np.r_[rng.uniform(0, ny, n_pts), er]
+        c = np.r_[rng.uniform(0, nx, n_pts), ec]
+        exact = oracle_points(h, r, c, az, el, cell)
+        i = np.minimum(r.astype(int), ny - 1)
+        j = np.minimum(c.astype(int), nx - 1)
+        # a point exactly on a cell edge belongs to both cells: take the cell it was cut from
+        diff = v[i, j] - exact
+        bad = np.flatnonzero(diff < -TOL_M)
+        assert bad.size == 0, (f"unsafe: az {az:.2f} el {el:.2f} point (row, col) "
+                               f"({r[bad[0]]:.6f}, {c[bad[0]]:.6f}) scan {v[i[bad[0]], j[bad[0]]]:.3f}"
+                               f" < exact {exact[bad[0]]:.3f} m")
+        over.append(diff)
+        ii, jj = rng.integers(0, ny, n_cell), rng.integers(0, nx, n_cell)
+        centre = oracle_points(h, ii + 0.5, jj + 0.5, az, el, cell)
+        # the best any per-cell value valid for every point can do: the supremum over the
+        # cell, sampled on 7 x 7 interior points
+        sr = (ii[:, None] + _GR).ravel()
+        sc = (jj[:, None] + _GC).ravel()
+        sup = oracle_points(h, sr, sc, az, el, cell).reshape(n_cell, -1).max(axis=1)
+        z = h[ii, jj] + rng.uniform(0.0, z_range_m, n_cell)
+        out = np.abs(z - centre) > cell * math.tan(math.radians(el)) + 0.5
+        agree.append(((z >= centre) == (z >= v[ii, jj]))[out])
+        agree_sup.append(((z >= centre) == (z >= sup))[out])
+    return (float(np.concatenate(agree).mean()), float(np.concatenate(agree_sup).mean()),
+            float(np.concatenate(over).mean()))
 
 
-# ----------------------------------------------------------------------------- exactness
-
-def test_srtm_matches_prism_oracle(srtm):
-    # 2000 random (cell, altitude, direction) samples, elevations 5..60 deg, altitudes up to
-    # 300 m above ground; measured: agreement 0.9995, p99(err / tol) 0.57
-    agree, p99_ratio, errs = compare_with_oracle(srtm, (5.0, 60.0), 300.0, seed=1)
-    print(f"SRTM: agreement {agree:.4f}, p99 err/tol {p99_ratio:.3f}, p99 err {np.percentile(errs, 99):.2f} m")
-    assert agree >= 0.995
-    assert p99_ratio < 1.0
-    assert np.median(errs) < 0.5
+_G = 1e-9 + (1.0 - 2e-9) * np.arange(7) / 6.0
+_GR, _GC = (a.ravel() for a in np.meshgrid(_G, _G, indexing="ij"))
 
 
-@pytest.mark.parametrize("city", ["rotterdam", "helsinki"])
-def test_city_surfaces_match_prism_oracle(city, request):
-    # 2 m surfaces of the surface stage (Rotterdam LoD2 CityJSON, Helsinki OSM buildings),
-    # elevations 10..70 deg, altitudes up to 50 m above roof or ground
-    surface = request.getfixturevalue(city)
-    agree, p99_ratio, errs = compare_with_oracle(surface, (10.0, 70.0), 50.0, seed=2)
-    print(f"{city}: agreement {agree:.4f}, p99 err/tol {p99_ratio:.3f}, p99 err {np.percentile(errs, 99):.2f} m")
-    assert agree >= 0.995
-    assert p99_ratio < 1.0
-    assert np.median(errs) < 0.01
+def test_towers_city_never_unsafe():
+    # towers up to 210 m on 2 m cells: the hardest case for lateral shadow edges (the issue's
+    # 8.1 m reported vs 90.4 m exact).  Agreement is bounded by the contract itself here (a
+    # cell beside a tower must carry the tower's height)
+    agree, agree_sup, over = check_conservative(towers_city(), seed=11, n_dir=8)
+    print(f"towers: agreement {agree:.4f} (supremum {agree_sup:.4f}), over-estimation {over:.2f} m")
+    assert agree >= agree_sup - 0.03
+
+
+@pytest.mark.parametrize("city", ["rotterdam", "helsinki", "monaco"])
+def test_city_surfaces_never_unsafe_and_tight(city, request):
+    # measured (seed 2): agreement 0.991..0.994, within 0.3 % of the supremum over the cell
+    # (itself 0.994..0.996: the contract charges cells beside walls with their height)
+    agree, agree_sup, over = check_conservative(request.getfixturevalue(city), seed=2)
+    print(f"{city}: agreement {agree:.4f} (supremum {agree_sup:.4f}), over-estimation {over:.2f} m")
+    assert agree >= 0.99
+    assert agree >= agree_sup - 0.005
+    assert over < 1.5
+
+
+def test_srtm_never_unsafe_and_tight(srtm):
+    sub = srtm.isel(y=slice(0, 260), x=slice(0, 260))
+    agree, agree_sup, over = check_conservative(sub, seed=1, n_dir=10, z_range_m=300.0)
+    print(f"SRTM: agreement {agree:.4f} (supremum {agree_sup:.4f}), over-estimation {over:.2f} m")
+    assert agree >= 0.99
+    assert agree >= agree_sup - 0.005
+
+
+def test_issue_shadow_edge_case():
+    # a 183 m tower, a point 76 m from it whose ray grazes its corner (az 191.7, el 50.6):
+    # every point of the point's cell must get at least the exact value
+    h = np.zeros((120, 120), np.float32)
+    h[90:100, 50:60] = 183.0
+    az, el, cell = 191.7, 50.6, 1.0
+    a = math.radians(az)
+    dx, dy = math.sin(a), -math.cos(a)
+    # back from the tower's north-west corner (row 90, col 50), 76 cells, 1e-7 cell aside
+    t = 76.0
+    r = np.array([90 - t * dy + 1e-7 * dx, 90 - t * dy - 1e-7 * dx])
+    c = np.array([50 - t * dx - 1e-7 * dy, 50 - t * dx + 1e-7 * dy])
+    assert np.all((r > 0) & (r < 120) & (c > 0) & (c < 120))
+    exact = oracle_points(h, r, c, az, el, cell)
+    assert exact.max() > 90.0  # one side of the edge is in the tower's shadow
+    v = visibility_heights_numpy(h, az, el, cell)[0]
+    assert np.all(v[r.astype(int), c.astype(int)] >= exact - TOL_M)
 
 
 @pytest.mark.parametrize("az", [0.0, 90.0, 180.0, 270.0])
-def test_axis_directions_are_exact(srtm, az):
-    # along the grid axes every cell centre lies on a scan line: the scan is exact.  (On
-    # diagonals rays pass exactly through cell corners, where prisms only touch the ray and
-    # the oracle and the scan may legitimately pick different corner cells.)
+def test_axis_directions_give_the_supremum(srtm, az):
+    # along the grid axes the rays of a cell's interior stay in its row: the bound is the
+    # exact value at the cell's edge toward the satellite (the supremum over the cell)
     h = srtm.values.astype(np.float32)
     v = visibility_heights_numpy(h, az, 12.0, 30.0)[0]
     rng = np.random.default_rng(int(az))
     ii = rng.integers(0, h.shape[0], 300)
     jj = rng.integers(0, h.shape[1], 300)
-    exact = np.array([prism_oracle(h, i, j, az, 12.0, 30.0) for i, j in zip(ii, jj, strict=True)])
-    np.testing.assert_allclose(v[ii, jj], exact, atol=1e-3)
+    a = math.radians(az)
+    eps = 1e-6
+    r = ii + 0.5 - math.cos(a) * (0.5 - eps)
+    c = jj + 0.5 + math.sin(a) * (0.5 - eps)
+    exact = oracle_points(h, r, c, az, 12.0, 30.0)
+    np.testing.assert_allclose(v[ii, jj], exact, atol=1e-2)
 
 
-def test_more_nearest_lines_converge_to_exact(rotterdam):
-    h = rotterdam.values
+def test_more_lines_are_tighter(rotterdam):
+    h = rotterdam.values.astype(np.float32)
     rng = np.random.default_rng(5)
-    ii = rng.integers(0, h.shape[0], 400)
-    jj = rng.integers(0, h.shape[1], 400)
-    exact = np.array([prism_oracle(h, i, j, 33.3, 20.0, 2.0) for i, j in zip(ii, jj, strict=True)])
-    err = {}
-    for q in (1, 8):
-        v = visibility_heights_numpy(h, 33.3, 20.0, 2.0, lines_per_cell=q, lateral="nearest")[0]
-        err[q] = np.abs(v[ii, jj] - exact).mean()
-    assert err[8] < 0.5 * err[1]
+    r = rng.uniform(0, h.shape[0], 3000)
+    c = rng.uniform(0, h.shape[1], 3000)
+    exact = oracle_points(h, r, c, 33.3, 20.0, 2.0)
+    over = {}
+    for q in (1, 2, 6):
+        v = visibility_heights_numpy(h, 33.3, 20.0, 2.0, lines_per_cell=q)[0]
+        d = v[r.astype(int), c.astype(int)] - exact
+        assert d.min() >= -TOL_M
+        over[q] = d.mean()
+    assert over[6] <= over[2] <= over[1]
+    assert over[6] < over[1]
 
 
 def test_single_prism_closed_form():
-    # flat ground 0 m, one 30 m prism; sun from due east at 20 deg: cells west of it in its
-    # row need 30 - (distance to its west... east face) * tan(20), others are free
+    # flat ground 0 m, one 30 m prism; satellite due east at 20 deg (rays along the rows):
+    # a cell west of it in its row needs 30 m minus the drop over the distance from its EAST
+    # edge to the prism's west face; the cell touching the prism needs 30 m
     c = 2.0
+    tan20 = math.tan(math.radians(20.0))
     h = np.zeros((9, 40), np.float32)
     h[4, 30] = 30.0
     v = visibility_heights_numpy(h, 90.0, 20.0, c)[0]
     j = np.arange(30)
-    expected = np.maximum(30.0 - (30 - j - 0.5) * c * math.tan(math.radians(20.0)), 0.0)
+    expected = np.maximum(30.0 - (29 - j) * c * tan20, 0.0)
     np.testing.assert_allclose(v[4, :30], expected, atol=1e-4)
     assert v[4, 30] == 30.0
     assert np.all(v[4, 31:] == 0.0)
     assert np.all(v[[0, 1, 2, 3, 5, 6, 7, 8]] == 0.0)
     # satellite in the west: the shadow falls east
     v = visibility_heights_numpy(h, 270.0, 20.0, c)[0]
-    assert v[4, 31] == pytest.approx(30.0 - 0.5 * c * math.tan(math.radians(20.0)), abs=1e-4)
+    assert v[4, 31] == pytest.approx(30.0, abs=1e-4)
+    assert v[4, 33] == pytest.approx(30.0 - 2 * c * tan20, abs=1e-4)
     assert np.all(v[4, :30] == 0.0)
+    # slightly north of east: rays rise one row in 1/tan(5 deg) = 11.4 cells; the cell south
+    # of the prism carries it in full (points near its north edge enter the prism at once),
+    # the cell north of it does not (its rays go away from the prism's row)
+    v = visibility_heights_numpy(h, 85.0, 20.0, c)[0]
+    assert v[5, 30] == pytest.approx(30.0, abs=1e-4)
+    assert v[3, 30] == 0.0
+    assert v[3, 29] == 0.0
 
 
 def test_output_properties(srtm):
@@ -289,8 +329,8 @@ def test_chunked_equals_unchunked(srtm, el, chunks):
 def test_shadow_halo_cells_closed_form():
     h = np.zeros((5, 5), np.float32)
     h[2, 2] = 100.0
-    assert shadow_halo_cells(h, 60.0, 10.0) == 6 + 2  # 100 m / tan 60 = 57.7 m = 5.8 cells
-    assert shadow_halo_cells(h, 5.0, 10.0) == 115 + 2  # 1143 m
+    assert shadow_halo_cells(h, 60.0, 10.0) == 6 + 4  # 100 m / tan 60 = 57.7 m = 5.8 cells
+    assert shadow_halo_cells(h, 5.0, 10.0) == 115 + 4  # 1143 m
     # the halo is enough: farther obstacles do not change the result
     rng = np.random.default_rng(3)
     big = rng.uniform(0, 40, (200, 200)).astype(np.float32)
@@ -333,8 +373,8 @@ def test_bad_directions_and_grids(srtm):
     geo = Grid.from_bounds("EPSG:4326", 24.9, 60.1, 24.95, 60.15, 0.01)
     with pytest.raises(CRSError, match="not projected"):
         grid_azimuth_deg(10.0, geo)
-    with pytest.raises(InputError, match="lines_per_cell=1"):
-        visibility_height(sub, 10.0, 15.0, lines_per_cell=4)
+    with pytest.raises(InputError, match="lines_per_cell must be an integer 1..8"):
+        visibility_heights_numpy(sub.values, 10.0, 15.0, 30.0, lines_per_cell=0)
 
 
 # ----------------------------------------------------------------------------- CLI
@@ -362,3 +402,46 @@ def test_cli_writes_geotiff(tmp_path, srtm):
     bad = CliRunner().invoke(visibility_height_command, ["--surface", str(src), "--az-deg", "250",
                                                          "--el-deg", "0", "--out", str(out)])
     assert isinstance(bad.exception, InputError)
+
+
+# ----------------------------------------------------------------------------- exact caster
+
+@pytest.mark.parametrize("which", ["towers", "rotterdam"])
+def test_shipped_caster_matches_oracle(which, request):
+    # the shipped Amanatides-Woo caster against the independent slab oracle, at random
+    # points, shadow-edge points and cell corners/edges (exact grid coordinates)
+    surface = towers_city() if which == "towers" else request.getfixturevalue(which)
+    h = surface.values.astype(np.float32)
+    ny, nx = h.shape
+    rng = np.random.default_rng(3)
+    for az, el in [(0.0, 30.0), (90.0, 45.0), (45.0, 20.0), (191.7, 50.6), (301.3, 7.5)]:
+        er, ec = shadow_edge_points(h, az, el, 2.0, 100, rng)
+        r = np.r_[rng.uniform(0, ny, 400), er, rng.integers(0, ny, 50), rng.uniform(0, ny, 50)]
+        c = np.r_[rng.uniform(0, nx, 400), ec, rng.uniform(0, nx, 50), rng.integers(0, nx, 50)]
+        got = exact_visibility_heights_numpy(h, r, c, az, el, 2.0)
+        np.testing.assert_allclose(got, oracle_points(h, r, c, az, el, 2.0), atol=1e-6)
+
+
+def test_exact_visibility_height_map_coordinates():
+    surface = towers_city()
+    g = Grid.from_dataarray(surface)
+    rng = np.random.default_rng(4)
+    x = rng.uniform(g.x0, g.x0 + g.nx * 2.0, 200)
+    y = rng.uniform(g.y1 - g.ny * 2.0, g.y1, 200)
+    az = np.array([10.0, 200.0, 90.0])
+    el = np.array([15.0, 45.0, 90.0])
+    got = exact_visibility_height(surface, x, y, az, el)
+    assert got.shape == (3, 200)
+    h = surface.values
+    rows, cols = (g.y1 - y) / 2.0, (x - g.x0) / 2.0
+    for k in range(2):
+        np.testing.assert_allclose(got[k], oracle_points(h, rows, cols, az[k], el[k], 2.0), atol=1e-6)
+    # zenith: the ground under the point
+    np.testing.assert_array_equal(got[2], h[rows.astype(int), cols.astype(int)])
+    assert exact_visibility_height(surface, x[0], y[0], 10.0, 15.0).shape == ()
+    with pytest.raises(InputError, match="outside the surface"):
+        exact_visibility_height(surface, g.x0 - 1.0, y[0], 10.0, 15.0)
+    with pytest.raises(InputError, match=r"out of \(0, 90\]"):
+        exact_visibility_height(surface, x, y, 10.0, 0.0)
+    with pytest.raises(InputError, match="equal length"):
+        exact_visibility_height(surface, x, y, [10.0, 20.0], [15.0])

@@ -154,7 +154,7 @@ def test_line_of_sight_against_ray_march(problem, sky):
     az = sky["az_deg"].values[e]
     el = sky["el_deg"].values[e]
     g, s = problem.grid, surface()
-    agree = total = 0
+    agree = total = unsafe = 0
     for j in np.nonzero(up)[0]:
         a = math.radians(float(grid_azimuth_deg(az[j], g)))
         d = np.array([math.sin(a), math.cos(a)])
@@ -167,9 +167,13 @@ def test_line_of_sight_against_ray_march(problem, sky):
             ray = pts[i, 2] + step * math.tan(math.radians(el[j]))
             blocked = np.any(s[row[ok], col[ok]] > ray[ok])
             agree += (not blocked) == vis[i, j]
+            unsafe += blocked and vis[i, j]
             total += 1
     assert total > 300
-    assert agree / total >= 0.98                                       # shadow edges: half-cell offsets
+    # the cell's visibility height bounds every point of the cell (occlusion contract): the
+    # disagreements are on the safe side (occluded where the point itself sees the satellite)
+    assert agree / total >= 0.97
+    assert unsafe == 0
     assert not vis[:, ~up].any()
     blocked_frac = 1 - vis[:, up].mean()
     assert blocked_frac > 0.02                                         # the block does occlude

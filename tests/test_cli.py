@@ -34,11 +34,14 @@ def _write_variant(tmp_path, edit, name="helsinki-medical"):
 
 
 def listing(out) -> set[str]:
-    """Every file and symlink under ``out`` (symlinked folders not followed), relative."""
+    """Every file and symlink under ``out`` (symlinked folders not followed), relative; a zarr
+    store (a ``*.zarr`` folder) is one entry."""
     found = set()
     for root, dirs, files in os.walk(out):
-        for name in files + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
+        stores = [d for d in dirs if d.endswith(".zarr")]
+        for name in files + stores + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
             found.add(os.path.relpath(os.path.join(root, name), out).replace(os.sep, "/"))
+        dirs[:] = [d for d in dirs if d not in stores]
     return found
 
 

@@ -35,7 +35,7 @@ from skyroute.pipeline.runner import run_scenario
 from skyroute.pipeline.settings import load_scenario
 from skyroute.pipeline.stages_builtin import _plan_settings
 from skyroute.stages.planning.problem import build_problem, xyz_from_agl
-from skyroute.stages.planning.strategic import intruders_for, plan_strategic
+from skyroute.stages.planning.strategic import plan_strategic
 
 MAPS = ["surface", "environment", "clearance", "wind", "coverage", "satellites", "traffic"]
 
@@ -89,13 +89,9 @@ def long_mission(sc, d, s, inset_m: float = 150.0, agl: float = 60.0):
 
 
 def run_plan(d: dict, s, **kw):
-    intr = intruders_for(s.intruders, d["surface"]) if s.intruders else None
-    args = dict(start_xy=s.start_xy, start_agl_m=s.start_agl_m, goal_xy=s.goal_xy, goal_agl_m=s.goal_agl_m,
-                start_time_utc=s.start_time_utc, vehicle=s.vehicle, weights=s.weights, planner=s.planner,
-                time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, min_agl_m=s.min_agl_m,
-                max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m, dt_c_s=s.dt_c_s,
-                uere_m=s.uere_m)
-    args.update(kw)
+    from skyroute.pipeline.stages_builtin import plan_arguments
+
+    args = {**plan_arguments(s, d["surface"]), **kw}
     t = time.perf_counter()
     plan = plan_strategic(d["surface"], d["environment"], d["wind"], d["clearance"], d["coverage"],
                           d["satellites"], d["traffic"], **args)

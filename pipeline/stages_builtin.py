@@ -425,18 +425,25 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
                coverage: xr.Dataset | None, satellites: xr.Dataset | None, traffic: xr.Dataset | None, *,
                settings: PlanSettings) -> xr.Dataset:
     """Strategic plan (seed 000 III): STEP I-III for every coverage level and the choice."""
-    from skyroute.stages.planning.strategic import intruders_for, plan_strategic, plan_to_dataset
+    from skyroute.stages.planning.strategic import plan_strategic, plan_to_dataset
 
-    s = settings
-    intr = intruders_for(s.intruders, surface) if s.intruders else None
     plan = plan_strategic(surface, environment, wind, clearance, coverage, satellites, traffic,
-                          start_xy=s.start_xy, start_agl_m=s.start_agl_m, goal_xy=s.goal_xy, goal_agl_m=s.goal_agl_m,
-                          start_time_utc=s.start_time_utc, vehicle=s.vehicle, weights=s.weights, planner=s.planner,
-                          time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, step_cells=s.step_cells, min_agl_m=s.min_agl_m,
-                          max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m,
-                          dt_c_s=s.dt_c_s, uere_m=s.uere_m, battery_reserve_pct=s.battery_reserve_pct)
+                          **plan_arguments(settings, surface))
     return plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),
-                           s.start_time_utc)
+                           settings.start_time_utc)
+
+
+def plan_arguments(s: PlanSettings, surface: xr.Dataset) -> dict:
+    """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_strategic` for
+    these settings (one place: the plan stage and the benchmarks call it)."""
+    from skyroute.stages.planning.strategic import intruders_for
+
+    intr = intruders_for(s.intruders, surface) if s.intruders else None
+    return dict(start_xy=s.start_xy, start_agl_m=s.start_agl_m, goal_xy=s.goal_xy, goal_agl_m=s.goal_agl_m,
+                start_time_utc=s.start_time_utc, vehicle=s.vehicle, weights=s.weights, planner=s.planner,
+                time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, step_cells=s.step_cells,
+                min_agl_m=s.min_agl_m, max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m,
+                dt_c_s=s.dt_c_s, uere_m=s.uere_m, battery_reserve_pct=s.battery_reserve_pct)
 
 
 def plan_precheck(sc: Scenario, datasets: dict[str, xr.Dataset]) -> None:

@@ -6,6 +6,7 @@ The lead's click command builds the coverage Dataset
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
 
 from skyroute.pipeline.errors import InputError
+from skyroute.stages.figures import add_map_furniture
 
 
 def _threshold_label(value: float) -> str:
@@ -86,9 +88,10 @@ def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, pa
         ax.set_ylabel("y [m]")
         ax.ticklabel_format(useOffset=False, style="plain")
         ax.tick_params(labelsize=7)
-    fig.colorbar(im, ax=axes[0].tolist(), label="coverage floor [m]" + (
-        f" ({floor.attrs['vertical_datum']})" if floor.attrs.get("vertical_datum") else ""),
-        shrink=0.85)
+        add_map_furniture(ax)
+    datum = "\n".join(textwrap.wrap(str(floor.attrs.get("vertical_datum", "")), 36)[:2])
+    fig.colorbar(im, ax=axes[0].tolist(), label="coverage floor [m]" + (f"\n{datum}" if datum else ""),
+                 shrink=0.85)
     fig.suptitle(f"GNSS coverage maps, {kind}; {window}; grey = unflyable")
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -8,6 +8,7 @@ import numpy as np
 import xarray as xr
 
 from skyroute.pipeline.graph import RunResult
+from skyroute.stages.figures import add_map_furniture
 
 
 def _extent(da: xr.DataArray) -> tuple[float, float, float, float]:
@@ -99,7 +100,8 @@ def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50
             a.plot(x, y, mk, ms=9, mec="k")
         a.ticklabel_format(useOffset=False, style="plain")
         a.tick_params(labelsize=7)
-    fig.suptitle(f"{sc.name}: environment maps ({sc.grid.crs_wkt[:12]}, {sc.grid.resolution_m:g} m cells)")
+        add_map_furniture(a)
+    fig.suptitle(f"{sc.name}: environment maps ({sc.grid.crs.name}, {sc.grid.resolution_m:g} m cells)")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +13,7 @@ import numpy as np
 
 from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.graph import RunResult
+from skyroute.stages.figures import add_map_furniture
 
 
 def plot_surface(result: RunResult, path: Path) -> Path:
@@ -36,13 +38,15 @@ def plot_surface(result: RunResult, path: Path) -> Path:
         p = getattr(sc.mission, name)
         x, y = sc.point_xy(p)
         ax.plot(x, y, marker, ms=12, mfc=colour, mec="black", label=f"{name}: {p.name or f'({x:.0f}, {y:.0f})'}")
-    ax.legend(loc="upper right", fontsize=7, framealpha=0.85)
+    ax.legend(loc="lower right", fontsize=7, framealpha=0.85)
     cb = fig.colorbar(im, ax=ax, shrink=0.8)
-    cb.set_label(f"surface height [m] ({ds.attrs.get('vertical_datum', '')[:40]})", fontsize=8)
-    ax.set_xlabel(f"x [m] ({g.crs_wkt[:30]})")
+    datum = "\n".join(textwrap.wrap(str(ds.attrs.get("vertical_datum", "")), 40)[:2])
+    cb.set_label(f"surface height [m]\n{datum}", fontsize=8)
+    ax.set_xlabel(f"x [m] ({g.crs.name})")
     ax.set_ylabel("y [m]")
     ax.set_title(f"{sc.name}: surface model, {g.nx} x {g.ny} cells @ {g.resolution_m:g} m", fontsize=10)
     ax.ticklabel_format(useOffset=False, style="plain")
+    add_map_furniture(ax)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -76,7 +80,8 @@ def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
     cost = result["environment"]["risk_cost"].values if "environment" in result.datasets else None
     return write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
                       ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
-                      terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost)
+                      terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
+                      cost_label="ground risk cost (normalised, 0-1) [-]")
 
 
 def revalidate(result: RunResult, chosen) -> list[str]:

@@ -42,3 +42,21 @@ def helsinki_surface(helsinki, tmp_path_factory):
 
     res = run_scenario(helsinki, cache=Cache(tmp_path_factory.mktemp("cache")), targets=["surface"])
     return res["surface"].load()
+
+
+@pytest.fixture(autouse=True)
+def _no_clipped_text_in_saved_figures(monkeypatch):
+    """Every figure a test makes skyroute save is checked: no title, label, tick label or legend
+    text may be cut off by the canvas (skyroute.stages.figures.clipped_texts)."""
+    import matplotlib.figure
+
+    from skyroute.stages.figures import clipped_texts
+
+    real = matplotlib.figure.Figure.savefig
+
+    def savefig(self, *args, **kwargs):
+        cut = clipped_texts(self)
+        assert not cut, f"figure text cut off by the canvas: {', '.join(cut)}"
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)

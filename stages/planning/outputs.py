@@ -22,12 +22,14 @@ from __future__ import annotations
 import csv
 import json
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
 from pyproj import CRS, Transformer
 
 from skyroute.stages.base import InputError
+from skyroute.stages.figures import add_map_furniture
 from skyroute.stages.grid import Grid
 from skyroute.stages.planning.step3 import Candidate, utc_of
 
@@ -117,6 +119,7 @@ def _fmt(v, nd=3) -> str:
 
 def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or_crs, out_dir, start_time_utc,
                vertical_datum: str, *, surface_m=None, terrain_m=None, floor_m=None, cost_m=None,
+               cost_label: str = "cost [-]",
                figures: bool = True) -> dict[str, Path]:
     """Write ``plan.geojson``, ``waypoints.csv``, ``candidates.csv`` and the figures to ``out_dir``.
 
@@ -155,7 +158,7 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
     _write_csv(files["waypoints.csv"], WAYPOINT_COLUMNS, wrows)
     if figures:
         files.update(_figures(candidate, candidates, grid, out, vertical_datum, surface_m, terrain_m, floor_m,
-                              cost_m))
+                              cost_m, cost_label))
     return files
 
 
@@ -163,7 +166,8 @@ def _ras(a):
     return None if a is None else np.asarray(getattr(a, "values", a), dtype=float)
 
 
-def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_m) -> dict[str, Path]:
+def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_m,
+             cost_label: str = "cost [-]") -> dict[str, Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -179,7 +183,7 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
         cm, fl = _ras(cost_m), _ras(floor_m)
         if cm is not None:
             im = ax.imshow(cm, extent=ext, cmap="YlOrRd", interpolation="nearest", alpha=0.8)
-            fig.colorbar(im, ax=ax, shrink=0.7).set_label("cost map [-]")
+            fig.colorbar(im, ax=ax, shrink=0.7).set_label(cost_label)
         if fl is not None:
             ax.contour(np.linspace(xmin, xmax, grid.nx), np.linspace(ymax, ymin, grid.ny),
                        np.where(np.isfinite(fl), fl, np.nanmax(np.where(np.isfinite(fl), fl, np.nan)) + 50),
@@ -197,11 +201,12 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
     ax.ticklabel_format(useOffset=False, style="plain")
     ax.legend(fontsize=7, loc="best")
     ax.set_title("plan, top view")
+    add_map_furniture(ax)
     fig.tight_layout()
     files["top_view.png"] = out / "top_view.png"
     fig.savefig(files["top_view.png"])
     plt.close(fig)
-    # lateral profile
+    # vertical profile
     dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1))])
     fig, ax = plt.subplots(figsize=(9, 4), dpi=100)
     if grid is not None:
@@ -217,9 +222,9 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
                     label="admissible floor")
     ax.plot(dist, p[:, 2], "k-", lw=2, label=f"trajectory {cand.label}")
     ax.set_xlabel("horizontal distance along the path [m]")
-    ax.set_ylabel(f"altitude [m] ({datum[:40]})")
+    ax.set_ylabel("altitude [m]\n" + "\n".join(textwrap.wrap(datum, 32)[:2]), fontsize=8)
     ax.legend(fontsize=7)
-    ax.set_title("lateral profile")
+    ax.set_title("vertical profile along the path")
     fig.tight_layout()
     files["profile.png"] = out / "profile.png"
     fig.savefig(files["profile.png"])
@@ -230,8 +235,11 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
         if c.xyz_m.shape[0] and np.isfinite(c.sigma_p_m).any():
             ax.plot(c.t_s, c.sigma_p_m, lw=2 if c is cand else 1, label=c.label)
     dp = getattr(cand, "dp_max_m", None)
-    if dp is not None:
-        ax.axhline(dp, color="r", ls="--", label="dp_max")
+    if dp is not None and np.isfinite(dp):
+        ax.axhline(dp, color="r", ls="--", label=f"dp_max = {dp:g} m")
+        top = max([dp] + [float(np.nanmax(c.sigma_p_m)) for c in cands
+                          if c.xyz_m.shape[0] and np.isfinite(c.sigma_p_m).any()])
+        ax.set_ylim(0.0, 1.1 * top)
     ax.set_xlabel("mission time [s]")
     ax.set_ylabel("sigma_p [m]")
     ax.legend(fontsize=7)

@@ -65,8 +65,27 @@ def _q_matrix(T: float, r: int = 4) -> np.ndarray:
     return q
 
 
+class _Kinematics:
+    """``sample`` / ``velocity`` / ``acceleration`` of a trajectory with ``_eval(t, order)``."""
+
+    def _eval(self, t, r: int) -> np.ndarray:  # pragma: no cover - provided by the subclass
+        raise NotImplementedError
+
+    def sample(self, t) -> np.ndarray:
+        """Position (m, 3) [m] at times ``t`` [s] (clipped to [0, duration])."""
+        return self._eval(t, 0)
+
+    def velocity(self, t) -> np.ndarray:
+        """Velocity (m, 3) [m/s]."""
+        return self._eval(t, 1)
+
+    def acceleration(self, t) -> np.ndarray:
+        """Acceleration (m, 3) [m/s^2] (right-continuous where it jumps)."""
+        return self._eval(t, 2)
+
+
 @dataclass(frozen=True)
-class MinSnapTrajectory:
+class MinSnapTrajectory(_Kinematics):
     """Piecewise 7th-order polynomial: ``coef[k, :, axis]`` in ``t - t_k`` [s] of segment k."""
 
     coef: np.ndarray            # (nseg, 8, 3) coefficients in physical time
@@ -91,18 +110,6 @@ class MinSnapTrajectory:
         for j in range(N_COEF - 1, r - 1, -1):        # Horner on d^r/dt^r
             out = out * tau[:, None] + _fact_ratio(j, r) * self.coef[k, j, :]
         return out
-
-    def sample(self, t) -> np.ndarray:
-        """Position (m,3) [m] at times ``t`` [s] (clipped to [0, duration])."""
-        return self._eval(t, 0)
-
-    def velocity(self, t) -> np.ndarray:
-        """Velocity (m,3) [m/s]."""
-        return self._eval(t, 1)
-
-    def acceleration(self, t) -> np.ndarray:
-        """Acceleration (m,3) [m/s^2]."""
-        return self._eval(t, 2)
 
     def derivative(self, t, order: int) -> np.ndarray:
         """Derivative of any order 0..7 (m,3) [m/s^order]."""
@@ -267,7 +274,7 @@ class KinematicLimits:
 
 
 @dataclass(frozen=True)
-class CornerTrajectory:
+class CornerTrajectory(_Kinematics):
     """Straight lines and circular fillet arcs, timed by phases of constant tangential
     acceleration (lines) or constant speed (arcs).
 
@@ -331,18 +338,6 @@ class CornerTrajectory:
             else:
                 out[arc] = (v0[arc] ** 2 / Ra)[:, None] * (-sp * e1[arc] + cp * e2[arc])
         return out
-
-    def sample(self, t) -> np.ndarray:
-        """Position (m, 3) [m] at times ``t`` [s] (clipped to [0, duration])."""
-        return self._eval(t, 0)
-
-    def velocity(self, t) -> np.ndarray:
-        """Velocity (m, 3) [m/s]."""
-        return self._eval(t, 1)
-
-    def acceleration(self, t) -> np.ndarray:
-        """Acceleration (m, 3) [m/s^2] (right-continuous at phase changes)."""
-        return self._eval(t, 2)
 
     def sample_times(self, dt_s: float, min_gap_s: float = 0.1) -> np.ndarray:
         """Output times: every ``dt_s`` [s] plus every piece and phase boundary (so no chord

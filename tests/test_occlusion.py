@@ -27,9 +27,8 @@ from skyroute.stages.occlusion import (
 )
 from skyroute.stages.raycast import exact_visibility_height, exact_visibility_heights_numpy
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-SRTM = SHARED / "terrain" / "srtm_bigtujunga30m_utm11.tif"
 CATALOG = Path(__file__).resolve().parents[1] / "catalogs" / "data"
+SRTM = CATALOG / "srtm_bigtujunga30m_utm11.tif"  # the shipped copy of shared/data/terrain's file
 ROTTERDAM = CATALOG / "rotterdam_delfshaven_lod2.city.json"
 HELSINKI = CATALOG / "helsinki_center.osm.pbf"
 MONACO = CATALOG / "monaco_2019-09-30.osm.pbf"
@@ -39,12 +38,7 @@ TOL_M = 0.01  # numerical tolerance of the contract [m]
 # ----------------------------------------------------------------------------- surfaces
 
 @pytest.fixture(scope="module")
-def shared(shared_data) -> Path:
-    return shared_data
-
-
-@pytest.fixture(scope="module")
-def srtm(shared) -> xr.DataArray:
+def srtm() -> xr.DataArray:
     import rioxarray
 
     da = rioxarray.open_rasterio(SRTM).squeeze("band", drop=True)

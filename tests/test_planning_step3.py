@@ -17,6 +17,7 @@ import pytest
 from pyproj import Transformer
 
 from skyroute.pipeline.errors import InputError, PlanningError
+from skyroute.pipeline.settings import catalog_dir
 from skyroute.stages.almanac import sky_geometry
 from skyroute.stages.grid import Grid
 from skyroute.stages.occlusion import grid_azimuth_deg
@@ -30,6 +31,7 @@ from skyroute.stages.vehicle import load_vehicle
 
 X0, Y0 = 385000.0, 6672000.0
 START = pd.Timestamp("2020-01-03T12:00:00Z")
+CATALOG_DATA = catalog_dir() / "data"
 CHAIN = np.array([[100, 300, 30], [300, 320, 30], [500, 300, 30], [700, 280, 30], [900, 300, 30.0]]) + [X0, Y0, 0]
 D_C, DT_C = 10.0, 10.0
 
@@ -63,11 +65,11 @@ def intruders():
 
 
 @pytest.fixture(scope="module")
-def sky(shared_data):
+def sky():
     g = grid()
     lon, lat = g.to_lonlat(X0 + 500, Y0 + 300)
     with pytest.warns(UserWarning, match="unhealthy"):
-        return sky_geometry(shared_data / "gnss" / "yuma_2020-01-03.txt",
+        return sky_geometry(CATALOG_DATA / "yuma_2020-01-03.txt",  # shipped copy of shared/data/gnss's
                             pd.date_range(START, periods=4, freq="60s"), lat, lon)
 
 

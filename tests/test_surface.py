@@ -87,7 +87,7 @@ def test_helsinki_building_heights_match_osm_tags(helsinki, helsinki_surface):
     assert checked["height"] >= 5 and checked["levels"] >= 50, checked
 
 
-def test_rotterdam_roofs_match_cityjson(shared_data):
+def test_rotterdam_roofs_match_cityjson():
     sc = load_scenario("rotterdam-canyon")
     ds = build_surface(sc.grid, buildings_path=sc.data.buildings.path, buildings_format="cityjson")
     cj = json.loads((CATALOG_DATA / "rotterdam_delfshaven_lod2.city.json").read_text())
@@ -138,7 +138,7 @@ def _box_oracle(src, T, grid, how="max"):
     return out
 
 
-def test_dem_is_the_max_and_min_over_each_cell(shared_data):
+def test_dem_is_the_max_and_min_over_each_cell():
     path = CATALOG_DATA / "srtm_bigtujunga30m_utm11.tif"
     with rasterio.open(path) as src:
         b = src.bounds

@@ -27,6 +27,7 @@ import importlib
 import importlib.util
 import inspect
 import logging
+import os
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -89,15 +90,37 @@ _PACKAGE = "skyroute"
 
 
 @functools.cache
+def _package_dirs(name: str) -> tuple[str, ...]:
+    """Search folders of the package ``name`` (empty when it is not a package), found without
+    importing anything below the top-level ``skyroute.*`` packages (whose ``__init__`` is light)."""
+    parent, _, last = name.rpartition(".")
+    if parent in ("", _PACKAGE):
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, ValueError):
+            return ()
+        return tuple(spec.submodule_search_locations or ()) if spec is not None else ()
+    out = []
+    for loc in _package_dirs(parent):
+        if os.path.isfile(os.path.join(loc, last, "__init__.py")):
+            out.append(os.path.join(loc, last))
+    return tuple(out)
+
+
+@functools.cache
 def _module_file(name: str) -> str | None:
-    """Path of a ``skyroute`` module's source, found without importing the module itself."""
-    try:
-        spec = importlib.util.find_spec(name)
-    except (ImportError, ValueError):
-        return None
-    if spec is None or not spec.origin or not spec.origin.endswith(".py"):
-        return None
-    return spec.origin
+    """Path of a ``skyroute`` module's source, found without importing it (a cache hit needs no
+    heavy imports)."""
+    parent, _, last = name.rpartition(".")
+    if parent in ("", _PACKAGE):
+        dirs = _package_dirs(name)
+        init = os.path.join(dirs[0], "__init__.py") if dirs else None
+        return init if init and os.path.isfile(init) else None
+    for loc in _package_dirs(parent):
+        for cand in (os.path.join(loc, last + ".py"), os.path.join(loc, last, "__init__.py")):
+            if os.path.isfile(cand):
+                return cand
+    return None
 
 
 def _module_source(name: str) -> bytes | None:
@@ -129,6 +152,20 @@ def _imports_in(tree: ast.AST, module: str, is_package: bool) -> set[str]:
     return out
 
 
+@functools.cache
+def _module_imports(name: str) -> frozenset[str]:
+    """The ``skyroute`` modules one module imports (read once per process)."""
+    path = _module_file(name)
+    if path is None:
+        return frozenset()
+    with open(path, "rb") as f:
+        src = f.read()
+    if b"skyroute" not in src and b"from ." not in src:
+        return frozenset()
+    tree = ast.parse(src, filename=path)
+    return frozenset(_imports_in(tree, name, path.endswith("__init__.py")))
+
+
 def code_closure(modules: set[str] | Sequence[str]) -> set[str]:
     """Every ``skyroute`` module reachable from ``modules`` by imports (any depth, function
     bodies included), read from the sources with :mod:`ast`."""
@@ -139,12 +176,7 @@ def code_closure(modules: set[str] | Sequence[str]) -> set[str]:
         if m in seen:
             continue
         seen.add(m)
-        path = _module_file(m)
-        if path is None:
-            continue
-        with open(path, "rb") as f:
-            tree = ast.parse(f.read(), filename=path)
-        todo.extend(_imports_in(tree, m, path.endswith("__init__.py")) - seen)
+        todo.extend(_module_imports(m) - seen)
     return {m for m in seen if _module_file(m) is not None}
 
 

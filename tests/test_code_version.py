@@ -214,3 +214,18 @@ def test_stages_never_import_pipeline():
             upward += [f"{f.relative_to(root.parent)}:{node.lineno} imports {n}" for n in names
                        if n == "skyroute.pipeline" or n.startswith("skyroute.pipeline.")]
     assert not upward, "\n".join(upward)
+
+
+def test_planner_defaults_agree_everywhere():
+    import inspect
+
+    from skyroute.pipeline.settings import PlannerSettings
+    from skyroute.stages.planning import grid_planner, step1, strategic
+
+    assert PlannerSettings().name == "astar"
+    assert PlannerSettings().step_cells == grid_planner.STEP_CELLS
+    for fn in (strategic.plan_strategic, step1.plan_step1, step1.step1_all_levels):
+        assert inspect.signature(fn).parameters["planner"].default == "astar", fn.__name__
+    for fn in (strategic.plan_strategic, step1.plan_step1, grid_planner.make_lattice, grid_planner.plan_grid,
+               grid_planner.shared_heuristic):
+        assert inspect.signature(fn).parameters["step_cells"].default == grid_planner.STEP_CELLS, fn.__name__

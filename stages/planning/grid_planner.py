@@ -88,7 +88,7 @@ def _links(lat_x, lat_y, lat_z, p, radius_h: int = 2, radius_v: int = 1) -> np.n
     return np.array(ids, dtype=np.int64)
 
 
-def make_lattice(problem: PlanningProblem, step_cells: int = 4, dz_m: float | None = None) -> Lattice:
+def make_lattice(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: float | None = None) -> Lattice:
     """The A* lattice of ``problem`` (module docstring)."""
     if int(step_cells) < 1:
         raise InputError(f"step_cells {step_cells} must be >= 1")

@@ -135,7 +135,7 @@ def _no_path_reason(label: str, planner: str, info: dict, cap_s: float, time_bud
     return f"{label}: BIT* found no path in {info.get('iterations', 0)} iterations ({info.get('compute_s', 0):.1f} s)"
 
 
-def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s: float = 5.0, seed: int = 0,
+def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: float = 5.0, seed: int = 0,
                max_tries: int = 3, refine: bool = True, step_cells: int = STEP_CELLS,
                max_iterations: int | None = None, h2: np.ndarray | None = None,
                battery_reserve_pct: float = 0.0) -> Step1Result:
@@ -205,7 +205,7 @@ def plan_step1(problem: PlanningProblem, planner: str = "bitstar", time_budget_s
                        wused, info)
 
 
-def step1_all_levels(problems: list[PlanningProblem], planner: str = "bitstar", time_budget_s: float = 5.0,
+def step1_all_levels(problems: list[PlanningProblem], planner: str = "astar", time_budget_s: float = 5.0,
                      seed: int = 0, max_tries: int = 3, **kwargs) -> list[Step1Result]:
     """:func:`plan_step1` on every coverage level (same planner, budget and seed per level)."""
     _check(planner, time_budget_s)

@@ -64,7 +64,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                    traffic: xr.Dataset | None, *, start_xy: tuple[float, float], start_agl_m: float,
                    goal_xy: tuple[float, float], goal_agl_m: float, start_time_utc,
                    vehicle: str | VehicleProfile = "dji-m300-rtk", weights=(1.0, 1.0, 1.0, 1.0),
-                   planner: str = "bitstar", time_budget_s: float = 5.0, seed: int = 0, max_tries: int = 3,
+                   planner: str = "astar", time_budget_s: float = 5.0, seed: int = 0, max_tries: int = 3,
                    min_agl_m: float = 0.0, max_agl_m: float = 120.0, dop_kind: str = "PDOP",
                    intruders: list[Intruder] | None = None, d_c_m: float = 0.0, dt_c_s: float = 0.0,
                    uere_m: float = 3.0, workers: int | None = None, step_cells: int = STEP_CELLS,

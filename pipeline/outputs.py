@@ -105,8 +105,7 @@ def revalidate(result: RunResult, chosen) -> list[str]:
 
         def wind(p):  # noqa: E306 - heights above ground for the wind map
             g = sc.grid
-            r, c = g.index_of(p[:, 0], p[:, 1])
-            agl = p[:, 2] - terrain.values[np.clip(r, 0, g.ny - 1), np.clip(c, 0, g.nx - 1)]
+            agl = p[:, 2] - terrain.values[g.cell_of(p[:, 0], p[:, 1])]
             return np.column_stack(sample_wind(wmap, p[:, 0], p[:, 1], agl))
     intr = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else ()
     return validate_plan(chosen, grid=sc.grid, terrain_m=surface["terrain"].values, vehicle=sc.vehicle,

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
 import xarray as xr
 
 from skyroute.pipeline.cache import Cache
@@ -21,8 +20,7 @@ def check_mission(scenario: Scenario, surface: xr.Dataset) -> None:
     for name in ("start", "goal"):
         p = getattr(scenario.mission, name)
         x, y = scenario.point_xy(p)
-        r, c = g.index_of(x, y)
-        r, c = int(np.clip(r, 0, g.ny - 1)), int(np.clip(c, 0, g.nx - 1))
+        r, c = (int(i) for i in g.cell_of(x, y))
         terr = float(surface["terrain"][r, c])
         top = float(surface["surface"][r, c])
         alt = terr + p.alt_agl_m

@@ -127,6 +127,12 @@ class Grid:
         row = np.floor((self.y1 - np.asarray(y)) / self.resolution_m).astype(np.int64)
         return row, col
 
+    def cell_of(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """(row, col) of the cells containing map points (x, y) [m], clipped to the grid (a point
+        outside takes the nearest edge cell)."""
+        row, col = self.index_of(x, y)
+        return np.clip(row, 0, self.ny - 1), np.clip(col, 0, self.nx - 1)
+
     def contains(self, x: float, y: float) -> bool:
         xmin, ymin, xmax, ymax = self.bounds
         return bool(xmin <= x <= xmax and ymin <= y <= ymax)

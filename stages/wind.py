@@ -529,9 +529,7 @@ def _terrain_at(terrain: xr.DataArray, wg: Grid, x: np.ndarray, y: np.ndarray) -
     if crs is not None and Grid.from_dataarray(terrain).crs != wg.crs:
         raise CRSError(f"terrain CRS {crs} differs from the grid CRS {wg.crs.to_string()}: reproject it first")
     tg = Grid.from_dataarray(terrain)
-    r, c = tg.index_of(x, y)
-    r = np.clip(r, 0, tg.ny - 1)
-    c = np.clip(c, 0, tg.nx - 1)
+    r, c = tg.cell_of(x, y)
     vals = np.asarray(terrain.values, dtype=float)[r, c]
     if not np.all(np.isfinite(vals)):
         raise InputError("terrain has no data (NaN) under the wind grid: fill it before sampling the wind")
@@ -544,9 +542,7 @@ def sample_wind(wind_map: xr.Dataset, x, y, z) -> tuple[np.ndarray, np.ndarray, 
     lowest and highest level)."""
     x, y, z = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float), np.asarray(z, float))
     g = Grid.from_dataarray(wind_map)
-    r, c = g.index_of(x, y)
-    r = np.clip(r, 0, g.ny - 1)
-    c = np.clip(c, 0, g.nx - 1)
+    r, c = g.cell_of(x, y)
     zl = wind_map["z"].values
     if zl.size == 1:
         k0 = k1 = np.zeros(x.shape, dtype=np.int64)

@@ -130,3 +130,16 @@ def test_gdal_max_misses_pixels_the_footprint_max_keeps():
     np.testing.assert_array_equal(ours, ref)
     assert np.nanmin(gdal - ref) < -1.0     # GDAL under-estimates somewhere by more than 1 m
     assert np.all(ours >= gdal)
+
+
+def test_cell_of_clips_to_the_grid_and_agrees_with_index_of_inside():
+    import numpy as np
+
+    from skyroute.stages.grid import Grid
+
+    g = Grid.from_bounds("EPSG:32635", 0, 0, 100, 50, 2.0)
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0, 100, 1000), rng.uniform(0, 50, 1000)
+    np.testing.assert_array_equal(np.stack(g.cell_of(x, y)), np.stack(g.index_of(x, y)))
+    r, c = g.cell_of(np.array([-5.0, 105.0, 50.0]), np.array([60.0, -3.0, 25.0]))
+    assert r.tolist() == [0, g.ny - 1, 12] and c.tolist() == [0, g.nx - 1, 25]

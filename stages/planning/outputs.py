@@ -210,8 +210,7 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
     dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1))])
     fig, ax = plt.subplots(figsize=(9, 4), dpi=100)
     if grid is not None:
-        col = np.clip(np.floor((p[:, 0] - grid.x0) / grid.resolution_m).astype(int), 0, grid.nx - 1)
-        row = np.clip(np.floor((grid.y1 - p[:, 1]) / grid.resolution_m).astype(int), 0, grid.ny - 1)
+        row, col = grid.cell_of(p[:, 0], p[:, 1])
         for ras, style, lab in ((_ras(surface_m), dict(color="0.5", alpha=0.5), "surface (buildings)"),
                                 (_ras(terrain_m), dict(color="saddlebrown", alpha=0.6), "terrain")):
             if ras is not None:

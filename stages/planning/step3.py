@@ -135,11 +135,8 @@ def wind_sampler(problem):
 
     def f(pts):
         p = np.asarray(pts, float).reshape(-1, 3)
-        c = np.clip(np.floor((p[:, 0] - g.x0) / g.resolution_m).astype(int), 0, g.nx - 1)
-        r = np.clip(np.floor((g.y1 - p[:, 1]) / g.resolution_m).astype(int), 0, g.ny - 1)
-        h = p[:, 2] - terrain[r, c]
-        wc = np.clip(np.floor((p[:, 0] - wg.x0) / wg.resolution_m).astype(int), 0, wg.nx - 1)
-        wr = np.clip(np.floor((wg.y1 - p[:, 1]) / wg.resolution_m).astype(int), 0, wg.ny - 1)
+        h = p[:, 2] - terrain[g.cell_of(p[:, 0], p[:, 1])]
+        wr, wc = wg.cell_of(p[:, 0], p[:, 1])
         if wz.size == 1:
             return w4[0, wr, wc, :].copy()
         k0 = np.clip(np.searchsorted(wz, h, side="right") - 1, 0, wz.size - 2)
@@ -150,10 +147,9 @@ def wind_sampler(problem):
 
 
 def _cells(grid, pts):
-    c = np.floor((pts[:, 0] - grid.x0) / grid.resolution_m).astype(np.int64)
-    r = np.floor((grid.y1 - pts[:, 1]) / grid.resolution_m).astype(np.int64)
+    r, c = grid.index_of(pts[:, 0], pts[:, 1])
     inside = (r >= 0) & (r < grid.ny) & (c >= 0) & (c < grid.nx)
-    return np.clip(r, 0, grid.ny - 1), np.clip(c, 0, grid.nx - 1), inside
+    return *grid.cell_of(pts[:, 0], pts[:, 1]), inside
 
 
 def _wind_vectors(problem, pts) -> np.ndarray:

@@ -352,8 +352,7 @@ def intruders_for(traffic_settings_intruders, surface: xr.Dataset) -> list[Intru
     recs = []
     for it in traffic_settings_intruders:
         wp = np.asarray(it["waypoints"], dtype=float)
-        r, c = grid.index_of(wp[:, 1], wp[:, 2])
-        wp[:, 3] += terrain[np.clip(r, 0, grid.ny - 1), np.clip(c, 0, grid.nx - 1)]
+        wp[:, 3] += terrain[grid.cell_of(wp[:, 1], wp[:, 2])]
         recs.append({"id": it["id"], "radius_m": it["radius_m"], "waypoints": wp.tolist()})
     return intruders_from_records(recs)
 

@@ -543,19 +543,23 @@ def sample_wind(wind_map: xr.Dataset, x, y, z) -> tuple[np.ndarray, np.ndarray, 
     x, y, z = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float), np.asarray(z, float))
     g = Grid.from_dataarray(wind_map)
     r, c = g.cell_of(x, y)
-    zl = wind_map["z"].values
+    w4 = np.stack([np.asarray(wind_map[name].values, float) for name in ("u", "v", "w")], axis=-1)
+    out = wind_in_column(w4, wind_map["z"].values, r, c, z)
+    return out[..., 0], out[..., 1], out[..., 2]
+
+
+def wind_in_column(w4: np.ndarray, z_levels_m: np.ndarray, row, col, z_agl_m) -> np.ndarray:
+    """Wind (..., 3) [m/s] from levels ``w4`` (nz, ny, nx, 3) on heights above ground
+    ``z_levels_m`` (nz,) [m]: the column (row, col), linear in the height above ground
+    ``z_agl_m`` [m], clamped at the lowest and highest level (the one home of this rule; the
+    planner's compiled kernel follows it and is tested against it)."""
+    zl = np.asarray(z_levels_m, float)
+    z = np.asarray(z_agl_m, float)
     if zl.size == 1:
-        k0 = k1 = np.zeros(x.shape, dtype=np.int64)
-        f = np.zeros(x.shape)
-    else:
-        k0 = np.clip(np.searchsorted(zl, z, side="right") - 1, 0, zl.size - 2)
-        k1 = k0 + 1
-        f = np.clip((z - zl[k0]) / (zl[k1] - zl[k0]), 0.0, 1.0)
-    res = []
-    for name in ("u", "v", "w"):
-        a = wind_map[name].values
-        res.append(a[k0, r, c] * (1 - f) + a[k1, r, c] * f)
-    return res[0], res[1], res[2]
+        return w4[0, row, col, :].copy()
+    k0 = np.clip(np.searchsorted(zl, z, side="right") - 1, 0, zl.size - 2)
+    f = np.clip((z - zl[k0]) / (zl[k0 + 1] - zl[k0]), 0.0, 1.0)[..., None]
+    return w4[k0, row, col, :] * (1 - f) + w4[k0 + 1, row, col, :] * f
 
 
 def wind_nofly(wind_map: xr.Dataset | xr.DataArray, max_wind_mps: float) -> xr.DataArray:

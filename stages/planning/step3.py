@@ -64,6 +64,7 @@ from skyroute.stages.planning.rrt import Step2Result, _conflicts
 from skyroute.stages.planning.validate import validate_plan
 from skyroute.stages.smoothing import CornerTrajectory, KinematicLimits, corner_trajectory
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
+from skyroute.stages.wind import wind_in_column
 
 __all__ = ["Candidate", "choose", "explain_no_plan", "step3", "wind_sampler", "line_of_sight"]
 
@@ -137,11 +138,7 @@ def wind_sampler(problem):
         p = np.asarray(pts, float).reshape(-1, 3)
         h = p[:, 2] - terrain[g.cell_of(p[:, 0], p[:, 1])]
         wr, wc = wg.cell_of(p[:, 0], p[:, 1])
-        if wz.size == 1:
-            return w4[0, wr, wc, :].copy()
-        k0 = np.clip(np.searchsorted(wz, h, side="right") - 1, 0, wz.size - 2)
-        fr = np.clip((h - wz[k0]) / (wz[k0 + 1] - wz[k0]), 0.0, 1.0)[:, None]
-        return w4[k0, wr, wc, :] * (1 - fr) + w4[k0 + 1, wr, wc, :] * fr
+        return wind_in_column(w4, wz, wr, wc, h)
 
     return f
 

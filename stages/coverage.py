@@ -64,6 +64,7 @@ import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
 
 from skyroute.stages.base import InputError, UnknownNameError
+from skyroute.stages.orbits import check_mask
 
 DOP_KINDS: tuple[str, ...] = ("GDOP", "PDOP", "HDOP", "VDOP", "TDOP")
 """DOP kinds, in the order of the ``kind`` index used by the kernels."""
@@ -633,13 +634,6 @@ def _check_surface(surface: xr.DataArray) -> float:
     return cell
 
 
-def _check_mask(mask_deg: float) -> float:
-    mask = float(mask_deg)
-    if not (0.0 <= mask < 90.0):
-        raise InputError(f"elevation mask {mask_deg} deg must be in [0, 90) (typically 5-15)")
-    return mask
-
-
 def _min_el(el: np.ndarray, mask: float) -> float:
     ok = el[np.isfinite(el) & (el >= mask)]
     return float(ok.min()) if ok.size else 90.0
@@ -723,7 +717,7 @@ def open_sky_dop(az_deg: Any, el_deg: Any, mask_deg: float = 5.0) -> np.ndarray:
     """``(time, 5)`` GDOP, PDOP, HDOP, VDOP, TDOP with every satellite above the mask visible."""
     az, el, _ = _as_time_sat(az_deg, el_deg)
     out = np.full((az.shape[0], 5), np.inf)
-    for t, (a, e) in enumerate(_epoch_directions(az, el, _check_mask(mask_deg))):
+    for t, (a, e) in enumerate(_epoch_directions(az, el, check_mask(mask_deg))):
         if a.size:
             out[t] = _profile_kernel(np.zeros(a.size), np.ascontiguousarray(los_rows(a, e)))[-1]
     return out
@@ -743,7 +737,7 @@ def column_dop_profile(visibility_height_m: Any, az_deg: Any, el_deg: Any,
     if not (h.shape == az.shape == el.shape):
         raise InputError(f"heights {h.shape}, azimuths {az.shape} and elevations {el.shape} "
                          "must have the same length (one per satellite)")
-    ok = np.isfinite(h) & np.isfinite(el) & (el >= _check_mask(mask_deg))
+    ok = np.isfinite(h) & np.isfinite(el) & (el >= check_mask(mask_deg))
     h, az, el = h[ok], az[ok], el[ok]
     order = np.argsort(h, kind="stable")
     h = h[order]
@@ -799,7 +793,7 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
     az, el, meta = _as_time_sat(az_deg, el_deg)
     kind = dop_kind_index(dop)
     kind_name = DOP_KINDS[kind]
-    mask = _check_mask(mask_deg)
+    mask = check_mask(mask_deg)
     thr = np.asarray(list(thresholds), dtype=np.float64).ravel()
     if thr.size == 0 or not np.all(np.isfinite(thr)):
         raise InputError(f"thresholds {list(thresholds)} must be a non-empty list of finite "
@@ -875,7 +869,7 @@ def _prepare_sections(surface: xr.DataArray, az_deg: Any, el_deg: Any, altitudes
                       mask_deg: float) -> tuple:
     cell = _check_surface(surface)
     az, el, meta = _as_time_sat(az_deg, el_deg)
-    mask = _check_mask(mask_deg)
+    mask = check_mask(mask_deg)
     alts = np.atleast_1d(np.asarray(altitudes_m, dtype=np.float64))
     if alts.ndim != 1 or alts.size == 0 or not np.all(np.isfinite(alts)):
         raise InputError("altitudes_m must be a non-empty 1D list of finite altitudes [m] "

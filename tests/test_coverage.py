@@ -400,6 +400,9 @@ def test_bad_input(sky):
         cv.coverage_maps(flat(), az.values, el.values[:, :-1])
     with pytest.raises(InputError, match="mask"):
         cv.coverage_maps(flat(), az, el, mask_deg=95)
+    # one elevation-mask rule for the whole package (stages.orbits.check_mask): 0..60 deg
+    with pytest.raises(InputError, match=r"elevation mask 75 deg is outside 0\.\.60 deg"):
+        cv.coverage_maps(flat(), az, el, mask_deg=75)
     with pytest.raises(InputError, match="radians or swap"):
         cv.coverage_maps(flat(), el, az)
     holes = flat()

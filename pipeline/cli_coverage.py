@@ -14,7 +14,7 @@ import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
 
 from skyroute.pipeline.errors import InputError
-from skyroute.stages.figures import add_map_furniture
+from skyroute.stages.figures import add_map_furniture, image_extent
 
 
 def _threshold_label(value: float) -> str:
@@ -68,9 +68,7 @@ def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, pa
 
     thr = floor["threshold"].values
     n = len(thr)
-    x, y = floor["x"].values, floor["y"].values
-    r = float(x[1] - x[0]) if x.size > 1 else 1.0
-    extent = (x[0] - r / 2, x[-1] + r / 2, y[-1] - r / 2, y[0] + r / 2)
+    extent = image_extent(floor)
     vals = floor.values
     finite = vals[np.isfinite(vals)]
     vmin, vmax = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)

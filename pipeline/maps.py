@@ -5,16 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import xarray as xr
 
 from skyroute.pipeline.graph import RunResult
-from skyroute.stages.figures import add_map_furniture
-
-
-def _extent(da: xr.DataArray) -> tuple[float, float, float, float]:
-    x, y = da["x"].values, da["y"].values
-    r = float(x[1] - x[0])
-    return (x[0] - r / 2, x[-1] + r / 2, y[-1] - r / 2, y[0] + r / 2)
+from skyroute.stages.figures import add_map_furniture, image_extent
 
 
 def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50.0) -> Path:
@@ -38,7 +31,7 @@ def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50
         plot_landing_cost(env, ax=axes[1])
     # wind arrows over the buildings
     ax = axes[2]
-    ext = _extent(surface["surface"])
+    ext = image_extent(surface["surface"])
     height = (surface["surface"] - surface["terrain"]).values
     im = ax.imshow(height, extent=ext, cmap="Greys", interpolation="nearest")
     fig.colorbar(im, ax=ax, shrink=0.8, label="building height above ground [m]")
@@ -80,7 +73,7 @@ def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50
         k = occ.n_slices // 2
         z = float(np.median(result["traffic"]["start"].values[:, 2]))
         sl_da = occ.occupancy_slice(coarse, k, z)
-        ax.imshow(np.ma.masked_equal(sl_da.values.astype(float), 0), extent=_extent(sl_da), cmap="cool",
+        ax.imshow(np.ma.masked_equal(sl_da.values.astype(float), 0), extent=image_extent(sl_da), cmap="cool",
                   interpolation="nearest", vmin=0, vmax=1)
         ax.set_title(sl_da.attrs.get("long_name", "occupancy"), fontsize=9)
     else:

@@ -13,7 +13,7 @@ import numpy as np
 
 from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.graph import RunResult
-from skyroute.stages.figures import add_map_furniture
+from skyroute.stages.figures import add_map_furniture, image_extent
 
 
 def plot_surface(result: RunResult, path: Path) -> Path:
@@ -28,7 +28,7 @@ def plot_surface(result: RunResult, path: Path) -> Path:
     g = sc.grid
     z = np.asarray(ds["surface"].values, dtype=float)
     terr = np.asarray(ds["terrain"].values, dtype=float)
-    extent = g.bounds[0], g.bounds[2], g.bounds[1], g.bounds[3]
+    extent = image_extent(ds["surface"])
     fig, ax = plt.subplots(figsize=(7.5, 7.5 * g.ny / max(g.nx, 1) * 0.9 + 0.8), dpi=110)
     dy, dx = np.gradient(z, g.resolution_m)
     shade = 0.5 + 0.5 * (-dx - dy) / np.sqrt(2 + dx**2 + dy**2 + 1e-9)

@@ -5,7 +5,17 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["add_map_furniture", "clipped_texts"]
+import numpy as np
+
+__all__ = ["add_map_furniture", "clipped_texts", "image_extent"]
+
+
+def image_extent(da) -> tuple[float, float, float, float]:
+    """``imshow`` extent (left, right, bottom, top) [m] of a north-up raster with cell-centre
+    ``x``/``y`` coordinates (x ascending, y descending): the outer cell edges."""
+    x, y = np.asarray(da["x"].values, float), np.asarray(da["y"].values, float)
+    r = float(x[1] - x[0]) if x.size > 1 else float(abs(y[0] - y[1])) if y.size > 1 else 1.0
+    return (x[0] - r / 2, x[-1] + r / 2, y[-1] - r / 2, y[0] + r / 2)
 
 
 def _nice_length(span_m: float) -> float:

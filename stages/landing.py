@@ -49,6 +49,7 @@ from scipy.ndimage import distance_transform_edt
 from shapely.geometry.base import BaseGeometry
 
 from skyroute.stages.base import InputError
+from skyroute.stages.figures import image_extent
 from skyroute.stages.grid import Grid
 from skyroute.stages.risk import (
     TagTable,
@@ -307,9 +308,7 @@ def plot_landing_cost(ds: xr.Dataset, ax=None):
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 6))
     da = ds["landing_cost"]
-    x, y = da["x"].values, da["y"].values
-    r = float(x[1] - x[0])
-    extent = (x[0] - r / 2, x[-1] + r / 2, y[-1] - r / 2, y[0] + r / 2)
+    extent = image_extent(da)
     im = ax.imshow(da.values, cmap="viridis", vmin=0, vmax=1, extent=extent, origin="upper", interpolation="nearest")
     ax.figure.colorbar(im, ax=ax, shrink=0.8, label="landing cost [-]")
     if "site_x" in ds.coords and ds.sizes.get("site", 0):

@@ -85,6 +85,7 @@ from pyproj import CRS, Transformer
 from shapely.geometry.base import BaseGeometry
 
 from skyroute.stages.base import DataError, InputError
+from skyroute.stages.figures import image_extent
 from skyroute.stages.grid import Grid, ring_cells, warp_to_grid
 
 LEVELS = (1, 2, 3, 4, 5, 6)
@@ -616,9 +617,7 @@ def plot_risk_levels(ds: xr.Dataset | xr.DataArray, ax=None):
     da = ds["risk_level"] if isinstance(ds, xr.Dataset) else ds
     if ax is None:
         _, ax = plt.subplots(figsize=(6, 6))
-    x, y = da["x"].values, da["y"].values
-    r = float(x[1] - x[0]) if x.size > 1 else 1.0
-    extent = (x[0] - r / 2, x[-1] + r / 2, y[-1] - r / 2, y[0] + r / 2)
+    extent = image_extent(da)
     cmap = ListedColormap(RISK_COLORS)
     ax.imshow(da.values, cmap=cmap, norm=BoundaryNorm(np.arange(0.5, 7.5), cmap.N), extent=extent,
               origin="upper", interpolation="nearest")

@@ -34,3 +34,15 @@ def test_scale_bar_has_a_round_length_and_the_map_a_north_arrow():
     bar = ax.lines[-1].get_xdata()
     assert abs((bar[1] - bar[0]) - 200) < 1e-9
     plt.close(fig)
+
+
+def test_image_extent_is_the_outer_cell_edges():
+    import numpy as np
+
+    from skyroute.stages.figures import image_extent
+    from skyroute.stages.grid import Grid
+
+    g = Grid.from_bounds("EPSG:32635", 100, 200, 160, 240, 4.0)
+    da = g.dataarray(np.zeros(g.shape), "z")
+    xmin, ymin, xmax, ymax = g.bounds
+    assert image_extent(da) == (xmin, xmax, ymin, ymax)

@@ -68,6 +68,33 @@ WindLike = np.ndarray | Callable[[np.ndarray], np.ndarray]
 
 
 @numba.njit(cache=True, nogil=True)
+def eq3_ground_speed(sx, sy, sz, u, v, w, vc, vmax):
+    """Ground speed [m/s] along the unit direction (sx, sy, sz) in the wind (u, v, w) [m/s] by
+    seed 000 eq. 3 (the one home of the rule; compiled, callable from kernels and Python):
+    ``v_c`` when the airspeed of eq. 2 is within ``v_max`` and the wind does not outrun the
+    vehicle; the wind's along-track part when it does; otherwise the ``m_-`` root (airspeed held
+    at ``M_MINUS_FRACTION v_max``), NaN when that root does not exist."""
+    ws = u * sx + v * sy + w * sz
+    w2 = u * u + v * v + w * w
+    van = math.sqrt((vc * sx - u) ** 2 + (vc * sy - v) ** 2 + (vc * sz - w) ** 2)
+    if van > vmax:
+        a = M_MINUS_FRACTION * vmax
+        disc = a * a - max(w2 - ws * ws, 0.0)
+        if disc < 0.0:
+            return math.nan
+        return ws + math.sqrt(disc)
+    if vc - ws < 0.0:
+        return ws
+    return vc
+
+
+@numba.njit(cache=True, nogil=True)
+def _eq3_many(s, w, vc, vmax, out):
+    for i in range(s.shape[0]):
+        out[i] = eq3_ground_speed(s[i, 0], s[i, 1], s[i, 2], w[i, 0], w[i, 1], w[i, 2], vc, vmax)
+
+
+@numba.njit(cache=True, nogil=True)
 def _power_kernel(v, vs, vz, prm, out):
     """Trim (fixed point on the thrust axis) and eq. 6-10 per airspeed sample; see rotor_power."""
     weight, rho, s_side, s_top, nb, radius, ct, cd, sigma, kappa, kv, max_iter = prm
@@ -149,16 +176,10 @@ def ground_speed(direction, wind_enu, vehicle: VehicleProfile | str) -> tuple[np
     s = np.asarray(direction, dtype=float).reshape(-1, 3)
     w = np.asarray(wind_enu, dtype=float).reshape(-1, 3)
     vc, vmax = veh.cruise_speed_mps, veh.max_airspeed_mps
-    w_s = np.einsum("ij,ij->i", w, s)
     w2 = np.einsum("ij,ij->i", w, w)
-    va = vc * s - w                                              # eq. 2
-    va_norm = np.linalg.norm(va, axis=1)
-    va_s = vc - w_s
-    a = M_MINUS_FRACTION * vmax
-    disc = a * a - np.maximum(w2 - w_s * w_s, 0.0)
-    with np.errstate(invalid="ignore"):
-        g_minus = w_s + np.sqrt(disc)                            # m_- v_c
-    g = np.where(va_norm > vmax, g_minus, np.where(va_s < 0.0, w_s, vc))
+    s, w = np.broadcast_arrays(s, w)
+    g = np.empty(s.shape[0])
+    _eq3_many(np.ascontiguousarray(s), np.ascontiguousarray(w), float(vc), float(vmax), g)
     flyable = (np.isfinite(g) & (g >= veh.min_ground_speed_mps) & (g > 0.0)
                & (np.sqrt(w2) <= veh.max_wind_mps))
     return g, flyable

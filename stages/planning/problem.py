@@ -56,7 +56,7 @@ import numpy as np
 import xarray as xr
 
 from skyroute.stages.base import InputError, PlanningError
-from skyroute.stages.energy import M_MINUS_FRACTION, RHO0, _power_kernel
+from skyroute.stages.energy import RHO0, _power_kernel, eq3_ground_speed
 from skyroute.stages.grid import Grid
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle
 
@@ -263,33 +263,21 @@ def _segment_eval(x0, y0, z0, x1, y1, z1, want_cost, valid_only, terrain, floor,
     vzc = np.empty(nbuf)
     tau = np.empty(nbuf)
     flyable = True
-    a = M_MINUS_FRACTION * vmax
     for i in range(nsub):
         ds = min(sub, length - i * sub)
         px = x0 + sx * i * sub
         py = y0 + sy * i * sub
         pz = z0 + sz * i * sub
         u, v, w = _wind_at(px, py, pz, terrain, gprm, wind, wz, wgprm)
-        ws = u * sx + v * sy + w * sz
-        w2 = u * u + v * v + w * w
-        vax, vay, vaz = vc * sx - u, vc * sy - v, vc * sz - w
-        van = math.sqrt(vax * vax + vay * vay + vaz * vaz)
         ok_i = True
-        if math.sqrt(w2) > wmax:
+        if math.sqrt(u * u + v * v + w * w) > wmax:
             ok_i = False
             if code == OK:
                 code = WIND
-        if van > vmax:
-            disc = a * a - max(w2 - ws * ws, 0.0)
-            if disc < 0.0:
-                g = vc
-                ok_i = False
-            else:
-                g = ws + math.sqrt(disc)
-        elif vc - ws < 0.0:
-            g = ws
-        else:
+        g = eq3_ground_speed(sx, sy, sz, u, v, w, vc, vmax)
+        if math.isnan(g):  # no m_- root
             g = vc
+            ok_i = False
         if ok_i and (g < vmin or g <= 0.0):
             ok_i = False
         if not ok_i:
@@ -351,7 +339,6 @@ def _segments_kernel(p0, p1, want_cost, terrain, floor, ceiling, risk, landing, 
 def _ratio_kernel(dirs, winds, vprm, pprm):
     """min over (direction, wind) of the one-sub-segment E_w/E_0 (flyable pairs only)."""
     vc, vmax, vmin, wmax = vprm[0], vprm[1], vprm[2], vprm[3]
-    a = M_MINUS_FRACTION * vmax
     best = np.inf
     va = np.empty((2, 3))
     vs = np.empty(2)
@@ -361,21 +348,10 @@ def _ratio_kernel(dirs, winds, vprm, pprm):
         sx, sy, sz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
         for j in range(winds.shape[0]):
             u, v, w = winds[j, 0], winds[j, 1], winds[j, 2]
-            ws = u * sx + v * sy + w * sz
-            w2 = u * u + v * v + w * w
-            if math.sqrt(w2) > wmax:
+            if math.sqrt(u * u + v * v + w * w) > wmax:
                 continue
-            van = math.sqrt((vc * sx - u) ** 2 + (vc * sy - v) ** 2 + (vc * sz - w) ** 2)
-            if van > vmax:
-                disc = a * a - max(w2 - ws * ws, 0.0)
-                if disc < 0:
-                    continue
-                g = ws + math.sqrt(disc)
-            elif vc - ws < 0:
-                g = ws
-            else:
-                g = vc
-            if g < vmin or g <= 0:
+            g = eq3_ground_speed(sx, sy, sz, u, v, w, vc, vmax)
+            if math.isnan(g) or g < vmin or g <= 0:
                 continue
             va[0, 0], va[0, 1], va[0, 2] = g * sx - u, g * sy - v, g * sz - w
             vs[0] = va[0, 0] * sx + va[0, 1] * sy + va[0, 2] * sz

@@ -140,6 +140,16 @@ _POWER_KEYS = ("induced_W", "profile_W", "parasitic_W", "climb_W", "total_W", "t
                "omega_radps")
 
 
+def power_params(veh: VehicleProfile, air_density: float = RHO0, max_iter: int = 200) -> np.ndarray:
+    """The rotor-power parameter vector of :func:`_power_kernel` (its one packing): weight [N],
+    air density [kg/m^3], drag areas [m^2], rotor count, radius [m], C_T, C_D, solidity,
+    kappa, K_v, trim iterations."""
+    r, af = veh.rotor, veh.airframe
+    return np.array([veh.weight_n, air_density, af.drag_area_side_m2, af.drag_area_top_m2, r.count, r.radius_m,
+                     r.thrust_coefficient, r.blade_drag_coefficient, r.solidity, r.induced_power_factor,
+                     r.profile_advance_factor, max_iter], dtype=float)
+
+
 def rotor_power(airspeed_enu, along_track_airspeed_mps, climb_rate_mps, vehicle: VehicleProfile | str,
                 air_density: float = RHO0, max_iter: int = 200) -> dict[str, np.ndarray]:
     """Power terms of eq. 5-10 for airspeed vectors ``airspeed_enu`` (k,3) [m/s].
@@ -159,10 +169,7 @@ def rotor_power(airspeed_enu, along_track_airspeed_mps, climb_rate_mps, vehicle:
         raise InputError("airspeed / climb rate contain NaN or inf")
     if not air_density > 0:
         raise InputError(f"air_density must be > 0 [kg/m^3], got {air_density}")
-    r, af = veh.rotor, veh.airframe
-    prm = np.array([veh.weight_n, air_density, af.drag_area_side_m2, af.drag_area_top_m2, r.count, r.radius_m,
-                    r.thrust_coefficient, r.blade_drag_coefficient, r.solidity, r.induced_power_factor,
-                    r.profile_advance_factor, max_iter], dtype=float)
+    prm = power_params(veh, air_density, max_iter)
     out = np.empty((k, len(_POWER_KEYS)))
     _power_kernel(v, vs, vz, prm, out)
     return {name: out[:, j] for j, name in enumerate(_POWER_KEYS)}

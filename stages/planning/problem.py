@@ -56,7 +56,7 @@ import numpy as np
 import xarray as xr
 
 from skyroute.stages.base import InputError, PlanningError
-from skyroute.stages.energy import RHO0, _power_kernel, eq3_ground_speed
+from skyroute.stages.energy import _power_kernel, eq3_ground_speed, power_params
 from skyroute.stages.grid import Grid
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle
 
@@ -382,10 +382,7 @@ _REASONS = {
 
 
 def _vehicle_params(veh: VehicleProfile, subsegment_m: float) -> tuple[np.ndarray, np.ndarray]:
-    r, af = veh.rotor, veh.airframe
-    pprm = np.array([veh.weight_n, RHO0, af.drag_area_side_m2, af.drag_area_top_m2, r.count, r.radius_m,
-                     r.thrust_coefficient, r.blade_drag_coefficient, r.solidity, r.induced_power_factor,
-                     r.profile_advance_factor, 200], dtype=float)
+    pprm = power_params(veh)
     vprm = np.array([veh.cruise_speed_mps, veh.max_airspeed_mps, veh.min_ground_speed_mps, veh.max_wind_mps,
                      math.sin(math.radians(veh.max_flight_path_angle_deg)), subsegment_m], dtype=float)
     return vprm, pprm

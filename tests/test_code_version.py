@@ -229,3 +229,50 @@ def test_planner_defaults_agree_everywhere():
     for fn in (strategic.plan_strategic, step1.plan_step1, grid_planner.make_lattice, grid_planner.plan_grid,
                grid_planner.shared_heuristic):
         assert inspect.signature(fn).parameters["step_cells"].default == grid_planner.STEP_CELLS, fn.__name__
+
+
+def _all_keys(sc) -> dict[str, str]:
+    """Every applicable stage's cache key, as the runner derives them (no stage computed)."""
+    from skyroute.pipeline.graph import stage_key, stages_for
+
+    keys: dict[str, str] = {}
+    for st in stages_for(sc):
+        keys[st.name] = stage_key(st, sc, [keys[d] for d in st.inputs]
+                                  + [keys.get(d, "absent") for d in st.optional_inputs])
+    return keys
+
+
+@pytest.mark.parametrize(("edit", "expected"), [
+    ("risk_tags", {"environment", "clearance", "plan"}),   # clearance takes the no-fly cells
+    ("wind_file", {"wind", "plan"}),
+    ("almanac", {"satellites", "coverage", "plan"}),
+    ("buildings_file", {"surface", "environment", "wind", "clearance", "coverage", "traffic", "plan"}),
+])
+def test_editing_one_input_recomputes_exactly_its_dependants(tmp_path, edit, expected):
+    """Each input kind, edited in place (same path, new content), changes the keys of exactly
+    the stages that read it and of their dependants."""
+    import shutil
+
+    import yaml
+
+    from skyroute.pipeline.settings import catalog_dir, load_scenario, parse_scenario
+
+    sc0 = load_scenario("helsinki-medical")
+    raw = yaml.safe_load(sc0.source_path.read_text())
+    data = catalog_dir() / "data"
+    copies = {"risk_tags": catalog_dir() / "risk_tags.yaml", "wind_file": data / "gfs_2011-01-15T12_wind.nc",
+              "almanac": data / "yuma_2020-01-03.txt", "buildings_file": data / "helsinki_center.osm.pbf"}
+    local = {k: tmp_path / p.name for k, p in copies.items()}
+    for k, p in copies.items():
+        shutil.copyfile(p, local[k])
+    land = tmp_path / "landuse.osm.pbf"
+    shutil.copyfile(data / "helsinki_center.osm.pbf", land)
+    raw["data"].update({"risk_tags": str(local["risk_tags"]), "landuse": str(land)})
+    raw["data"]["wind"]["path"] = str(local["wind_file"])
+    raw["data"]["buildings"]["path"] = str(local["buildings_file"])
+    raw["data"]["almanacs"] = [str(local["almanac"]), str(data / "alm_gal_ed259.txt")]
+    before = _all_keys(parse_scenario(raw, base=sc0.source_path.parent))
+    f = local[edit]
+    f.write_bytes(f.read_bytes() + (b"\n# edited\n" if f.suffix in (".yaml", ".txt") else b"\0"))
+    after = _all_keys(parse_scenario(raw, base=sc0.source_path.parent))
+    assert {n for n in before if before[n] != after[n]} == expected

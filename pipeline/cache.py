@@ -22,7 +22,6 @@ filesystem path.
 from __future__ import annotations
 
 import datetime as dt
-import hashlib
 import json
 import logging
 import os
@@ -36,6 +35,7 @@ import numpy as np
 import xarray as xr
 
 from skyroute.pipeline.errors import CacheError
+from skyroute.pipeline.model import sha256_file
 
 log = logging.getLogger("skyroute.cache")
 MANIFEST = "skyroute.json"
@@ -217,16 +217,8 @@ def _file_table(store: Path) -> dict[str, list]:
     for f in sorted(store.rglob("*")):
         if f.is_file():
             st = f.stat()
-            out[f.relative_to(store).as_posix()] = [st.st_size, st.st_mtime_ns, _sha256(f)]
+            out[f.relative_to(store).as_posix()] = [st.st_size, st.st_mtime_ns, sha256_file(f)]
     return out
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _damage(store: Path, files: dict[str, list] | None) -> str:
@@ -242,7 +234,7 @@ def _damage(store: Path, files: dict[str, list] | None) -> str:
             return f"{rel} is missing"
         if st.st_size != size:
             return f"{rel} has {st.st_size} bytes, {size} written"
-        if st.st_mtime_ns != mtime_ns and _sha256(f) != digest:
+        if st.st_mtime_ns != mtime_ns and sha256_file(f) != digest:
             return f"{rel} was modified"
     return ""
 

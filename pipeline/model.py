@@ -97,6 +97,15 @@ def _save_digest_memo() -> None:
         pass  # a read-only cache folder only costs re-hashing
 
 
+def sha256_file(path: str | Path) -> str:
+    """SHA-256 of a file's content, read in 1 MiB blocks (no memo)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def file_digest(path: str | Path) -> str:
     """SHA-256 of a file's content, memoised on (path, size, mtime) in memory and in
     ``<cache root>/digests.json`` so big inputs are not re-read on every run."""
@@ -105,11 +114,7 @@ def file_digest(path: str | Path) -> str:
     key = f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}"
     _load_digest_memo()
     if key not in _DIGESTS:
-        h = hashlib.sha256()
-        with open(p, "rb") as f:
-            for block in iter(lambda: f.read(1 << 20), b""):
-                h.update(block)
-        _DIGESTS[key] = h.hexdigest()
+        _DIGESTS[key] = sha256_file(p)
         _save_digest_memo()
     return _DIGESTS[key]
 

@@ -246,15 +246,20 @@ def ensure_writable_dir(out_dir: Path | str, option: str = "--out") -> Path:
     return out_dir
 
 
+def _remove(path: Path) -> None:
+    """Remove a file, a symlink (not its target) or a folder, if there."""
+    if path.is_symlink() or path.is_file():
+        path.unlink()
+    elif path.exists():
+        shutil.rmtree(path)
+
+
 def _copy_store(src: Path, dst: Path) -> None:
     """Copy a zarr store (atomically: a partial copy never takes the final name)."""
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(src, tmp)
-    if dst.is_symlink() or dst.is_file():
-        dst.unlink()
-    elif dst.exists():
-        shutil.rmtree(dst)
+    _remove(dst)
     os.rename(tmp, dst)
 
 
@@ -289,10 +294,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         dst = out_dir / rel
         src = Path(rec.path) / "data.zarr"
         if link:
-            if dst.is_symlink() or dst.is_file():
-                dst.unlink()
-            elif dst.exists():
-                shutil.rmtree(dst)
+            _remove(dst)
             os.symlink(src, dst)
         elif not (prev_keys.get(rel) == rec.key and dst.is_dir() and not dst.is_symlink()):
             _copy_store(src, dst)

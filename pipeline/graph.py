@@ -330,8 +330,10 @@ class RunResult:
         return sum(r.cache_hit for r in self.records)
 
 
-def stage_key(stage: Stage, scenario: Scenario, input_keys: Sequence[str]) -> str:
-    return stable_hash(stage.name, stage.code_version(), stage.select(scenario), list(input_keys))
+def stage_key(stage: Stage, scenario: Scenario, input_keys: Sequence[str], code_version: str | None = None) -> str:
+    """Cache key of ``stage`` (``code_version``: :meth:`Stage.code_version`, when already known)."""
+    cv = stage.code_version() if code_version is None else code_version
+    return stable_hash(stage.name, cv, stage.select(scenario), list(input_keys))
 
 
 def _run_prechecks(pending: list[Stage], todo: list[Stage], scenario: Scenario,
@@ -361,8 +363,9 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
         for i, st in enumerate(todo, 1):
             control.check()
             t0 = time.perf_counter()
+            code_version = st.code_version()
             key = stage_key(st, scenario, [keys[d] for d in st.inputs]
-                            + [keys.get(d, "absent") for d in st.optional_inputs])
+                            + [keys.get(d, "absent") for d in st.optional_inputs], code_version)
             keys[st.name] = key
             entry = None if st.name in force else cache.get(st.name, key)
             hit = entry is not None
@@ -381,7 +384,7 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                 out.attrs.update({"skyroute_stage": st.name, "skyroute_key": key,
                                   "skyroute_version": SKYROUTE_VERSION})
                 entry = cache.write(st.name, key, out, {
-                    "scenario": scenario.name, "code_version": st.code_version(),
+                    "scenario": scenario.name, "code_version": code_version,
                     "inputs": {d: keys.get(d, "absent") for d in (*st.inputs, *st.optional_inputs)},
                     "skyroute_version": SKYROUTE_VERSION,
                 }, compute=compute)

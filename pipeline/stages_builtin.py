@@ -71,7 +71,7 @@ def surface_stage(*, settings: SurfaceSettings) -> xr.Dataset:
     ds = build_surface(settings.grid, buildings_path=settings.buildings_path,
                        buildings_format=settings.buildings_format, storey_height_m=settings.storey_height_m,
                        terrain_path=settings.terrain_path, vertical_datum=settings.vertical_datum,
-                       surface_path=(list(sp) if len(sp) > 1 else sp[0]) if sp else None,
+                       surface_path=_raster_source(sp) if sp else None,
                        surface_datum=settings.surface_datum, surface_nodata=settings.surface_nodata,
                        ground_window_m=settings.ground_window_m, building_threshold_m=settings.building_threshold_m)
     c = settings.chunk_cells
@@ -243,29 +243,9 @@ def _clearance_settings(sc: Scenario) -> ClearanceSettings:
                                                           raster_sources=_vrt_sources(d.paths))))
 
 
-def _dsm_obstacle_floor(surface: xr.Dataset, settings: ClearanceSettings):
-    """The obstacle floor with a DSM: the DSM's floor on its own prisms (exact per cell), the max
-    with the floor of the grid-resolution buildings and DEM; None to use the surface's floor."""
-    import numpy as np
-
-    from skyroute.stages.clearance import clearance_floor, dsm_clearance_floor
-
-    sp = settings.surface_paths
-    surf = surface["surface"].load()
-    native = dsm_clearance_floor(list(sp) if len(sp) > 1 else sp[0], Grid.from_dataarray(surf),
-                                 settings.radius_m, settings.surface_nodata)
-    if native is None:
-        return None
-    parts = [np.nan_to_num(native, nan=-np.inf)]
-    bid = surface["building_id"].values
-    if (bid >= 0).any():
-        parts.append(clearance_floor(surf.astype("float64").where(bid >= 0, -1e300), settings.radius_m).values)
-    if settings.has_dem:
-        parts.append(clearance_floor(surface["terrain"].load(), settings.radius_m).values)
-    floor = np.maximum.reduce(parts)
-    if not np.isfinite(floor).all():
-        floor = np.where(np.isfinite(floor), floor, clearance_floor(surf, settings.radius_m).values)
-    return floor
+def _raster_source(paths: tuple[Path, ...]) -> Path | list[Path]:
+    """A DSM source as the readers take it: one path, or the list of tiles."""
+    return list(paths) if len(paths) > 1 else paths[0]
 
 
 def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: ClearanceSettings) -> xr.Dataset:
@@ -273,7 +253,7 @@ def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: C
     sphere-centre altitude, AGL ceiling, dilated no-fly cells and altitude-limited volumes."""
     import numpy as np
 
-    from skyroute.stages.clearance import clearance_dataset
+    from skyroute.stages.clearance import clearance_dataset, dsm_obstacle_floor
 
     terrain = surface["terrain"].load()
     terrain_min = surface["terrain_min"].load() if "terrain_min" in surface else terrain
@@ -292,7 +272,9 @@ def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: C
     ds = clearance_dataset(surface["surface"].load(), settings.radius_m, terrain=terrain,
                            terrain_min=terrain_min, min_agl_m=settings.min_agl_m, max_agl_m=settings.max_agl_m,
                            nofly=env["nofly"].copy(data=unlimited), volumes=volumes or None,
-                           obstacle_floor=_dsm_obstacle_floor(surface, settings) if settings.surface_paths else None)
+                           obstacle_floor=dsm_obstacle_floor(surface, _raster_source(settings.surface_paths),
+                                                             settings.radius_m, settings.surface_nodata,
+                                                             settings.has_dem) if settings.surface_paths else None)
     datum = surface["surface"].attrs.get("vertical_datum", "")
     for v in ds.data_vars.values():
         v.attrs.setdefault("units", "1" if v.dtype == bool else "m")

@@ -348,3 +348,26 @@ def dsm_clearance_floor(path, grid: Grid, radius_m: float, nodata: str = "fill-m
         win, holes = read_window_holes(path, grid, what="surface DSM", margin_px=need)
     filled = fill_holes(win, holes, "fill-nearest" if nodata == "fill-nearest" else "fill-max")
     return clearance_floor_native(filled, win.transform, win.crs, grid, r)
+
+
+def dsm_obstacle_floor(surface_ds: xr.Dataset, dsm_path, radius_m: float, nodata: str = "fill-max",
+                       has_dem: bool = False) -> np.ndarray | None:
+    """Obstacle floor [m] with a DSM: the DSM's floor on its own prisms
+    (:func:`dsm_clearance_floor`, exact per cell), the max with the floor of the grid-resolution
+    buildings (``building_id >= 0``) and, with a DEM, of the terrain; cells none of them reaches
+    take the surface's floor.  None when the DSM is not on a grid this can use (the caller then
+    uses the surface's floor)."""
+    surf = surface_ds["surface"].load()
+    native = dsm_clearance_floor(dsm_path, Grid.from_dataarray(surf), radius_m, nodata)
+    if native is None:
+        return None
+    parts = [np.nan_to_num(native, nan=-np.inf)]
+    bid = surface_ds["building_id"].values
+    if (bid >= 0).any():
+        parts.append(clearance_floor(surf.astype("float64").where(bid >= 0, -1e300), radius_m).values)
+    if has_dem:
+        parts.append(clearance_floor(surface_ds["terrain"].load(), radius_m).values)
+    floor = np.maximum.reduce(parts)
+    if not np.isfinite(floor).all():
+        floor = np.where(np.isfinite(floor), floor, clearance_floor(surf, radius_m).values)
+    return floor

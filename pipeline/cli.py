@@ -237,7 +237,12 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
     exit code 3)."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.errors import InputError
-    from skyroute.pipeline.outputs import plan_section, plan_summary_line, write_plan_outputs
+    from skyroute.pipeline.outputs import (
+        ensure_writable_dir,
+        plan_section,
+        plan_summary_line,
+        write_plan_outputs,
+    )
     from skyroute.pipeline.runner import run_scenario
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
 
@@ -263,8 +268,6 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
         planner = parse_planner({**sc.planner.model_dump(), **upd})
         assert isinstance(planner, PlannerSettings)
         sc = sc.model_copy(update={"planner": planner})
-    from skyroute.pipeline.outputs import ensure_writable_dir
-
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "plan")
     result = run_scenario(sc, cache=Cache(cache_dir), targets=["plan"], scheduler=scheduler,
                           progress=not quiet and sys.stderr.isatty())

@@ -1,0 +1,145 @@
+"""The flight record of a tactical replay (``skyroute fly``): what was flown, what was tried.
+
+Every array is in the scenario's map CRS [m] with heights in the surface model's vertical
+datum (``FlightLog.vertical_datum``); times are seconds since the mission start
+(``FlightLog.start_time_utc``, UTC).  The outputs (:mod:`.outputs`) are written from a
+:class:`FlightLog` only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["FlightLog", "FlownPart", "IntruderTrack", "LevelAttempt", "NoFlyZone", "PART_NAMES"]
+
+PART_NAMES = ("strategic", "L1", "L2", "L3", "landing")
+
+
+@dataclass
+class FlownPart:
+    """One contiguous piece of the ownship's flown trajectory.
+
+    ``part``: one of :data:`PART_NAMES`; ``t_s`` (k,) [s] strictly increasing; ``xyz_m``
+    (k, 3) [m]; ``speed_mps`` (k,) ground speed [m/s]; ``replanning``: index of the
+    replanning (into ``FlightLog.attempts``' ``replanning``) that produced it, ``None`` for the
+    strategic part.  Consecutive parts share their boundary sample."""
+
+    part: str
+    t_s: np.ndarray
+    xyz_m: np.ndarray
+    speed_mps: np.ndarray
+    replanning: int | None = None
+
+
+@dataclass
+class LevelAttempt:
+    """One row of ``tactical.csv``: one level tried at one replanning (seed 001 Tables 3, 5).
+
+    ``level``: ``"1"``, ``"2"``, ``"3"`` or ``"landing"``; costs [m] are the tactical eq. 11
+    terms of the new remainder of the flight (risk and landing terms dropped); ``compute_s``
+    [s]: search + smoothing + validation of that level with compiled kernels warm; ``update_s``
+    [s]: the map updates of that replanning (same value on each of its rows);
+    ``added_flight_time_s`` [s]: arrival time at the goal (or touchdown) minus the arrival time
+    of the plan it replaces; ``reasons``: why not flyable, or why not chosen."""
+
+    replanning: int
+    event: str
+    t_event_s: float
+    t_coll_s: float
+    level: str
+    flyable: bool
+    C_l_m: float
+    C_e_m: float
+    f_m: float
+    max_sigma_p_m: float
+    compute_s: float
+    update_s: float
+    added_flight_time_s: float
+    chosen: bool
+    reasons: str = ""
+
+
+@dataclass
+class IntruderTrack:
+    """An intruder's truth: its latest declared track (waypoint times ``t_s`` [s] and
+    positions ``xyz_m`` (k, 3) [m], linear between waypoints), radius ``radius_m`` [m];
+    ``kind``: ``"strategic"`` (known at planning time) or ``"tactical"``; ``known_from_s``:
+    when the ownship learnt of it [s]; ``declared``: every track version as
+    ``(t_declared_s, t_s, xyz_m)`` (for the figures)."""
+
+    id: str
+    radius_m: float
+    t_s: np.ndarray
+    xyz_m: np.ndarray
+    kind: str = "strategic"
+    known_from_s: float = 0.0
+    declared: list = field(default_factory=list)
+
+
+@dataclass
+class NoFlyZone:
+    """A temporary no-fly zone: polygon ``polygon_xy`` (k, 2) [m, map CRS], altitude band
+    ``z_min_m`` .. ``z_max_m`` [m, surface datum], active ``start_s`` .. ``end_s`` [s]."""
+
+    id: str
+    polygon_xy: np.ndarray
+    z_min_m: float
+    z_max_m: float
+    start_s: float
+    end_s: float
+
+
+@dataclass
+class FlightLog:
+    """Everything a replay produced.
+
+    ``parts``: the flown trajectory (:class:`FlownPart`, in time order); ``planned``: the
+    strategic plan as planned (``t_s`` (n,), ``xyz_m`` (n, 3)); ``attempts``: every level tried
+    (:class:`LevelAttempt`); ``events``: one dict per event (``t_s``, ``kind``, ``label``,
+    ``t_known_s``, ``t_coll_s`` (inf when the plan was not compromised), ``outcome``: ``"no
+    conflict"``, ``"replanned L1"`` ..., ``"landing"``); ``intruders`` and ``nofly``: the
+    traffic and temporary zones (truth); ``outcome``: ``"goal"``, ``"landed"`` or
+    ``"failed"`` with ``reason``.  Map context for the figures: ``grid`` (a
+    :class:`~skyroute.stages.grid.Grid`), ``terrain_m``, ``surface_m`` and
+    ``coverage_floor_m`` (ny, nx) [m] (the floor of the plan's DOP level ``dop_threshold``;
+    ``None`` without GNSS data), ``landing_xy`` (k, 2) [m] landing sites."""
+
+    scenario: str
+    crs_wkt: str
+    vertical_datum: str
+    start_time_utc: str
+    planned_t_s: np.ndarray
+    planned_xyz_m: np.ndarray
+    parts: list[FlownPart] = field(default_factory=list)
+    attempts: list[LevelAttempt] = field(default_factory=list)
+    events: list[dict] = field(default_factory=list)
+    intruders: list[IntruderTrack] = field(default_factory=list)
+    nofly: list[NoFlyZone] = field(default_factory=list)
+    outcome: str = "goal"
+    reason: str = ""
+    dop_threshold: float | None = None
+    t_rep_s: float = 5.0
+    tick_s: float = 0.1
+    seed: int = 0
+    own_radius_m: float = 0.0
+    margin_m: float = 0.0
+    compile_s: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+    grid: object | None = None
+    terrain_m: np.ndarray | None = None
+    surface_m: np.ndarray | None = None
+    coverage_floor_m: np.ndarray | None = None
+    landing_xy: np.ndarray | None = None
+
+    def flown(self) -> tuple[np.ndarray, np.ndarray]:
+        """The whole flown trajectory ``(t_s (m,), xyz_m (m, 3))``, shared part boundaries once."""
+        if not self.parts:
+            return np.zeros(0), np.zeros((0, 3))
+        ts, ps = [self.parts[0].t_s], [self.parts[0].xyz_m]
+        for p in self.parts[1:]:
+            k = 1 if (p.t_s.size and ts[-1].size and p.t_s[0] <= ts[-1][-1]) else 0
+            ts.append(p.t_s[k:])
+            ps.append(p.xyz_m[k:])
+        return np.concatenate(ts), np.concatenate(ps)

@@ -278,7 +278,7 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
           occupancy: TrafficOccupancy | None = None, intruders: list[Intruder] | None = None,
           sample_dt_s: float = 0.5, check_spacing_m: float = 1.0, gnss_sigma_m: float = DEFAULT_UERE_M,
           gnss_period_s: float = 1.0, warmup_s: float = 60.0, label: str | None = None,
-          battery_reserve_pct: float = 0.0) -> Candidate:
+          battery_reserve_pct: float = 0.0, v_start_mps: float = 0.0) -> Candidate:
     """Smooth, retime, check and cost one STEP II chain (see the module docstring).
 
     ``sky``: :func:`~skyroute.stages.almanac.sky_geometry` Dataset (time, sat) or None (no
@@ -292,7 +292,8 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     period; ``warmup_s`` [s]: the navigation filter runs this long at the start point before
     take-off (no initial-convergence transient in sigma_p).  ``battery_reserve_pct`` [%]: the
     energy must not exceed ``battery * (1 - reserve / 100)``.  Vehicle limits have no
-    tolerance (1e-6 numerical in the validator).
+    tolerance (1e-6 numerical in the validator).  ``v_start_mps`` [m/s]: speed at the first
+    waypoint along the first leg (a tactical replan of a vehicle in flight; 0: from rest).
     """
     t_start = time.perf_counter()
     lab = label if label is not None else (getattr(problem, "label", "") or "candidate")
@@ -316,7 +317,8 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     leg_speed = np.linalg.norm(np.diff(w, axis=0), axis=1) / seg_t
     try:
         traj = corner_trajectory(w, np.maximum(leg_speed, 1e-3), KinematicLimits.of(veh),
-                                 winds=_wind_vectors(problem, w), fillet_ok=_fillet_checker(problem))
+                                 winds=_wind_vectors(problem, w), fillet_ok=_fillet_checker(problem),
+                                 v_start_mps=v_start_mps)
     except PlanningError as exc:
         return _empty(lab, dop, [f"STEP III: {exc}"], t_start, step2_result.status)
     tc, pc, bad = _retimed_conflicts(occupancy, traj, t0, check_spacing_m)

@@ -99,7 +99,8 @@ def make_log(g: Grid | None = None) -> FlightLog:
                              kind="tactical", known_from_s=15.0)
     s_xyz = np.array([[1000, 500, 60], [1000, 300, 40], [400, 300, 40.0]]) + ORIGIN
     strategic = IntruderTrack("S1", 1.5, np.array([0.0, 40.0, 115.0]), s_xyz, kind="strategic", known_from_s=0.0,
-                              declared=[(0.0, np.array([0.0, 115.0]), s_xyz[[0, 0]]), (40.0, np.array([0.0, 40.0, 115.0]), s_xyz)])
+                              declared=[(0.0, np.array([0.0, 115.0]), np.array([[1000, 500, 60], [200, 500, 60.0]]) + ORIGIN),
+                                        (40.0, np.array([0.0, 40.0, 115.0]), s_xyz)])
     zone = NoFlyZone("N1", np.array([[830, 260], [980, 260], [980, 340], [830, 340.0]]) + ORIGIN[:2], 0.0, 120.0,
                      75.0, 300.0)
     events = [dict(t_s=5.0, kind="wind", label="wind 6 m/s from W", t_known_s=5.0, t_coll_s=math.inf,

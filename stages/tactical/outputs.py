@@ -369,6 +369,13 @@ def _event_legend(log: FlightLog) -> list[str]:
     return out
 
 
+def _window(z) -> str:
+    """Active window of a no-fly zone as text, e.g. ``t 75-300 s`` or ``from t 75 s``."""
+    if not math.isfinite(z.end_s):
+        return f"from t {z.start_s:.0f} s"
+    return f"t {z.start_s:.0f}-{z.end_s:.0f} s"
+
+
 def _part_index(log: FlightLog) -> list[np.ndarray]:
     """Indices of each part's samples in :func:`flown_samples` (a shared boundary sample counted
     in both parts)."""
@@ -463,22 +470,26 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
             if (~fin).any():
                 ax.fill([], [], facecolor="none", edgecolor="0.3", hatch="xxx", label="no coverage at any altitude")
     for z in log.nofly:
-        end = "end" if not math.isfinite(z.end_s) else f"{z.end_s:.0f} s"
         ax.add_patch(Polygon(np.asarray(z.polygon_xy, float)[:, :2], closed=True, facecolor="red", alpha=0.25,
                              edgecolor="red", lw=1.2, hatch="//", zorder=4,
-                             label=f"no-fly {z.id}: {z.z_min_m:.0f}-{z.z_max_m:.0f} m, t {z.start_s:.0f} s-{end}"))
+                             label=f"no-fly {z.id}: {z.z_min_m:.0f}-{z.z_max_m:.0f} m, {_window(z)}"))
     if planned.shape[0]:
         ax.plot(planned[:, 0], planned[:, 1], "k--", lw=1.2, label="planned (strategic)", zorder=4)
     part_lines(ax, lambda q: np.asarray(q.xyz_m)[:, 0], lambda q: np.asarray(q.xyz_m)[:, 1])
     styles = {"strategic": dict(color="dimgray", ls="-", marker="s"),
               "tactical": dict(color="magenta", ls="-.", marker="D")}
-    seen = set()
+    seen, marked = set(), set()
     for it in log.intruders:
         st = styles.get(it.kind, styles["tactical"])
         xyz = np.asarray(it.xyz_m, float).reshape(-1, 3)
         lab = None if it.kind in seen else f"{it.kind} intruder (truth track)"
         seen.add(it.kind)
         ax.plot(xyz[:, 0], xyz[:, 1], color=st["color"], ls=st["ls"], lw=1.2, label=lab, zorder=4)
+        for dec in list(it.declared)[:-1]:                  # superseded declarations, faint
+            dx = np.asarray(dec[2], float).reshape(-1, 3)
+            ax.plot(dx[:, 0], dx[:, 1], color=st["color"], ls=":", lw=1.0, alpha=0.6, zorder=3,
+                    label=None if "superseded" in seen else "superseded declared track")
+            seen.add("superseded")
         if xyz.shape[0] >= 2:
             ax.annotate("", xy=xyz[-1, :2], xytext=xyz[-1, :2] - 0.001 * (xyz[-1, :2] - xyz[-2, :2]),
                         arrowprops=dict(arrowstyle="-|>", color=st["color"], lw=1.2), zorder=4)
@@ -486,13 +497,14 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
         m = (ev_t >= ti[0]) & (ev_t <= ti[-1]) if ti.size > 1 else np.isfinite(ev_t)
         m &= ev_t >= float(it.known_from_s)      # where it was when the ownship knew of it
         if m.any():
+            marked.add(it.kind)
             q = _at(ev_t[m], ti, xyz)
             ax.plot(q[:, 0], q[:, 1], ls="none", marker=st["marker"], ms=6, mfc="white", mec=st["color"], zorder=6)
             for i, qq in zip(np.flatnonzero(m), q, strict=True):
                 ax.annotate(f"E{i + 1}", qq[:2], xytext=(5, -3), textcoords="offset points", fontsize=6,
                             color=st["color"], va="top", zorder=8, annotation_clip=True)
         ax.text(xyz[0, 0], xyz[0, 1], f" {it.id}", fontsize=7, color=st["color"], va="bottom", clip_on=True)
-    for kind in sorted(seen):
+    for kind in sorted(marked):
         st = styles.get(kind, styles["tactical"])
         ax.plot([], [], ls="none", marker=st["marker"], mfc="white", mec=st["color"],
                 label=f"{kind} intruder at event times (once known)")
@@ -552,7 +564,7 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
         inside = _inside(p[:, :2], z.polygon_xy)
         if inside.any():
             ax.fill_between(dist, z.z_min_m, z.z_max_m, where=inside, color="red", alpha=0.2, hatch="//",
-                            label=f"no-fly {z.id} over the path (t {z.start_s:.0f}-{z.end_s:.0f} s)")
+                            label=f"no-fly {z.id} over the path, {_window(z)}")
     if planned.shape[0] >= 2:
         ax.plot(_dist_along(planned), planned[:, 2], "k--", lw=1.2, label="planned (strategic), its own distance")
     idx = _part_index(log)

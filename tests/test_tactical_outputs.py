@@ -28,6 +28,7 @@ from skyroute.stages.tactical.outputs import (
     TACTICAL_COLUMNS,
     flight_section,
     flown_samples,
+    fly_summary_line,
     min_separations,
     nofly_time_inside,
     write_flight,
@@ -285,6 +286,9 @@ def test_flight_section_numbers(log):
         assert rec["clearance_m"] == pytest.approx(rec["min_distance_m"] - rec["required_m"])
     assert sec["nofly"] == [{"id": "N1", "inside_active_s": 0.0}]
     assert sec["energy_Wh"] is None
+    line = fly_summary_line(sec)
+    assert line.startswith("fly: landed (no-fly zone N1") and "3 replannings (L1, L2, landing)" in line
+    assert f"closest intruder S1 at {sec['min_separation'][0]['min_distance_m']:.1f} m" in line
 
 
 def test_separation_and_nofly_detect_a_violation(log):

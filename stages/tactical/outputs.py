@@ -38,7 +38,7 @@ from skyroute.stages.planning.outputs import _crs_of, _ras, _write_csv
 from skyroute.stages.planning.step3 import utc_of
 from skyroute.stages.tactical.log import PART_NAMES, FlightLog
 
-__all__ = ["write_flight", "flight_section", "flown_samples", "min_separations", "nofly_time_inside",
+__all__ = ["write_flight", "flight_section", "fly_summary_line", "flown_samples", "min_separations", "nofly_time_inside",
            "TACTICAL_COLUMNS", "FLOWN_COLUMNS", "SEPARATION_STEP_S", "PART_COLOURS"]
 
 TACTICAL_COLUMNS = ("replanning", "event", "t_event_s", "t_coll_s", "level", "flyable", "C_l_m", "C_e_m", "f_m",
@@ -358,6 +358,21 @@ def flight_section(log: FlightLog) -> dict[str, Any]:
             "warnings": list(log.warnings)}
 
 
+def fly_summary_line(sec: dict[str, Any]) -> str:
+    """One line of a :func:`flight_section`: outcome, replannings and chosen levels, flight
+    time and the smallest separation margin."""
+    levels = ", ".join(f"L{v}" if v in ("1", "2", "3") else v for v in sec["chosen_levels"]) or "none"
+    head = {"goal": "reached the goal", "landed": "landed", "failed": "failed"}.get(sec["outcome"], sec["outcome"])
+    why = f" ({sec['reason']})" if sec["reason"] and sec["outcome"] != "goal" else ""
+    seps = [r for r in sec["min_separation"] if r["clearance_m"] is not None]
+    sep = ""
+    if seps:
+        r = min(seps, key=lambda r: r["clearance_m"])
+        sep = f", closest intruder {r['id']} at {r['min_distance_m']:.1f} m (margin {r['clearance_m']:+.1f} m)"
+    ft = "" if sec["flight_time_s"] is None else f", flight time {sec['flight_time_s']:.1f} s"
+    return f"fly: {head}{why}; {sec['n_replannings']} replannings ({levels}){ft}{sep}"
+
+
 # ------------------------------------------------------------------ figures
 
 
@@ -374,6 +389,19 @@ def _window(z) -> str:
     if not math.isfinite(z.end_s):
         return f"from t {z.start_s:.0f} s"
     return f"t {z.start_s:.0f}-{z.end_s:.0f} s"
+
+
+def _window_of(grid, box, max_cells: int = 1200):
+    """The raster window of ``grid`` covering ``box`` (xmin, xmax, ymin, ymax) [m], strided to
+    at most ``max_cells`` per side (figures only): ``(slices, imshow extent, x, y)``."""
+    x0, x1, y0, y1 = box
+    r0, c0 = grid.cell_of(x0, y1)
+    r1, c1 = grid.cell_of(x1, y0)
+    step = max(1, int(math.ceil(max(r1 - r0 + 1, c1 - c0 + 1) / max_cells)))
+    rs, cs = slice(int(r0), int(r1) + 1, step), slice(int(c0), int(c1) + 1, step)
+    gx, gy = grid.x[cs], grid.y[rs]
+    h = grid.resolution_m * step / 2
+    return (rs, cs), (gx[0] - h, gx[-1] + h, gy[-1] - h, gy[0] + h), gx, gy
 
 
 def _part_index(log: FlightLog) -> list[np.ndarray]:
@@ -447,9 +475,9 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
     aspect = (y1 - y0) / (x1 - x0)
     fig, ax = plt.subplots(figsize=(12, min(max(7.0 * aspect + 2.4, 6.5), 11)), dpi=100, layout="constrained")
     if grid is not None:
-        gx0, gy0, gx1, gy1 = grid.bounds
-        ext = (gx0, gx1, gy0, gy1)
-        surf, terr, fl = _ras(log.surface_m), _ras(log.terrain_m), _ras(log.coverage_floor_m)
+        win, ext, gxs, gys = _window_of(grid, (x0, x1, y0, y1))
+        surf, terr, fl = (None if a is None else _ras(a)[win] for a in (log.surface_m, log.terrain_m,
+                                                                          log.coverage_floor_m))
         if surf is not None:
             h = surf - terr if terr is not None else surf
             lab = "height above terrain [m]" if terr is not None else f"surface height [m] ({log.vertical_datum})"
@@ -459,10 +487,10 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
         if fl is not None:
             fin = np.isfinite(fl)
             if (~fin).any():
-                ax.contourf(grid.x, grid.y, (~fin).astype(float), levels=[0.5, 1.5], colors="none",
+                ax.contourf(gxs, gys, (~fin).astype(float), levels=[0.5, 1.5], colors="none",
                             hatches=["xxx"], zorder=2)
             if fin.any() and np.nanmax(np.where(fin, fl, np.nan)) > np.nanmin(np.where(fin, fl, np.nan)):
-                cs = ax.contour(grid.x, grid.y, np.where(fin, fl, np.nan), levels=6, colors="steelblue",
+                cs = ax.contour(gxs, gys, np.where(fin, fl, np.nan), levels=6, colors="steelblue",
                                 linewidths=0.7, zorder=3)
                 ax.clabel(cs, fontsize=6, fmt="%.0f m")
             dop = f" (DOP < {log.dop_threshold:g})" if log.dop_threshold is not None else ""

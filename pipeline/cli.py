@@ -381,6 +381,7 @@ def cache_prune(cache_dir, max_size) -> None:
 _PLUGINS = {
     "skyroute.pipeline.cli_gnss": "sky_command",
     "skyroute.pipeline.cli_occlusion": "visibility_height_command",
+    "skyroute.pipeline.cli_fly": "fly_command",
 }
 
 

@@ -408,7 +408,7 @@ def _vertical_cap(uz_max: float, uz_min: float, lim: KinematicLimits) -> float:
 
 def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=np.zeros((1, 3)),
                       fillet_ok: Callable[[np.ndarray, np.ndarray, np.ndarray], bool] | None = None,
-                      max_shrink: int = 6, v_start_mps: float = 0.0) -> CornerTrajectory:
+                      max_shrink: int = 6, v_start_mps: float = 0.0, stop_at: tuple[int, ...] = ()) -> CornerTrajectory:
     """Fly the polygonal chain ``waypoints`` (n, 3) [m] from rest (or from ``v_start_mps``
     along the first leg) to rest within ``limits``.
 
@@ -434,7 +434,8 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
     vehicle already flying that leg: the tactical replans of :mod:`skyroute.stages.tactical`).
     Above the first leg's target speed it decelerates at the limit; above the first leg's
     airspeed or vertical-rate cap, or too fast to stop where the chain requires it, it is a
-    :class:`~skyroute.stages.base.PlanningError`."""
+    :class:`~skyroute.stages.base.PlanningError`.  ``stop_at``: indices of interior vertices
+    where the vehicle must stop (no fillet), e.g. the point a tactical replan turns at."""
     w = np.asarray(waypoints, dtype=float)
     if w.ndim != 2 or w.shape[1] != 3 or w.shape[0] < 2 or not np.isfinite(w).all():
         raise InputError(f"waypoints must be finite with shape (n >= 2, 3) [m]; got {w.shape}")
@@ -442,6 +443,8 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
     length = np.linalg.norm(legs, axis=1)
     vleg = np.broadcast_to(np.asarray(leg_speed_mps, dtype=float), (legs.shape[0],)).copy()
     keep = length > 1e-9                     # drop repeated points
+    new_index = np.cumsum(np.r_[True, keep]) - 1
+    stop_at = {int(new_index[j]) for j in stop_at if 0 < j < w.shape[0] - 1}
     if not keep.all():
         w = np.concatenate([w[:1], w[1:][keep]])
         vleg, legs, length = vleg[keep], legs[keep], length[keep]
@@ -464,6 +467,10 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
         u1, u2 = u[i - 1], u[i]
         cth = float(np.clip(u1 @ u2, -1.0, 1.0))
         th = math.acos(cth)
+        if i in stop_at:
+            kinds.append("stop")
+            why.append("requested stop")
+            continue
         if th < PASS_TURN_RAD:
             kinds.append("pass")
             why.append("")

@@ -10,13 +10,6 @@ import click
 from skyroute.pipeline.cli import SCHEDULER_HELP
 
 
-def fly_summary_line(section: dict) -> str:
-    """One line: outcome, replannings and chosen levels."""
-    levels = ", ".join(section.get("chosen_levels", [])) or "none"
-    return (f"fly: {section['outcome']} after {section['flight_time_s']:.1f} s; {section['n_replannings']} "
-            f"replanning(s) ({levels})" + (f"; {section['reason']}" if section.get("reason") else ""))
-
-
 def write_fly_folder(fr, out_dir: Path, command: str = "fly") -> dict:
     """Write the flight outputs and ``summary.json`` of a ``fly`` folder; return the section."""
     from skyroute.pipeline.cli import _write_folder_summary
@@ -65,6 +58,8 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, cache_dir
     fr = fly_scenario(sc, cache=Cache(cache_dir), scheduler=scheduler, progress=not quiet and sys.stderr.isatty(),
                       t_rep_s=t_rep_s, tick_s=tick_s, seed=seed)
     section = write_fly_folder(fr, out_dir)
+    from skyroute.stages.tactical.outputs import fly_summary_line
+
     click.echo(fly_summary_line(section))
     if section["outcome"] == "failed":
         sys.exit(3)

@@ -661,18 +661,21 @@ class _Replay:
 
     def _landing_targets(self, pb) -> list[tuple[str, np.ndarray]]:
         """Approach points r_p above the landing sites nearest to ``pb`` (one cell per site:
-        the site cell nearest to the site's centre whose clearance floor allows it)."""
+        the site cell nearest to the site's centre whose clearance floor allows it; the
+        surface there is the ground of a field or the roof of a flat-roof site)."""
         env = self.world.environment
         if env is None or "site_x" not in env.coords:
             return []
         g = self._grid()
         site = np.asarray(env["landing_site"].values, bool)
-        terrain = np.asarray(self.world.surface["terrain"].values, float)
+        top = np.asarray(self.world.surface["surface"].values, float)     # the ground or the flat roof
         floor = np.asarray(self.world.clearance["min_altitude_m"].values, float)
         r_p = self.veh.r_p_m
         zone = self._zone_mask(0.0)
-        rows, cols = np.nonzero(site & np.isfinite(floor) & (floor <= terrain + r_p + 1e-9)
-                                & (zone is None or ~zone if zone is not None else True))
+        ok = site & np.isfinite(floor) & (floor <= top + r_p + 1e-9)
+        if zone is not None:
+            ok &= ~zone
+        rows, cols = np.nonzero(ok)
         if rows.size == 0:
             return []
         cx = g.x0 + (cols + 0.5) * g.resolution_m
@@ -686,7 +689,7 @@ class _Replay:
             j = int(np.argmin(d))
             if d[j] > 100.0:
                 continue
-            z = terrain[rows[j], cols[j]] + r_p
+            z = top[rows[j], cols[j]] + r_p
             out.append((f"{names[i] or 'site'} ({cx[j]:.0f}, {cy[j]:.0f})", np.array([cx[j], cy[j], z])))
             if len(out) >= self.p.max_landing_sites:
                 break
@@ -763,6 +766,8 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
             continue
         log.parts.append(FlownPart(seg.part, t, seg.sample(t), np.linalg.norm(seg.velocity(t), axis=1),
                                    seg.replanning))
+    t_f, p_f = log.flown()
+    log.energy_Wh = r.energy_J(t_f, p_f, r.problem(p_f[0], p_f[-1], zones_from_s=math.inf)) / 3600.0
     log.attempts = r.attempts
     log.events = r.event_log
     log.intruders = list(r.known.truth.values())

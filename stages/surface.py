@@ -667,6 +667,29 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
     return DsmRaster(surface, surface_min, ground, ground_min, building, holes.n_interior, notes)
 
 
+def burn_obstacles(surface: np.ndarray, terrain: np.ndarray, grid: Grid, obstacles) -> np.ndarray:
+    """The surface [m] with static obstacles (e.g. cranes) burnt in, conservatively.
+
+    ``obstacles``: a sequence of ``(polygon, height_agl_m)``, the polygon an ``(k, 2)`` array of
+    map x, y [m] (not closed), the height [m] above the ground.  Every cell whose closed square
+    the polygon touches (:func:`polygon_max`: a corner or an edge counts) takes
+    ``max(surface, top)`` with ``top`` = the highest ``terrain`` [m] (cell maxima) over all the
+    cells the polygon touches + ``height_agl_m``: a rigid structure may stand on the highest
+    ground under it.  ``surface`` and ``terrain``: ``grid.shape`` arrays; returns a new array
+    (float64)."""
+    out = np.array(surface, dtype=np.float64)
+    terrain = np.asarray(terrain, dtype=np.float64)
+    for polygon, height_agl_m in obstacles:
+        xy = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+        _, index = polygon_max([[np.column_stack([xy, np.zeros(len(xy))])]], grid)
+        touched = index >= 0
+        if not touched.any():
+            continue  # outside the grid
+        top = float(terrain[touched].max()) + float(height_agl_m)
+        out[touched] = np.maximum(out[touched], top)
+    return out
+
+
 def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | None = None,
                   storey_height_m: float = STOREY_HEIGHT_M, terrain_path=None,
                   vertical_datum: str | None = None, surface_path=None, surface_datum: str | None = None,

@@ -361,6 +361,12 @@ class _EventBase(FrozenModel):
     t_s: NonNegFloat  # time of the event [s after the mission start]
     id: str | None = None
 
+    @property
+    def label(self) -> str:
+        """A short name for tables and logs: ``intruder hawk at 10 s``, ``wind at 30 s``."""
+        who = f" {self.id}" if self.id else ""
+        return f"{getattr(self, 'kind', 'event')}{who} at {self.t_s:g} s"
+
 
 class _TrackForms(_EventBase):
     """An intruder track: ``waypoints`` [[t_s, x_m, y_m, alt_agl_m], ...] (map x/y [m], AGL [m],

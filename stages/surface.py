@@ -43,6 +43,10 @@ touching polygon of the polygon's height over the part inside the cell:
   degenerate face typed as roof gives its top along its trace.  A ridge keeps its height in
   every cell it crosses (sampling faces at cell centres and corners cut thin roof parts).
 
+Static obstacles announced during a flight (a crane: polygon + height above ground) are burnt
+into ``surface`` by :func:`burn_obstacles`: every touched cell (as above) takes at least the
+highest ground under the polygon plus the obstacle's height.
+
 The cost grows with the polygons' perimeter and area in cells (vertices, grid-line crossings,
 interior cell corners), not with the grid.  :func:`~skyroute.stages.grid.ring_cells` (centre-in
 scanline fill) stays for land use, where a cell takes the class at its centre.

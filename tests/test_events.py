@@ -79,6 +79,8 @@ def test_every_kind_parses_and_events_are_sorted_by_time_stably():
                      WindEvent, NoFlyEvent, ObstacleEvent]
     # the two updates at 20 s keep their file order
     assert [e.id for e in sc.events[2:4]] == ["courier-1", "hawk"]
+    assert [e.label for e in sc.events[:2]] == ["intruder hawk at 10 s", "intruder kite at 12 s"]
+    assert sc.events[6].label == "wind at 30 s"
     assert sc.tactical == TacticalSettings()
     assert sc.tactical.t_rep_s == 5.0 and sc.tactical.tick_s == 0.1
     assert sc.tactical.time_scaling_factors == (0.8, 0.65, 0.5, 0.35, 0.25)

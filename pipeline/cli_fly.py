@@ -49,7 +49,7 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, cache_dir
 
     sc = load_scenario(scenario or "helsinki-tactical")
     if events_file is not None:
-        sc = with_events(sc, load_events_file(events_file))
+        sc = with_events(sc, events_file)
     if not sc.events:
         raise InputError(f"scenario {sc.name!r} has no events to fly through: add an `events:` list to it or "
                          "give --events FILE")

@@ -145,6 +145,7 @@ class World:
     coverage: xr.Dataset | None
     satellites: xr.Dataset | None
     los_cache: dict = field(default_factory=dict)   # visibility heights per sky epoch (STEP III)
+    problems: dict = field(default_factory=dict)    # planning problems built on these maps
 
 
 def encounter_geometry(own_velocity_mps, intruder_velocity_mps) -> tuple[str, float]:
@@ -235,7 +236,6 @@ class _Replay:
         self.n_replan = 0
         self.outcome, self.reason = "goal", ""
         self.warnings: list[str] = []
-        self._problem_cache: dict = {}
         self._zone_masks: dict[str, np.ndarray] = {}
         self._grid_obj = None
 
@@ -248,13 +248,11 @@ class _Replay:
         """The planning problem on the current maps: tactical weights, temporary no-fly zones
         active at or after ``zones_from_s`` as no-fly cells (all altitudes: conservative).
         Built once per maps, zones and GNSS flag; only the endpoints change between calls."""
-        zkey = tuple(z.id for z in self.known.zones if z.end_s > zones_from_s)
-        key = (id(self.world), zkey, gnss)
-        base = self._problem_cache.get(key)
+        zkey = tuple((z.id, tuple(z.polygon_xy.ravel())) for z in self.known.zones if z.end_s > zones_from_s)
+        key = (zkey, gnss, self.dop, self.p.weights, self.p.min_agl_m, self.p.max_agl_m, self.p.dop_kind, self.veh.name)
+        base = self.world.problems.get(key)
         if base is None:
-            base = self._build_problem(start, goal, gnss, zones_from_s)
-            self._problem_cache = {k: v for k, v in self._problem_cache.items() if k[0] == id(self.world)}
-            self._problem_cache[key] = base
+            base = self.world.problems[key] = self._build_problem(start, goal, gnss, zones_from_s)
             return base
         return dataclasses.replace(base, start_xyz=tuple(map(float, start)), goal_xyz=tuple(map(float, goal)))
 
@@ -538,7 +536,8 @@ class _Replay:
             n_slow = int(np.searchsorted(cum, d_enc, side="left"))
             n_slow = min(max(n_slow, 1), legs.size)
             fails = []
-            problem1 = self.problem(chain[0], self.goal, zones_from_s=math.inf)   # zones: checked in time
+            problem1 = (problem if not any(z.end_s > t_eff for z in self.known.zones)
+                        else self.problem(chain[0], self.goal, zones_from_s=math.inf))   # zones: checked in time
             for s in p.time_scaling_factors:
                 sp = speeds.copy()
                 sp[:n_slow] *= s

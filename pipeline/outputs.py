@@ -88,8 +88,8 @@ def revalidate(result: RunResult, chosen) -> list[str]:
     """Independent check of the chosen trajectory against the cached maps."""
     import numpy as np
 
-    from skyroute.stages.planning.strategic import intruders_for
     from skyroute.stages.planning.validate import validate_plan
+    from skyroute.stages.traffic import intruders_for
     from skyroute.stages.wind import sample_wind
 
     sc = result.scenario

@@ -303,16 +303,10 @@ def _osm_levels(path: str | Path, grid: Grid, table: TagTable) -> np.ndarray:
 
 
 def _cityjson_levels(path: str | Path, grid: Grid, table: TagTable) -> np.ndarray:
-    from skyroute.stages.surface import _read_cityjson, _surfaces, cityjson_crs
+    from skyroute.stages.cityjson import read_cityjson, surfaces, vertices_in
 
-    p = Path(path)
-    cj = _read_cityjson(p)
-    tr = cj.get("transform") or {"scale": [1, 1, 1], "translate": [0, 0, 0]}
-    V = np.asarray(cj["vertices"], dtype=np.float64)[:, :2] * np.asarray(tr["scale"][:2]) + np.asarray(tr["translate"][:2])
-    src = cityjson_crs(cj)
-    if src != grid.crs:
-        t = Transformer.from_crs(src, grid.crs, always_xy=True)
-        V[:, 0], V[:, 1] = t.transform(V[:, 0], V[:, 1])
+    cj = read_cityjson(path)
+    V = vertices_in(cj, grid.crs)[:, :2]
     ring_vertices: list[np.ndarray] = []
     ring_owner: list[int] = []
     lvs: list[int] = []
@@ -322,7 +316,7 @@ def _cityjson_levels(path: str | Path, grid: Grid, table: TagTable) -> np.ndarra
             continue
         k = len(lvs)
         for g in obj.get("geometry") or []:
-            for ring, _stype in _surfaces(g):
+            for ring, _stype in surfaces(g):
                 if len(ring) >= 3:
                     ring_vertices.append(np.asarray(ring, dtype=np.int64))
                     ring_owner.append(k)

@@ -52,8 +52,8 @@ from skyroute.stages.figures import image_extent
 from skyroute.stages.grid import Grid
 from skyroute.stages.risk import (
     TagTable,
-    _lonlat_bounds,
     load_tag_table,
+    lonlat_bounds,
     read_geojson_lonlat,
     to_grid_crs,
 )
@@ -154,7 +154,7 @@ def landing_sites(grid: Grid, osm_path: str | Path | None = None, geojson: str |
 
         table = load_tag_table(tag_table)
         keys = set(table.landing_any_size) | set(table.landing_open_ground)
-        aoi = _lonlat_bounds(grid, margin_m)
+        aoi = lonlat_bounds(grid, margin_m)
         cand = [f for f in read_osm(osm_path, keys=sorted(keys))
                 if f.kind in ("node", "area") and f.geometry.intersects(aoi)]
         geoms = to_grid_crs([f.geometry for f in cand], 4326, grid)

@@ -314,7 +314,10 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
             plan_files = [Path(p).relative_to(out_dir).as_posix() for p in written.values()]
         output_keys["plan/"] = keys["plan"]
         files.extend(plan_files)
-        sections["plan"] = plan_section(result["plan"])
+        # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
+        from dask.local import get_sync
+
+        sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
     sc = result.scenario
     remove_stale(out_dir, previous, files, command)
     sections = {

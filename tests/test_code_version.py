@@ -56,6 +56,41 @@ def test_stage_closures_hold_the_moved_modules():
     assert "skyroute.stages.traffic" in closure["plan"]
 
 
+def test_module_imports_are_memoised_by_source_digest(tmp_path, monkeypatch):
+    """A warm run parses no module: each module's imports are kept in <cache>/code_imports.json
+    under its source's SHA-256 (an edited module has another digest and is parsed again)."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    name = "skyroute.stages.environment"
+    memo_file = tmp_path / "code_imports.json"
+    digest = hashlib.sha256(Path(graph._module_file(name)).read_bytes()).hexdigest()
+
+    def fresh(memo=None):
+        if memo is not None:
+            memo_file.write_text(json.dumps(memo))
+        monkeypatch.setattr(graph, "_IMPORT_MEMO", {})
+        monkeypatch.setattr(graph, "_IMPORT_MEMO_STATE", {"path": None, "dirty": False})
+        graph._module_imports.cache_clear()
+        return graph._module_imports(name)
+
+    monkeypatch.setenv("SKYROUTE_CACHE_DIR", str(tmp_path))
+    try:
+        assert {"skyroute.stages.landing", "skyroute.stages.risk", "skyroute.stages.grid"} <= fresh()
+        graph._save_import_memo()
+        memo = json.loads(memo_file.read_text())
+        key = f"{name}|0|{digest}"
+        assert list(memo) == [key]
+        # a later process trusts the memo (proved by a forged entry) ...
+        forged = {key: [*memo[key], ["skyroute.stages.wind", []]]}
+        assert "skyroute.stages.wind" in fresh(forged)
+        # ... for that exact source only: another digest (an edit) is parsed again
+        assert "skyroute.stages.wind" not in fresh({key.replace(digest, "0" * 64): forged[key]})
+    finally:
+        graph._module_imports.cache_clear()
+
+
 def test_editing_a_module_deep_in_the_closure_changes_only_dependent_stages(monkeypatch):
     _load_registry()
     before = {name: st.code_version() for name, st in REGISTRY.items()}

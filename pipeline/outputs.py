@@ -88,8 +88,8 @@ def revalidate(result: RunResult, chosen) -> list[str]:
     """Independent check of the chosen trajectory against the cached maps."""
     import numpy as np
 
-    from skyroute.stages.planning.strategic import intruders_for
     from skyroute.stages.planning.validate import validate_plan
+    from skyroute.stages.traffic import intruders_for
     from skyroute.stages.wind import sample_wind
 
     sc = result.scenario
@@ -316,7 +316,10 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
             plan_files = [Path(p).relative_to(out_dir).as_posix() for p in written.values()]
         output_keys["plan/"] = keys["plan"]
         files.extend(plan_files)
-        sections["plan"] = plan_section(result["plan"])
+        # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
+        from dask.local import get_sync
+
+        sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
     if extra is not None:
         files.extend(extra["files"])
         sections["fly"] = extra["section"]

@@ -192,7 +192,7 @@ def environment_stage(surface: xr.Dataset, *, settings: EnvironmentSettings) -> 
     only in a DSM, the surface's ``dsm_building``, count as buildings)."""
     import warnings
 
-    from skyroute.stages.landing import environment_risk_dataset
+    from skyroute.stages.environment import environment_risk_dataset
 
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="no landing sites")
@@ -206,7 +206,6 @@ def environment_stage(surface: xr.Dataset, *, settings: EnvironmentSettings) -> 
 
 
 register(Stage("environment", environment_stage, _environment_settings, inputs=("surface",),
-               code_modules=("skyroute.stages.risk", "skyroute.stages.landing", "skyroute.stages.osm"),
                description="risk levels 1-6, risk cost, no-fly, landing sites and landing cost"))
 
 
@@ -347,8 +346,7 @@ def traffic_stage(surface: xr.Dataset, *, settings: TrafficStageSettings) -> xr.
     the terrain under each waypoint."""
     import numpy as np
 
-    from skyroute.stages.planning.strategic import intruders_for
-    from skyroute.stages.traffic import build_occupancy
+    from skyroute.stages.traffic import build_occupancy, intruders_for
 
     records = [{"id": i.id, "radius_m": i.radius_m, "waypoints": np.column_stack([i.times_s, i.xyz_m]).tolist()}
                for i in intruders_for(settings.intruders, surface)]
@@ -457,7 +455,7 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
 def plan_arguments(s: PlanSettings, surface: xr.Dataset) -> dict:
     """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_strategic` for
     these settings (one place: the plan stage and the benchmarks call it)."""
-    from skyroute.stages.planning.strategic import intruders_for
+    from skyroute.stages.traffic import intruders_for
 
     intr = intruders_for(s.intruders, surface) if s.intruders else None
     return dict(start_xy=s.start_xy, start_agl_m=s.start_agl_m, goal_xy=s.goal_xy, goal_agl_m=s.goal_agl_m,

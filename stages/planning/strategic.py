@@ -40,7 +40,7 @@ from skyroute.stages.planning.rrt import Step2Result, deconflict
 from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, Step1Result, plan_step1
 from skyroute.stages.planning.step3 import Candidate, _empty, choose, explain_no_plan, step3
 from skyroute.stages.smoothing import CornerTrajectory
-from skyroute.stages.traffic import Intruder, TrafficOccupancy, intruders_from_records
+from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle
 
 
@@ -386,19 +386,5 @@ def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]
     return chosen, cands
 
 
-def intruders_for(traffic_settings_intruders, surface: xr.Dataset) -> list[Intruder]:
-    """Scenario intruder records (AGL waypoints) -> Intruders in the surface datum."""
-    from skyroute.stages.grid import Grid
-
-    grid = Grid.from_dataarray(surface["terrain"])
-    terrain = surface["terrain"].values
-    recs = []
-    for it in traffic_settings_intruders:
-        wp = np.asarray(it["waypoints"], dtype=float)
-        wp[:, 3] += terrain[grid.cell_of(wp[:, 1], wp[:, 2])]
-        recs.append({"id": it["id"], "radius_m": it["radius_m"], "waypoints": wp.tolist()})
-    return intruders_from_records(recs)
-
-
-__all__ = ["PlanningError", "StrategicPlan", "intruders_for", "plan_from_dataset", "plan_strategic",
-           "plan_to_dataset", "trajectory_from_dataset", "trajectory_to_dataset"]
+__all__ = ["PlanningError", "StrategicPlan", "plan_from_dataset", "plan_strategic", "plan_to_dataset",
+           "trajectory_from_dataset", "trajectory_to_dataset"]

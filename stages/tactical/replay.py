@@ -423,29 +423,38 @@ class _Replay:
             self.world = self.world_at(ev.t_s)
 
     def _effective_time(self, t: float) -> float:
-        """``t``, or the end of the fillet arc the vehicle is on at ``t``."""
-        k = self.tl.active(t)
-        seg = self.tl.segments[k]
-        t = min(t, seg.t_end_s)
-        i, line = line_phase_at(seg.traj, t - seg.t0_s)
-        while not line and i + 1 < seg.traj.phase_t0_s.size:
-            i += 1
-            t = seg.t0_s + float(seg.traj.phase_t0_s[i])
-            line = seg.traj.kind[i] == 0
-        return t
+        """``t`` (capped at the end of the plan)."""
+        return min(t, self.tl.t_end_s)
 
-    # -------------------------------------------------------------- chains
     def rest_chain(self, t_eff: float) -> tuple[np.ndarray, np.ndarray, int, float]:
         """The current plan's chain from its position at ``t_eff``: ``(vertices, leg speeds,
-        index of the leg t_eff is on (0 after the cut), speed at t_eff)``."""
+        number of leading vertices that are not the plan's own (0 or 1), speed at t_eff)``.
+        The first leg is along the vehicle's velocity: on a line phase it is the rest of that
+        line; on a fillet arc it is the arc's tangent for the braking distance (then the
+        arc's end point and the plan's next vertices), a deviation of L^2 / (2 R) from the arc
+        that STEP III and the checks validate like any other leg."""
         seg = self.tl.segments[self.tl.active(t_eff)]
+        tau = t_eff - seg.t0_s
         verts, speeds, leg_of = chain_of(seg.traj)
-        i, _line = line_phase_at(seg.traj, t_eff - seg.t0_s)
+        i, line = line_phase_at(seg.traj, tau)
         leg = int(leg_of[i])
         p0 = seg.sample([t_eff])[0]
-        v0 = float(np.linalg.norm(seg.velocity([t_eff])[0]))
-        chain = np.concatenate([p0[None], verts[leg + 1:]])
-        return chain, speeds[leg:], leg, v0
+        vel = seg.velocity([t_eff])[0]
+        v0 = float(np.linalg.norm(vel))
+        if line or v0 < 1e-6:
+            return np.concatenate([p0[None], verts[leg + 1:]]), speeds[leg:], 0, v0
+        # on the arc at the corner verts[leg] (between legs leg-1 and leg): tangent, arc end, next vertices
+        t1 = float(seg.traj.phase_t0_s[i + 1]) if i + 1 < seg.traj.phase_t0_s.size else float(seg.traj.duration_s)
+        a_end = seg.traj.sample([t1])[0]
+        d_b = v0 * v0 / (2.0 * self.lim.max_acceleration_mps2) + 0.5
+        tan_pt = p0 + vel / v0 * min(d_b, max(float(np.linalg.norm(a_end - p0)), 0.5))
+        chain = [p0[None], tan_pt[None]]
+        if np.linalg.norm(a_end - tan_pt) > 0.5:
+            chain.append(a_end[None])
+        chain.append(verts[leg + 1:])
+        ch = np.concatenate(chain)
+        sp = np.concatenate([np.full(ch.shape[0] - 1 - speeds[leg:].size, max(v0, speeds[leg])), speeds[leg:]])
+        return ch, sp, 1, v0
 
     def braking_point(self, chain: np.ndarray, v0: float) -> tuple[np.ndarray, int]:
         """The chain cut the braking distance v0^2 / (2 a_max) (plus 0.5 m) after its start,
@@ -494,7 +503,7 @@ class _Replay:
     def replan(self, k: int, ev: TacticalEvent, t_e: float, t_eff: float, t_coll: float, update_s: float,
                cause: str, detail) -> str | None:
         p = self.p
-        chain, speeds, _leg, v0 = self.rest_chain(t_eff)
+        chain, speeds, _lead, v0 = self.rest_chain(t_eff)
         t_arrive_old = self.tl.t_end_s
         problem = self.problem(chain[0], self.goal, zones_from_s=t_eff)
         budget = self.budget_J(t_eff, problem)

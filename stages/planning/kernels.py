@@ -31,7 +31,7 @@ from skyroute.stages.vehicle import VehicleProfile
 
 # validity codes (state and motion)
 OK, OUTSIDE, FORBIDDEN, BELOW_FLOOR, ABOVE_CEILING, ANGLE, WIND, GROUND_SPEED, NONFINITE = range(9)
-_EPS_Z = 1e-9  # [m] tolerance of the floor/ceiling comparisons
+EPS_Z = 1e-9  # [m] tolerance of the floor/ceiling comparisons
 
 
 class GridParams(NamedTuple):
@@ -147,9 +147,9 @@ def state_code(x, y, z, maps, wind, vehicle):
     fl = maps.floor_m[r, c]
     if not math.isfinite(fl):
         return FORBIDDEN
-    if z < fl - _EPS_Z:
+    if z < fl - EPS_Z:
         return BELOW_FLOOR
-    if z > maps.ceiling_m[r, c] + _EPS_Z:
+    if z > maps.ceiling_m[r, c] + EPS_Z:
         return ABOVE_CEILING
     u, v, w = wind_at(x, y, z, maps.terrain_m, g, wind)
     if math.sqrt(u * u + v * v + w * w) > vehicle.max_wind_mps:
@@ -241,9 +241,9 @@ def _segment_eval(x0, y0, z0, x1, y1, z1, want_cost, valid_only, maps, wind, veh
             if code == OK:
                 if not math.isfinite(fl):
                     code = FORBIDDEN
-                elif zlo < fl - _EPS_Z:
+                elif zlo < fl - EPS_Z:
                     code = BELOW_FLOOR
-                elif zhi > ceiling[rr, cc] + _EPS_Z:
+                elif zhi > ceiling[rr, cc] + EPS_Z:
                     code = ABOVE_CEILING
         if tn > t:
             srisk += risk[rr, cc] * (tn - t)

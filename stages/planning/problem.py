@@ -66,10 +66,10 @@ from skyroute.stages.planning.heuristic import (
     WIND_INTERP_SAMPLES,
 )
 from skyroute.stages.planning.kernels import (
-    _EPS_Z,
     ABOVE_CEILING,
     ANGLE,
     BELOW_FLOOR,
+    EPS_Z,
     FORBIDDEN,
     GROUND_SPEED,
     NONFINITE,
@@ -297,12 +297,12 @@ class PlanningProblem:
             return f"{where}: forbidden column (no-fly)"
         if code == BELOW_FLOOR:
             parts = []
-            if self.clearance_m is not None and z < self.clearance_m[r, c] - _EPS_Z:
+            if self.clearance_m is not None and z < self.clearance_m[r, c] - EPS_Z:
                 parts.append(f"inside obstacle clearance (sphere r_p = {self.vehicle.r_p_m:g} m needs "
                              f"z >= {self.clearance_m[r, c]:.1f} m)")
-            if z < ground + self.min_agl_m - _EPS_Z:
+            if z < ground + self.min_agl_m - EPS_Z:
                 parts.append(f"below the minimum altitude {self.min_agl_m:g} m AGL")
-            if self.coverage_m is not None and z < self.coverage_m[r, c] - _EPS_Z:
+            if self.coverage_m is not None and z < self.coverage_m[r, c] - EPS_Z:
                 parts.append(f"below GNSS coverage floor for {dop} ({self.coverage_m[r, c]:.1f} m)")
             if not parts:
                 parts.append(f"below the floor {self.floor_m[r, c]:.1f} m")

@@ -15,10 +15,9 @@ import xarray as xr
 from skyroute.pipeline.settings import catalog_dir
 from skyroute.stages.almanac import sky_geometry
 from skyroute.stages.grid import Grid
+from skyroute.stages.planning.deconflict import Step2Result, chain_timing
 from skyroute.stages.planning.problem import build_problem
-from skyroute.stages.planning.rrt import chain_timing
 from skyroute.stages.planning.step3 import Candidate, step3
-from skyroute.stages.planning.rrt import Step2Result
 from skyroute.stages.planning.validate import validate_plan
 from skyroute.stages.smoothing import KinematicLimits, corner_trajectory
 from skyroute.stages.tactical.log import NoFlyZone

@@ -60,7 +60,7 @@ from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.energy import rotor_power
 from skyroute.stages.navigation import DEFAULT_UERE_M, navigation_error
 from skyroute.stages.occlusion import grid_azimuth_deg, visibility_heights_numpy
-from skyroute.stages.planning.rrt import Step2Result, _conflicts
+from skyroute.stages.planning.deconflict import Step2Result, leg_conflicts
 from skyroute.stages.planning.validate import validate_plan
 from skyroute.stages.smoothing import CornerTrajectory, KinematicLimits, corner_trajectory
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
@@ -112,7 +112,7 @@ class Candidate:
         return {"C_l": self.C_l, "C_r": self.C_r, "C_d": self.C_d, "C_e": self.C_e, "f": self.f}
 
 
-def _empty(label, dop, reasons, t_start, status="") -> Candidate:
+def empty_candidate(label, dop, reasons, t_start, status="") -> Candidate:
     z = np.zeros(0)
     nan = float("nan")
     return Candidate(label, dop, z, np.zeros((0, 3)), z, z, z, np.zeros(0, int), nan, nan, nan, nan, nan, False,
@@ -199,7 +199,7 @@ def _retimed_conflicts(occupancy, traj: CornerTrajectory, t0_s: float, spacing_m
     p = traj.sample(t)
     if occupancy is None:
         return t, p, np.zeros(t.size - 1, bool)
-    return t, p, _conflicts(occupancy, p[:-1], t0_s + t[:-1], p[1:], t0_s + t[1:])
+    return t, p, leg_conflicts(occupancy, p[:-1], t0_s + t[:-1], p[1:], t0_s + t[1:])
 
 
 def _sky_times_s(sky: xr.Dataset, start_time_utc) -> np.ndarray:
@@ -316,13 +316,13 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     if not isinstance(step2_result, Step2Result):
         raise InputError(f"step2_result must be a Step2Result, got {type(step2_result).__name__}")
     if not step2_result.ok:
-        return _empty(lab, dop, [f"STEP II: {step2_result.reason}"], t_start, step2_result.status)
+        return empty_candidate(lab, dop, [f"STEP II: {step2_result.reason}"], t_start, step2_result.status)
     veh = problem.vehicle
     w = np.asarray(step2_result.waypoints, float)
     t0 = float(step2_result.times_s[0])
     seg_t = np.diff(step2_result.times_s)
     if np.any(~np.isfinite(seg_t)) or np.any(seg_t <= 0):
-        return _empty(lab, dop, ["STEP II chain has non-positive or infinite segment times"], t_start,
+        return empty_candidate(lab, dop, ["STEP II chain has non-positive or infinite segment times"], t_start,
                       step2_result.status)
     reasons: list[str] = []
     leg_speed = np.linalg.norm(np.diff(w, axis=0), axis=1) / seg_t
@@ -331,7 +331,7 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
                                  winds=_wind_vectors(problem, w), fillet_ok=_fillet_checker(problem),
                                  v_start_mps=v_start_mps, stop_at=stop_at)
     except PlanningError as exc:
-        return _empty(lab, dop, [f"STEP III: {exc}"], t_start, step2_result.status)
+        return empty_candidate(lab, dop, [f"STEP III: {exc}"], t_start, step2_result.status)
     tc, pc, bad = _retimed_conflicts(occupancy, traj, t0, check_spacing_m)
     if bad.any():
         k = int(np.argmax(bad))

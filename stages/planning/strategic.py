@@ -33,12 +33,18 @@ import xarray as xr
 
 from skyroute.stages import control
 from skyroute.stages.base import InputError, PlanningError
+from skyroute.stages.planning.deconflict import Step2Result, deconflict
 from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
 from skyroute.stages.planning.grid_planner import STEP_CELLS, shared_heuristic
 from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz_from_agl
-from skyroute.stages.planning.rrt import Step2Result, deconflict
 from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, Step1Result, plan_step1
-from skyroute.stages.planning.step3 import Candidate, _empty, choose, explain_no_plan, step3
+from skyroute.stages.planning.step3 import (
+    Candidate,
+    choose,
+    empty_candidate,
+    explain_no_plan,
+    step3,
+)
 from skyroute.stages.smoothing import CornerTrajectory
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle
@@ -128,12 +134,12 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         if not s1.solved:
             ticker.phase(problem.label, None)
             why = (s1.reason or s1.status).removeprefix(f"{problem.label}: ")
-            return s1, None, _empty(problem.label, d, [f"STEP I: {why}"], tl, s1.status)
+            return s1, None, empty_candidate(problem.label, d, [f"STEP I: {why}"], tl, s1.status)
         ticker.phase(problem.label, "STEP II")
         s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=LEVEL_CAP_FACTOR * time_budget_s)
         if s2.status == "failed":
             ticker.phase(problem.label, None)
-            return s1, s2, _empty(problem.label, d, [f"STEP II: {s2.reason}"], tl, s2.status)
+            return s1, s2, empty_candidate(problem.label, d, [f"STEP II: {s2.reason}"], tl, s2.status)
         ticker.phase(problem.label, "STEP III")
         cand = step3(problem, s2, sky, surface_2d, start_time_utc=start_time_utc, occupancy=occ,
                      intruders=intruders, label=problem.label, gnss_sigma_m=uere_m,

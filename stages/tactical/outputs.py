@@ -34,7 +34,7 @@ from pyproj import Transformer
 
 from skyroute.stages.base import InputError
 from skyroute.stages.figures import add_map_furniture
-from skyroute.stages.planning.outputs import _crs_of, _ras, _write_csv
+from skyroute.stages.planning.outputs import crs_of, raster_values, write_csv
 from skyroute.stages.planning.step3 import utc_of
 from skyroute.stages.tactical.log import PART_NAMES, FlightLog
 
@@ -200,7 +200,7 @@ def _tactical_rows(log: FlightLog) -> list[list[str]]:
 
 
 def _geo(log: FlightLog):
-    crs, _ = _crs_of(log.crs_wkt)
+    crs, _ = crs_of(log.crs_wkt)
     epsg = crs.to_epsg()
     return Transformer.from_crs(crs, 4326, always_xy=True), (f"EPSG:{epsg}" if epsg is not None else crs.to_wkt())
 
@@ -289,7 +289,7 @@ def write_flight(log: FlightLog, out_dir, *, figures: bool = True) -> dict[str, 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {"tactical.csv": out / "tactical.csv"}
-    _write_csv(files["tactical.csv"], TACTICAL_COLUMNS, _tactical_rows(log))
+    write_csv(files["tactical.csv"], TACTICAL_COLUMNS, _tactical_rows(log))
     files["flown.geojson"] = out / "flown.geojson"
     files["flown.geojson"].write_text(json.dumps(flown_geojson(log), indent=1, allow_nan=False))
     files["intruders.geojson"] = out / "intruders.geojson"
@@ -301,7 +301,7 @@ def write_flight(log: FlightLog, out_dir, *, figures: bool = True) -> dict[str, 
     rows = [[utc[i], repr(float(t[i])), names[i], repr(float(p[i, 0])), repr(float(p[i, 1])), repr(float(p[i, 2])),
              f"{lon[i]:.9f}", f"{lat[i]:.9f}", _val(v[i], 3)] for i in range(t.size)]
     files["flown.csv"] = out / "flown.csv"
-    _write_csv(files["flown.csv"], FLOWN_COLUMNS, rows)
+    write_csv(files["flown.csv"], FLOWN_COLUMNS, rows)
     if figures and t.size >= 2:
         files.update(_figures(log, out))
     return files
@@ -476,7 +476,7 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
     fig, ax = plt.subplots(figsize=(12, min(max(7.0 * aspect + 2.4, 6.5), 11)), dpi=100, layout="constrained")
     if grid is not None:
         win, ext, gxs, gys = _window_of(grid, (x0, x1, y0, y1))
-        surf, terr, fl = (None if a is None else _ras(a)[win] for a in (log.surface_m, log.terrain_m,
+        surf, terr, fl = (None if a is None else raster_values(a)[win] for a in (log.surface_m, log.terrain_m,
                                                                           log.coverage_floor_m))
         if surf is not None:
             h = surf - terr if terr is not None else surf
@@ -571,7 +571,7 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
     fig, ax = plt.subplots(figsize=(11, 4.8), dpi=100, layout="constrained")
     if grid is not None:
         row, col = grid.cell_of(p[:, 0], p[:, 1])
-        surf, terr, fl = _ras(log.surface_m), _ras(log.terrain_m), _ras(log.coverage_floor_m)
+        surf, terr, fl = raster_values(log.surface_m), raster_values(log.terrain_m), raster_values(log.coverage_floor_m)
         base = min(float(np.nanmin(a[row, col])) for a in (surf, terr) if a is not None) - 5.0 \
             if (surf is not None or terr is not None) else None
         if surf is not None:

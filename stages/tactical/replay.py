@@ -23,7 +23,7 @@ there with the vehicle's velocity (:func:`~skyroute.stages.smoothing.corner_traj
    encounter flown at ``s`` times their speed for ``s`` in ``time_scaling_factors`` (largest
    first); the first ``s`` that gives a valid plan is the level's solution;
 2. **local RRT informed by the strategic path**: STEP II's RRT
-   (:func:`~skyroute.stages.planning.rrt.deconflict`) grown from the braking point ``P_b``
+   (:func:`~skyroute.stages.planning.deconflict.deconflict`) grown from the braking point ``P_b``
    along the rest of the plan's chain, against the known traffic (occupancy maps of slices of
    ``occupancy_slice_s``) and the current static bounds;
 3. **global RRT** from ``P_b`` to the goal, informed only by the straight line to the goal.
@@ -57,8 +57,8 @@ import xarray as xr
 from skyroute.stages import control
 from skyroute.stages.base import InputError, PlanningError, SkyrouteError
 from skyroute.stages.energy import rotor_power
+from skyroute.stages.planning.deconflict import Step2Result, chain_timing, deconflict
 from skyroute.stages.planning.problem import PlanningProblem, build_problem
-from skyroute.stages.planning.rrt import Step2Result, chain_timing, deconflict
 from skyroute.stages.planning.step1 import plan_step1
 from skyroute.stages.planning.step3 import Candidate, step3, wind_sampler
 from skyroute.stages.smoothing import KinematicLimits

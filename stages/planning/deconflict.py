@@ -1,4 +1,5 @@
-"""STEP II: strategic deconfliction against known traffic (seed 000 section III-B, Algorithm 1).
+"""STEP II: strategic deconfliction against known traffic (seed 000 section III-B, Algorithm 1),
+by a time- and energy-aware RRT.
 
 The STEP I polygonal chain ``W`` is flown at the speeds of the energy model
 (:func:`~skyroute.stages.energy.segment_energy`, eq. 2-4), which gives each waypoint an arrival
@@ -51,7 +52,7 @@ from skyroute.stages import control
 from skyroute.stages.base import InputError
 from skyroute.stages.traffic import TrafficOccupancy
 
-__all__ = ["Step2Result", "chain_timing", "deconflict", "leg_time_energy", "chain_conflicts"]
+__all__ = ["Step2Result", "chain_conflicts", "chain_timing", "deconflict", "leg_conflicts", "leg_time_energy"]
 
 STATUS_UNCHANGED = "unchanged"
 STATUS_DECONFLICTED = "deconflicted"
@@ -112,8 +113,10 @@ def chain_timing(problem, waypoints, t0_s: float = 0.0) -> tuple[np.ndarray, np.
     return (t0_s + np.concatenate([[0.0], np.cumsum(tau)]), np.concatenate([[0.0], np.cumsum(e)]), ok)
 
 
-def _conflicts(occ: TrafficOccupancy | None, p0, t0, p1, t1) -> np.ndarray:
-    """segment_conflicts on legs, restricted to the maps' horizon (pieces beyond are free)."""
+def leg_conflicts(occ: TrafficOccupancy | None, p0, t0, p1, t1) -> np.ndarray:
+    """Traffic conflict flags (n,) of legs p0[i] -> p1[i] (n, 3) [m] flown linearly in time from
+    t0[i] to t1[i] [s] (:meth:`~skyroute.stages.traffic.TrafficOccupancy.segment_conflicts`),
+    restricted to the maps' horizon (pieces beyond it are free); all False without traffic."""
     p0 = np.atleast_2d(np.asarray(p0, float))
     p1 = np.atleast_2d(np.asarray(p1, float))
     t0 = np.broadcast_to(np.asarray(t0, float), (p0.shape[0],))
@@ -140,7 +143,7 @@ def chain_conflicts(occupancy: TrafficOccupancy | None, waypoints, times_s) -> n
     """Per-leg traffic conflict flags (k-1,) of a timed chain."""
     w = np.asarray(waypoints, float)
     t = np.asarray(times_s, float)
-    return _conflicts(occupancy, w[:-1], t[:-1], w[1:], t[1:])
+    return leg_conflicts(occupancy, w[:-1], t[:-1], w[1:], t[1:])
 
 
 # ------------------------------------------------------------------ the tree
@@ -198,7 +201,7 @@ class _Feasibility:
         if tree.e[a] + e > self.battery:
             self.rejects["battery"] += 1
             return False, tau, e
-        if _conflicts(self.occ, pa, tree.t[a], q, tree.t[a] + tau)[0]:
+        if leg_conflicts(self.occ, pa, tree.t[a], q, tree.t[a] + tau)[0]:
             self.rejects["traffic"] += 1
             return False, tau, e
         return True, tau, e

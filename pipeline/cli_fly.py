@@ -45,7 +45,7 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, cache_dir
     from skyroute.pipeline.errors import InputError
     from skyroute.pipeline.fly import fly_params, fly_scenario
     from skyroute.pipeline.outputs import ensure_writable_dir
-    from skyroute.pipeline.settings import load_events_file, load_scenario, with_events
+    from skyroute.pipeline.settings import load_scenario, with_events
 
     sc = load_scenario(scenario or "helsinki-tactical")
     if events_file is not None:

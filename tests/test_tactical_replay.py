@@ -21,7 +21,13 @@ from skyroute.stages.planning.step3 import Candidate, step3
 from skyroute.stages.planning.validate import validate_plan
 from skyroute.stages.smoothing import KinematicLimits, corner_trajectory
 from skyroute.stages.tactical.log import NoFlyZone
-from skyroute.stages.tactical.replay import FlyParams, TacticalEvent, World, encounter_geometry, replay
+from skyroute.stages.tactical.replay import (
+    FlyParams,
+    TacticalEvent,
+    World,
+    encounter_geometry,
+    replay,
+)
 from skyroute.stages.tactical.timeline import Segment, Timeline, chain_of
 from skyroute.stages.traffic import Intruder
 from skyroute.stages.vehicle import load_vehicle
@@ -242,7 +248,7 @@ def test_short_time_to_collision_lands(sky, strategic):
     assert world(sky).environment["landing_site"].values[r[0], c[0]]
     assert end[2] == pytest.approx(VEH.r_p_m, abs=1e-6)          # approach point r_p above the site
     floor = world(sky).clearance["min_altitude_m"].values
-    t, p = log.parts[-1].t_s, log.parts[-1].xyz_m
+    _t, p = log.parts[-1].t_s, log.parts[-1].xyz_m
     rr, cc = g.cell_of(p[:, 0], p[:, 1])
     assert np.all(p[:, 2] >= floor[rr, cc] - 1e-6)              # clearance all the way down to the approach point
     assert _brute_separation(log) >= 0.0

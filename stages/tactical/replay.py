@@ -63,7 +63,13 @@ from skyroute.stages.planning.step1 import plan_step1
 from skyroute.stages.planning.step3 import Candidate, step3, wind_sampler
 from skyroute.stages.smoothing import KinematicLimits
 from skyroute.stages.tactical.conflict import IntruderTracks, first_conflict
-from skyroute.stages.tactical.log import FlightLog, FlownPart, IntruderTrack, LevelAttempt, NoFlyZone
+from skyroute.stages.tactical.log import (
+    FlightLog,
+    FlownPart,
+    IntruderTrack,
+    LevelAttempt,
+    NoFlyZone,
+)
 from skyroute.stages.tactical.timeline import Segment, Timeline, chain_of, line_phase_at
 from skyroute.stages.traffic import Intruder, build_occupancy
 from skyroute.stages.vehicle import VehicleProfile
@@ -466,6 +472,8 @@ class _Replay:
         if d_b >= cum[-1]:
             return chain.copy(), chain.shape[0] - 1
         j = int(np.searchsorted(cum, d_b, side="right")) - 1
+        if d_b - cum[j] < 1e-6:                      # P_b is a vertex of the chain
+            return chain[: j + 1].copy(), j
         pb = chain[j] + (chain[j + 1] - chain[j]) * ((d_b - cum[j]) / legs[j])
         return np.concatenate([chain[: j + 1], pb[None]]), j + 1
 
@@ -474,6 +482,11 @@ class _Replay:
                 label: str, budget_J: float, stop_at: tuple[int, ...] = ()) -> Candidate:
         """STEP III of a tactical chain from ``t_eff`` at ``v0``, then the exact separation check."""
         lengths = np.linalg.norm(np.diff(chain, axis=0), axis=1)
+        if np.any(lengths <= 1e-6):                  # drop repeated vertices (and their legs)
+            keep = np.r_[True, lengths > 1e-6]
+            new_index = np.cumsum(keep) - 1
+            stop_at = tuple(int(new_index[i]) for i in stop_at)
+            chain, speeds, lengths = chain[keep], np.asarray(speeds)[keep[1:]], lengths[keep[1:]]
         times = t_eff + np.concatenate([[0.0], np.cumsum(lengths / np.maximum(speeds, 1e-3))])
         s2 = Step2Result(chain, times, np.zeros(chain.shape[0]), "tactical")
         reserve = 100.0 * (1.0 - budget_J / self.veh.battery_energy_j)

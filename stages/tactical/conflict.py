@@ -20,9 +20,9 @@ Time margin (``dt_c_s > 0``): the intruder may be anywhere on its track within
 ``f(t) = min over tau in [t - dt_c, t + dt_c] of |P(t) - Q(tau)| < sep``.  The test is
 conservative (never misses a conflict): for a piece ``[a, b]`` of the ownship's chord,
 ``g = segment-segment distance(P([a, b]), Q([a - dt_c, b + dt_c]))`` is <= ``f(t)`` for every
-``t`` in ``[a, b]``; pieces with ``g < sep`` are bisected down to
-:data:`DTC_RESOLUTION_S` [s] and the start of the first such leaf is reported, so ``t_s`` is
-never later than the exact first time of ``f < sep``.  ``distance_m`` is then the minimum of
+``t`` in ``[a, b]``; pieces with ``g < sep`` are bisected down to leaves of
+``max(DTC_RESOLUTION_S, DTC_RELATIVE_RESOLUTION * dt_c_s)`` [s] and the start of the first
+such leaf is reported, so ``t_s`` is never later than the exact first time of ``f < sep``.  ``distance_m`` is then the minimum of
 ``g`` over the run of consecutive hit leaves (a lower bound of ``f``).
 
 N-aircraft picture (:func:`pairwise_conflicts`): state-based closest point of approach of
@@ -43,10 +43,11 @@ import numpy as np
 from skyroute.stages.base import InputError
 from skyroute.stages.traffic import Intruder, intruders_from_records
 
-__all__ = ["Conflict", "DTC_RESOLUTION_S", "IntruderTracks", "first_conflict", "min_separation",
+__all__ = ["Conflict", "DTC_RELATIVE_RESOLUTION", "DTC_RESOLUTION_S", "IntruderTracks", "first_conflict", "min_separation",
            "pairwise_conflicts", "pairwise_conflicts_numpy"]
 
-DTC_RESOLUTION_S = 0.01   # [s] leaf duration of the time-margin bisection (dt_c_s > 0)
+DTC_RESOLUTION_S = 0.01          # [s] leaf duration of the time-margin bisection (dt_c_s > 0) ...
+DTC_RELATIVE_RESOLUTION = 0.01   # ... or this fraction of dt_c_s if longer
 
 
 # ------------------------------------------------------------------ data
@@ -115,31 +116,31 @@ class Conflict:
 
 
 # ------------------------------------------------------------------ kernels: track geometry
+#
+# A track is rows lo:hi of (t, p, v): times [s], positions [m] and the velocity [m/s] of the
+# segment starting at each row (zero on a track's last row), so that the position at time x
+# on segment k is p[k] + v[k] (x - t[k]); a one-row track is a point that exists at t[lo].
+
+
+@numba.njit(cache=True, nogil=True)
+def _velocities(t, p, off):
+    """Per-row segment velocities [m/s] of the tracks rows off[i]:off[i + 1]."""
+    v = np.zeros((t.size, 3))
+    for i in range(off.size - 1):
+        for k in range(off[i], off[i + 1] - 1):
+            dt = t[k + 1] - t[k]
+            for d in range(3):
+                v[k, d] = (p[k + 1, d] - p[k, d]) / dt
+    return v
 
 
 @numba.njit(cache=True, nogil=True)
 def _seg(t, lo, hi, x):
-    """Segment index k in [lo, hi - 2] with t[k] <= x < t[k+1] (clipped); lo if one sample."""
+    """Segment index k in [lo, hi - 2] with t[k] <= x < t[k+1] (clipped); lo if one row."""
     if hi - lo < 2:
         return lo
     k = lo + np.searchsorted(t[lo:hi], x, side="right") - 1
     return min(max(k, lo), hi - 2)
-
-
-@numba.njit(cache=True, nogil=True)
-def _state(t, p, lo, hi, k, x, out_p, out_v):
-    """Position and velocity at time x on segment k of track rows lo:hi."""
-    if hi - lo < 2:
-        for d in range(3):
-            out_p[d] = p[lo, d]
-            out_v[d] = 0.0
-        return
-    dt = t[k + 1] - t[k]
-    f = (x - t[k]) / dt
-    for d in range(3):
-        v = (p[k + 1, d] - p[k, d]) / dt
-        out_v[d] = v
-        out_p[d] = p[k, d] + f * (p[k + 1, d] - p[k, d])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -148,8 +149,14 @@ def _seg_end(t, lo, hi, k):
 
 
 @numba.njit(cache=True, nogil=True)
-def _walk(ot, op, it, ip, ilo, ihi, s2, lo, hi, mode, res):
-    """Walk the merged breakpoints of ownship (rows 0:no) and intruder rows ilo:ihi on
+def _at(t, p, v, k, x):
+    s = x - t[k]
+    return p[k, 0] + v[k, 0] * s, p[k, 1] + v[k, 1] * s, p[k, 2] + v[k, 2] * s
+
+
+@numba.njit(cache=True, nogil=True)
+def _walk(ot, op, ov, it, ip, iv, ilo, ihi, s2, lo, hi, mode, res):
+    """Walk the merged breakpoints of the ownship (rows 0:no) and intruder rows ilo:ihi on
     [lo, hi].  mode 0: first conflict time only (res[0]); mode 1: first conflict + encounter
     (res = t_s, d_min, t_cpa, P, Q, V, W at t_s); mode 2: minimum distance (res[0], res[1]).
     Returns True if a conflict (modes 0/1) was found."""
@@ -158,10 +165,6 @@ def _walk(ot, op, it, ip, ilo, ihi, s2, lo, hi, mode, res):
         return False
     a = _seg(ot, 0, no, lo)
     b = _seg(it, ilo, ihi, lo)
-    P = np.empty(3)
-    V = np.empty(3)
-    Q = np.empty(3)
-    W = np.empty(3)
     u = lo
     inside = False
     found = False
@@ -171,10 +174,10 @@ def _walk(ot, op, it, ip, ilo, ihi, s2, lo, hi, mode, res):
         eb = _seg_end(it, ilo, ihi, b)
         w = min(ea, eb, hi)
         L = max(w - u, 0.0)
-        _state(ot, op, 0, no, a, u, P, V)
-        _state(it, ip, ilo, ihi, b, u, Q, W)
-        d0x, d0y, d0z = P[0] - Q[0], P[1] - Q[1], P[2] - Q[2]
-        dvx, dvy, dvz = V[0] - W[0], V[1] - W[1], V[2] - W[2]
+        px, py, pz = _at(ot, op, ov, a, u)
+        qx, qy, qz = _at(it, ip, iv, b, u)
+        d0x, d0y, d0z = px - qx, py - qy, pz - qz
+        dvx, dvy, dvz = ov[a, 0] - iv[b, 0], ov[a, 1] - iv[b, 1], ov[a, 2] - iv[b, 2]
         aa = dvx * dvx + dvy * dvy + dvz * dvz
         bb = d0x * dvx + d0y * dvy + d0z * dvz
         cc0 = d0x * d0x + d0y * d0y + d0z * d0z
@@ -182,8 +185,7 @@ def _walk(ot, op, it, ip, ilo, ihi, s2, lo, hi, mode, res):
             tm = 0.0
             if aa > 0.0:
                 tm = min(max(-bb / aa, 0.0), L)
-            d2 = aa * tm * tm + 2.0 * bb * tm + cc0
-            d2 = max(d2, 0.0)
+            d2 = max(aa * tm * tm + 2.0 * bb * tm + cc0, 0.0)
             if d2 < dmin2:
                 dmin2 = d2
                 res[1] = u + tm
@@ -205,11 +207,11 @@ def _walk(ot, op, it, ip, ilo, ihi, s2, lo, hi, mode, res):
                     res[0] = u + t1
                     if mode == 0:
                         return True
+                    res[3], res[4], res[5] = px + ov[a, 0] * t1, py + ov[a, 1] * t1, pz + ov[a, 2] * t1
+                    res[6], res[7], res[8] = qx + iv[b, 0] * t1, qy + iv[b, 1] * t1, qz + iv[b, 2] * t1
                     for d in range(3):
-                        res[3 + d] = P[d] + V[d] * t1
-                        res[6 + d] = Q[d] + W[d] * t1
-                        res[9 + d] = V[d]
-                        res[12 + d] = W[d]
+                        res[9 + d] = ov[a, d]
+                        res[12 + d] = iv[b, d]
             if inside:
                 if aa > 0.0:
                     disc = bb * bb - aa * cc
@@ -242,6 +244,8 @@ def _walk(ot, op, it, ip, ilo, ihi, s2, lo, hi, mode, res):
 @numba.njit(cache=True, nogil=True)
 def _first_exact(ot, op, tt, tp, off, sep2, t_from):
     """(index, t) of the first exact conflict over all intruders (-1, inf if none)."""
+    ov = _velocities(ot, op, np.array([0, ot.size]))
+    tv = _velocities(tt, tp, off)
     res = np.empty(15)
     best = np.inf
     ib = -1
@@ -249,7 +253,7 @@ def _first_exact(ot, op, tt, tp, off, sep2, t_from):
         ilo, ihi = off[i], off[i + 1]
         lo = max(ot[0], tt[ilo], t_from)
         hi = min(ot[-1], tt[ihi - 1], best)
-        if _walk(ot, op, tt, tp, ilo, ihi, sep2[i], lo, hi, 0, res):
+        if _walk(ot, op, ov, tt, tp, tv, ilo, ihi, sep2[i], lo, hi, 0, res):
             if res[0] < best:
                 best = res[0]
                 ib = i
@@ -257,7 +261,17 @@ def _first_exact(ot, op, tt, tp, off, sep2, t_from):
 
 
 @numba.njit(cache=True, nogil=True)
+def _encounter(ot, op, tt, tp, ilo, ihi, s2, lo, hi, res):
+    """First conflict with one intruder and its encounter (_walk mode 1)."""
+    ov = _velocities(ot, op, np.array([0, ot.size]))
+    tv = _velocities(tt, tp, np.array([ilo, ihi]))
+    return _walk(ot, op, ov, tt, tp, tv, ilo, ihi, s2, lo, hi, 1, res)
+
+
+@numba.njit(cache=True, nogil=True)
 def _min_sep(ot, op, tt, tp, off, t_from, out):
+    ov = _velocities(ot, op, np.array([0, ot.size]))
+    tv = _velocities(tt, tp, off)
     res = np.empty(15)
     for i in range(off.size - 1):
         ilo, ihi = off[i], off[i + 1]
@@ -265,7 +279,7 @@ def _min_sep(ot, op, tt, tp, off, t_from, out):
         hi = min(ot[-1], tt[ihi - 1])
         out[i] = np.inf
         if lo <= hi:
-            _walk(ot, op, tt, tp, ilo, ihi, 0.0, lo, hi, 2, res)
+            _walk(ot, op, ov, tt, tp, tv, ilo, ihi, 0.0, lo, hi, 2, res)
             out[i] = res[0]
 
 
@@ -316,49 +330,44 @@ def _seg_seg_d2(p1x, p1y, p1z, q1x, q1y, q1z, p2x, p2y, p2z, q2x, q2y, q2z):
 
 
 @numba.njit(cache=True, nogil=True)
-def _pos(t, p, lo, hi, x, out):
+def _pos(t, p, v, lo, hi, x):
     """Position at time x (clamped to the track's span) of track rows lo:hi."""
-    V = np.empty(3)
     x = min(max(x, t[lo]), t[hi - 1])
-    _state(t, p, lo, hi, _seg(t, lo, hi, x), x, out, V)
+    return _at(t, p, v, _seg(t, lo, hi, x), x)
 
 
 @numba.njit(cache=True, nogil=True)
-def _swept_d2(ot, op, a, b, it, ip, ilo, ihi, dtc, A, B, Q0, Q1):
-    """Squared distance between the ownship chord P([a, b]) and the intruder's track over
-    [a - dtc, b + dtc] (inf if the intruder does not exist then)."""
-    no = ot.size
-    _pos(ot, op, 0, no, a, A)
-    _pos(ot, op, 0, no, b, B)
+def _swept_d2(ot, op, ov, ka, a, b, it, ip, iv, ilo, ihi, dtc):
+    """Squared distance between the ownship chord P([a, b]) (on segment ka) and the
+    intruder's track over [a - dtc, b + dtc] (inf if the intruder does not exist then)."""
+    ax, ay, az = _at(ot, op, ov, ka, a)
+    bx, by, bz = _at(ot, op, ov, ka, b)
     ta = max(a - dtc, it[ilo])
     tb = min(b + dtc, it[ihi - 1])
     if ta > tb:
         return np.inf
     k = _seg(it, ilo, ihi, ta)
-    _pos(it, ip, ilo, ihi, ta, Q0)
+    q0x, q0y, q0z = _at(it, ip, iv, k, ta)
     best = np.inf
     while True:
         te = min(_seg_end(it, ilo, ihi, k), tb)
-        _pos(it, ip, ilo, ihi, te, Q1)
-        d2 = _seg_seg_d2(A[0], A[1], A[2], B[0], B[1], B[2], Q0[0], Q0[1], Q0[2], Q1[0], Q1[1], Q1[2])
-        best = min(best, d2)
+        q1x, q1y, q1z = _at(it, ip, iv, k, te)
+        best = min(best, _seg_seg_d2(ax, ay, az, bx, by, bz, q0x, q0y, q0z, q1x, q1y, q1z))
         if te >= tb or k >= ihi - 2:
             break
         k += 1
-        for d in range(3):
-            Q0[d] = Q1[d]
+        q0x, q0y, q0z = q1x, q1y, q1z
     return best
 
 
 @numba.njit(cache=True, nogil=True)
-def _walk_dtc(ot, op, it, ip, ilo, ihi, s2, dtc, lo, hi, leaf, encounter, res):
+def _walk_dtc(ot, op, ov, it, ip, iv, ilo, ihi, s2, dtc, lo, hi, leaf, encounter, res):
     """Time-margin test on [lo, hi] (see the module docstring).  res[0] = start of the first
     hit leaf; with ``encounter`` also res[1] = min distance over the run of hit leaves and
     res[2] its leaf start.  Returns True if a leaf hits."""
     if lo > hi:
         return False
     no = ot.size
-    A, B, Q0, Q1 = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     stack_a = np.empty(128)
     stack_b = np.empty(128)
     inside = False
@@ -369,14 +378,13 @@ def _walk_dtc(ot, op, it, ip, ilo, ihi, s2, dtc, lo, hi, leaf, encounter, res):
         cb = min(hi, ot[k + 1]) if no >= 2 else ca
         if cb < ca:
             break
-        sp = 0
         stack_a[0] = ca
         stack_b[0] = cb
         sp = 1
         while sp > 0:
             sp -= 1
             x0, x1 = stack_a[sp], stack_b[sp]
-            g = _swept_d2(ot, op, x0, x1, it, ip, ilo, ihi, dtc, A, B, Q0, Q1)
+            g = _swept_d2(ot, op, ov, k, x0, x1, it, ip, iv, ilo, ihi, dtc)
             if g >= s2:
                 if inside:
                     res[1] = math.sqrt(dmin2)
@@ -404,19 +412,25 @@ def _walk_dtc(ot, op, it, ip, ilo, ihi, s2, dtc, lo, hi, leaf, encounter, res):
 
 
 @numba.njit(cache=True, nogil=True)
-def _first_dtc(ot, op, tt, tp, off, sep2, t_from, dtc, leaf):
+def _first_dtc(ot, op, tt, tp, off, sep2, t_from, dtc, leaf, only):
+    """(index, t) of the first time-margin conflict (-1, inf if none); ``only`` >= 0: that
+    intruder alone, with its encounter in res."""
+    ov = _velocities(ot, op, np.array([0, ot.size]))
+    tv = _velocities(tt, tp, off)
     res = np.empty(3)
     best = np.inf
     ib = -1
     for i in range(off.size - 1):
+        if only >= 0 and i != only:
+            continue
         ilo, ihi = off[i], off[i + 1]
         lo = max(ot[0], tt[ilo] - dtc, t_from)
         hi = min(ot[-1], tt[ihi - 1] + dtc, best)
-        if _walk_dtc(ot, op, tt, tp, ilo, ihi, sep2[i], dtc, lo, hi, leaf, False, res):
+        if _walk_dtc(ot, op, ov, tt, tp, tv, ilo, ihi, sep2[i], dtc, lo, hi, leaf, only >= 0, res):
             if res[0] < best:
                 best = res[0]
                 ib = i
-    return ib, best
+    return ib, best, res
 
 
 # ------------------------------------------------------------------ public: trajectory checks
@@ -490,29 +504,28 @@ def first_conflict(t_s, xyz_m, tracks: IntruderTracks, sep_m, t_from_s: float = 
         res = np.empty(15)
         lo = max(t[0], tr.t_s[ilo], t0)
         hi = min(t[-1], tr.t_s[ihi - 1])
-        _walk(t, p, tr.t_s, tr.xyz_m, ilo, ihi, sep2[i], lo, hi, 1, res)
+        _encounter(t, p, tr.t_s, tr.xyz_m, ilo, ihi, sep2[i], lo, hi, res)
         return Conflict(float(res[0]), int(i), tr.ids[i], float(res[1]), float(res[2]),
                         res[3:6].copy(), res[6:9].copy(), res[9:12].copy(), res[12:15].copy())
-    i, _ = _first_dtc(t, p, tr.t_s, tr.xyz_m, tr.offsets, sep2, t0, dtc, DTC_RESOLUTION_S)
+    leaf = max(DTC_RESOLUTION_S, DTC_RELATIVE_RESOLUTION * dtc)
+    i, _, _ = _first_dtc(t, p, tr.t_s, tr.xyz_m, tr.offsets, sep2, t0, dtc, leaf, -1)
     if i < 0:
         return None
+    _, ts, res = _first_dtc(t, p, tr.t_s, tr.xyz_m, tr.offsets, sep2, t0, dtc, leaf, i)
     ilo, ihi = tr.offsets[i], tr.offsets[i + 1]
-    res = np.empty(3)
-    lo = max(t[0], tr.t_s[ilo] - dtc, t0)
-    hi = min(t[-1], tr.t_s[ihi - 1] + dtc)
-    _walk_dtc(t, p, tr.t_s, tr.xyz_m, ilo, ihi, sep2[i], dtc, lo, hi, DTC_RESOLUTION_S, True, res)
-    ts = float(res[0])
     P, V = _state_at(t, p, ts)
     Q, W = _state_at(tr.t_s[ilo:ihi], tr.xyz_m[ilo:ihi], ts)
-    return Conflict(ts, int(i), tr.ids[i], float(res[1]), float(res[2]), P, Q, V, W)
+    return Conflict(float(ts), int(i), tr.ids[i], float(res[1]), float(res[2]), P, Q, V, W)
 
 
 def _state_at(t: np.ndarray, p: np.ndarray, x: float) -> tuple[np.ndarray, np.ndarray]:
-    """Position and velocity of a polyline at time x clamped to its span."""
+    """Position [m] and velocity [m/s] of a polyline at time x [s] clamped to its span."""
     x = min(max(x, t[0]), t[-1])
-    P, V = np.empty(3), np.empty(3)
-    _state(t, p, 0, t.size, _seg(t, 0, t.size, x), x, P, V)
-    return P, V
+    if t.size < 2:
+        return p[0].copy(), np.zeros(3)
+    k = min(max(int(np.searchsorted(t, x, side="right")) - 1, 0), t.size - 2)
+    v = (p[k + 1] - p[k]) / (t[k + 1] - t[k])
+    return p[k] + v * (x - t[k]), v
 
 
 def min_separation(t_s, xyz_m, tracks: IntruderTracks, t_from_s: float = -math.inf) -> np.ndarray:
@@ -606,22 +619,29 @@ def pairwise_conflicts_numpy(xyz_m, vel_mps, sep_m, lookahead_s: float, vsep_m=N
     return tuple(np.concatenate([o[k] for o in out]) for k in range(5))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def _pair(x, v, r, h, T, i, j, res):
     """BlueSky's state-based test of pair (i, j), same operations as the numpy baseline."""
     dx = x[j, 0] - x[i, 0]
     dy = x[j, 1] - x[i, 1]
-    dist = math.sqrt(dx * dx + dy * dy)
     du = v[j, 0] - v[i, 0]
     dv = v[j, 1] - v[i, 1]
     dv2 = du * du + dv * dv
     if abs(dv2) < 1e-6:
         dv2 = 1e-6
+    rpz = max(r[i], r[j])
+    R2 = rpz * rpz
+    # cheap exact-arithmetic pre-test (no sqrt, no division): the squared horizontal CPA
+    # distance is (d2 dv2 - (r.v)^2) / dv2; the margin 1e-12 (d2 + R2) is far above the
+    # rounding of the baseline's dcpa2 (~10 eps d2), so only pairs it rejects too are skipped
+    d2 = dx * dx + dy * dy
+    rv = du * dx + dv * dy
+    if d2 * dv2 - rv * rv > dv2 * (R2 + 1e-12 * (d2 + R2)):
+        return False
+    dist = math.sqrt(dx * dx + dy * dy)
     vrel = math.sqrt(dv2)
     tcpa = -(du * dx + dv * dy) / dv2
     dcpa2 = abs(dist * dist - tcpa * tcpa * dv2)
-    rpz = max(r[i], r[j])
-    R2 = rpz * rpz
     if not dcpa2 < R2:
         return False
     dtinhor = math.sqrt(max(0.0, R2 - dcpa2)) / vrel
@@ -645,7 +665,9 @@ def _pair(x, v, r, h, T, i, j, res):
 
 
 @numba.njit(cache=True, nogil=True)
-def _grid_pairs(x, v, r, h, T):
+def _grid_pairs(x, v, r, h, T, oi, oj, ov):
+    """Conflicting pairs into oi, oj, ov (t_cpa, d_cpa, t_in); returns their number (those
+    beyond the outputs' capacity are counted, not written: call again with room)."""
     n = x.shape[0]
     # lookahead-swept horizontal boxes, widened so that any pair the state-based test can
     # report has overlapping boxes: conflict => horizontal distance < R + |dv| T at some
@@ -691,11 +713,25 @@ def _grid_pairs(x, v, r, h, T):
                 k = a * nx + b
                 entries[fill[k]] = i
                 fill[k] += 1
-    cap = 1024
-    oi, oj = np.empty(cap, np.int64), np.empty(cap, np.int64)
-    ov = np.empty((cap, 3))
-    m = 0
+    # pairs visited through the grid; dense pictures (every box over most of the area) are
+    # cheaper as one loop over all pairs
+    visits = 0.0
+    for k in range(nx * ny):
+        c = counts[k + 1] - counts[k]
+        visits += 0.5 * c * (c - 1)
+    dense = visits > 0.1 * n * (n - 1)
     res = np.empty(3)
+    m = 0
+    cap = oi.size
+    if dense:
+        for i in range(n):
+            for j in range(i + 1, n):
+                if _pair(x, v, r, h, T, i, j, res):
+                    if m < cap:
+                        oi[m], oj[m] = i, j
+                        ov[m, 0], ov[m, 1], ov[m, 2] = res[0], res[1], res[2]
+                    m += 1
+        return m
     for a in range(ny):
         for b in range(nx):
             k = a * nx + b
@@ -710,15 +746,11 @@ def _grid_pairs(x, v, r, h, T):
                         continue
                     i, j = min(i0, j0), max(i0, j0)
                     if _pair(x, v, r, h, T, i, j, res):
-                        if m == cap:
-                            cap *= 2
-                            ni, nj, nv = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty((cap, 3))
-                            ni[:m], nj[:m], nv[:m] = oi[:m], oj[:m], ov[:m]
-                            oi, oj, ov = ni, nj, nv
-                        oi[m], oj[m] = i, j
-                        ov[m, 0], ov[m, 1], ov[m, 2] = res[0], res[1], res[2]
+                        if m < cap:
+                            oi[m], oj[m] = i, j
+                            ov[m, 0], ov[m, 1], ov[m, 2] = res[0], res[1], res[2]
                         m += 1
-    return oi[:m], oj[:m], ov[:m]
+    return m
 
 
 def pairwise_conflicts(xyz_m, vel_mps, sep_m, lookahead_s: float, vsep_m=None):
@@ -732,6 +764,13 @@ def pairwise_conflicts(xyz_m, vel_mps, sep_m, lookahead_s: float, vsep_m=None):
     x, v, r, h, T = _picture(xyz_m, vel_mps, sep_m, lookahead_s, vsep_m)
     if x.shape[0] < 2:
         return _EMPTY
-    oi, oj, ov = _grid_pairs(x, v, r, h, T)
+    cap = 4 * x.shape[0]
+    while True:
+        oi, oj, ov = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty((cap, 3))
+        m = _grid_pairs(x, v, r, h, T, oi, oj, ov)
+        if m <= cap:
+            break
+        cap = m
+    oi, oj, ov = oi[:m], oj[:m], ov[:m]
     order = np.lexsort((oj, oi))
     return oi[order], oj[order], ov[order, 0].copy(), ov[order, 1].copy(), ov[order, 2].copy()

@@ -331,3 +331,20 @@ def test_pairwise_degenerate():
         pairwise_conflicts(x, v, 50.0, 0.0)
     with pytest.raises(InputError, match="same shape"):
         pairwise_conflicts(x, v[:2], 50.0, 10.0)
+
+
+@pytest.mark.parametrize(("size", "look"), [(20000.0, 5.0), (500.0, 300.0)])     # grid / dense paths
+def test_pairwise_near_zero_relative_velocity(size, look):
+    """Pairs whose relative speed is below BlueSky's 1e-3 m/s limit, near the separation:
+    the fast version keeps every pair the baseline's limited formula reports."""
+    rng = np.random.default_rng(3)
+    n = 300
+    x = np.c_[rng.uniform(0, size, (n, 2)), rng.uniform(30, 60, n)]
+    v = np.c_[rng.normal(0, 10, (n, 2)), rng.normal(0, 0.5, n)]
+    for k in range(0, 60, 2):        # followers 49-51 m (R = 50 m) behind with tiny dv
+        x[k + 1] = x[k] + [rng.uniform(49, 51), 0, rng.uniform(-5, 5)]
+        v[k + 1] = v[k] + rng.normal(0, 3e-4, 3) * [1, 1, 0]
+    base = pairwise_conflicts_numpy(x, v, 50.0, look, 15.0)
+    fast = pairwise_conflicts(x, v, 50.0, look, 15.0)
+    assert_same(base, fast)
+    assert sum((a, a + 1) in set(zip(base[0].tolist(), base[1].tolist(), strict=True)) for a in range(0, 60, 2)) > 5

@@ -713,8 +713,8 @@ def _grid_pairs(x, v, r, h, T, oi, oj, ov):
                 k = a * nx + b
                 entries[fill[k]] = i
                 fill[k] += 1
-    # pairs visited through the grid; dense pictures (every box over most of the area) are
-    # cheaper as one loop over all pairs
+    # pairs visited through the grid; dense pictures (boxes over much of the area) are
+    # cheaper with a sweep over the boxes sorted in x
     visits = 0.0
     for k in range(nx * ny):
         c = counts[k + 1] - counts[k]
@@ -724,8 +724,19 @@ def _grid_pairs(x, v, r, h, T, oi, oj, ov):
     m = 0
     cap = oi.size
     if dense:
-        for i in range(n):
-            for j in range(i + 1, n):
+        # sweep and prune: boxes sorted by their x start, each paired with the following
+        # boxes that start before it ends in x, then tested in y
+        order = np.argsort(bx0)
+        for p in range(n):
+            i0 = order[p]
+            xe = bx1[i0]
+            for q in range(p + 1, n):
+                j0 = order[q]
+                if bx0[j0] > xe:
+                    break
+                if by0[i0] > by1[j0] or by0[j0] > by1[i0]:
+                    continue
+                i, j = min(i0, j0), max(i0, j0)
                 if _pair(x, v, r, h, T, i, j, res):
                     if m < cap:
                         oi[m], oj[m] = i, j
@@ -757,7 +768,8 @@ def pairwise_conflicts(xyz_m, vel_mps, sep_m, lookahead_s: float, vsep_m=None):
     """State-based conflicts of N aircraft flying straight within ``lookahead_s`` [s]: the
     same test and result as :func:`pairwise_conflicts_numpy` (BlueSky's method), numba over
     the candidate pairs of a uniform grid of the lookahead-swept horizontal boxes (not N^2
-    when traffic is sparse).  Positions ``xyz_m`` (N, 3) [m], velocities ``vel_mps`` (N, 3)
+    when traffic is sparse; a sweep over the boxes sorted in x when they cover much of the
+    area).  Positions ``xyz_m`` (N, 3) [m], velocities ``vel_mps`` (N, 3)
     [m/s], ``sep_m``/``vsep_m`` [m] scalar or (N,).
 
     Returns ``(i, j, t_cpa_s, d_cpa_m, t_in_s)`` sorted by (i, j), i < j."""

@@ -348,3 +348,15 @@ def test_pairwise_near_zero_relative_velocity(size, look):
     fast = pairwise_conflicts(x, v, 50.0, look, 15.0)
     assert_same(base, fast)
     assert sum((a, a + 1) in set(zip(base[0].tolist(), base[1].tolist(), strict=True)) for a in range(0, 60, 2)) > 5
+
+
+def test_intruder_tracks_validation():
+    tr = IntruderTracks.from_intruders([Intruder("a", [0.0, 1.0], [[0, 0, 0], [1, 0, 0]]),
+                                        {"id": "b", "waypoints": [[2.0, 0, 0, 0]], "radius_m": 1.5}])
+    assert tr.ids == ("a", "b") and tr.offsets.tolist() == [0, 2, 3] and tr.radius_m.tolist() == [0.0, 1.5]
+    with pytest.raises(InputError, match="increase strictly"):
+        IntruderTracks([0.0, 0.0, 2.0], np.zeros((3, 3)), [0, 2, 3], [0.0, 0.0], ("a", "b"))
+    with pytest.raises(InputError, match="offsets"):
+        IntruderTracks([0.0, 1.0, 2.0], np.zeros((3, 3)), [0, 3, 3], [0.0, 0.0], ("a", "b"))
+    with pytest.raises(InputError, match="from_intruders"):
+        IntruderTracks([0.0, 1.0], np.zeros((2, 3)), [0, 2], [0.0, 0.0], ("a",))

@@ -66,6 +66,28 @@ class IntruderTracks:
     radius_m: np.ndarray
     ids: tuple[str, ...]
 
+    def __post_init__(self):
+        t = np.ascontiguousarray(np.asarray(self.t_s, dtype=float).reshape(-1))
+        p = np.ascontiguousarray(np.asarray(self.xyz_m, dtype=float))
+        off = np.ascontiguousarray(np.asarray(self.offsets, dtype=np.int64).reshape(-1))
+        r = np.ascontiguousarray(np.asarray(self.radius_m, dtype=float).reshape(-1))
+        ids = tuple(str(i) for i in self.ids)
+        n = len(ids)
+        if p.shape != (t.size, 3) or off.shape != (n + 1,) or r.shape != (n,):
+            raise InputError(f"IntruderTracks: need t_s (M,), xyz_m (M, 3), offsets (N+1,), radius_m (N,) and N ids; "
+                             f"got {t.shape}, {p.shape}, {off.shape}, {r.shape} and {n} ids "
+                             f"(build it with IntruderTracks.from_intruders)")
+        if off[0] != 0 or off[-1] != t.size or np.any(np.diff(off) < 1):
+            raise InputError("IntruderTracks: offsets must start at 0, end at M and give each track >= 1 waypoint")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p)) and np.all(np.isfinite(r)) and np.all(r >= 0)):
+            raise InputError("IntruderTracks: times, positions and radii must be finite (radii >= 0)")
+        inner = np.ones(max(t.size - 1, 0), bool)
+        inner[off[1:-1] - 1] = False                    # pairs that straddle two tracks
+        if np.any(np.diff(t)[inner] <= 0):
+            raise InputError("IntruderTracks: waypoint times must increase strictly within each track")
+        for name, value in (("t_s", t), ("xyz_m", p), ("offsets", off), ("radius_m", r), ("ids", ids)):
+            object.__setattr__(self, name, value)
+
     @property
     def n(self) -> int:
         """Number of intruders."""

@@ -26,6 +26,7 @@ import hashlib
 import importlib
 import importlib.util
 import inspect
+import json
 import logging
 import os
 import sys
@@ -39,7 +40,7 @@ import dask
 import xarray as xr
 
 from skyroute.pipeline import control
-from skyroute.pipeline.cache import Cache
+from skyroute.pipeline.cache import Cache, CacheEntry
 from skyroute.pipeline.errors import InputError, UnknownNameError
 from skyroute.pipeline.model import stable_hash
 from skyroute.pipeline.settings import Scenario
@@ -131,13 +132,14 @@ def _module_source(name: str) -> bytes | None:
         return f.read()
 
 
-def _imports_in(tree: ast.AST, module: str, is_package: bool) -> set[str]:
-    """``skyroute`` modules imported anywhere in ``tree`` (``from pkg import sub`` counts ``sub``
-    when it is a module; relative imports resolved against ``module``)."""
-    out: set[str] = set()
+def _raw_imports(tree: ast.AST, module: str, is_package: bool) -> list[tuple[str, tuple[str, ...]]]:
+    """``(module, names)`` of every ``skyroute`` import anywhere in ``tree`` (``import a.b``:
+    ``("a.b", ())``; ``from a import x, y``: ``("a", ("x", "y"))``; relative imports resolved
+    against ``module``)."""
+    out: list[tuple[str, tuple[str, ...]]] = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            out |= {a.name for a in node.names if a.name.split(".")[0] == _PACKAGE}
+            out += [(a.name, ()) for a in node.names if a.name.split(".")[0] == _PACKAGE]
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
@@ -145,16 +147,73 @@ def _imports_in(tree: ast.AST, module: str, is_package: bool) -> set[str]:
                 parts = parts if is_package else parts[:-1]
                 parts = parts[:len(parts) - (node.level - 1)]
                 base = ".".join([*parts, *([base] if base else [])])
-            if base.split(".")[0] != _PACKAGE:
-                continue
-            out.add(base)
-            out |= {f"{base}.{a.name}" for a in node.names if _module_file(f"{base}.{a.name}")}
+            if base.split(".")[0] == _PACKAGE:
+                out.append((base, tuple(a.name for a in node.names)))
     return out
+
+
+def _resolve(raw: Sequence[tuple[str, Sequence[str]]]) -> set[str]:
+    """The modules of :func:`_raw_imports`' pairs (``from pkg import sub`` counts ``sub`` when it
+    is a module)."""
+    out: set[str] = set()
+    for base, names in raw:
+        out.add(base)
+        out |= {f"{base}.{n}" for n in names if _module_file(f"{base}.{n}")}
+    return out
+
+
+def _imports_in(tree: ast.AST, module: str, is_package: bool) -> set[str]:
+    """``skyroute`` modules imported anywhere in ``tree`` (``from pkg import sub`` counts ``sub``
+    when it is a module; relative imports resolved against ``module``)."""
+    return _resolve(_raw_imports(tree, module, is_package))
+
+
+# Parsing every module of a closure costs about a second: the raw imports of each source text
+# are memoised by its SHA-256 in ``<cache root>/code_imports.json`` (a warm run parses nothing;
+# an edited module has a new digest, so it is parsed again).
+_IMPORT_MEMO: dict[str, list] = {}
+_IMPORT_MEMO_STATE: dict[str, Any] = {"path": None, "dirty": False}
+
+
+def _import_memo_path() -> str:
+    env = os.environ.get("SKYROUTE_CACHE_DIR")
+    root = os.path.expanduser(env) if env else os.path.join(os.path.expanduser("~"), ".cache", "skyroute")
+    return os.path.join(root, "code_imports.json")
+
+
+def _load_import_memo() -> None:
+    path = _import_memo_path()
+    if _IMPORT_MEMO_STATE["path"] == path:
+        return
+    _IMPORT_MEMO_STATE["path"] = path
+    try:
+        with open(path, encoding="utf-8") as f:
+            memo = json.load(f)
+        if isinstance(memo, dict):
+            _IMPORT_MEMO.update(memo)
+    except (OSError, ValueError):
+        pass
+
+
+def _save_import_memo() -> None:
+    if not _IMPORT_MEMO_STATE["dirty"]:
+        return
+    _IMPORT_MEMO_STATE["dirty"] = False
+    path = _import_memo_path()
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        tmp = f"{path}.{os.getpid()}.tmp"
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(_IMPORT_MEMO, f)
+        os.replace(tmp, path)  # atomic: a reader sees the old or the new memo, never half of one
+    except OSError:
+        pass  # a read-only cache folder only costs parsing again
 
 
 @functools.cache
 def _module_imports(name: str) -> frozenset[str]:
-    """The ``skyroute`` modules one module imports (read once per process)."""
+    """The ``skyroute`` modules one module imports (read once per process; parsed only when its
+    source is not in the import memo)."""
     path = _module_file(name)
     if path is None:
         return frozenset()
@@ -162,8 +221,17 @@ def _module_imports(name: str) -> frozenset[str]:
         src = f.read()
     if b"skyroute" not in src and b"from ." not in src:
         return frozenset()
-    tree = ast.parse(src, filename=path)
-    return frozenset(_imports_in(tree, name, path.endswith("__init__.py")))
+    is_package = path.endswith("__init__.py")
+    memo_key = f"{name}|{int(is_package)}|{hashlib.sha256(src).hexdigest()}"
+    _load_import_memo()
+    raw = _IMPORT_MEMO.get(memo_key)
+    if not isinstance(raw, list):
+        raw = [[b, list(n)] for b, n in _raw_imports(ast.parse(src, filename=path), name, is_package)]
+        for k in [k for k in _IMPORT_MEMO if k.startswith(f"{name}|")]:
+            del _IMPORT_MEMO[k]  # one version per module: the memo does not grow with every edit
+        _IMPORT_MEMO[memo_key] = raw
+        _IMPORT_MEMO_STATE["dirty"] = True
+    return frozenset(_resolve(raw))
 
 
 def code_closure(modules: set[str] | Sequence[str]) -> set[str]:
@@ -177,6 +245,7 @@ def code_closure(modules: set[str] | Sequence[str]) -> set[str]:
             continue
         seen.add(m)
         todo.extend(_module_imports(m) - seen)
+    _save_import_memo()
     return {m for m in seen if _module_file(m) is not None}
 
 
@@ -358,16 +427,22 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
     with scheduler_context(scheduler, workers) as client:
         compute = _computer(client, progress)
         todo = stages_for(scenario, targets)
-        prechecks = [s for s in todo if s.precheck is not None]
+        # a key needs no data: every key, and whether the cache holds it, is known before any
+        # stage runs, so the prechecks of stages read from the cache are skipped (they read
+        # whole maps, and their stage passed them when it was computed)
+        versions: dict[str, str] = {}
+        entries: dict[str, CacheEntry | None] = {}
+        for st in todo:
+            versions[st.name] = st.code_version()
+            keys[st.name] = stage_key(st, scenario, [keys[d] for d in st.inputs]
+                                      + [keys.get(d, "absent") for d in st.optional_inputs], versions[st.name])
+            entries[st.name] = None if st.name in force else cache.get(st.name, keys[st.name])
+        prechecks = [s for s in todo if s.precheck is not None and entries[s.name] is None]
         _run_prechecks(prechecks, todo, scenario, result.datasets)
         for i, st in enumerate(todo, 1):
             control.check()
             t0 = time.perf_counter()
-            code_version = st.code_version()
-            key = stage_key(st, scenario, [keys[d] for d in st.inputs]
-                            + [keys.get(d, "absent") for d in st.optional_inputs], code_version)
-            keys[st.name] = key
-            entry = None if st.name in force else cache.get(st.name, key)
+            code_version, key, entry = versions[st.name], keys[st.name], entries[st.name]
             hit = entry is not None
             if entry is None:
                 log.info("stage=%s key=%s status=compute", st.name, key)

@@ -15,14 +15,17 @@ from skyroute.pipeline.settings import DEFAULT_SCENARIO, Scenario, load_scenario
 def check_mission(scenario: Scenario, surface: xr.Dataset) -> None:
     """Refuse a mission whose start or goal lies inside a building or the terrain (the point's
     altitude, ``alt_agl_m`` above the terrain, must be above the surface there)."""
+    # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
+    from dask.local import get_sync
+
     g = scenario.grid
     problems = []
     for name in ("start", "goal"):
         p = getattr(scenario.mission, name)
         x, y = scenario.point_xy(p)
         r, c = (int(i) for i in g.cell_of(x, y))
-        terr = float(surface["terrain"][r, c])
-        top = float(surface["surface"][r, c])
+        terr = float(surface["terrain"][r, c].compute(scheduler=get_sync))
+        top = float(surface["surface"][r, c].compute(scheduler=get_sync))
         alt = terr + p.alt_agl_m
         if alt <= top:
             problems.append(f"mission.{name}: altitude {p.alt_agl_m:g} m above ground is inside a building or "

@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -94,9 +95,28 @@ def _eq3_many(s, w, vc, vmax, out):
         out[i] = eq3_ground_speed(s[i, 0], s[i, 1], s[i, 2], w[i, 0], w[i, 1], w[i, 2], vc, vmax)
 
 
+class PowerParams(NamedTuple):
+    """Rotor-power parameters of :func:`power_kernel` (a numba-friendly record; built by
+    :func:`power_params`, its one packing)."""
+
+    weight_n: float                 # vehicle weight m g [N]
+    air_density_kgpm3: float        # rho [kg/m^3]
+    drag_area_side_m2: float        # S_side [m^2]
+    drag_area_top_m2: float         # S_top [m^2]
+    rotor_count: float              # N_b [-]
+    rotor_radius_m: float           # R [m]
+    thrust_coefficient: float       # C_t [-] (eq. 8)
+    blade_drag_coefficient: float   # C_d [-]
+    solidity: float                 # sigma [-]
+    induced_power_factor: float     # kappa [-]
+    profile_advance_factor: float   # K_v [-]
+    max_iter: int                   # trim fixed-point iterations [-]
+
+
 @numba.njit(cache=True, nogil=True)
-def _power_kernel(v, vs, vz, prm, out):
-    """Trim (fixed point on the thrust axis) and eq. 6-10 per airspeed sample; see rotor_power."""
+def power_kernel(v, vs, vz, prm, out):
+    """Trim (fixed point on the thrust axis) and eq. 6-10 per airspeed sample (compiled; ``prm``
+    a :class:`PowerParams`); ``out`` (k, 8) gets the columns of ``_POWER_KEYS``; see rotor_power."""
     weight, rho, s_side, s_top, nb, radius, ct, cd, sigma, kappa, kv, max_iter = prm
     for i in range(v.shape[0]):
         sp = math.sqrt(v[i, 0] ** 2 + v[i, 1] ** 2 + v[i, 2] ** 2)
@@ -140,14 +160,13 @@ _POWER_KEYS = ("induced_W", "profile_W", "parasitic_W", "climb_W", "total_W", "t
                "omega_radps")
 
 
-def power_params(veh: VehicleProfile, air_density: float = RHO0, max_iter: int = 200) -> np.ndarray:
-    """The rotor-power parameter vector of :func:`_power_kernel` (its one packing): weight [N],
-    air density [kg/m^3], drag areas [m^2], rotor count, radius [m], C_T, C_D, solidity,
-    kappa, K_v, trim iterations."""
+def power_params(veh: VehicleProfile, air_density: float = RHO0, max_iter: int = 200) -> PowerParams:
+    """The rotor-power parameters of :func:`power_kernel` for ``veh`` (their one packing)."""
     r, af = veh.rotor, veh.airframe
-    return np.array([veh.weight_n, air_density, af.drag_area_side_m2, af.drag_area_top_m2, r.count, r.radius_m,
-                     r.thrust_coefficient, r.blade_drag_coefficient, r.solidity, r.induced_power_factor,
-                     r.profile_advance_factor, max_iter], dtype=float)
+    f = float
+    return PowerParams(f(veh.weight_n), f(air_density), f(af.drag_area_side_m2), f(af.drag_area_top_m2), f(r.count),
+                       f(r.radius_m), f(r.thrust_coefficient), f(r.blade_drag_coefficient), f(r.solidity),
+                       f(r.induced_power_factor), f(r.profile_advance_factor), int(max_iter))
 
 
 def rotor_power(airspeed_enu, along_track_airspeed_mps, climb_rate_mps, vehicle: VehicleProfile | str,
@@ -171,7 +190,7 @@ def rotor_power(airspeed_enu, along_track_airspeed_mps, climb_rate_mps, vehicle:
         raise InputError(f"air_density must be > 0 [kg/m^3], got {air_density}")
     prm = power_params(veh, air_density, max_iter)
     out = np.empty((k, len(_POWER_KEYS)))
-    _power_kernel(v, vs, vz, prm, out)
+    power_kernel(v, vs, vz, prm, out)
     return {name: out[:, j] for j, name in enumerate(_POWER_KEYS)}
 
 
@@ -313,5 +332,5 @@ def segment_energy_dataset(p0, p1, wind_uvw: WindLike, vehicle: VehicleProfile |
     return ds
 
 
-__all__ = ["G0", "RHO0", "energy_cost", "ground_speed", "rotor_power", "segment_energy",
+__all__ = ["G0", "RHO0", "PowerParams", "energy_cost", "ground_speed", "rotor_power", "segment_energy",
            "segment_energy_dataset"]

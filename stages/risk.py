@@ -253,7 +253,9 @@ def to_grid_crs(geoms: Sequence[BaseGeometry] | np.ndarray, src_crs: CRS | str |
     return shapely.transform(arr, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1])))
 
 
-def _lonlat_bounds(grid: Grid, margin_m: float = 0.0) -> shapely.Polygon:
+def lonlat_bounds(grid: Grid, margin_m: float = 0.0) -> shapely.Polygon:
+    """The WGS 84 lon/lat box [deg] holding ``grid`` grown by ``margin_m`` [m] on every side
+    (edges densified, so it holds the projected box), for selecting OSM features near the grid."""
     xmin, ymin, xmax, ymax = grid.bounds
     t = Transformer.from_crs(grid.crs, 4326, always_xy=True)
     b = t.transform_bounds(xmin - margin_m, ymin - margin_m, xmax + margin_m, ymax + margin_m, densify_pts=21)
@@ -275,7 +277,7 @@ def _osm_levels(path: str | Path, grid: Grid, table: TagTable) -> np.ndarray:
     from skyroute.stages.osm import read_osm
 
     feats = [f for f in read_osm(path, keys=list(table.osm)) if f.kind in ("area", "node")]
-    aoi = _lonlat_bounds(grid, margin_m=table.point_radius_m + grid.resolution_m)
+    aoi = lonlat_bounds(grid, margin_m=table.point_radius_m + grid.resolution_m)
     areas, a_lv, nodes, n_lv = [], [], [], []
     for f in feats:
         lv = table.osm_level(f.tags)
@@ -303,16 +305,10 @@ def _osm_levels(path: str | Path, grid: Grid, table: TagTable) -> np.ndarray:
 
 
 def _cityjson_levels(path: str | Path, grid: Grid, table: TagTable) -> np.ndarray:
-    from skyroute.stages.surface import _read_cityjson, _surfaces, cityjson_crs
+    from skyroute.stages.cityjson import read_cityjson, surfaces, vertices_in
 
-    p = Path(path)
-    cj = _read_cityjson(p)
-    tr = cj.get("transform") or {"scale": [1, 1, 1], "translate": [0, 0, 0]}
-    V = np.asarray(cj["vertices"], dtype=np.float64)[:, :2] * np.asarray(tr["scale"][:2]) + np.asarray(tr["translate"][:2])
-    src = cityjson_crs(cj)
-    if src != grid.crs:
-        t = Transformer.from_crs(src, grid.crs, always_xy=True)
-        V[:, 0], V[:, 1] = t.transform(V[:, 0], V[:, 1])
+    cj = read_cityjson(path)
+    V = vertices_in(cj, grid.crs)[:, :2]
     ring_vertices: list[np.ndarray] = []
     ring_owner: list[int] = []
     lvs: list[int] = []
@@ -322,7 +318,7 @@ def _cityjson_levels(path: str | Path, grid: Grid, table: TagTable) -> np.ndarra
             continue
         k = len(lvs)
         for g in obj.get("geometry") or []:
-            for ring, _stype in _surfaces(g):
+            for ring, _stype in surfaces(g):
                 if len(ring) >= 3:
                     ring_vertices.append(np.asarray(ring, dtype=np.int64))
                     ring_owner.append(k)

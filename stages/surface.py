@@ -43,6 +43,10 @@ touching polygon of the polygon's height over the part inside the cell:
   degenerate face typed as roof gives its top along its trace.  A ridge keeps its height in
   every cell it crosses (sampling faces at cell centres and corners cut thin roof parts).
 
+Static obstacles announced during a flight (a crane: polygon + height above ground) are burnt
+into ``surface`` by :func:`burn_obstacles`: every touched cell (as above) takes at least the
+highest ground under the polygon plus the obstacle's height.
+
 The cost grows with the polygons' perimeter and area in cells (vertices, grid-line crossings,
 interior cell corners), not with the grid.  :func:`~skyroute.stages.grid.ring_cells` (centre-in
 scanline fill) stays for land use, where a cell takes the class at its centre.
@@ -84,6 +88,7 @@ from scipy.interpolate import NearestNDInterpolator
 from scipy.spatial import Delaunay, QhullError
 
 from skyroute.stages.base import DataError, InputError
+from skyroute.stages.cityjson import read_buildings
 from skyroute.stages.grid import (
     NODATA_POLICIES,
     Grid,
@@ -369,168 +374,24 @@ def _rasterize_flat(grid: Grid, geoms, heights, ids, sources, absolute: bool) ->
                           np.asarray(sources, dtype=object).astype(str), absolute)
 
 
-# --------------------------------------------------------------------------- CityJSON
-def _read_cityjson(path: Path) -> dict:
-    if not path.is_file():
-        raise DataError(f"CityJSON file not found: {path}")
-    try:
-        cj = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"{path} is not valid CityJSON (JSON error: {exc})") from exc
-    if cj.get("type") != "CityJSON" or "vertices" not in cj or "CityObjects" not in cj:
-        raise DataError(f"{path} is not a CityJSON file (needs type, vertices, CityObjects)")
-    return cj
-
-
-def cityjson_crs(cj: dict) -> CRS:
-    """The horizontal CRS of a CityJSON document (``metadata.referenceSystem``)."""
-    ref = (cj.get("metadata") or {}).get("referenceSystem")
-    if not ref:
-        raise DataError("CityJSON has no metadata.referenceSystem; set aoi.crs to the file's CRS")
-    m = re.search(r"EPSG[:/]+(?:[0-9.]*/)?(?:0/)?:?(\d+)", str(ref))
-    if not m:
-        raise DataError(f"cannot read the CityJSON referenceSystem {ref!r}")
-    crs = CRS.from_epsg(int(m.group(1)))
-    return crs.sub_crs_list[0] if crs.is_compound else crs
-
-
-def _surfaces(geom: dict):
-    """Yield (outer ring vertex indices, semantic type or None) of every surface of a CityJSON
-    geometry (MultiSurface, CompositeSurface, Solid, Multi/CompositeSolid)."""
-    if geom["type"] == "TIN":
-        return
-    for rings, stype in _surface_rings(geom):
-        yield rings[0], stype
-
-
-def _surface_rings(geom: dict):
-    """Yield (rings: vertex-index lists, outer ring first; semantic type or None) of every surface
-    of a CityJSON geometry (MultiSurface, CompositeSurface, TIN, Solid, Multi/CompositeSolid)."""
-    gtype = geom["type"]
-    b = geom["boundaries"]
-    sem = geom.get("semantics") or {}
-    stypes = [s.get("type") for s in sem.get("surfaces", [])]
-    values = sem.get("values")
-    if gtype in ("MultiSurface", "CompositeSurface", "TIN"):
-        polys = [(p, (values[i] if values is not None else None)) for i, p in enumerate(b)]
-    elif gtype == "Solid":
-        polys = []
-        for si, shell in enumerate(b):
-            for pi, p in enumerate(shell):
-                v = values[si][pi] if values is not None else None
-                polys.append((p, v))
-    elif gtype in ("MultiSolid", "CompositeSolid"):
-        polys = []
-        for so_i, solid in enumerate(b):
-            for si, shell in enumerate(solid):
-                for pi, p in enumerate(shell):
-                    v = values[so_i][si][pi] if values is not None else None
-                    polys.append((p, v))
-    else:
-        return
-    for p, v in polys:
-        yield p, (stypes[v] if (v is not None and v < len(stypes)) else None)
-
-
-def _newell_normals(V: np.ndarray, faces: list[list[list[int]]]) -> np.ndarray:
-    """Unit Newell normals ``(n, 3)`` of the outer rings of ``faces`` (zero for degenerate rings)."""
-    outer = [f[0] for f in faces]
-    lengths = np.array([len(r) for r in outer], np.int64)
-    if not len(outer):
-        return np.zeros((0, 3))
-    idx = np.concatenate([np.asarray(r, np.int64) for r in outer])
-    off = np.concatenate([[0], np.cumsum(lengths)])
-    nxt = np.arange(idx.size) + 1
-    nxt[off[1:] - 1] = off[:-1]
-    a, b = V[idx], V[idx[nxt]]
-    terms = np.column_stack([(a[:, 1] - b[:, 1]) * (a[:, 2] + b[:, 2]), (a[:, 2] - b[:, 2]) * (a[:, 0] + b[:, 0]),
-                             (a[:, 0] - b[:, 0]) * (a[:, 1] + b[:, 1])])
-    n = np.add.reduceat(terms, off[:-1], axis=0)
-    n[lengths < 3] = 0.0
-    nn = np.linalg.norm(n, axis=1)
-    return np.divide(n, nn[:, None], out=np.zeros_like(n), where=nn[:, None] > 0)
-
-
 def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np.ndarray]:
     """Rasterise CityJSON Building/BuildingPart roofs (absolute heights [m]) on ``grid``: each cell
     takes the highest point of every roof face over the cell (:func:`polygon_max`).
 
     Returns the raster and ground points ``(n, 3)`` (x, y, z in the grid CRS) for terrain; a
     ``TINRelief`` gives ``raster.terrain`` (its maximum over each cell) and its vertices as ground
-    points as well.
+    points as well.  Reading and face classification: :func:`skyroute.stages.cityjson.read_buildings`.
     """
-    p = Path(path)
-    cj = _read_cityjson(p)
-    tr = cj.get("transform") or {"scale": [1, 1, 1], "translate": [0, 0, 0]}
-    V = np.asarray(cj["vertices"], dtype=np.float64) * np.asarray(tr["scale"]) + np.asarray(tr["translate"])
-    src = cityjson_crs(cj)
-    if src != grid.crs:
-        t = Transformer.from_crs(src, grid.crs, always_xy=True)
-        V[:, 0], V[:, 1] = t.transform(V[:, 0], V[:, 1])
-    objs = cj["CityObjects"]
-    ids: list[str] = []
-    th_of: list[float] = []     # TerrainHeight attribute per building (NaN if absent)
-    faces: list[list[list[int]]] = []
-    ftype: list[str | None] = []
-    fowner: list[int] = []
-    tin_faces: list[list[list[int]]] = []
-    for oid, obj in objs.items():
-        otype = obj.get("type")
-        geoms = obj.get("geometry") or []
-        if not geoms:
-            continue
-        if otype == "TINRelief":
-            for g in geoms:
-                tin_faces.extend(rings for rings, _ in _surface_rings(g) if len(rings[0]) >= 3)
-            continue
-        if otype not in ("Building", "BuildingPart"):
-            continue
-        g = max(geoms, key=lambda gg: float(gg.get("lod", 0)))
-        bidx = len(ids)
-        ids.append(oid)
-        th = (obj.get("attributes") or {}).get("TerrainHeight")
-        th_of.append(float(th) if th is not None else np.nan)
-        for rings, stype in _surface_rings(g):
-            if len(rings[0]) >= 3:
-                faces.append(rings)
-                ftype.append(stype)
-                fowner.append(bidx)
-    nrm = _newell_normals(V, faces)
-    st = np.array(ftype, dtype=object)
-    nz = nrm[:, 2] if len(faces) else np.zeros(0)
-    degenerate = ~np.any(nrm != 0, axis=1) if len(faces) else np.zeros(0, bool)
-    is_floor = ~degenerate & ((st == "GroundSurface") | ((st == None) & (nz < -0.5)))  # noqa: E711
-    # roofs: every face typed as one (vertical or degenerate ones too: their trace takes their top),
-    # and untyped faces that face up (LoD1 solids without semantics; untyped walls are skipped)
-    is_roof = ~is_floor & (np.isin(st, ["RoofSurface", "OuterCeilingSurface", "OuterFloorSurface"])
-                           | ((st == None) & (nz >= _STEEP_NZ)))  # noqa: E711
-    roof_i = np.flatnonzero(is_roof)
-    owner = np.asarray(fowner, np.int64)
-    heights = np.full(len(ids), np.nan)
-    for i in roof_i:  # highest roof vertex per building
-        heights[owner[i]] = np.fmax(heights[owner[i]], V[np.asarray(faces[i][0]), 2].max())
-    top, index = polygon_max([[V[np.asarray(r)] for r in faces[i]] for i in roof_i], grid, owner[roof_i])
-    # ground points: the building's TerrainHeight under its roof and floor vertices, else its floors
-    ground: list[np.ndarray] = []
-    for bidx in range(len(ids)):
-        sel = np.flatnonzero((owner == bidx) & (is_roof | is_floor)) if len(faces) else np.zeros(0, np.int64)
-        if not sel.size:
-            continue
-        if np.isfinite(th_of[bidx]):
-            P = V[np.concatenate([np.asarray(faces[i][0]) for i in sel])]
-            ground.append(np.column_stack([P[:, 0], P[:, 1], np.full(len(P), th_of[bidx])]))
-        else:
-            fl = [i for i in sel if is_floor[i]]
-            if fl:
-                ground.append(V[np.concatenate([np.asarray(faces[i][0]) for i in fl])])
+    b = read_buildings(path, grid.crs, steep_nz=_STEEP_NZ)
+    V, faces = b.vertices_m, b.faces
+    roof_i = np.flatnonzero(b.is_roof)
+    top, index = polygon_max([[V[np.asarray(r)] for r in faces[i]] for i in roof_i], grid, b.owner[roof_i])
     tin = None
-    if tin_faces:
-        tin, _ = polygon_max([[V[np.asarray(r)] for r in f] for f in tin_faces], grid)
-        ground.append(V[np.unique(np.concatenate([np.asarray(f[0]) for f in tin_faces]))])
-    gpts = np.vstack(ground) if ground else np.zeros((0, 3))
-    raster = BuildingRaster(top, index, np.arange(len(ids), dtype=np.int64), heights,
-                            np.asarray(["cityjson:" + i for i in ids]), absolute=True, terrain=tin)
-    return raster, gpts
+    if b.tin_faces:
+        tin, _ = polygon_max([[V[np.asarray(r)] for r in f] for f in b.tin_faces], grid)
+    raster = BuildingRaster(top, index, np.arange(len(b.ids), dtype=np.int64), b.roof_top_m(),
+                            np.asarray(["cityjson:" + i for i in b.ids]), absolute=True, terrain=tin)
+    return raster, b.ground_points()
 
 
 def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None = None, *,
@@ -665,6 +526,29 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
               f"({int(np.ceil(ground_window_m / px)) | 1} px of {px:g} m); buildings: more than "
               f"{building_threshold_m:g} m above it over the whole cell (tall vegetation is not told apart)")
     return DsmRaster(surface, surface_min, ground, ground_min, building, holes.n_interior, notes)
+
+
+def burn_obstacles(surface: np.ndarray, terrain: np.ndarray, grid: Grid, obstacles) -> np.ndarray:
+    """The surface [m] with static obstacles (e.g. cranes) burnt in, conservatively.
+
+    ``obstacles``: a sequence of ``(polygon, height_agl_m)``, the polygon an ``(k, 2)`` array of
+    map x, y [m] (not closed), the height [m] above the ground.  Every cell whose closed square
+    the polygon touches (:func:`polygon_max`: a corner or an edge counts) takes
+    ``max(surface, top)`` with ``top`` = the highest ``terrain`` [m] (cell maxima) over all the
+    cells the polygon touches + ``height_agl_m``: a rigid structure may stand on the highest
+    ground under it.  ``surface`` and ``terrain``: ``grid.shape`` arrays; returns a new array
+    (float64)."""
+    out = np.array(surface, dtype=np.float64)
+    terrain = np.asarray(terrain, dtype=np.float64)
+    for polygon, height_agl_m in obstacles:
+        xy = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+        _, index = polygon_max([[np.column_stack([xy, np.zeros(len(xy))])]], grid)
+        touched = index >= 0
+        if not touched.any():
+            continue  # outside the grid
+        top = float(terrain[touched].max()) + float(height_agl_m)
+        out[touched] = np.maximum(out[touched], top)
+    return out
 
 
 def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | None = None,

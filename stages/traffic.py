@@ -88,9 +88,21 @@ def intruders_from_records(records: Iterable[Mapping]) -> list[Intruder]:
     return out
 
 
+def intruders_for(traffic_settings_intruders: Iterable[Mapping], surface: xr.Dataset) -> list[Intruder]:
+    """Scenario intruder records (``id``, ``radius_m`` [m], ``waypoints`` rows ``t [s], x, y [m],
+    altitude AGL [m]``) -> :class:`Intruder` objects in the datum of ``surface`` (the terrain [m]
+    under each waypoint is added to its altitude)."""
+    grid = Grid.from_dataarray(surface["terrain"])
+    terrain = surface["terrain"].values
+    recs = []
+    for it in traffic_settings_intruders:
+        wp = np.asarray(it["waypoints"], dtype=float)
+        wp[:, 3] += terrain[grid.cell_of(wp[:, 1], wp[:, 2])]
+        recs.append({"id": it["id"], "radius_m": it["radius_m"], "waypoints": wp.tolist()})
+    return intruders_from_records(recs)
+
+
 # ------------------------------------------------------------------ capsules
-
-
 def _capsules_of(intr: Intruder, a: float, b: float):
     """Linear pieces of the intruder path during [a, b] (clipped to its life): (m, 6) endpoints."""
     t, p = intr.times_s, intr.xyz_m

@@ -9,10 +9,10 @@ from skyroute.pipeline import graph
 from skyroute.pipeline.graph import REGISTRY, Stage, _load_registry, code_closure
 
 
-def _traffic_like(*, settings):  # an import inside the body, as the built-in stages do
-    from skyroute.stages.planning.strategic import intruders_for
+def _plan_like(*, settings):  # an import inside the body, as the built-in stages do
+    from skyroute.stages.planning.strategic import plan_strategic
 
-    return intruders_for
+    return plan_strategic
 
 
 def _select(sc):
@@ -20,8 +20,8 @@ def _select(sc):
 
 
 def test_closure_follows_imports_inside_function_bodies():
-    st = Stage("probe", _traffic_like, _select)
-    _, mods = graph._function_imports(_traffic_like)
+    st = Stage("probe", _plan_like, _select)
+    _, mods = graph._function_imports(_plan_like)
     assert "skyroute.stages.planning.strategic" in mods
     closure = code_closure(mods)
     # strategic imports these at module level or inside its functions
@@ -29,16 +29,66 @@ def test_closure_follows_imports_inside_function_bodies():
               "skyroute.stages.traffic", "skyroute.stages.base"):
         assert m in closure, m
     assert all(m.startswith("skyroute.") for m in closure)
-    assert st.code_version() == Stage("probe", _traffic_like, _select).code_version()
+    assert st.code_version() == Stage("probe", _plan_like, _select).code_version()
 
 
 def test_built_in_stages_see_the_modules_the_hand_lists_missed():
     _load_registry()
     closure = {name: code_closure(set(st.code_modules) | graph._function_imports(st.func)[1])
                for name, st in REGISTRY.items()}
-    assert {"skyroute.stages.surface", "skyroute.stages.grid"} <= closure["environment"]
-    assert "skyroute.stages.planning.strategic" in closure["traffic"]
+    # environment reads CityJSON for risk levels (stages/cityjson.py, once inside surface.py)
+    assert {"skyroute.stages.cityjson", "skyroute.stages.grid"} <= closure["environment"]
     assert "skyroute.stages.occlusion" in closure["coverage"]
+
+
+def test_stage_closures_hold_the_moved_modules():
+    """After the issue-10 moves: the environment builder lives in stages/environment.py,
+    intruders_for in stages/traffic.py, CityJSON reading in stages/cityjson.py."""
+    _load_registry()
+    closure = {name: code_closure(set(st.code_modules) | graph._function_imports(st.func)[1])
+               for name, st in REGISTRY.items()}
+    assert {"skyroute.stages.environment", "skyroute.stages.landing", "skyroute.stages.risk",
+            "skyroute.stages.cityjson"} <= closure["environment"]
+    assert "skyroute.stages.cityjson" in closure["surface"]
+    assert "skyroute.stages.traffic" in closure["traffic"]
+    # the traffic stage no longer reaches the planner through intruders_for
+    assert not any(m.startswith("skyroute.stages.planning") for m in closure["traffic"])
+    assert "skyroute.stages.traffic" in closure["plan"]
+
+
+def test_module_imports_are_memoised_by_source_digest(tmp_path, monkeypatch):
+    """A warm run parses no module: each module's imports are kept in <cache>/code_imports.json
+    under its source's SHA-256 (an edited module has another digest and is parsed again)."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    name = "skyroute.stages.environment"
+    memo_file = tmp_path / "code_imports.json"
+    digest = hashlib.sha256(Path(graph._module_file(name)).read_bytes()).hexdigest()
+
+    def fresh(memo=None):
+        if memo is not None:
+            memo_file.write_text(json.dumps(memo))
+        monkeypatch.setattr(graph, "_IMPORT_MEMO", {})
+        monkeypatch.setattr(graph, "_IMPORT_MEMO_STATE", {"path": None, "dirty": False})
+        graph._module_imports.cache_clear()
+        return graph._module_imports(name)
+
+    monkeypatch.setenv("SKYROUTE_CACHE_DIR", str(tmp_path))
+    try:
+        assert {"skyroute.stages.landing", "skyroute.stages.risk", "skyroute.stages.grid"} <= fresh()
+        graph._save_import_memo()
+        memo = json.loads(memo_file.read_text())
+        key = f"{name}|0|{digest}"
+        assert list(memo) == [key]
+        # a later process trusts the memo (proved by a forged entry) ...
+        forged = {key: [*memo[key], ["skyroute.stages.wind", []]]}
+        assert "skyroute.stages.wind" in fresh(forged)
+        # ... for that exact source only: another digest (an edit) is parsed again
+        assert "skyroute.stages.wind" not in fresh({key.replace(digest, "0" * 64): forged[key]})
+    finally:
+        graph._module_imports.cache_clear()
 
 
 def test_editing_a_module_deep_in_the_closure_changes_only_dependent_stages(monkeypatch):
@@ -53,8 +103,23 @@ def test_editing_a_module_deep_in_the_closure_changes_only_dependent_stages(monk
     monkeypatch.setattr(graph, "_module_source", edited)
     after = {name: st.code_version() for name, st in REGISTRY.items()}
     changed = {n for n in before if before[n] != after[n]}
-    assert "plan" in changed and "traffic" in changed
-    assert not changed & {"surface", "satellites", "wind", "clearance", "coverage"}
+    assert "plan" in changed
+    assert not changed & {"surface", "satellites", "wind", "clearance", "coverage", "traffic", "environment"}
+
+
+def test_editing_a_moved_module_changes_its_stages(monkeypatch):
+    _load_registry()
+    before = {name: st.code_version() for name, st in REGISTRY.items()}
+    real = graph._module_source
+    for mod, want in (("skyroute.stages.traffic", {"traffic", "plan"}),
+                      ("skyroute.stages.environment", {"environment"}),
+                      ("skyroute.stages.cityjson", {"surface", "environment"})):
+        monkeypatch.setattr(graph, "_module_source",
+                            lambda name, mod=mod: real(name) + b"\n# edited\n" if name == mod else real(name))
+        after = {name: st.code_version() for name, st in REGISTRY.items()}
+        changed = {n for n in before if before[n] != after[n]}
+        assert want <= changed, (mod, changed)
+        assert not changed & {"satellites", "wind"}, (mod, changed)
 
 
 def test_stable_hash_refuses_unknown_types_and_hashes_folders_by_content(tmp_path):

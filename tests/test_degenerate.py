@@ -20,8 +20,8 @@ from pyproj import Transformer
 from skyroute.pipeline.cli import main
 from skyroute.pipeline.errors import DegenerateCostError, InputError
 from skyroute.pipeline.settings import catalog_dir, load_scenario
+from skyroute.stages.environment import environment_risk_dataset
 from skyroute.stages.grid import Grid
-from skyroute.stages.landing import environment_risk_dataset
 from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
 from skyroute.stages.planning.problem import build_problem
 from skyroute.stages.planning.strategic import plan_strategic, plan_to_dataset

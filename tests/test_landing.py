@@ -17,6 +17,7 @@ import yaml
 from pyproj import CRS, Transformer
 
 from skyroute.pipeline.errors import InputError
+from skyroute.stages import environment as E
 from skyroute.stages import landing as L
 from skyroute.stages import risk as R
 from skyroute.stages.grid import Grid, utm_crs_for
@@ -166,7 +167,7 @@ def test_environment_dataset_and_figure(tmp_path):
     zpath = tmp_path / "zones.geojson"
     zpath.write_text(json.dumps({"type": "FeatureCollection", "features": [
         {"type": "Feature", "properties": {"max_altitude_m": 50}, "geometry": shapely.geometry.mapping(zone)}]}))
-    ds = L.environment_risk_dataset(g, osm_path=HELSINKI, nofly_zones=zpath, level5_nofly=True)
+    ds = E.environment_risk_dataset(g, osm_path=HELSINKI, nofly_zones=zpath, level5_nofly=True)
     for v in ("risk_level", "risk_cost", "nofly", "nofly_floor_m", "nofly_ceiling_m", "nofly_reason",
               "landing_site", "landing_distance_m", "landing_cost"):
         assert v in ds and ds[v].dims == ("y", "x") and "units" in ds[v].attrs, v
@@ -176,7 +177,7 @@ def test_environment_dataset_and_figure(tmp_path):
     r, c = g.index_of(cx, cy)
     assert ds["nofly"].values[r, c] and (ds["nofly_reason"].values[r, c] & R.NOFLY_ZONE)
     assert ds["landing_distance_m"].values[ds["landing_site"].values].max() == 0
-    fig = L.plot_environment(ds)
+    fig = E.plot_environment(ds)
     ax_risk, ax_land = fig.axes[0], fig.axes[1]
     assert len(ax_risk.get_legend().get_texts()) == 6
     stars = [ln for ln in ax_land.get_lines() if ln.get_marker() == "*"]
@@ -187,7 +188,7 @@ def test_environment_dataset_and_figure(tmp_path):
     fig.savefig(tmp_path / "env.png", dpi=60)
     assert (tmp_path / "env.png").stat().st_size > 10_000
     with pytest.raises(InputError, match="pair of matplotlib axes"):
-        L.plot_environment(ds, ax=ax_risk)
+        E.plot_environment(ds, ax=ax_risk)
     import matplotlib.pyplot as plt
 
     plt.close("all")

@@ -169,3 +169,43 @@ def test_cache_clear(helsinki, cache):
 def test_graph_module_exposes_registry():
     graph._load_registry()
     assert "surface" in REGISTRY
+
+
+def test_prechecks_run_only_for_stages_that_compute(helsinki, cache, scaled_stage):
+    """A stage read from the cache passed its precheck when it was computed: the runner knows
+    every key before any stage runs and skips the precheck (it would read whole maps)."""
+    def precheck(sc, datasets):
+        assert "surface" in datasets
+        CALLS.append("precheck")
+
+    REGISTRY["scaled"] = Stage(**{**scaled_stage.__dict__, "precheck": precheck, "precheck_after": ("surface",)})
+    run_pipeline(helsinki, cache=cache, targets=["scaled"])
+    assert CALLS == ["precheck", "scaled"]
+    r = run_pipeline(helsinki, cache=cache, targets=["scaled"])
+    assert [x.cache_hit for x in r.records] == [True, True] and CALLS == ["precheck", "scaled"]
+    run_pipeline(helsinki, cache=cache, targets=["scaled"], force=["scaled"])
+    assert CALLS == ["precheck", "scaled", "precheck", "scaled"]
+
+
+def test_warm_run_imports_no_compute_only_modules(tmp_path):
+    """A warm `skyroute run` (every stage cached, outputs unchanged) imports neither numba nor
+    matplotlib, ompl or dask.distributed: they load only where a stage computes or a figure is drawn."""
+    code = textwrap.dedent("""
+        import sys
+        from skyroute.pipeline.cli import main
+        sys.argv = ["skyroute", "run", "helsinki-medical", "--stage", "environment", "--out", sys.argv[1], "-q"]
+        try:
+            main()
+        except SystemExit as exc:
+            assert not exc.code, exc.code
+        heavy = ("numba", "matplotlib", "ompl", "distributed")
+        print("HEAVY", *[m for m in heavy if m in sys.modules])
+    """)
+    env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
+    runs = [subprocess.run([sys.executable, "-c", code, str(tmp_path / "out")], capture_output=True, text=True,
+                           env=env, timeout=600) for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr
+    cold, warm = (r.stdout.split("HEAVY")[1].split() for r in runs)
+    assert {"numba", "matplotlib"} <= set(cold)   # the probe sees them when stages compute
+    assert warm == [], warm

@@ -359,3 +359,57 @@ def test_strategic_plan_is_deterministic_and_independent_of_workers_and_level_sh
     np.testing.assert_array_equal(alone_mid.step1[0].waypoints, seq.step1[0].waypoints)
     with pytest.raises(InputError, match="workers 0 must be >= 1"):
         _strategic(ds, clearance, coverage, workers=0)
+
+
+# ------------------------------------------------------------------ kernels and bound memo
+
+
+def test_bitstar_entry_points_agree_with_the_energy_module():
+    """The compiled entry points the OMPL callbacks call (kernels.entry_point, no numba type
+    dispatch) give the costs of the numpy energy model and the validity of state_valid."""
+    from skyroute.stages.energy import segment_energy
+    from skyroute.stages.planning.kernels import OK, entry_point, segment_eval, state_code
+
+    wind = (4.0, -2.0, 0.5)
+    pr = make_problem(block=True, wind=wind)
+    buf = np.empty(6)
+    seg = entry_point(segment_eval, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, True, *pr.seg_args, buf)
+    st = entry_point(state_code, 0.0, 0.0, 0.0, *pr.state_args)
+    rng = np.random.default_rng(7)
+    p0 = np.column_stack([rng.uniform(0, 200, 60), rng.uniform(0, 100, 60), rng.uniform(5, 75, 60)])
+    p1 = np.column_stack([rng.uniform(0, 200, 60), rng.uniform(0, 100, 60), rng.uniform(5, 75, 60)])
+    ref = segment_energy(p0, p1, lambda pts: np.tile(wind, (len(pts), 1)), VEH, subsegment_m=10.0)
+    valid = pr.motion_valid(p0, p1)
+    assert 0 < valid.sum() < valid.size             # the tower blocks some of them
+    for i in range(p0.shape[0]):
+        code = seg(*p0[i], *p1[i], True, *pr.seg_args, buf)
+        assert (code == OK) == valid[i]
+        assert buf[0] == pytest.approx(ref["length_m"][i], abs=1e-9)                 # [m]
+        if ref["flyable"][i]:
+            assert buf[4] == pytest.approx(ref["energy_J"][i], rel=1e-10)          # [J]
+            assert buf[5] == pytest.approx(ref["time_s"][i], rel=1e-10)            # [s]
+        assert (st(*p0[i], *pr.state_args) == OK) == bool(pr.state_valid(p0[i])[0])
+
+
+def test_bound_memo_computes_once_and_stays_bounded():
+    import threading
+
+    from skyroute.stages.planning.heuristic import BoundMemo
+
+    memo = BoundMemo(limit=4)
+    calls: list[str] = []
+    assert memo.get("a", lambda: calls.append("a") or 1.5) == 1.5
+    assert memo.get("a", lambda: calls.append("a") or 9.0) == 1.5      # a hit does not recompute
+    assert calls == ["a"]
+    results: dict[int, float] = {}
+
+    def worker(i: int) -> None:
+        results[i] = memo.get(f"k{i % 10}", lambda: float(i % 10) ** 2)
+
+    threads = [threading.Thread(target=worker, args=(i,)) for i in range(40)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(v == float(i % 10) ** 2 for i, v in results.items())
+    assert len(memo) <= memo.limit + 1                                  # cleared when full

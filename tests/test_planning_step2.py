@@ -11,8 +11,8 @@ import pytest
 from skyroute.pipeline.errors import InputError
 from skyroute.stages.energy import segment_energy
 from skyroute.stages.grid import Grid
+from skyroute.stages.planning.deconflict import Step2Result, chain_conflicts, deconflict
 from skyroute.stages.planning.problem import PlanningProblem
-from skyroute.stages.planning.rrt import Step2Result, chain_conflicts, deconflict
 from skyroute.stages.traffic import Intruder, build_occupancy
 from skyroute.stages.vehicle import load_vehicle
 

@@ -21,9 +21,9 @@ from skyroute.pipeline.settings import catalog_dir
 from skyroute.stages.almanac import sky_geometry
 from skyroute.stages.grid import Grid
 from skyroute.stages.occlusion import grid_azimuth_deg
+from skyroute.stages.planning.deconflict import deconflict
 from skyroute.stages.planning.outputs import CANDIDATE_COLUMNS, WAYPOINT_COLUMNS, write_plan
 from skyroute.stages.planning.problem import PlanningProblem
-from skyroute.stages.planning.rrt import deconflict
 from skyroute.stages.planning.step3 import choose, explain_no_plan, line_of_sight, step3
 from skyroute.stages.planning.validate import intruder_clearance_m, validate_plan
 from skyroute.stages.traffic import Intruder, build_occupancy

@@ -221,13 +221,13 @@ def test_time_mismatch_and_outside_coverage(gfs, tmp_path):
 
 
 def test_planner_kernel_and_numpy_sampler_share_the_wind_column_rule():
-    """The compiled wind sample of the planner (problem._wind_at), the one numpy home
+    """The compiled wind sample of the planner (planning.kernels.wind_at), the one numpy home
     (wind.wind_in_column, used by sample_wind and STEP III) agree in a wind field that varies
     in x, y and height, over sloped terrain, at random points (levels clamped outside)."""
     import numpy as np
 
     from skyroute.stages.grid import Grid
-    from skyroute.stages.planning.problem import _grid_params, _wind_at
+    from skyroute.stages.planning.kernels import WindParams, grid_params, wind_at
     from skyroute.stages.wind import wind_in_column
 
     rng = np.random.default_rng(4)
@@ -238,8 +238,8 @@ def test_planner_kernel_and_numpy_sampler_share_the_wind_column_rule():
     w4 = rng.normal(0, 6, (wz.size, wg.ny, wg.nx, 3))
     x, y = rng.uniform(-10, 210, 3000), rng.uniform(-10, 130, 3000)
     z = rng.uniform(-20, 220, 3000)
-    gp, wp = _grid_params(g), _grid_params(wg)
-    got = np.array([_wind_at(x[i], y[i], z[i], terrain, gp, w4, wz, wp) for i in range(x.size)])
+    gp, wind = grid_params(g), WindParams(w4, wz, grid_params(wg))
+    got = np.array([wind_at(x[i], y[i], z[i], terrain, gp, wind) for i in range(x.size)])
     h = z - terrain[g.cell_of(x, y)]
     want = wind_in_column(w4, wz, *wg.cell_of(x, y), h)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)

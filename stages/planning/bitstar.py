@@ -40,7 +40,8 @@ from ompl import util as ou
 
 from skyroute.stages import control
 from skyroute.stages.base import InputError
-from skyroute.stages.planning.problem import OK, PlanningProblem, _state_code, segment_eval
+from skyroute.stages.planning.kernels import OK, entry_point, segment_eval, state_code
+from skyroute.stages.planning.problem import PlanningProblem
 
 ou.setLogLevel(ou.LOG_ERROR)
 
@@ -48,10 +49,11 @@ ou.setLogLevel(ou.LOG_ERROR)
 class _Validity(ob.StateValidityChecker):
     def __init__(self, si, problem: PlanningProblem):
         super().__init__(si)
-        self._args = problem._state_args
+        self._args = problem.state_args
+        self._code = entry_point(state_code, 0.0, 0.0, 0.0, *self._args)
 
     def isValid(self, s) -> bool:
-        return _state_code(s[0], s[1], s[2], *self._args) == OK
+        return self._code(s[0], s[1], s[2], *self._args) == OK
 
 
 class _Motion(ob.MotionValidator):
@@ -59,9 +61,10 @@ class _Motion(ob.MotionValidator):
         super().__init__(si)
         self._args = problem.seg_args
         self._buf = np.empty(6)
+        self._eval = entry_point(segment_eval, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, *self._args, self._buf)
 
     def checkMotion(self, s1, s2) -> bool:
-        return segment_eval(s1[0], s1[1], s1[2], s2[0], s2[1], s2[2], False, *self._args, self._buf) == OK
+        return self._eval(s1[0], s1[1], s1[2], s2[0], s2[1], s2[2], False, *self._args, self._buf) == OK
 
 
 class _Objective(ob.OptimizationObjective):
@@ -71,6 +74,7 @@ class _Objective(ob.OptimizationObjective):
         super().__init__(si)
         self._args = problem.seg_args
         self._buf = np.empty(6)
+        self._eval = entry_point(segment_eval, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, True, *self._args, self._buf)
         self._w = problem.weights
         self._rate = problem.cost_rate_lb
         self._goal = problem.goal_xyz
@@ -92,7 +96,7 @@ class _Objective(ob.OptimizationObjective):
     def motionCost(self, s1, s2):
         self.n_calls += 1
         b = self._buf
-        segment_eval(s1[0], s1[1], s1[2], s2[0], s2[1], s2[2], True, *self._args, b)
+        self._eval(s1[0], s1[1], s1[2], s2[0], s2[1], s2[2], True, *self._args, b)
         w = self._w
         f = w[0] * b[0] + w[1] * b[1] + w[2] * b[2] + (w[3] * b[3] if w[3] > 0 else 0.0)
         return ob.Cost(f if math.isfinite(f) else math.inf)

@@ -26,7 +26,7 @@ import numpy as np
 import xarray as xr
 
 from skyroute.stages.base import DegenerateCostError
-from skyroute.stages.planning.problem import _check_weights
+from skyroute.stages.planning.problem import check_weights
 
 ATOL = 1e-12
 
@@ -109,7 +109,7 @@ def check_cost_terms(weights, degenerate: dict[str, str]) -> list[str]:
     """Warnings (one per degenerate term, weighted or not) for eq. 11 weights
     ``(w_l, w_r, w_d, w_e)``; raises :class:`DegenerateCostError` when every non-zero weight
     is on a degenerate term (``w_l = 0``); bad weights raise InputError first."""
-    w = dict(zip(("C_l", "C_r", "C_d", "C_e"), _check_weights(weights), strict=True))
+    w = dict(zip(("C_l", "C_r", "C_d", "C_e"), check_weights(weights), strict=True))
     selected = [k for k, v in w.items() if v > 0]
     if selected and all(k in degenerate for k in selected):
         names = [TERMS[k][1] for k in selected]

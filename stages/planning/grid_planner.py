@@ -36,13 +36,15 @@ import heapq
 import math
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
 
 from skyroute.stages import control
 from skyroute.stages.base import InputError
-from skyroute.stages.planning.problem import OK, PlanningProblem, segment_eval_if_valid
+from skyroute.stages.planning.kernels import OK, segment_eval_if_valid
+from skyroute.stages.planning.problem import PlanningProblem
 
 STEP_CELLS = 8   # default lattice step [cells]: measured on Helsinki (2 m cells) 8 beats 6 in time
 #                  (21 k vs 52 k expansions) and refined f, and its paths smooth in STEP III
@@ -116,10 +118,40 @@ def make_lattice(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: f
                    goal_links=_links(x, y, z, problem.goal_xyz), step_m=h, dz_m=float(dz_m))
 
 
+class LatticeNodes(NamedTuple):
+    """The lattice as :func:`_astar_kernel` reads it (see :class:`Lattice`)."""
+
+    x_m: np.ndarray             # (nx_l,) node x [m]
+    y_m: np.ndarray             # (ny_l,) node y [m]
+    z_m: np.ndarray             # (nz_l,) node altitudes [m]
+    valid: np.ndarray           # (nz_l, ny_l, nx_l) bool
+    offsets: np.ndarray         # (26, 3) int64 neighbour steps (dk, di, dj) [nodes]
+    start_links: np.ndarray     # node ids linked to the start
+    goal_links: np.ndarray      # node ids linked to the goal
+
+
+class SearchParams(NamedTuple):
+    """Endpoints, objective and heuristic of one A* search."""
+
+    start_m: tuple[float, float, float]           # (x, y, z) [m]
+    goal_m: tuple[float, float, float]            # (x, y, z) [m]
+    weights: tuple[float, float, float, float]    # (w_l, w_r, w_d, w_e) [-]
+    rate: float                                   # cost_rate_lb [-] (f per metre)
+    max_expansions: int
+    h2: np.ndarray                                # (ny_l, nx_l) 2-D heuristic table [-] (unused if not use_h2)
+    use_h2: bool
+    b_up: float                                   # heuristic cost per metre of climb to the goal [-]
+    c_down: float                                 # heuristic cost per metre of descent to the goal [-]
+
+
 @numba.njit(cache=True, nogil=True)
-def _astar_kernel(lx, ly, lz, valid, offs, start_links, goal_links, sx, sy, sz, gx, gy, gz, wts, rate,
-                  max_expansions, h2, use_h2, b_up, c_down, stop, terrain, floor, ceiling, risk, landing, gprm, wind,
-                  wz, wgprm, vprm, pprm):
+def _astar_kernel(nodes, search, stop, maps, wind, vehicle, power):
+    lx, ly, lz, valid, offs, start_links, goal_links = nodes
+    sx, sy, sz = search.start_m
+    gx, gy, gz = search.goal_m
+    wts = search.weights
+    rate, max_expansions, h2, use_h2 = search.rate, search.max_expansions, search.h2, search.use_h2
+    b_up, c_down = search.b_up, search.c_down
     nz, ny, nx = valid.shape
     n = nz * ny * nx
     S = n
@@ -186,8 +218,7 @@ def _astar_kernel(lx, ly, lz, valid, offs, start_links, goal_links, sx, sy, sz, 
                 vx, vy, vz = lx[cc], ly[rr], lz[kk]
             if closed[v]:
                 continue
-            code = segment_eval_if_valid(ux, uy, uz, vx, vy, vz, terrain, floor, ceiling, risk, landing, gprm,
-                                         wind, wz, wgprm, vprm, pprm, buf)
+            code = segment_eval_if_valid(ux, uy, uz, vx, vy, vz, maps, wind, vehicle, power, buf)
             if code != OK:
                 continue
             w = wts[0] * buf[0] + wts[1] * buf[1] + wts[2] * buf[2]
@@ -347,11 +378,12 @@ def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_0
     else:
         raise InputError(f"heuristic {heuristic!r} must be 'dijkstra2d' or 'euclid'")
     with control.StopFlag(time_limit_s) as stop:
-        f, parent, expanded = _astar_kernel(lattice.x, lattice.y, lattice.z, lattice.valid, _OFFS,
-                                            lattice.start_links, lattice.goal_links, sx, sy, sz, gx, gy, gz,
-                                            np.asarray(problem.weights, float), float(problem.cost_rate_lb),
-                                            int(max_expansions), h2, use_h2, float(b_up), float(c_down),
-                                            stop.array, *problem.seg_args)
+        nodes = LatticeNodes(lattice.x, lattice.y, lattice.z, lattice.valid, _OFFS, lattice.start_links,
+                             lattice.goal_links)
+        search = SearchParams((float(sx), float(sy), float(sz)), (float(gx), float(gy), float(gz)),
+                              tuple(float(w) for w in problem.weights), float(problem.cost_rate_lb),
+                              int(max_expansions), h2, bool(use_h2), float(b_up), float(c_down))
+        f, parent, expanded = _astar_kernel(nodes, search, stop.array, *problem.seg_args)
         stop.check()
         stopped = "time" if stop.expired and not np.isfinite(f) else ""
     if not np.isfinite(f):

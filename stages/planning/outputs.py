@@ -40,7 +40,8 @@ CANDIDATE_COLUMNS = ("label", "dop_threshold", "C_l_m", "C_r_m", "C_d_m", "C_e_m
                      "max_sigma_p_m", "energy_Wh", "flight_time_s", "compute_time_s", "chosen", "reasons")
 
 
-def _crs_of(grid_or_crs) -> tuple[CRS, Grid | None]:
+def crs_of(grid_or_crs) -> tuple[CRS, Grid | None]:
+    """(CRS, Grid or None) of a :class:`Grid` or anything ``pyproj.CRS`` reads; InputError if neither."""
     if isinstance(grid_or_crs, Grid):
         return grid_or_crs.crs, grid_or_crs
     try:
@@ -57,7 +58,7 @@ def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_dat
     """The RFC 7946 FeatureCollection of ``candidate`` (see module docstring)."""
     if candidate.xyz_m.shape[0] < 2:
         raise InputError(f"candidate {candidate.label!r} has no trajectory to write")
-    crs, _ = _crs_of(grid_or_crs)
+    crs, _ = crs_of(grid_or_crs)
     tr = Transformer.from_crs(crs, 4326, always_xy=True)
     p = candidate.xyz_m
     lon, lat = tr.transform(p[:, 0], p[:, 1])
@@ -101,7 +102,8 @@ def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_dat
     return {"type": "FeatureCollection", "features": features}
 
 
-def _write_csv(path: Path, header, rows) -> None:
+def write_csv(path: Path, header, rows) -> None:
+    """Write ``rows`` under ``header`` to the CSV file ``path``."""
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
@@ -132,7 +134,7 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    crs, grid = _crs_of(grid_or_crs)
+    crs, grid = crs_of(grid_or_crs)
     files: dict[str, Path] = {}
     rows = []
     for c in candidates:
@@ -141,7 +143,7 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
                      _fmt(c.energy_Wh, 2), _fmt(c.flight_time_s, 1), _fmt(c.compute_time_s, 2),
                      _fmt(candidate is not None and c is candidate), "; ".join(c.reasons)])
     files["candidates.csv"] = out / "candidates.csv"
-    _write_csv(files["candidates.csv"], CANDIDATE_COLUMNS, rows)
+    write_csv(files["candidates.csv"], CANDIDATE_COLUMNS, rows)
     if candidate is None:
         return files
     gj = plan_geojson(candidate, grid_or_crs, start_time_utc, vertical_datum)
@@ -155,14 +157,15 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
               f"{lon[i]:.9f}", f"{lat[i]:.9f}", f"{candidate.alt_agl_m[i]:.3f}", _fmt(candidate.sigma_p_m[i], 4)]
              for i in range(p.shape[0])]
     files["waypoints.csv"] = out / "waypoints.csv"
-    _write_csv(files["waypoints.csv"], WAYPOINT_COLUMNS, wrows)
+    write_csv(files["waypoints.csv"], WAYPOINT_COLUMNS, wrows)
     if figures:
         files.update(_figures(candidate, candidates, grid, out, vertical_datum, surface_m, terrain_m, floor_m,
                               cost_m, cost_label))
     return files
 
 
-def _ras(a):
+def raster_values(a):
+    """A raster (DataArray or array) as a float ndarray; None stays None."""
     return None if a is None else np.asarray(getattr(a, "values", a), dtype=float)
 
 
@@ -180,7 +183,7 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
     if grid is not None:
         xmin, ymin, xmax, ymax = grid.bounds
         ext = (xmin, xmax, ymin, ymax)
-        cm, fl = _ras(cost_m), _ras(floor_m)
+        cm, fl = raster_values(cost_m), raster_values(floor_m)
         if cm is not None:
             im = ax.imshow(cm, extent=ext, cmap="YlOrRd", interpolation="nearest", alpha=0.8)
             fig.colorbar(im, ax=ax, shrink=0.7).set_label(cost_label)
@@ -211,11 +214,11 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
     fig, ax = plt.subplots(figsize=(9, 4), dpi=100)
     if grid is not None:
         row, col = grid.cell_of(p[:, 0], p[:, 1])
-        for ras, style, lab in ((_ras(surface_m), dict(color="0.5", alpha=0.5), "surface (buildings)"),
-                                (_ras(terrain_m), dict(color="saddlebrown", alpha=0.6), "terrain")):
+        for ras, style, lab in ((raster_values(surface_m), dict(color="0.5", alpha=0.5), "surface (buildings)"),
+                                (raster_values(terrain_m), dict(color="saddlebrown", alpha=0.6), "terrain")):
             if ras is not None:
                 ax.fill_between(dist, np.nanmin(ras) - 5, ras[row, col], step="mid", label=lab, **style)
-        fl = _ras(floor_m)
+        fl = raster_values(floor_m)
         if fl is not None:
             ax.plot(dist, np.where(np.isfinite(fl[row, col]), fl[row, col], np.nan), "b--", lw=1,
                     label="admissible floor")

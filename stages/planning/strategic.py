@@ -33,13 +33,20 @@ import xarray as xr
 
 from skyroute.stages import control
 from skyroute.stages.base import InputError, PlanningError
+from skyroute.stages.planning.deconflict import Step2Result, deconflict
 from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
 from skyroute.stages.planning.grid_planner import STEP_CELLS, shared_heuristic
 from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz_from_agl
-from skyroute.stages.planning.rrt import Step2Result, deconflict
 from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, Step1Result, plan_step1
-from skyroute.stages.planning.step3 import Candidate, _empty, choose, explain_no_plan, step3
-from skyroute.stages.traffic import Intruder, TrafficOccupancy, intruders_from_records
+from skyroute.stages.planning.step3 import (
+    Candidate,
+    choose,
+    empty_candidate,
+    explain_no_plan,
+    step3,
+)
+from skyroute.stages.smoothing import CornerTrajectory
+from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle
 
 
@@ -127,12 +134,12 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         if not s1.solved:
             ticker.phase(problem.label, None)
             why = (s1.reason or s1.status).removeprefix(f"{problem.label}: ")
-            return s1, None, _empty(problem.label, d, [f"STEP I: {why}"], tl, s1.status)
+            return s1, None, empty_candidate(problem.label, d, [f"STEP I: {why}"], tl, s1.status)
         ticker.phase(problem.label, "STEP II")
         s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=LEVEL_CAP_FACTOR * time_budget_s)
         if s2.status == "failed":
             ticker.phase(problem.label, None)
-            return s1, s2, _empty(problem.label, d, [f"STEP II: {s2.reason}"], tl, s2.status)
+            return s1, s2, empty_candidate(problem.label, d, [f"STEP II: {s2.reason}"], tl, s2.status)
         ticker.phase(problem.label, "STEP III")
         cand = step3(problem, s2, sky, surface_2d, start_time_utc=start_time_utc, occupancy=occ,
                      intruders=intruders, label=problem.label, gnss_sigma_m=uere_m,
@@ -315,7 +322,47 @@ def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_ut
         ds["n_visible"] = ("sample", np.asarray(c.n_visible, np.int32), {"units": "1"})
         ds = ds.assign_coords(waypoint=np.arange(len(c.waypoints)))
         ds["waypoints"] = (("waypoint", "xyz"), np.asarray(c.waypoints, float), {"units": "m"})
+        if c.trajectory is not None:
+            tds = trajectory_to_dataset(c.trajectory, float(c.t_s[0]))
+            attrs = {**ds.attrs, **tds.attrs}
+            ds = ds.merge(tds)
+            ds.attrs = attrs
     return ds
+
+
+_TRAJ_PHASE = {"phase_t0_s": "s", "kind": "1", "s0": "m", "v0": "m s-1", "a": "m s-2", "radius_m": "m"}
+_TRAJ_VEC = ("origin", "e1", "e2")
+
+
+def trajectory_to_dataset(traj: CornerTrajectory, t0_s: float) -> xr.Dataset:
+    """The exact trajectory (its phases: :class:`~skyroute.stages.smoothing.CornerTrajectory`)
+    as ``traj_*`` variables (dims ``phase``, ``piece``), so a cached plan can be flown again
+    exactly (``skyroute fly``); ``traj_t0_s`` [s]: mission time of the trajectory's time 0."""
+    ds = xr.Dataset(coords={"phase": np.arange(traj.phase_t0_s.size), "piece": np.arange(traj.piece_t_s.size)})
+    for k, u in _TRAJ_PHASE.items():
+        ds[f"traj_{k}"] = ("phase", np.asarray(getattr(traj, k)), {"units": u})
+    for k in _TRAJ_VEC:
+        ds[f"traj_{k}"] = (("phase", "xyz"), np.asarray(getattr(traj, k), float), {"units": "m" if k == "origin" else "1"})
+    ds["traj_piece_t_s"] = ("piece", np.asarray(traj.piece_t_s, float), {"units": "s"})
+    ds["traj_piece_xyz_m"] = (("piece", "xyz"), np.asarray(traj.waypoints, float), {"units": "m"})
+    ds.attrs.update({"traj_t0_s": float(t0_s), "traj_duration_s": float(traj.duration_s),
+                     "traj_corner_kind": json.dumps(list(traj.corner_kind)),
+                     "traj_corner_reason": json.dumps(list(traj.corner_reason))})
+    return ds
+
+
+def trajectory_from_dataset(ds: xr.Dataset) -> tuple[CornerTrajectory, float] | None:
+    """``(trajectory, t0_s)`` back from :func:`trajectory_to_dataset` (None if absent)."""
+    if "traj_phase_t0_s" not in ds:
+        return None
+    kw = {k: np.asarray(ds[f"traj_{k}"].values) for k in (*_TRAJ_PHASE, *_TRAJ_VEC)}
+    kw["kind"] = kw["kind"].astype(np.int8)
+    traj = CornerTrajectory(duration_s=float(ds.attrs["traj_duration_s"]),
+                            piece_t_s=np.asarray(ds["traj_piece_t_s"].values, float),
+                            waypoints=np.asarray(ds["traj_piece_xyz_m"].values, float),
+                            corner_kind=tuple(json.loads(ds.attrs["traj_corner_kind"])),
+                            corner_reason=tuple(json.loads(ds.attrs["traj_corner_reason"])), **kw)
+    return traj, float(ds.attrs["traj_t0_s"])
 
 
 def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]]:
@@ -334,6 +381,8 @@ def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]
                           ds["alt_agl_m"].values, ds["speed_mps"].values, ds["sigma_p_m"].values,
                           ds["n_visible"].values, flyable=bool(row["flyable"]), reasons=reasons,
                           waypoints=ds["waypoints"].values, step2_status=str(row["status"].values), **kw)
+            tr = trajectory_from_dataset(ds)
+            c.trajectory = tr[0] if tr is not None else None
         else:
             c = Candidate(str(row["label"].values), None if np.isnan(d) else d, z, np.zeros((0, 3)), z, z, z,
                           np.zeros(0, int), flyable=bool(row["flyable"]), reasons=reasons,
@@ -343,19 +392,5 @@ def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]
     return chosen, cands
 
 
-def intruders_for(traffic_settings_intruders, surface: xr.Dataset) -> list[Intruder]:
-    """Scenario intruder records (AGL waypoints) -> Intruders in the surface datum."""
-    from skyroute.stages.grid import Grid
-
-    grid = Grid.from_dataarray(surface["terrain"])
-    terrain = surface["terrain"].values
-    recs = []
-    for it in traffic_settings_intruders:
-        wp = np.asarray(it["waypoints"], dtype=float)
-        wp[:, 3] += terrain[grid.cell_of(wp[:, 1], wp[:, 2])]
-        recs.append({"id": it["id"], "radius_m": it["radius_m"], "waypoints": wp.tolist()})
-    return intruders_from_records(recs)
-
-
-__all__ = ["PlanningError", "StrategicPlan", "intruders_for", "plan_from_dataset", "plan_strategic",
-           "plan_to_dataset"]
+__all__ = ["PlanningError", "StrategicPlan", "plan_from_dataset", "plan_strategic", "plan_to_dataset",
+           "trajectory_from_dataset", "trajectory_to_dataset"]

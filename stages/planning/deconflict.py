@@ -1,4 +1,5 @@
-"""STEP II: strategic deconfliction against known traffic (seed 000 section III-B, Algorithm 1).
+"""STEP II: strategic deconfliction against known traffic (seed 000 section III-B, Algorithm 1),
+by a time- and energy-aware RRT.
 
 The STEP I polygonal chain ``W`` is flown at the speeds of the energy model
 (:func:`~skyroute.stages.energy.segment_energy`, eq. 2-4), which gives each waypoint an arrival
@@ -51,7 +52,7 @@ from skyroute.stages import control
 from skyroute.stages.base import InputError
 from skyroute.stages.traffic import TrafficOccupancy
 
-__all__ = ["Step2Result", "chain_timing", "deconflict", "leg_time_energy", "chain_conflicts"]
+__all__ = ["Step2Result", "chain_conflicts", "chain_timing", "deconflict", "leg_conflicts", "leg_time_energy"]
 
 STATUS_UNCHANGED = "unchanged"
 STATUS_DECONFLICTED = "deconflicted"
@@ -112,8 +113,10 @@ def chain_timing(problem, waypoints, t0_s: float = 0.0) -> tuple[np.ndarray, np.
     return (t0_s + np.concatenate([[0.0], np.cumsum(tau)]), np.concatenate([[0.0], np.cumsum(e)]), ok)
 
 
-def _conflicts(occ: TrafficOccupancy | None, p0, t0, p1, t1) -> np.ndarray:
-    """segment_conflicts on legs, restricted to the maps' horizon (pieces beyond are free)."""
+def leg_conflicts(occ: TrafficOccupancy | None, p0, t0, p1, t1) -> np.ndarray:
+    """Traffic conflict flags (n,) of legs p0[i] -> p1[i] (n, 3) [m] flown linearly in time from
+    t0[i] to t1[i] [s] (:meth:`~skyroute.stages.traffic.TrafficOccupancy.segment_conflicts`),
+    restricted to the maps' horizon (pieces beyond it are free); all False without traffic."""
     p0 = np.atleast_2d(np.asarray(p0, float))
     p1 = np.atleast_2d(np.asarray(p1, float))
     t0 = np.broadcast_to(np.asarray(t0, float), (p0.shape[0],))
@@ -140,7 +143,7 @@ def chain_conflicts(occupancy: TrafficOccupancy | None, waypoints, times_s) -> n
     """Per-leg traffic conflict flags (k-1,) of a timed chain."""
     w = np.asarray(waypoints, float)
     t = np.asarray(times_s, float)
-    return _conflicts(occupancy, w[:-1], t[:-1], w[1:], t[1:])
+    return leg_conflicts(occupancy, w[:-1], t[:-1], w[1:], t[1:])
 
 
 # ------------------------------------------------------------------ the tree
@@ -198,7 +201,7 @@ class _Feasibility:
         if tree.e[a] + e > self.battery:
             self.rejects["battery"] += 1
             return False, tau, e
-        if _conflicts(self.occ, pa, tree.t[a], q, tree.t[a] + tau)[0]:
+        if leg_conflicts(self.occ, pa, tree.t[a], q, tree.t[a] + tau)[0]:
             self.rejects["traffic"] += 1
             return False, tau, e
         return True, tau, e
@@ -206,7 +209,8 @@ class _Feasibility:
 
 def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_s: float = 0.0, seed: int = 0,
                max_iter: int = 5000, time_budget_s: float = 30.0, sigma_m: float = 30.0,
-               vertical_ratio: float = 0.5, step_m: float = 5.0, explore: float = 0.2) -> Step2Result:
+               vertical_ratio: float = 0.5, step_m: float = 5.0, explore: float = 0.2,
+               require_valid_chain: bool = True) -> Step2Result:
     """STEP II of seed 000 (Algorithm 1): make the STEP I chain conflict-free in time.
 
     Parameters
@@ -226,6 +230,9 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
     explore : probability that RANDOM_SAMPLE is centred on a uniformly drawn point of the STEP I
         chain instead of the last feasible point (lets other branches grow when the frontier is
         boxed in by a reserved volume; the paper's sampler always uses the last feasible point).
+    require_valid_chain : when False, legs of the chain that violate the static bounds do not
+        fail the call: the RRT grows around them (the tactical replans of
+        :mod:`skyroute.stages.tactical`, whose guiding chain may cross a new obstacle or zone).
 
     Returns a :class:`Step2Result`; never raises for an unsolvable case (status ``"failed"``
     with the reason), raises :class:`~skyroute.stages.base.InputError` for bad arguments.
@@ -259,15 +266,19 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
 
     # STEP I chain timing; bounds of its legs
     times, energy, valid = chain_timing(problem, W, t0_s)
-    if not valid.all():
+    if not valid.all() and not require_valid_chain:
+        times = t0_s + np.zeros(W.shape[0])
+        conf = np.ones(W.shape[0] - 1, bool)      # grow the RRT around the invalid legs
+    elif not valid.all():
         i = int(np.argmin(valid))
         why = problem.explain_motion(W[i], W[i + 1]) if hasattr(problem, "explain_motion") else "invalid"
         return _failed(f"STEP I leg {i} ({W[i].round(1).tolist()} -> {W[i + 1].round(1).tolist()}) violates the "
                        f"bounds ({why}); STEP II only resolves traffic conflicts", t_start=t_start)
-    if occupancy is not None and occupancy.caps.shape[0] and times[-1] > occupancy.t0_s + occupancy.t_total_s:
-        notes.append(f"the chain ends at t = {times[-1]:.1f} s, after the occupancy horizon "
-                     f"{occupancy.t0_s + occupancy.t_total_s:.1f} s: later traffic is unknown")
-    conf = chain_conflicts(occupancy, W, times)
+    else:
+        if occupancy is not None and occupancy.caps.shape[0] and times[-1] > occupancy.t0_s + occupancy.t_total_s:
+            notes.append(f"the chain ends at t = {times[-1]:.1f} s, after the occupancy horizon "
+                         f"{occupancy.t0_s + occupancy.t_total_s:.1f} s: later traffic is unknown")
+        conf = chain_conflicts(occupancy, W, times)
     if not conf.any():
         if energy[-1] > battery:
             return _failed(f"the STEP I chain needs {energy[-1] / 3600:.1f} Wh, more than the battery "

@@ -6,6 +6,10 @@ compromises it, three replanning levels run and the cheapest valid solution repl
 of the plan, or the vehicle lands at the nearest reachable landing site.
 
 * :mod:`.log`      -- the flight record (:class:`~.log.FlightLog`) every output is written from;
-* :mod:`.conflict` -- exact separation checks of a timed trajectory against intruder tracks;
+* :mod:`.conflict` -- exact separation checks of a timed trajectory against intruder tracks
+  (:class:`~.conflict.IntruderTracks`, :func:`~.conflict.first_conflict`,
+  :func:`~.conflict.min_separation`) and the state-based N-aircraft detector
+  (:func:`~.conflict.pairwise_conflicts`, BlueSky's numpy baseline
+  :func:`~.conflict.pairwise_conflicts_numpy`);
 * :mod:`.outputs`  -- tactical.csv, flown.geojson / .csv, intruders.geojson and the figures.
 """

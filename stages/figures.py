@@ -62,3 +62,19 @@ def clipped_texts(fig) -> list[str]:
         if t.get_visible() and str(t.get_text()).strip() and out(t.get_window_extent(renderer)):
             found.append(repr(t.get_text()))
     return found
+
+
+def grow_until_unclipped(fig, tries: int = 4, step: float = 1.12) -> list[str]:
+    """Enlarge ``fig`` by ``step`` per try (up to ``tries`` times) while :func:`clipped_texts`
+    finds text cut off by the canvas (a constrained layout with an equal-aspect map, a colour
+    bar and an outside legend can leave tick labels outside a figure that is too small);
+    returns what is still cut off (empty when nothing is)."""
+    cut = clipped_texts(fig)
+    for _ in range(tries):
+        if not cut:
+            break
+        w, h = fig.get_size_inches()
+        fig.set_size_inches(w * step, h * step)
+        cut = clipped_texts(fig)
+    return cut
+

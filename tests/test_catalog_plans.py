@@ -126,3 +126,67 @@ def test_battery_reserve_setting():
     raw["constraints"]["battery_reserve_pct"] = 100
     with pytest.raises(ScenarioError, match="battery_reserve_pct"):
         parse_scenario(raw, "x.yaml", base)
+
+
+TACTICAL = [n for n in CATALOG if load_scenario(n).events]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", TACTICAL)
+def test_tactical_scenarios_fly_safely(name, cache, tmp_path):
+    """``skyroute fly`` on every shipped scenario with events (issue 11), checked from its
+    written files only: the distance at equal times between the flown trajectory and every
+    intruder's truth track (both linear between their samples) is at least r_p + r_i + d_c at
+    every 0.05 s; the flight is never inside a temporary no-fly zone (widened by r_p) while it
+    is active; the hard limits hold on the flown samples; one chosen row per replanning."""
+    import csv
+    import json
+
+    from click.testing import CliRunner
+    from shapely.geometry import Point, Polygon
+
+    from skyroute.pipeline.cli import main
+
+    sc = load_scenario(name)
+    veh = load_vehicle(sc.vehicle)
+    out = tmp_path / "fly"
+    res = CliRunner().invoke(main, ["fly", name, "--out", str(out), "--cache-dir", str(cache.root), "-q"])
+    assert res.exit_code == 0, res.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["command"] == "fly" and all((out / f).is_file() for f in summary["files"])
+    rows = list(csv.DictReader((out / "flown.csv").open()))
+    t = np.array([float(r["t_s"]) for r in rows])
+    p = np.array([[float(r["x_m"]), float(r["y_m"]), float(r["z_m"])] for r in rows])
+    assert np.all(np.diff(t) > 0)
+    _limits_hold(t, p, veh)
+    tt = np.arange(t[0], t[-1], 0.05)
+    own = np.column_stack([np.interp(tt, t, p[:, k]) for k in range(3)])
+    feats = json.loads((out / "intruders.geojson").read_text())["features"]
+    n_intr = 0
+    for f in feats:
+        pr = f["properties"]
+        if f["geometry"]["type"] == "LineString":
+            ti, pi = np.asarray(pr["t_s"], float), np.asarray(pr["map_xyz_m"], float)
+            live = (tt >= ti[0]) & (tt <= ti[-1])
+            q = np.column_stack([np.interp(tt[live], ti, pi[:, k]) for k in range(3)])
+            d = np.linalg.norm(own[live] - q, axis=1)
+            need = veh.r_p_m + pr["radius_m"] + sc.traffic.margin_m
+            assert d.size == 0 or d.min() >= need - 1e-6, (pr["id"], float(d.min()), need)
+            n_intr += 1
+        else:
+            zone = Polygon(pr["map_xy_m"]).buffer(veh.r_p_m)
+            active = (tt >= pr["start_s"]) & (tt <= (pr["end_s"] if pr["end_s"] is not None else np.inf))
+            inside = [zone.contains(Point(x, y)) for x, y in own[active, :2]]
+            assert not any(inside), pr["id"]
+    assert n_intr >= 1
+    tac = list(csv.DictReader((out / "tactical.csv").open()))
+    for k in {r["replanning"] for r in tac}:
+        assert sum(r["chosen"] == "true" for r in tac if r["replanning"] == k) == 1
+    assert all(r["compute_s"] not in ("", "nan") for r in tac)
+    if name == "helsinki-contingency":
+        assert summary["fly"]["outcome"] == "landed"
+        land = [r for r in rows if r["part"] == "landing"]
+        assert land and [r["level"] for r in tac] == ["landing"]
+    else:
+        assert summary["fly"]["outcome"] == "goal"
+        assert {r["level"] for r in tac if r["chosen"] == "true"} >= ({"1", "2"} if name == "helsinki-tactical" else {"2"})

@@ -101,7 +101,8 @@ class FlightLog:
     ``t_known_s``, ``t_coll_s`` (inf when the plan was not compromised), ``outcome``: ``"no
     conflict"``, ``"replanned L1"`` ..., ``"landing"``); ``intruders`` and ``nofly``: the
     traffic and temporary zones (truth); ``outcome``: ``"goal"``, ``"landed"`` or
-    ``"failed"`` with ``reason``.  Map context for the figures: ``grid`` (a
+    ``"failed"`` with ``reason``.  Map context for the figures (the maps at the end of the
+    flight, so new obstacles show): ``grid`` (a
     :class:`~skyroute.stages.grid.Grid`), ``terrain_m``, ``surface_m`` and
     ``coverage_floor_m`` (ny, nx) [m] (the floor of the plan's DOP level ``dop_threshold``;
     ``None`` without GNSS data), ``landing_xy`` (k, 2) [m] landing sites; ``energy_Wh``: the

@@ -33,7 +33,7 @@ import numpy as np
 from pyproj import Transformer
 
 from skyroute.stages.base import InputError
-from skyroute.stages.figures import add_map_furniture
+from skyroute.stages.figures import add_map_furniture, grow_until_unclipped
 from skyroute.stages.planning.outputs import crs_of, raster_values, write_csv
 from skyroute.stages.planning.step3 import utc_of
 from skyroute.stages.tactical.log import PART_NAMES, FlightLog
@@ -531,7 +531,8 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
             for i, qq in zip(np.flatnonzero(m), q, strict=True):
                 ax.annotate(f"E{i + 1}", qq[:2], xytext=(5, -3), textcoords="offset points", fontsize=6,
                             color=st["color"], va="top", zorder=8, annotation_clip=True)
-        ax.text(xyz[0, 0], xyz[0, 1], f" {it.id}", fontsize=7, color=st["color"], va="bottom", clip_on=True)
+        ax.text(xyz[0, 0], xyz[0, 1], f" {it.id}", fontsize=7, color=st["color"], va="bottom", clip_on=True,
+                in_layout=False)     # the track may start outside the view: clipped, not laid out
     for kind in sorted(marked):
         st = styles.get(kind, styles["tactical"])
         ax.plot([], [], ls="none", marker=st["marker"], mfc="white", mec=st["color"],
@@ -563,6 +564,7 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
     fig.legend(fontsize=7, loc="outside right upper")
     add_map_furniture(ax)
     files["fly_top.png"] = out / "fly_top.png"
+    grow_until_unclipped(fig)
     fig.savefig(files["fly_top.png"])
     plt.close(fig)
 
@@ -616,6 +618,7 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
     ax.set_title(f"{log.scenario}: tactical replay, vertical profile along the flown path", pad=14)
     fig.legend(fontsize=7, loc="outside right upper")
     files["fly_profile.png"] = out / "fly_profile.png"
+    grow_until_unclipped(fig)
     fig.savefig(files["fly_profile.png"])
     plt.close(fig)
 
@@ -646,6 +649,7 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
     ax.set_title(f"{log.scenario}: tactical replay, ground speed history", pad=14)
     fig.legend(fontsize=7, loc="outside right upper")
     files["fly_speed.png"] = out / "fly_speed.png"
+    grow_until_unclipped(fig)
     fig.savefig(files["fly_speed.png"])
     plt.close(fig)
     return files

@@ -800,11 +800,12 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
     log.compile_s = compile_s
     log.warnings = r.warnings
     log.grid = grid
-    log.terrain_m = np.asarray(world.surface["terrain"].values, float)
-    log.surface_m = np.asarray(world.surface["surface"].values, float)
-    if world.coverage is not None and dop_threshold is not None:
-        log.coverage_floor_m = np.asarray(world.coverage["coverage_floor"].sel(threshold=dop_threshold).values, float)
-    env = world.environment
+    last = r.world          # the maps at the end of the flight (new obstacles, GNSS outages included)
+    log.terrain_m = np.asarray(last.surface["terrain"].values, float)
+    log.surface_m = np.asarray(last.surface["surface"].values, float)
+    if last.coverage is not None and dop_threshold is not None:
+        log.coverage_floor_m = np.asarray(last.coverage["coverage_floor"].sel(threshold=dop_threshold).values, float)
+    env = last.environment
     if env is not None and "site_x" in env.coords:
         log.landing_xy = np.column_stack([env["site_x"].values, env["site_y"].values])
     return log

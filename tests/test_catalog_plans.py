@@ -190,3 +190,30 @@ def test_tactical_scenarios_fly_safely(name, cache, tmp_path):
     else:
         assert summary["fly"]["outcome"] == "goal"
         assert {r["level"] for r in tac if r["chosen"] == "true"} >= ({"1", "2"} if name == "helsinki-tactical" else {"2"})
+
+
+@pytest.mark.slow
+def test_run_writes_the_flight_of_a_scenario_with_events(cache, tmp_path):
+    """``skyroute run`` on a scenario with events also flies it into ``DIR/fly/`` (its own
+    summary.json) and lists those files and the ``fly`` section in the run's summary; an event
+    after the end of the planned flight is refused with one error line (exit 2)."""
+    import json
+
+    from click.testing import CliRunner
+
+    from skyroute.pipeline.cli import main
+
+    out = tmp_path / "run"
+    res = CliRunner().invoke(main, ["run", "helsinki-contingency", "--out", str(out), "--cache-dir", str(cache.root),
+                                    "-q"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "summary.json").read_text())
+    fly = json.loads((out / "fly" / "summary.json").read_text())
+    assert fly["command"] == "fly" and doc["fly"]["outcome"] == fly["fly"]["outcome"] == "landed"
+    assert {f"fly/{f}" for f in fly["files"]} <= set(doc["files"])
+    assert all((out / f).exists() for f in doc["files"])
+    late = tmp_path / "late.yaml"
+    late.write_text("events:\n  - {t_s: 5000, kind: wind, uniform_wind: {speed_mps: 5, direction_deg: 90}}\n")
+    res = CliRunner().invoke(main, ["fly", "helsinki-medical", "--events", str(late), "--out", str(tmp_path / "f"),
+                                    "--cache-dir", str(cache.root)])
+    assert res.exit_code == 2 and "error:" in res.output and "5000" in res.output, res.output

@@ -1,0 +1,35 @@
+"""``skyroute fly`` refuses bad input with one ``error:`` line (exit 2) before any stage runs."""
+
+from __future__ import annotations
+
+from click.testing import CliRunner
+
+from skyroute.pipeline.cli import main
+
+
+def _fly(tmp_path, *args):
+    cache = tmp_path / "cache"
+    res = CliRunner().invoke(main, ["fly", *args, "--out", str(tmp_path / "out"), "--cache-dir", str(cache)])
+    ran = cache.is_dir() and any((cache / "stages").glob("*")) if (cache / "stages").exists() else False
+    return res, ran
+
+
+def test_scenario_without_events(tmp_path):
+    res, ran = _fly(tmp_path, "helsinki-medical")
+    assert res.exit_code == 2 and not ran
+    assert "error: scenario 'helsinki-medical' has no events" in res.output and "--events FILE" in res.output
+
+
+def test_bad_replanning_timeout(tmp_path):
+    res, ran = _fly(tmp_path, "helsinki-tactical", "--t-rep", "0")
+    assert res.exit_code == 2 and not ran
+    assert res.output.startswith("error:") and "t_rep_s" in res.output
+
+
+def test_bad_events_file_names_the_file(tmp_path):
+    f = tmp_path / "ev.yaml"
+    f.write_text("events:\n  - {t_s: 5, kind: fog}\n")
+    res, ran = _fly(tmp_path, "helsinki-medical", "--events", str(f))
+    assert res.exit_code == 2 and not ran
+    assert "ev.yaml" in res.output and "unknown kind 'fog'" in res.output
+    assert "Traceback" not in res.output

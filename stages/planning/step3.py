@@ -202,7 +202,7 @@ def _retimed_conflicts(occupancy, traj: CornerTrajectory, t0_s: float, spacing_m
     return t, p, leg_conflicts(occupancy, p[:-1], t0_s + t[:-1], p[1:], t0_s + t[1:])
 
 
-def _sky_times_s(sky: xr.Dataset, start_time_utc) -> np.ndarray:
+def sky_times_s(sky: xr.Dataset, start_time_utc) -> np.ndarray:
     t = pd.DatetimeIndex(pd.to_datetime(sky["time"].values))
     if t.tz is not None:
         t = t.tz_convert("UTC").tz_localize(None)
@@ -230,7 +230,7 @@ def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc
         raise InputError(f"surface_2d has shape {h.shape}; the problem grid is {g.shape}")
     if not np.isfinite(h).all():
         raise InputError("surface_2d has NaN/inf cells: fill them first")
-    ts = _sky_times_s(sky, start_time_utc)
+    ts = sky_times_s(sky, start_time_utc)
     az = np.asarray(sky["az_deg"].transpose("time", "sat").values, float)
     el = np.asarray(sky["el_deg"].transpose("time", "sat").values, float)
     los_all = np.asarray(sky["los_enu"].transpose("time", "sat", ...).values, float)

@@ -127,7 +127,7 @@ class FlightLog:
     seed: int = 0
     own_radius_m: float = 0.0
     margin_m: float = 0.0
-    compile_s: float = 0.0
+    compile_s: float = 0.0       # [s] kernel compilation and the take-off maps' line-of-sight heights
     warnings: list[str] = field(default_factory=list)
     grid: object | None = None
     terrain_m: np.ndarray | None = None

@@ -427,6 +427,28 @@ class _Replay:
             self.known.zones.append(ev.zone)
         elif ev.changes_maps:
             self.world = self.world_at(ev.t_s)
+            self._grid_obj = None
+            self.prepare_world()
+
+    def prepare_world(self) -> None:
+        """Compute the maps every level reads on the current world once, before the levels
+        are timed (their cost is the replanning's ``update_s``): the line-of-sight heights of
+        every sky epoch from take-off to an hour after the planned arrival, over the whole grid
+        (:func:`~skyroute.stages.planning.step3.line_of_sight` with the world's cache)."""
+        sky = self.world.satellites
+        if sky is None:
+            return
+        from skyroute.stages.planning.step3 import line_of_sight, sky_times_s
+
+        ts = sky_times_s(sky, self.start_time_utc)
+        horizon = self.tl.t_end_s + 3600.0
+        want = ts[(ts >= -120.0) & (ts <= horizon)]
+        if want.size == 0:
+            return
+        prob = self.problem(self.goal, self.goal, zones_from_s=math.inf)
+        pts = np.repeat(self.goal[None], want.size, axis=0)
+        line_of_sight(prob, sky, self.world.surface["surface"].values, want, pts, self.start_time_utc,
+                      cache=self.world.los_cache)
 
     def _effective_time(self, t: float) -> float:
         """``t`` (capped at the end of the plan)."""
@@ -768,9 +790,10 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
     tl.add(Segment(plan_traj, float(plan_t0_s), "strategic", None), float(plan_t0_s))
     t_comp = time.perf_counter()
     _warm_up()
-    compile_s = time.perf_counter() - t_comp
     r = _Replay(tl, goal_xyz, world, world_at, events, strategic_intruders, vehicle, params, start_time_utc,
                 dop_threshold)
+    r.prepare_world()
+    compile_s = time.perf_counter() - t_comp
     try:
         r.run()
     except SkyrouteError:

@@ -180,14 +180,15 @@ def _dot(ax, ay, az, bx, by, bz):
     return ax * bx + ay * by + az * bz
 
 
-@numba.njit(cache=True)
-def _seg_seg_d2(p1, q1, p2, q2):
-    """Squared closest distance between segments p1-q1 and p2-q2 (Ericson, Real-Time
-    Collision Detection, 5.1.9)."""
+@numba.njit(cache=True, nogil=True)
+def seg_seg_d2(p1x, p1y, p1z, q1x, q1y, q1z, p2x, p2y, p2z, q2x, q2y, q2z):
+    """Squared closest distance [m^2] between segments p1-q1 and p2-q2 given by their
+    coordinates (Ericson, Real-Time Collision Detection, 5.1.9): the one implementation
+    (the traffic capsules and the tactical conflict checks call it)."""
     eps = 1e-12
-    d1x, d1y, d1z = q1[0] - p1[0], q1[1] - p1[1], q1[2] - p1[2]
-    d2x, d2y, d2z = q2[0] - p2[0], q2[1] - p2[1], q2[2] - p2[2]
-    rx, ry, rz = p1[0] - p2[0], p1[1] - p2[1], p1[2] - p2[2]
+    d1x, d1y, d1z = q1x - p1x, q1y - p1y, q1z - p1z
+    d2x, d2y, d2z = q2x - p2x, q2y - p2y, q2z - p2z
+    rx, ry, rz = p1x - p2x, p1y - p2y, p1z - p2z
     a = _dot(d1x, d1y, d1z, d1x, d1y, d1z)
     e = _dot(d2x, d2y, d2z, d2x, d2y, d2z)
     f = _dot(d2x, d2y, d2z, rx, ry, rz)
@@ -202,20 +203,26 @@ def _seg_seg_d2(p1, q1, p2, q2):
             t = 0.0
             s = min(max(-c / a, 0.0), 1.0)
         else:
-            bb = _dot(d1x, d1y, d1z, d2x, d2y, d2z)
-            den = a * e - bb * bb
-            s = min(max((bb * f - c * e) / den, 0.0), 1.0) if den > eps * a * e else 0.0
-            t = (bb * s + f) / e
+            b = _dot(d1x, d1y, d1z, d2x, d2y, d2z)
+            den = a * e - b * b
+            s = min(max((b * f - c * e) / den, 0.0), 1.0) if den > eps * a * e else 0.0
+            t = (b * s + f) / e
             if t < 0.0:
                 t = 0.0
                 s = min(max(-c / a, 0.0), 1.0)
             elif t > 1.0:
                 t = 1.0
-                s = min(max((bb - c) / a, 0.0), 1.0)
+                s = min(max((b - c) / a, 0.0), 1.0)
     wx = rx + d1x * s - d2x * t
     wy = ry + d1y * s - d2y * t
     wz = rz + d1z * s - d2z * t
     return wx * wx + wy * wy + wz * wz
+
+
+@numba.njit(cache=True, nogil=True)
+def _seg_seg_d2(p1, q1, p2, q2):
+    """:func:`seg_seg_d2` of segments given as (3,) arrays."""
+    return seg_seg_d2(p1[0], p1[1], p1[2], q1[0], q1[1], q1[2], p2[0], p2[1], p2[2], q2[0], q2[1], q2[2])
 
 
 @numba.njit(cache=True)

@@ -41,7 +41,7 @@ import numba
 import numpy as np
 
 from skyroute.stages.base import InputError
-from skyroute.stages.traffic import Intruder, intruders_from_records
+from skyroute.stages.traffic import Intruder, intruders_from_records, seg_seg_d2
 
 __all__ = ["Conflict", "DTC_RELATIVE_RESOLUTION", "DTC_RESOLUTION_S", "IntruderTracks", "first_conflict", "min_separation",
            "pairwise_conflicts", "pairwise_conflicts_numpy"]
@@ -309,49 +309,6 @@ def _min_sep(ot, op, tt, tp, off, t_from, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def _dot(ax, ay, az, bx, by, bz):
-    return ax * bx + ay * by + az * bz
-
-
-@numba.njit(cache=True, nogil=True)
-def _seg_seg_d2(p1x, p1y, p1z, q1x, q1y, q1z, p2x, p2y, p2z, q2x, q2y, q2z):
-    """Squared closest distance between segments p1-q1 and p2-q2 (Ericson, Real-Time
-    Collision Detection, 5.1.9)."""
-    eps = 1e-12
-    d1x, d1y, d1z = q1x - p1x, q1y - p1y, q1z - p1z
-    d2x, d2y, d2z = q2x - p2x, q2y - p2y, q2z - p2z
-    rx, ry, rz = p1x - p2x, p1y - p2y, p1z - p2z
-    a = _dot(d1x, d1y, d1z, d1x, d1y, d1z)
-    e = _dot(d2x, d2y, d2z, d2x, d2y, d2z)
-    f = _dot(d2x, d2y, d2z, rx, ry, rz)
-    if a <= eps and e <= eps:
-        return _dot(rx, ry, rz, rx, ry, rz)
-    if a <= eps:
-        s = 0.0
-        t = min(max(f / e, 0.0), 1.0)
-    else:
-        c = _dot(d1x, d1y, d1z, rx, ry, rz)
-        if e <= eps:
-            t = 0.0
-            s = min(max(-c / a, 0.0), 1.0)
-        else:
-            b = _dot(d1x, d1y, d1z, d2x, d2y, d2z)
-            den = a * e - b * b
-            s = min(max((b * f - c * e) / den, 0.0), 1.0) if den > eps * a * e else 0.0
-            t = (b * s + f) / e
-            if t < 0.0:
-                t = 0.0
-                s = min(max(-c / a, 0.0), 1.0)
-            elif t > 1.0:
-                t = 1.0
-                s = min(max((b - c) / a, 0.0), 1.0)
-    wx = rx + d1x * s - d2x * t
-    wy = ry + d1y * s - d2y * t
-    wz = rz + d1z * s - d2z * t
-    return wx * wx + wy * wy + wz * wz
-
-
-@numba.njit(cache=True, nogil=True)
 def _pos(t, p, v, lo, hi, x):
     """Position at time x (clamped to the track's span) of track rows lo:hi."""
     x = min(max(x, t[lo]), t[hi - 1])
@@ -374,7 +331,7 @@ def _swept_d2(ot, op, ov, ka, a, b, it, ip, iv, ilo, ihi, dtc):
     while True:
         te = min(_seg_end(it, ilo, ihi, k), tb)
         q1x, q1y, q1z = _at(it, ip, iv, k, te)
-        best = min(best, _seg_seg_d2(ax, ay, az, bx, by, bz, q0x, q0y, q0z, q1x, q1y, q1z))
+        best = min(best, seg_seg_d2(ax, ay, az, bx, by, bz, q0x, q0y, q0z, q1x, q1y, q1z))
         if te >= tb or k >= ihi - 2:
             break
         k += 1

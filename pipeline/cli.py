@@ -141,7 +141,10 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name)
     result = run_scenario(sc, cache=Cache(cache_dir), targets=targets or None, scheduler=scheduler,
                           workers=workers, progress=not quiet and sys.stderr.isatty(), force=force)
-    summary = write_run_outputs(result, out_dir, link=link)
+    fly = None
+    if getattr(sc, "events", ()) and "plan" in result.datasets:
+        fly = _run_fly(sc, result, out_dir, scheduler, quiet)
+    summary = write_run_outputs(result, out_dir, link=link, extra=fly)
     _report_warnings(summary["warnings"])
     plan = summary.get("plan")
     if not quiet:
@@ -151,12 +154,32 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
                    f"{result.seconds:.2f} s -> {out_dir}")
         if plan is not None and plan["status"] == "flyable":
             click.echo(plan_summary_line(plan))
+        if fly is not None:
+            from skyroute.stages.tactical.outputs import fly_summary_line
+
+            click.echo(fly_summary_line(fly["section"]))
     else:
         doc = {"out": str(out_dir), "seconds": round(summary["seconds"], 3)}
         if plan is not None:
             doc["plan"] = plan["status"]
         click.echo(json.dumps(doc))
     _exit_if_no_plan(plan)
+
+
+def _run_fly(sc, result, out_dir: Path, scheduler: str, quiet: bool) -> dict | None:
+    """``skyroute run`` of a scenario with events: the flight replay into ``DIR/fly/`` (its
+    own summary.json); returns the files and the section for the run's summary.  Not done
+    when the strategic plan is not flyable (the run then exits 3 for that)."""
+    from skyroute.pipeline.cli_fly import write_fly_folder
+    from skyroute.pipeline.fly import fly_scenario
+
+    if int(result["plan"].attrs.get("chosen_level", -1)) < 0:
+        return None
+    fr = fly_scenario(sc, result=result, scheduler=scheduler, progress=False)
+    fly_dir = Path(out_dir) / "fly"
+    section = write_fly_folder(fr, fly_dir)
+    doc = json.loads((fly_dir / "summary.json").read_text())
+    return {"files": [f"fly/{f}" for f in doc["files"]], "section": section}
 
 
 def _write_folder_summary(out_dir: Path, command: str, result, files, sections: dict) -> dict:
@@ -381,6 +404,7 @@ def cache_prune(cache_dir, max_size) -> None:
 _PLUGINS = {
     "skyroute.pipeline.cli_gnss": "sky_command",
     "skyroute.pipeline.cli_occlusion": "visibility_height_command",
+    "skyroute.pipeline.cli_fly": "fly_command",
 }
 
 

@@ -61,6 +61,7 @@ def sky_command(almanacs: tuple[str, ...], time_text: str, lat_deg: float, lon_d
              "kind": str(ds["kind"].sel(sat=s).item()) if "kind" in ds else "almanac",
              "ecef_m": [round(float(vis[v].sel(sat=s)), 1) for v in ("x_ecef", "y_ecef", "z_ecef")]}
             for s in vis["sat"].values]
+    # +inf = no fix (stages.dop convention): JSON null, "no fix" in the table
     dops = {k.upper(): (None if not np.isfinite(float(g[k])) else round(float(g[k]), 3))
             for k in ("gdop", "pdop", "hdop", "vdop", "tdop")}
     if as_json:
@@ -79,4 +80,7 @@ def sky_command(almanacs: tuple[str, ...], time_text: str, lat_deg: float, lon_d
         x, y, z = s["ecef_m"]
         flag = "  (standard constellation, idealised)" if s["kind"] == "standard" else ""
         click.echo(f"{s['id']:<5}{s['az_deg']:9.2f}{s['el_deg']:9.2f}{x:15.1f}{y:15.1f}{z:15.1f}{flag}")
-    click.echo("  ".join(f"{k} {'n/a' if v is None else f'{v:.2f}'}" for k, v in dops.items()))
+    if any(v is None for v in dops.values()):
+        click.echo("DOP: no fix (fewer than 4 satellites above the mask, or a singular geometry)")
+    else:
+        click.echo("  ".join(f"{k} {v:.2f}" for k, v in dops.items()))

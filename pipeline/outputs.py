@@ -263,10 +263,12 @@ def _copy_store(src: Path, dst: Path) -> None:
     os.rename(tmp, dst)
 
 
-def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", link: bool = False) -> dict[str, Any]:
+def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", link: bool = False,
+                      extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """Write copies of the cached zarr datasets (symlinks into the cache with ``link``), GeoTIFFs,
     PNG figures, the plan files and ``summary.json`` (see :func:`write_summary`; with a ``plan``
-    section when the plan stage ran).  Copies make the folder self-contained: it survives
+    section when the plan stage ran; ``extra``: ``{"files": [...], "section": {...}}`` of the
+    flight replay written under ``DIR/fly/``, listed here too).  Copies make the folder self-contained: it survives
     ``skyroute cache clear`` and can be archived or moved.
 
     A GeoTIFF or figure is rewritten only when the stage key it was made from changed (or the
@@ -318,6 +320,9 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         from dask.local import get_sync
 
         sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
+    if extra is not None:
+        files.extend(extra["files"])
+        sections["fly"] = extra["section"]
     sc = result.scenario
     remove_stale(out_dir, previous, files, command)
     sections = {

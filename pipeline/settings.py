@@ -10,14 +10,18 @@ its YAML path (``mission.start: altitude 900 m is above constraints.max_altitude
 from __future__ import annotations
 
 import datetime as dt
+import math
 import os
+import re
+from collections.abc import Sequence
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 import yaml
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, TypeAdapter, ValidationError, field_validator, model_validator
 
 from skyroute.pipeline.errors import ScenarioError, UnknownNameError
 from skyroute.pipeline.model import FrozenModel
@@ -113,6 +117,54 @@ class GriddedWind(FrozenModel):
     profile: Literal["levels", "power", "constant"] = "levels"
 
 
+SAT_ID = re.compile(r"^[GERCJ]\d{2}$")
+
+
+def _check_sat_ids(ids: Sequence[str]) -> tuple[str, ...]:
+    bad = [s for s in ids if not SAT_ID.match(str(s))]
+    if bad:
+        raise ValueError(f"satellite id(s) {', '.join(repr(b) for b in bad)} not understood; give them as "
+                         "`skyroute sky` prints them: a system letter G, E, R, C or J and two digits (G05, E11)")
+    return tuple(dict.fromkeys(ids))
+
+
+Vertex = tuple[float, float]
+
+
+def _check_polygon(v: tuple[Vertex, ...], units: str) -> tuple[Vertex, ...]:
+    """A simple polygon: >= 3 distinct vertices, not self-intersecting (shapely's validity)."""
+    import shapely
+    from shapely.validation import explain_validity
+
+    pts = list(v)
+    if len(pts) > 1 and pts[0] == pts[-1]:
+        pts = pts[:-1]  # a closed ring given with its first vertex repeated
+    if len(pts) < 3:
+        raise ValueError(f"a polygon needs at least 3 vertices [{units}], got {len(pts)}")
+    if not all(math.isfinite(c) for p in pts for c in p):
+        raise ValueError("polygon vertices must be finite numbers")
+    poly = shapely.Polygon(pts)
+    if not poly.is_valid:
+        raise ValueError(f"the polygon is not valid ({explain_validity(poly)}): it must not cross itself "
+                         "and its vertices must go around it in order")
+    if poly.area <= 0:
+        raise ValueError("the polygon has no area (its vertices are on one line)")
+    return tuple(pts)
+
+
+class Obstacle(FrozenModel):
+    """A static obstacle burnt into the surface model (e.g. a crane): ``polygon`` in map x/y [m]
+    and its height above the highest ground under it ``height_agl_m`` [m]."""
+
+    polygon: tuple[Vertex, ...]
+    height_agl_m: PositiveFloat
+
+    @field_validator("polygon")
+    @classmethod
+    def _poly(cls, v: tuple[Vertex, ...]) -> tuple[Vertex, ...]:
+        return _check_polygon(v, "x_m, y_m")
+
+
 class DataSources(FrozenModel):
     buildings: BuildingsSource | None = None
     terrain: TerrainSource | None = None
@@ -125,6 +177,7 @@ class DataSources(FrozenModel):
     uniform_wind: UniformWind | None = None
     wind: GriddedWind | None = None
     almanacs: tuple[Path, ...] = ()
+    obstacles: tuple[Obstacle, ...] = ()
 
 
 class MissionPoint(FrozenModel):
@@ -193,6 +246,14 @@ class GnssSettings(FrozenModel):
     window_min: NonNegFloat = 20.0
     step_min: PositiveFloat = 1.0
     uere_m: PositiveFloat = 3.0  # pseudorange error (1 sigma) of the navigation filter [m]
+    # satellites out of service (ids as `skyroute sky` prints them: G05, E11): dropped from the
+    # satellites stage, so every DOP and coverage map is computed without them
+    exclude_satellites: tuple[str, ...] = ()
+
+    @field_validator("exclude_satellites")
+    @classmethod
+    def _sat_ids(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        return _check_sat_ids(v)
 
     @field_validator("dop_thresholds")
     @classmethod
@@ -261,6 +322,244 @@ def parse_planner(raw: dict) -> PlannerSettings:
         raise ScenarioError("planner settings", [f"planner.{p}" for p in _problems_from(exc)]) from None
 
 
+# --------------------------------------------------------------------------- tactical replay
+class TacticalSettings(FrozenModel):
+    """Tactical replay (``skyroute fly``): replanning timeout ``t_rep_s`` [s] (a replan takes
+    effect that long after its event), simulation tick ``tick_s`` [s], random ``seed``, 1-sigma
+    position noise of reported intruder tracks ``intruder_noise_m`` [m], delay between an intruder
+    event and when the ownship knows it ``report_latency_s`` [s], iteration budgets of the level-2
+    and level-3 RRTs, and the level-1 velocity scale factors tried in order."""
+
+    t_rep_s: PositiveFloat = 5.0
+    tick_s: PositiveFloat = 0.1
+    seed: int = 0
+    intruder_noise_m: NonNegFloat = 0.0
+    report_latency_s: NonNegFloat = 0.0
+    level2_iterations: Annotated[int, Field(ge=1)] = 3000
+    level3_iterations: Annotated[int, Field(ge=1)] = 5000
+    time_scaling_factors: tuple[Annotated[float, Field(gt=0, lt=1)], ...] = (0.8, 0.65, 0.5, 0.35, 0.25)
+
+    @field_validator("time_scaling_factors")
+    @classmethod
+    def _some_factor(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not v:
+            raise ValueError("give at least one velocity scale factor in (0, 1), e.g. [0.8, 0.65, 0.5]")
+        return v
+
+    @model_validator(mode="after")
+    def _tick(self) -> TacticalSettings:
+        if self.tick_s > self.t_rep_s:
+            raise ValueError(f"tick_s {self.tick_s:g} s must not exceed t_rep_s {self.t_rep_s:g} s")
+        return self
+
+
+EVENT_KINDS = ("intruder", "intruder_update", "wind", "gnss", "nofly", "obstacle")
+Waypoint = tuple[float, float, float, float]
+
+
+class _EventBase(FrozenModel):
+    t_s: NonNegFloat  # time of the event [s after the mission start]
+    id: str | None = None
+
+    @property
+    def label(self) -> str:
+        """A short name for tables and logs: ``intruder hawk at 10 s``, ``wind at 30 s``."""
+        who = f" {self.id}" if self.id else ""
+        return f"{getattr(self, 'kind', 'event')}{who} at {self.t_s:g} s"
+
+
+class _TrackForms(_EventBase):
+    """An intruder track: ``waypoints`` [[t_s, x_m, y_m, alt_agl_m], ...] (map x/y [m], AGL [m],
+    times strictly increasing) or ``position`` [x_m, y_m, alt_agl_m] + ``velocity_mps`` [vx, vy, vz]
+    [m/s] flown for ``duration_s`` [s] from the event time."""
+
+    via: Literal["uspace", "v2v"] = "uspace"
+    waypoints: tuple[Waypoint, ...] | None = None
+    position: tuple[float, float, float] | None = None
+    velocity_mps: tuple[float, float, float] | None = None
+    duration_s: PositiveFloat = 300.0
+
+    @field_validator("waypoints")
+    @classmethod
+    def _waypoints(cls, v: tuple[Waypoint, ...] | None) -> tuple[Waypoint, ...] | None:
+        if v is None:
+            return v
+        if len(v) < 2:
+            raise ValueError(f"a track needs at least 2 waypoints [[t_s, x_m, y_m, alt_agl_m], ...], got {len(v)}")
+        for k in range(1, len(v)):
+            if not v[k][0] > v[k - 1][0]:
+                raise ValueError(f"times must increase strictly (waypoint {k} at {v[k][0]:g} s is not after "
+                                 f"waypoint {k - 1} at {v[k - 1][0]:g} s)")
+        for k, w in enumerate(v):
+            if w[3] < 0:
+                raise ValueError(f"waypoint {k} at {w[0]:g} s: altitude {w[3]:g} m AGL is below the ground")
+        return v
+
+    @model_validator(mode="after")
+    def _one_form(self):
+        has_wp, has_pos = self.waypoints is not None, self.position is not None
+        if has_wp == has_pos:
+            raise ValueError("give exactly one track form: waypoints [[t_s, x_m, y_m, alt_agl_m], ...] or "
+                             "position [x_m, y_m, alt_agl_m] with velocity_mps [vx, vy, vz]")
+        if has_pos and self.velocity_mps is None:
+            raise ValueError("position [x_m, y_m, alt_agl_m] needs velocity_mps [vx, vy, vz] [m/s]")
+        if has_wp and ({"velocity_mps", "duration_s"} & self.model_fields_set):
+            raise ValueError("velocity_mps and duration_s go with position, not with waypoints")
+        if has_pos:
+            assert self.position is not None
+            if self.position[2] < 0:
+                raise ValueError(f"position altitude {self.position[2]:g} m AGL is below the ground")
+            end = self.track()[-1]
+            if end[3] < 0:
+                raise ValueError(f"the track goes below the ground (altitude {end[3]:g} m AGL at {end[0]:g} s); "
+                                 "shorten duration_s or change velocity_mps")
+        return self
+
+    def track(self) -> np.ndarray:
+        """The track as ``(k, 4)`` rows [t_s, x_m, y_m, alt_agl_m] (position + velocity: two
+        waypoints, at the event time and ``duration_s`` later)."""
+        if self.waypoints is not None:
+            return np.asarray(self.waypoints, dtype=np.float64)
+        assert self.position is not None and self.velocity_mps is not None
+        p, v = np.asarray(self.position, np.float64), np.asarray(self.velocity_mps, np.float64)
+        return np.array([[self.t_s, *p], [self.t_s + self.duration_s, *(p + v * self.duration_s)]])
+
+
+class IntruderEvent(_TrackForms):
+    """A tactical intruder not known at planning time, known from ``t_s`` [s] on (via the
+    U-space service or V2V): ``id``, ``radius_m`` [m] and its track (waypoints or position +
+    velocity)."""
+
+    kind: Literal["intruder"]
+    id: str
+    radius_m: PositiveFloat = 2.0
+
+
+class IntruderUpdateEvent(_TrackForms):
+    """A new track for an intruder known earlier (``traffic.intruders`` or an earlier
+    ``intruder`` event), from ``t_s`` [s] on; ``radius_m`` [m] unchanged when not given."""
+
+    kind: Literal["intruder_update"]
+    id: str
+    radius_m: PositiveFloat | None = None
+
+
+class WindEvent(_EventBase):
+    """A new wind from ``t_s`` [s] on: exactly one of ``uniform_wind`` or ``wind`` (gridded)."""
+
+    kind: Literal["wind"]
+    uniform_wind: UniformWind | None = None
+    wind: GriddedWind | None = None
+
+    @model_validator(mode="after")
+    def _one(self) -> WindEvent:
+        if (self.uniform_wind is None) == (self.wind is None):
+            raise ValueError("give exactly one of uniform_wind {speed_mps, direction_deg} or wind {path, ...}")
+        return self
+
+
+class GnssEvent(_EventBase):
+    """GNSS change from ``t_s`` [s] on: satellites ``out_of_service`` (ids as ``skyroute sky``
+    prints them: G05, E11) and/or a new almanac set ``almanacs`` (paths relative to the YAML)."""
+
+    kind: Literal["gnss"]
+    out_of_service: tuple[str, ...] = ()
+    almanacs: tuple[Path, ...] = ()
+
+    @field_validator("out_of_service")
+    @classmethod
+    def _ids(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        return _check_sat_ids(v)
+
+    @model_validator(mode="after")
+    def _some(self) -> GnssEvent:
+        if not self.out_of_service and not self.almanacs:
+            raise ValueError("give out_of_service [G05, ...] and/or almanacs [file, ...]")
+        return self
+
+
+class _PolygonEvent(_EventBase):
+    """A polygon as ``polygon_lonlat`` [[lon, lat], ...] [deg] or ``polygon`` [[x_m, y_m], ...]
+    in the map CRS [m] (>= 3 vertices, not self-intersecting)."""
+
+    polygon_lonlat: tuple[Vertex, ...] | None = None
+    polygon: tuple[Vertex, ...] | None = None
+
+    @field_validator("polygon_lonlat")
+    @classmethod
+    def _ll(cls, v: tuple[Vertex, ...] | None) -> tuple[Vertex, ...] | None:
+        if v is None:
+            return v
+        for lon, lat in v:
+            if not (-180 <= lon <= 180 and -90 <= lat <= 90):
+                raise ValueError(f"vertex ({lon:g}, {lat:g}) is not [lon, lat] in [-180, 180] x [-90, 90] deg")
+        return _check_polygon(v, "lon, lat")
+
+    @field_validator("polygon")
+    @classmethod
+    def _xy(cls, v: tuple[Vertex, ...] | None) -> tuple[Vertex, ...] | None:
+        return v if v is None else _check_polygon(v, "x_m, y_m")
+
+    @model_validator(mode="after")
+    def _one_polygon(self):
+        if (self.polygon_lonlat is None) == (self.polygon is None):
+            raise ValueError("give exactly one of polygon_lonlat [[lon, lat], ...] [deg] or polygon [[x_m, y_m], ...] [m]")
+        return self
+
+    def polygon_xy(self, sc: Scenario) -> np.ndarray:
+        """The polygon's vertices ``(k, 2)`` in the map CRS of ``sc`` [m]."""
+        if self.polygon is not None:
+            return np.asarray(self.polygon, dtype=np.float64)
+        ll = np.asarray(self.polygon_lonlat, dtype=np.float64)
+        x, y = sc.grid.from_lonlat(ll[:, 0], ll[:, 1])
+        return np.column_stack([x, y]).astype(np.float64)
+
+
+class NoFlyEvent(_PolygonEvent):
+    """A new no-fly zone (e.g. a police operation): polygon, altitude band ``min_agl_m`` ..
+    ``max_agl_m`` [m AGL] and time window ``start_s`` (default: the event time) .. ``end_s``
+    (default: open) [s after the mission start]."""
+
+    kind: Literal["nofly"]
+    min_agl_m: NonNegFloat = 0.0
+    max_agl_m: float = math.inf
+    start_s: NonNegFloat | None = None
+    end_s: float = math.inf
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_start(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("start_s") is None and "t_s" in data:
+            data = {**data, "start_s": data["t_s"]}
+        return data
+
+    @model_validator(mode="after")
+    def _bands(self) -> NoFlyEvent:
+        if not self.max_agl_m > self.min_agl_m:
+            raise ValueError(f"max_agl_m {self.max_agl_m:g} must be above min_agl_m {self.min_agl_m:g}")
+        assert self.start_s is not None
+        if self.start_s < self.t_s:
+            raise ValueError(f"start_s {self.start_s:g} s is before the event time t_s {self.t_s:g} s "
+                             "(a zone cannot be active before it is announced)")
+        if not self.end_s > self.start_s:
+            raise ValueError(f"end_s {self.end_s:g} s must be after start_s {self.start_s:g} s")
+        return self
+
+
+class ObstacleEvent(_PolygonEvent):
+    """A new static obstacle (e.g. a crane): polygon and ``height_agl_m`` [m] above the
+    highest ground under it, burnt into the surface model from ``t_s`` [s] on."""
+
+    kind: Literal["obstacle"]
+    height_agl_m: PositiveFloat
+
+
+#: One scenario event, told apart by its ``kind``.
+Event = Annotated[IntruderEvent | IntruderUpdateEvent | WindEvent | GnssEvent | NoFlyEvent | ObstacleEvent,
+                  Field(discriminator="kind")]
+MAP_EVENT_KINDS = ("wind", "gnss", "obstacle")
+
+
 class Scenario(FrozenModel):
     """A validated scenario catalog entry."""
 
@@ -274,7 +573,14 @@ class Scenario(FrozenModel):
     gnss: GnssSettings = GnssSettings()
     traffic: TrafficSettings = TrafficSettings()
     planner: PlannerSettings = PlannerSettings()
+    tactical: TacticalSettings = TacticalSettings()
+    events: tuple[Event, ...] = ()
     source_path: Path | None = Field(default=None, exclude=True)
+
+    @field_validator("events")
+    @classmethod
+    def _by_time(cls, v: tuple) -> tuple:
+        return tuple(sorted(v, key=lambda e: e.t_s))  # stable: events at one time keep their order
 
     @cached_property
     def grid(self):
@@ -341,18 +647,96 @@ def _resolve_paths(node: Any, base: Path, key: str = "") -> Any:
     return node
 
 
-def _problems_from(exc: ValidationError) -> list[str]:
+def _yaml_path(loc: Sequence[Any]) -> str:
+    """``('events', 2, 'intruder', 'waypoints')`` -> ``events[2].waypoints`` (list indices in
+    brackets; the tag pydantic adds for a tagged union member is not part of the YAML path)."""
+    out = ""
+    for k, p in enumerate(loc):
+        s = str(p)
+        if s.startswith("function-"):
+            continue
+        if isinstance(p, int):
+            out += f"[{p}]"
+        elif k > 0 and isinstance(loc[k - 1], int) and s in EVENT_KINDS:
+            continue
+        else:
+            out += f".{s}" if out else s
+    return out
+
+
+def _problems_from(exc: ValidationError, prefix: Sequence[Any] = ()) -> list[str]:
     out = []
+    kinds = ", ".join(EVENT_KINDS)
     for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"] if not str(p).startswith("function-"))
+        loc = _yaml_path([*prefix, *err["loc"]])
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = ("unknown key (check the spelling; valid keys: catalogs/README.md or "
                    "`python -m skyroute.pipeline.settings_reference`)")
         elif err["type"] == "missing":
             msg = "required key is missing"
+        elif err["type"] == "union_tag_invalid":
+            msg = f"unknown kind {err.get('ctx', {}).get('tag')!r}; kinds: {kinds}"
+        elif err["type"] == "union_tag_not_found":
+            msg = f"give the event's kind: {kinds}"
         out.append(f"{loc or '<root>'}: {msg}")
     return out
+
+
+def _outside_aoi(grid, xy: np.ndarray) -> bool:
+    import shapely
+
+    return not shapely.Polygon(xy).intersects(shapely.box(*grid.bounds))
+
+
+def _event_problems(sc: Scenario, labels: Sequence[str], check: Sequence[bool] | None = None) -> list[str]:
+    """Checks of the (time-sorted) events that need the rest of the scenario: intruder ids,
+    polygons against the AOI, data files.  ``labels[k]``: the YAML path of ``sc.events[k]``
+    (its place in the file); ``check[k]`` False skips an event already checked."""
+    problems: list[str] = []
+    known: dict[str, str] = {i.id: "traffic.intruders" for i in sc.traffic.intruders}
+    first_seen = {e.id: (e.t_s, labels[k]) for k, e in reversed(list(enumerate(sc.events)))
+                  if isinstance(e, IntruderEvent)}
+    try:
+        grid = sc.grid
+    except Exception:  # reported by the AOI check
+        grid = None
+    for k, e in enumerate(sc.events):
+        lab, mine = labels[k], check is None or check[k]
+        if isinstance(e, IntruderEvent):
+            if mine and e.id in known:
+                problems.append(f"{lab}: intruder {e.id!r} is already known ({known[e.id]}); "
+                                "use kind intruder_update to give it a new track")
+            known.setdefault(e.id, lab)
+        elif isinstance(e, IntruderUpdateEvent) and mine and e.id not in known:
+            later = first_seen.get(e.id)
+            hint = (f"; intruder {e.id!r} appears only later, at {later[0]:g} s ({later[1]})" if later else "")
+            problems.append(f"{lab}: intruder_update of unknown intruder {e.id!r} "
+                            f"(known: {', '.join(known) or 'none'}){hint}")
+        if not mine:
+            continue
+        if isinstance(e, _PolygonEvent) and grid is not None:
+            key = "polygon" if e.polygon is not None else "polygon_lonlat"
+            try:
+                xy = e.polygon_xy(sc)
+            except Exception as exc:
+                problems.append(f"{lab}.{key}: cannot place the polygon on the map: {exc}")
+                continue
+            if _outside_aoi(grid, xy):
+                xmin, ymin, xmax, ymax = grid.bounds
+                problems.append(f"{lab}.{key}: the polygon lies outside the AOI x {xmin:.0f}..{xmax:.0f}, "
+                                f"y {ymin:.0f}..{ymax:.0f} m (polygon x {xy[:, 0].min():.0f}..{xy[:, 0].max():.0f}, "
+                                f"y {xy[:, 1].min():.0f}..{xy[:, 1].max():.0f}); check the coordinates"
+                                + (" ([lon, lat] order)" if key == "polygon_lonlat" else " (map CRS metres)"))
+        files: list[tuple[str, Path]] = []
+        if isinstance(e, WindEvent) and e.wind is not None:
+            files = [(f"{lab}.wind.path", e.wind.path)]
+        elif isinstance(e, GnssEvent):
+            files = [(f"{lab}.almanacs", a) for a in e.almanacs]
+        for where, f in files:
+            if not Path(f).is_file():
+                problems.append(f"{where}: data file not found: {f}")
+    return problems
 
 
 def _semantic_problems(sc: Scenario) -> list[str]:
@@ -408,6 +792,9 @@ def _semantic_problems(sc: Scenario) -> list[str]:
             problems.append(f"mission.{name}: altitude {p.alt_agl_m:g} m is above constraints.max_altitude_agl_m {cmax:g}")
         if p.alt_agl_m < cmin:
             problems.append(f"mission.{name}: altitude {p.alt_agl_m:g} m is below constraints.min_altitude_agl_m {cmin:g}")
+    for k, o in enumerate(sc.data.obstacles):
+        if _outside_aoi(grid, np.asarray(o.polygon)):
+            problems.append(f"data.obstacles[{k}].polygon: the polygon lies outside the AOI; check the coordinates (map CRS metres)")
     return problems
 
 
@@ -438,6 +825,14 @@ def _clamp_default_max_altitude(sc: Scenario) -> Scenario:
     return sc.model_copy(update={"constraints": c.model_copy(update={"max_altitude_agl_m": vmax})})
 
 
+def _sorted_labels(raw_events: Any, fmt: str = "events[{}]") -> list[str]:
+    """YAML paths of the events in the order the scenario keeps them (by time, stable)."""
+    if not isinstance(raw_events, list):
+        return []
+    order = sorted(range(len(raw_events)), key=lambda i: float(raw_events[i]["t_s"]))
+    return [fmt.format(i) for i in order]
+
+
 def parse_scenario(raw: Any, source: str = "<scenario>", base: Path | None = None) -> Scenario:
     """Validate a scenario mapping (already parsed YAML).  Raises ScenarioError with every problem."""
     if not isinstance(raw, dict):
@@ -450,6 +845,8 @@ def parse_scenario(raw: Any, source: str = "<scenario>", base: Path | None = Non
         raise ScenarioError(source, _problems_from(exc)) from None
     sc = _clamp_default_max_altitude(sc)
     problems = _semantic_problems(sc)
+    if sc.events:
+        problems += _event_problems(sc, _sorted_labels(raw.get("events")))
     if problems:
         raise ScenarioError(source, problems)
     if base is not None:
@@ -476,3 +873,116 @@ def load_scenario(name_or_path: str | Path = DEFAULT_SCENARIO) -> Scenario:
         what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
         raise ScenarioError(str(p), [f"<file>: not valid YAML{where}: {what}"]) from None
     return parse_scenario(raw, source=str(p), base=p.parent)
+
+
+# --------------------------------------------------------------------------- events
+_EVENTS = TypeAdapter(tuple[Event, ...])
+
+
+def _read_yaml(p: Path) -> Any:
+    try:
+        return yaml.safe_load(p.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ScenarioError(str(p), [f"<file>: not valid YAML{where}: {what}"]) from None
+
+
+def _raw_events_of(path: str | Path) -> list:
+    p = Path(path)
+    if not p.is_file():
+        raise ScenarioError(str(p), [f"<file>: events file not found: {p}"])
+    raw = _read_yaml(p)
+    if isinstance(raw, dict) and set(raw) == {"events"}:
+        raw = raw["events"]
+    if not isinstance(raw, list):
+        raise ScenarioError(str(p), ["<root>: an events file holds a list of events, or a mapping with one key "
+                                     "`events:` holding that list (each event: t_s, kind, ...)"])
+    return _resolve_paths({"events": raw}, p.parent)["events"]
+
+
+def load_events_file(path: str | Path) -> tuple[Event, ...]:
+    """Read and validate an events file: a YAML list of events, or a mapping whose only key
+    ``events`` holds that list (the ``events:`` section of a scenario).  Relative paths
+    (almanacs, gridded wind) are resolved against the file's folder.  Events stay in file order
+    (:func:`with_events` sorts them by time).  Raises ScenarioError naming the file and each
+    problem's YAML path (``events[2]: unknown kind 'fog'; ...``)."""
+    raw = _raw_events_of(path)
+    try:
+        return _EVENTS.validate_python(raw)
+    except ValidationError as exc:
+        raise ScenarioError(str(path), _problems_from(exc, prefix=("events",))) from None
+
+
+def with_events(sc: Scenario, events: Sequence[Event] | str | Path, source: str | None = None) -> Scenario:
+    """``sc`` with ``events`` (a sequence of events, or an events file read with
+    :func:`load_events_file`) appended and the whole list re-validated against the scenario
+    (intruder ids, polygons in the AOI, data files) and sorted by time (stable).  Backs
+    ``skyroute fly --events FILE``; errors name the file (or ``source``) and the event's place in it."""
+    if isinstance(events, str | Path):
+        source = source or str(events)
+        events = load_events_file(events)
+    source = source or "added events"
+    new = list(events)
+    try:
+        new = list(_EVENTS.validate_python(new))  # events built by hand are checked too
+    except ValidationError as exc:
+        raise ScenarioError(source, _problems_from(exc, prefix=("events",))) from None
+    tagged = [(f"scenario events[{i}]", False, e) for i, e in enumerate(sc.events)]
+    tagged += [(f"events[{i}]", True, e) for i, e in enumerate(new)]
+    tagged.sort(key=lambda t: t[2].t_s)
+    out = sc.model_copy(update={"events": tuple(t[2] for t in tagged)})
+    problems = _event_problems(out, [t[0] for t in tagged], [t[1] for t in tagged])
+    if problems:
+        raise ScenarioError(f"{source} (events added to scenario {sc.name!r})", problems)
+    return out
+
+
+def check_event_times(sc: Scenario, mission_end_s: float) -> list[str]:
+    """Problems of events that come after the end of the mission (``mission_end_s`` [s after the
+    start], known only once the plan is made): one line each, for the engine to raise."""
+    out = []
+    for k, e in enumerate(sc.events):
+        if e.t_s > mission_end_s:
+            name = f" {e.id!r}" if e.id else ""
+            out.append(f"events[{k}]: {e.kind} event{name} at {e.t_s:g} s comes after the end of the mission at "
+                       f"{mission_end_s:.1f} s (events are times after the mission start); move it earlier or drop it")
+    return out
+
+
+def scenario_at(sc: Scenario, t_s: float) -> Scenario:
+    """The scenario with every map-changing event up to ``t_s`` [s after the start] applied, so
+    the affected maps are recomputed through the same (cached) stages:
+
+    * ``wind``: replaces ``data.uniform_wind`` / ``data.wind`` (wind stage);
+    * ``gnss``: ``out_of_service`` adds to ``gnss.exclude_satellites``, ``almanacs`` replaces
+      ``data.almanacs`` (satellites stage, then coverage);
+    * ``obstacle``: adds to ``data.obstacles`` (surface stage, then everything built on it).
+
+    ``intruder``, ``intruder_update`` and ``nofly`` events change no map.  Stages whose settings
+    these do not touch keep their cache keys."""
+    data, gnss = sc.data, sc.gnss
+    d_upd: dict[str, Any] = {}
+    excluded = list(gnss.exclude_satellites)
+    obstacles = list(data.obstacles)
+    for e in sc.events:
+        if e.t_s > t_s:
+            break  # sorted by time
+        if isinstance(e, WindEvent):
+            d_upd.update(uniform_wind=e.uniform_wind, wind=e.wind)
+        elif isinstance(e, GnssEvent):
+            excluded += [s for s in e.out_of_service if s not in excluded]
+            if e.almanacs:
+                d_upd["almanacs"] = e.almanacs
+        elif isinstance(e, ObstacleEvent):
+            xy = e.polygon_xy(sc)
+            obstacles.append(Obstacle(polygon=tuple((float(x), float(y)) for x, y in xy), height_agl_m=e.height_agl_m))
+    if len(obstacles) != len(data.obstacles):
+        d_upd["obstacles"] = tuple(obstacles)
+    upd: dict[str, Any] = {}
+    if d_upd:
+        upd["data"] = data.model_copy(update=d_upd)
+    if tuple(excluded) != gnss.exclude_satellites:
+        upd["gnss"] = gnss.model_copy(update={"exclude_satellites": tuple(excluded)})
+    return sc.model_copy(update=upd) if upd else sc

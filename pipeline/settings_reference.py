@@ -74,11 +74,33 @@ def scenario_keys(model: type[BaseModel] = Scenario, prefix: str = "") -> list[t
             else "(section)")
         if isinstance(field.default, Path):
             default = str(field.default)
-        rows.append((key, _type_name(field.annotation), _unit(name), default,
-                     (subs[0].__doc__ or "").strip().split("\n\n")[0] if subs else ""))
+        tags = [_tag(sub) for sub in subs] if len(subs) > 1 else []
+        doc = (f"a list of items told apart by their `kind`: {', '.join(str(t) for t in tags)}" if tags and all(tags)
+               else _first_paragraph(subs[0]) if subs else "")
+        rows.append((key, _type_name(field.annotation), _unit(name), default, doc))
         for sub in subs:
-            rows.extend(scenario_keys(sub, key + ("[]." if get_origin(field.annotation) in (tuple, list) else ".")))
+            tag = _tag(sub) if len(subs) > 1 else None
+            if get_origin(field.annotation) in (tuple, list):
+                if tag:
+                    rows.append((f"{key}[kind={tag}]", sub.__name__, "", "", _first_paragraph(sub)))
+                rows.extend(scenario_keys(sub, f"{key}[kind={tag}]." if tag else f"{key}[]."))
+            else:
+                rows.extend(scenario_keys(sub, key + "."))
+    if prefix.endswith("].") and "[kind=" in prefix:  # a tagged union member: its kind first
+        rows.sort(key=lambda r: r[0] != f"{prefix}kind")
     return rows
+
+
+def _first_paragraph(model: type[BaseModel]) -> str:
+    return (model.__doc__ or "").strip().split("\n\n")[0]
+
+
+def _tag(model: type[BaseModel]) -> str | None:
+    """The ``kind`` of a member of a tagged union (``Literal['wind']`` -> ``wind``)."""
+    f = model.model_fields.get("kind")
+    if f is None or get_origin(f.annotation) is not typing.Literal:
+        return None
+    return str(get_args(f.annotation)[0])
 
 
 def reference_markdown() -> str:

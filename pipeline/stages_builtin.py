@@ -8,7 +8,7 @@ import xarray as xr
 
 from skyroute.pipeline.graph import Stage, register
 from skyroute.pipeline.model import FrozenModel
-from skyroute.pipeline.settings import Scenario
+from skyroute.pipeline.settings import Obstacle, Scenario
 from skyroute.stages.grid import Grid
 
 
@@ -26,6 +26,7 @@ class SurfaceSettings(FrozenModel):
     ground_window_m: float = 60.0
     building_threshold_m: float = 2.5
     raster_sources: tuple[Path, ...] = ()  # files a VRT reads: in the settings so their content is hashed
+    obstacles: tuple[Obstacle, ...] = ()   # static obstacles (tactical events): burnt into `surface`
 
 
 def _vrt_sources(paths) -> tuple[Path, ...]:
@@ -60,6 +61,7 @@ def _surface_settings(sc: Scenario) -> SurfaceSettings:
             surface_nodata=sc.data.surface.nodata, ground_window_m=sc.data.surface.ground_window_m,
             building_threshold_m=sc.data.surface.building_threshold_m)),
         raster_sources=_vrt_sources([*(sc.data.surface.paths if sc.data.surface else ()), *([t.path] if t else [])]),
+        obstacles=sc.data.obstacles,
     )
 
 
@@ -74,6 +76,14 @@ def surface_stage(*, settings: SurfaceSettings) -> xr.Dataset:
                        surface_path=_raster_source(sp) if sp else None,
                        surface_datum=settings.surface_datum, surface_nodata=settings.surface_nodata,
                        ground_window_m=settings.ground_window_m, building_threshold_m=settings.building_threshold_m)
+    if settings.obstacles:
+        from skyroute.stages.surface import burn_obstacles
+
+        burnt = burn_obstacles(ds["surface"].values, ds["terrain"].values, settings.grid,
+                               [(o.polygon, o.height_agl_m) for o in settings.obstacles])
+        ds["surface"] = ds["surface"].copy(data=burnt.astype(ds["surface"].dtype))
+        ds.attrs["obstacles"] = (f"{len(settings.obstacles)} static obstacle(s) burnt into surface "
+                                 "(every touched cell: highest ground under the polygon + height)")
     c = settings.chunk_cells
     return ds.chunk({"y": c, "x": c})
 
@@ -90,6 +100,7 @@ class SatellitesSettings(FrozenModel):
     lon_deg: float
     height_m: float = 0.0
     mask_deg: float = 5.0
+    exclude: tuple[str, ...] = ()  # satellites out of service (ids as `skyroute sky` prints them)
 
 
 def _satellites_settings(sc: Scenario) -> SatellitesSettings:
@@ -101,6 +112,7 @@ def _satellites_settings(sc: Scenario) -> SatellitesSettings:
         times_utc=tuple(t.replace(tzinfo=None).isoformat() for t in sc.mission_times_utc()),
         lat_deg=round(float(lat), 7), lon_deg=round(float(lon), 7),
         mask_deg=sc.gnss.elevation_mask_deg,
+        exclude=tuple(sorted(sc.gnss.exclude_satellites)),
     )
 
 
@@ -114,6 +126,33 @@ def satellites_stage(*, settings: SatellitesSettings) -> xr.Dataset:
     times = np.array(settings.times_utc, dtype="datetime64[ns]")
     ds = sky_geometry(list(settings.almanacs), times, settings.lat_deg, settings.lon_deg,
                       settings.height_m, mask_deg=settings.mask_deg)
+    if settings.exclude:
+        ds = _without_satellites(ds, settings.exclude)
+    return ds
+
+
+def _without_satellites(ds: xr.Dataset, exclude: tuple[str, ...]) -> xr.Dataset:
+    """``ds`` (from ``sky_geometry``) without the satellites ``exclude``, its visibility count and
+    open-sky DOP recomputed from the satellites left."""
+    import json
+
+    import numpy as np
+
+    from skyroute.stages.dop import DOP_NAMES, dop
+
+    sats = [str(s) for s in ds["sat"].values]
+    gone = [s for s in exclude if s in sats]
+    ds = ds.isel(sat=np.array([s not in exclude for s in sats]))
+    above = ds["above_mask"]
+    ds["n_visible"] = above.sum("sat").assign_attrs(ds["n_visible"].attrs)
+    d = dop(ds["az_deg"].where(above), ds["el_deg"].where(above), axis="sat")
+    for k in DOP_NAMES:
+        ds[k] = d[k]
+    ds.attrs["excluded_satellites"] = ", ".join(gone)
+    absent = [s for s in exclude if s not in sats]
+    if absent:
+        ds.attrs["warnings"] = json.dumps([f"satellites {', '.join(absent)} are out of service but not in the "
+                                           "almanacs: nothing to exclude for them"])
     return ds
 
 

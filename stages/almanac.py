@@ -28,7 +28,6 @@ import numpy as np
 import xarray as xr
 
 from skyroute.stages.base import DataError, InputError
-from skyroute.stages.dop import DOP_NAMES, dop
 from skyroute.stages.orbits import (
     GPS_EPOCH,
     SECONDS_PER_WEEK,
@@ -513,8 +512,11 @@ def sky_geometry(almanac_paths: str | Path | Sequence[str | Path], times_utc, la
     ``times_utc``).  ``mask_deg`` [deg] is the elevation mask (0..60).  Variables:
     ``x_ecef, y_ecef, z_ecef`` [m], ``az_deg, el_deg`` [deg], ``los_enu``, ``above_mask``
     (bool), ``n_visible`` and ``gdop, pdop, hdop, vdop, tdop`` (time) of the satellites above
-    the mask.
+    the mask (:func:`skyroute.stages.dop.dop`: +inf where there is no fix, i.e. fewer than 4
+    satellites above the mask or a singular geometry).
     """
+    from skyroute.stages.dop import DOP_NAMES, dop  # numba: imported when computing
+
     mask = check_mask(mask_deg)
     times = as_utc_times(times_utc)
     if isinstance(almanac_paths, str | Path):

@@ -8,7 +8,7 @@ of a satellite is the same from every point, and whether it is in line of sight 
 visible from every altitude ``z >= h_s`` (computed by :mod:`skyroute.stages.occlusion`).  The
 visible set of a column therefore only changes at the sorted visibility heights, and since adding
 a satellite adds a positive semi-definite rank-one term ``g g^T`` to the normal matrix
-``N = G^T G`` (seed 003, eqs. 17-18, here in the local ENU frame with rows
+``N = G^T G`` (the DOP algebra of :mod:`skyroute.stages.dop`: rows
 ``g = [cos(el) sin(az), cos(el) cos(az), sin(el), 1]``), ``Q = N^-1`` and every DOP
 (GDOP, PDOP, HDOP, VDOP, TDOP) never increases with altitude.  Each column's DOP profile is
 computed *exactly* from its breakpoints (rank-one updates of the 4x4 normal matrix and a 4x4
@@ -28,22 +28,22 @@ window (tests: exact line of sight at random points of cells, least-squares DOP)
 epochs nothing is claimed: the default step is one minute so that every whole minute of the
 window is an epoch.
 
-Unflyable cells: ``coverage_floor`` is **NaN** and the boolean ``unflyable`` is True where DOP
-never gets below ``D_j`` under the ceiling in at least one epoch (fewer than 4 satellites, bad
+Conventions: a DOP is **+inf** where there is no fix (fewer than 4 visible satellites or a
+singular geometry) and **NaN** only for missing data (below the surface, in sections and
+volumes), as everywhere in skyroute (:mod:`skyroute.stages.dop`).  Unflyable cells (a coverage
+*floor*, an altitude, not a DOP): ``coverage_floor`` is **NaN** and the boolean ``unflyable`` is
+True where DOP never gets below ``D_j`` under the ceiling in at least one epoch (no fix, bad
 geometry, or the floor above ``ceiling_m``).  The surface must be NaN-free (fill holes first).
 
-Lower bound of DOP (why thresholds must exceed ``c / sqrt(n)``): with ``n`` unit line-of-sight
-vectors ``e_i``, ``A = sum e e^T`` (trace n), ``b = sum e`` and the position block of ``Q`` is
-``S^-1`` with the Schur complement ``S = A - b b^T / n <= A``.  Hence
-``PDOP^2 = tr(S^-1) >= tr(A^-1) >= 9 / tr(A) = 9 / n`` (AM-HM on eigenvalues),
-``HDOP^2 >= 4 / n``, ``VDOP^2 >= 1 / n``, ``TDOP^2 = Q_tt >= 1 / N_tt = 1 / n`` and
-``GDOP^2 >= 10 / n``.  So PDOP < 1 *is* possible with 10 or more satellites (multi-constellation
-receivers do reach it); the "PDOP >= 1" folklore is not a bound.  :func:`coverage_maps` rejects
-thresholds <= ``c / sqrt(n_max)`` (``n_max`` = most satellites above the mask in one epoch),
-which no geometry can reach, and reports the open-sky DOP of the window in the attrs.
+Thresholds must exceed the universal lower bound ``c / sqrt(n)`` of the DOP kind
+(:data:`~skyroute.stages.dop.DOP_BOUND_COEF`, derived in :mod:`skyroute.stages.dop`):
+:func:`coverage_maps` rejects thresholds <= ``c / sqrt(n_max)`` (``n_max`` = most satellites
+above the mask in one epoch), which no geometry can reach, and reports the open-sky DOP of the
+window in the attrs.
 
-Layers: numba kernels (``_*_kernel``), numpy runners (``*_numpy``, one spatial block, all
-epochs), dask runners (``map_blocks`` on an explicit overlap of depth
+Layers: numba kernels (``_*_kernel``, on the 4x4 building blocks of
+:mod:`skyroute.stages.dop`), numpy runners (``*_numpy``, one spatial block, all epochs), dask
+runners (the overlapped blocks of :mod:`skyroute.stages.overlap`, depth
 ``shadow_halo_cells`` at the lowest elevation used) and public xarray functions
 (:func:`coverage_maps`, :func:`dop_section`, :func:`dop_volume`, :func:`column_dop_profile`).
 The (time, sat, y, x) visibility heights are never materialised for the whole map: each block
@@ -63,16 +63,29 @@ import numpy as np
 import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
 
-from skyroute.stages.base import InputError, UnknownNameError
-from skyroute.stages.orbits import check_mask
+from skyroute.stages.base import InputError
+from skyroute.stages.dop import (
+    DOP_BOUND_COEF,
+    DOP_KINDS,
+    add_rank_one,
+    dop_kind_index,
+    dop_lower_bound,
+    dop_of_kind,
+    dop_profile,
+    dop_table,
+    inv4,
+    inv_diag4,
+    los_rows,
+)
+from skyroute.stages.orbits import as_time_sat, check_mask, epoch_directions, window_times
+from skyroute.stages.overlap import BlockFn, ensure_min_chunks, overlap_map, overlap_maps
 
-DOP_KINDS: tuple[str, ...] = ("GDOP", "PDOP", "HDOP", "VDOP", "TDOP")
-"""DOP kinds, in the order of the ``kind`` index used by the kernels."""
-
-DOP_BOUND_COEF: dict[str, float] = {
-    "GDOP": math.sqrt(10.0), "PDOP": 3.0, "HDOP": 2.0, "VDOP": 1.0, "TDOP": 1.0,
-}
-"""``c`` of the universal lower bound ``DOP >= c / sqrt(n)`` for ``n`` satellites (see module doc)."""
+__all__ = [
+    "DOP_BOUND_COEF", "DOP_KINDS", "Chunks", "VisibilityFn", "column_dop_profile",
+    "coverage_floor_numpy", "coverage_from_almanac", "coverage_maps", "dop_kind_index",
+    "dop_lower_bound", "dop_section", "dop_section_numpy", "dop_volume", "los_rows",
+    "open_sky_dop", "window_times",
+]
 
 VisibilityFn = Callable[..., np.ndarray]
 """``fn(surface_2d, az_grid_deg (n,), el_deg (n,), cell_m, origin=(row, col)) -> (n, ny, nx)``
@@ -82,55 +95,6 @@ VisibilityFn = Callable[..., np.ndarray]
 # --------------------------------------------------------------------------------------------
 # numba kernels
 # --------------------------------------------------------------------------------------------
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _inv_diag4(nm: np.ndarray, lo: np.ndarray, mi: np.ndarray, q: np.ndarray) -> bool:
-    """Diagonal of ``inv(nm)`` for a symmetric 4x4 ``nm`` into ``q`` (Cholesky).  False when
-    ``nm`` is (numerically) singular.  ``lo``, ``mi``: 4x4 scratch."""
-    for j in range(4):
-        s = nm[j, j]
-        for k in range(j):
-            s -= lo[j, k] * lo[j, k]
-        if s <= 1e-10 * nm[j, j] or s <= 0.0:
-            return False
-        d = math.sqrt(s)
-        lo[j, j] = d
-        for i in range(j + 1, 4):
-            t = nm[i, j]
-            for k in range(j):
-                t -= lo[i, k] * lo[j, k]
-            lo[i, j] = t / d
-    # mi = inv(lo), lower triangular
-    for i in range(4):
-        mi[i, i] = 1.0 / lo[i, i]
-        for j in range(i):
-            t = 0.0
-            for k in range(j, i):
-                t -= lo[i, k] * mi[k, j]
-            mi[i, j] = t / lo[i, i]
-        for j in range(i + 1, 4):
-            mi[i, j] = 0.0
-    # inv(nm) = mi^T mi  ->  diag_j = sum_i mi[i, j]^2
-    for j in range(4):
-        t = 0.0
-        for i in range(j, 4):
-            t += mi[i, j] * mi[i, j]
-        q[j] = t
-    return True
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _dop_of_kind(q: np.ndarray, kind: int) -> float:
-    if kind == 0:
-        return math.sqrt(q[0] + q[1] + q[2] + q[3])
-    if kind == 1:
-        return math.sqrt(q[0] + q[1] + q[2])
-    if kind == 2:
-        return math.sqrt(q[0] + q[1])
-    if kind == 3:
-        return math.sqrt(q[2])
-    return math.sqrt(q[3])
-
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _sorted_column(h: np.ndarray, i: int, j: int, hs: np.ndarray, order: np.ndarray) -> int:
@@ -150,36 +114,6 @@ def _sorted_column(h: np.ndarray, i: int, j: int, hs: np.ndarray, order: np.ndar
         order[p] = s
         m += 1
     return m
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _inv4(nm: np.ndarray, lo: np.ndarray, mi: np.ndarray, qm: np.ndarray) -> bool:
-    """Full ``inv(nm)`` of a symmetric 4x4 ``nm`` into ``qm`` (Cholesky, same singularity
-    test as :func:`_inv_diag4`).  False when ``nm`` is (numerically) singular."""
-    if not _inv_diag4(nm, lo, mi, qm[0]):
-        return False
-    # inv(nm) = mi^T mi with mi = inv(cholesky factor), lower triangular
-    for a in range(4):
-        for b in range(a, 4):
-            t = 0.0
-            for i in range(b, 4):
-                t += mi[i, a] * mi[i, b]
-            qm[a, b] = t
-            qm[b, a] = t
-    return True
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _add_rank_one(qm: np.ndarray, gs: np.ndarray, u: np.ndarray) -> None:
-    """``qm <- inv(inv(qm) + gs gs^T)`` (Sherman-Morrison; ``1 + g^T Q g >= 1`` for a
-    positive definite ``qm``, so no cancellation in the denominator).  ``u``: scratch (4,)."""
-    for a in range(4):
-        u[a] = qm[a, 0] * gs[0] + qm[a, 1] * gs[1] + qm[a, 2] * gs[2] + qm[a, 3] * gs[3]
-    s = 1.0 / (1.0 + gs[0] * u[0] + gs[1] * u[1] + gs[2] * u[2] + gs[3] * u[3])
-    for a in range(4):
-        ua = u[a] * s
-        for b in range(4):
-            qm[a, b] -= ua * u[b]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -233,20 +167,20 @@ def _floor_epoch_kernel(h, g, thresholds, kind, out):
                     if vals[s] == z:
                         gs = g[s]
                         if regular:
-                            _add_rank_one(qm, gs, u)
+                            add_rank_one(qm, gs, u)
                         else:
-                            for a in range(4):  # lower triangle (all _inv4 reads)
+                            for a in range(4):  # lower triangle (all inv4 reads)
                                 for b in range(a + 1):
                                     nm[a, b] += gs[a] * gs[b]
                         k += 1
                 z_prev = z
                 if not regular:
-                    if k < 4 or not _inv4(nm, lo, mi, qm):
+                    if k < 4 or not inv4(nm, lo, mi, qm):
                         continue
                     regular = True
                 for a in range(4):
                     q[a] = qm[a, a]
-                d = _dop_of_kind(q, kind)
+                d = dop_of_kind(q, kind)
                 while jj >= 0 and d < thresholds[jj]:
                     if z > out[jj, i, j]:
                         out[jj, i, j] = z
@@ -289,9 +223,9 @@ def _section_epoch_kernel(h, g, surface, altitudes, out):
                     for c in range(5):
                         prof[k + 1, c] = np.inf
                     continue
-                if _inv_diag4(nm, lo, mi, q):
+                if inv_diag4(nm, lo, mi, q):
                     for c in range(5):
-                        prof[k + 1, c] = _dop_of_kind(q, c)
+                        prof[k + 1, c] = dop_of_kind(q, c)
                 else:
                     for c in range(5):
                         prof[k + 1, c] = np.inf
@@ -309,52 +243,9 @@ def _section_epoch_kernel(h, g, surface, altitudes, out):
                     out[a, c + 1, i, j] = prof[kv, c]
 
 
-@numba.njit(cache=True, nogil=True)
-def _profile_kernel(hs, gs):
-    """DOP profile of one column with heights ``hs`` already sorted ascending: (n, 5) DOPs
-    after adding satellite k (inf with fewer than 4 or singular geometry)."""
-    n = hs.shape[0]
-    prof = np.full((n, 5), np.inf)
-    nm = np.zeros((4, 4))
-    lo = np.zeros((4, 4))
-    mi = np.zeros((4, 4))
-    q = np.zeros(4)
-    for k in range(n):
-        for a in range(4):
-            for b in range(4):
-                nm[a, b] += gs[k, a] * gs[k, b]
-        if k + 1 >= 4 and _inv_diag4(nm, lo, mi, q):
-            for c in range(5):
-                prof[k, c] = _dop_of_kind(q, c)
-    return prof
-
-
 # --------------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------------
-
-def los_rows(az_deg: np.ndarray, el_deg: np.ndarray) -> np.ndarray:
-    """Rows ``[cos(el) sin(az), cos(el) cos(az), sin(el), 1]`` (ENU unit vector and clock) of
-    the geometry matrix for azimuths/elevations [deg]; shape ``az.shape + (4,)``."""
-    az = np.deg2rad(np.asarray(az_deg, dtype=np.float64))
-    el = np.deg2rad(np.asarray(el_deg, dtype=np.float64))
-    ce = np.cos(el)
-    return np.stack([ce * np.sin(az), ce * np.cos(az), np.sin(el), np.ones_like(az)], axis=-1)
-
-
-def dop_kind_index(dop: str) -> int:
-    """Index of a DOP kind name (case-insensitive) in :data:`DOP_KINDS`."""
-    name = str(dop).upper()
-    if name not in DOP_KINDS:
-        raise UnknownNameError("DOP kind", str(dop), DOP_KINDS)
-    return DOP_KINDS.index(name)
-
-
-def dop_lower_bound(dop: str, n_sat: int) -> float:
-    """Universal lower bound ``c / sqrt(n)`` of a DOP kind with ``n_sat`` satellites (any
-    geometry; see the module docstring for the derivation)."""
-    return DOP_BOUND_COEF[DOP_KINDS[dop_kind_index(dop)]] / math.sqrt(max(int(n_sat), 1))
-
 
 def _default_visibility() -> VisibilityFn:
     from skyroute.stages.occlusion import visibility_heights_numpy
@@ -377,17 +268,6 @@ def _grid_azimuth(true_az_deg: np.ndarray, surface: xr.DataArray) -> np.ndarray:
     az = np.asarray(true_az_deg, dtype=np.float64)
     out = np.asarray(grid_azimuth_deg(np.nan_to_num(az), surface), dtype=np.float64)
     return np.where(np.isfinite(az), out, np.nan)
-
-
-def _epoch_directions(az_deg: np.ndarray, el_deg: np.ndarray, mask_deg: float
-                      ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per epoch, the (az, el) [deg] of the satellites at or above the mask."""
-    out = []
-    for t in range(az_deg.shape[0]):
-        ok = (np.isfinite(az_deg[t]) & np.isfinite(el_deg[t]) & (el_deg[t] >= mask_deg)
-              & (el_deg[t] > 0.0))
-        out.append((az_deg[t, ok], el_deg[t, ok]))
-    return out
 
 
 def _visibility(fn: VisibilityFn, surface: np.ndarray, az: np.ndarray, el: np.ndarray,
@@ -433,7 +313,7 @@ def _floor_block(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg: np.nda
     surface_2d = np.ascontiguousarray(surface_2d, dtype=np.float32)
     thr = np.ascontiguousarray(thresholds, dtype=np.float64)
     out = np.full((thr.size,) + surface_2d[core].shape, -np.inf, dtype)
-    dirs = _epoch_directions(np.asarray(az_grid_deg, float), np.asarray(el_deg, float), mask_deg)
+    dirs = epoch_directions(np.asarray(az_grid_deg, float), np.asarray(el_deg, float), mask_deg)
     for t in range(len(dirs)) if epochs is None else epochs:
         az, el = dirs[t]
         h = np.ascontiguousarray(_visibility(fn, surface_2d, az, el, cell_m, origin))
@@ -461,7 +341,7 @@ def _section_block(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg: np.n
     fn = visibility_fn or _default_visibility()
     surface_2d = np.ascontiguousarray(surface_2d, dtype=np.float32)
     alts = np.ascontiguousarray(altitudes_m, dtype=np.float64)
-    dirs = _epoch_directions(np.asarray(az_grid_deg, float), np.asarray(el_deg, float), mask_deg)
+    dirs = epoch_directions(np.asarray(az_grid_deg, float), np.asarray(el_deg, float), mask_deg)
     surf_core = surface_2d[core]
     out = np.empty((len(dirs), alts.size, 6) + surf_core.shape, np.float32)
     for t, (az, el) in enumerate(dirs):
@@ -473,77 +353,8 @@ def _section_block(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg: np.n
 
 
 # --------------------------------------------------------------------------------------------
-# dask runners
+# dask runners (block sizing and epoch split; the overlapped blocks: stages/overlap.py)
 # --------------------------------------------------------------------------------------------
-
-def _min_chunks(arr: da.Array, depth: tuple[int, int]) -> da.Array:
-    """Rechunk so that every block is at least ``depth`` cells wide (dask's overlap needs it)."""
-    new = []
-    for c, d in zip(arr.chunks, depth, strict=True):
-        if len(c) == 1 or min(c) >= d:
-            new.append(c)
-            continue
-        size, b = sum(c), max(c[0], d)
-        cs = [b] * (size // b)
-        rem = size - sum(cs)
-        if rem and rem < d:
-            cs[-1] += rem
-        elif rem:
-            cs.append(rem)
-        new.append(tuple(cs))
-    return arr if tuple(new) == arr.chunks else arr.rechunk(tuple(new))
-
-
-BlockFn = Callable[[np.ndarray, tuple[int, int], tuple[slice, slice]], np.ndarray]
-"""``fn(block, origin, core) -> (..., core_y, core_x)``: a 2D block with its halo, the (row, col)
-of ``block[0, 0]`` in the map and the window of the block's own cells in it."""
-
-
-def _overlap_prepare(surface: da.Array, depth: int) -> tuple[da.Array, int, int]:
-    """(surface rechunked so that every block is at least the halo wide, halo rows, halo
-    columns); no halo along an axis with one block."""
-    dy = int(min(depth, surface.shape[0]))
-    dx = int(min(depth, surface.shape[1]))
-    surface = _min_chunks(surface, (dy, dx))
-    dy = dy if len(surface.chunks[0]) > 1 else 0
-    dx = dx if len(surface.chunks[1]) > 1 else 0
-    return surface, dy, dx
-
-
-def _overlap_maps(surface: da.Array, depth: int, fns: Sequence[BlockFn],
-                  lead_chunks: tuple[tuple[int, ...], ...], dtype: Any) -> list[da.Array]:
-    """Apply each ``fn(block, origin, core)`` (see :data:`BlockFn`) on every block of
-    ``surface`` extended by ``depth`` cells of its neighbours (none beyond the map edge, like
-    the unchunked computation); one dask array (lead dims, y, x) per ``fn``, all sharing the
-    overlapped blocks."""
-    surface, dy, dx = _overlap_prepare(surface, depth)
-    ext = (da.overlap.overlap(surface, depth={0: dy, 1: dx}, boundary="none")
-           if dy or dx else surface)
-    chunks_y, chunks_x = surface.chunks
-    start_y = np.r_[0, np.cumsum(chunks_y)[:-1]]
-    start_x = np.r_[0, np.cumsum(chunks_x)[:-1]]
-    n_lead = len(lead_chunks)
-
-    def make(fn: BlockFn) -> da.Array:
-        def block(b: np.ndarray, block_info: dict | None = None) -> np.ndarray:
-            iy, ix = block_info[None]["chunk-location"][-2:]
-            top = dy if iy > 0 else 0
-            left = dx if ix > 0 else 0
-            core = (slice(top, top + chunks_y[iy]), slice(left, left + chunks_x[ix]))
-            return fn(np.asarray(b), (int(start_y[iy]) - top, int(start_x[ix]) - left), core)
-
-        return da.map_blocks(block, ext, chunks=lead_chunks + (chunks_y, chunks_x),
-                             new_axis=list(range(n_lead)) if n_lead else None,
-                             dtype=dtype, meta=np.empty((0,) * (n_lead + 2), dtype))
-
-    return [make(fn) for fn in fns]
-
-
-def _overlap_map(surface: da.Array, depth: int, fn: BlockFn,
-                 lead_chunks: tuple[tuple[int, ...], ...], dtype: Any) -> da.Array:
-    """:func:`_overlap_maps` with one function."""
-    return _overlap_maps(surface, depth, [fn], lead_chunks, dtype)[0]
-
 
 #: Fewer spatial blocks than this: one dask task per (block, epoch), reduced by a max over the
 #: epochs, so that a few large blocks still keep every worker busy (the epochs share nothing
@@ -590,29 +401,6 @@ def _auto_block_cells(shape: tuple[int, int], halo: int, n_sat: int, n_lead: int
 # --------------------------------------------------------------------------------------------
 # public xarray layer
 # --------------------------------------------------------------------------------------------
-
-def _as_time_sat(az_deg: Any, el_deg: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """Validate (time, sat) azimuth/elevation [deg]; a 1D input is one epoch."""
-    meta: dict[str, Any] = {}
-    if isinstance(az_deg, xr.DataArray) and "time" in az_deg.dims:
-        meta["time"] = az_deg["time"].values if "time" in az_deg.coords else None
-        if "sat" in az_deg.dims:
-            az_deg = az_deg.transpose("time", "sat")
-            if isinstance(el_deg, xr.DataArray) and "sat" in el_deg.dims:
-                el_deg = el_deg.transpose("time", "sat")
-    az = np.asarray(az_deg, dtype=np.float64)
-    el = np.asarray(el_deg, dtype=np.float64)
-    if az.shape != el.shape:
-        raise InputError(f"azimuth shape {az.shape} and elevation shape {el.shape} differ: "
-                         "give both as (time, sat) arrays of the same satellites")
-    if az.ndim == 1:
-        az, el = az[None, :], el[None, :]
-    if az.ndim != 2 or az.shape[0] == 0 or az.shape[1] == 0:
-        raise InputError(f"azimuth/elevation must be (time, sat) arrays, got shape {az.shape}")
-    if np.any(np.abs(el[np.isfinite(el)]) > 90.0):
-        raise InputError("elevations must be in [-90, 90] deg; did you pass radians or swap az/el?")
-    return az, el, meta
-
 
 def _check_surface(surface: xr.DataArray) -> float:
     if not isinstance(surface, xr.DataArray) or surface.dims[-2:] != ("y", "x") or surface.ndim != 2:
@@ -714,13 +502,12 @@ def _window_attrs(meta: dict[str, Any], n_epochs: int) -> dict[str, Any]:
 
 
 def open_sky_dop(az_deg: Any, el_deg: Any, mask_deg: float = 5.0) -> np.ndarray:
-    """``(time, 5)`` GDOP, PDOP, HDOP, VDOP, TDOP with every satellite above the mask visible."""
-    az, el, _ = _as_time_sat(az_deg, el_deg)
-    out = np.full((az.shape[0], 5), np.inf)
-    for t, (a, e) in enumerate(_epoch_directions(az, el, check_mask(mask_deg))):
-        if a.size:
-            out[t] = _profile_kernel(np.zeros(a.size), np.ascontiguousarray(los_rows(a, e)))[-1]
-    return out
+    """``(time, 5)`` GDOP, PDOP, HDOP, VDOP, TDOP with every satellite above the mask visible
+    (+inf: no fix)."""
+    az, el, _ = as_time_sat(az_deg, el_deg)
+    mask = check_mask(mask_deg)
+    ok = np.isfinite(az) & np.isfinite(el) & (el >= mask) & (el > 0.0)
+    return dop_table(np.where(ok, az, np.nan), np.where(ok, el, np.nan))
 
 
 def column_dop_profile(visibility_height_m: Any, az_deg: Any, el_deg: Any,
@@ -741,7 +528,7 @@ def column_dop_profile(visibility_height_m: Any, az_deg: Any, el_deg: Any,
     h, az, el = h[ok], az[ok], el[ok]
     order = np.argsort(h, kind="stable")
     h = h[order]
-    prof = _profile_kernel(h, np.ascontiguousarray(los_rows(az[order], el[order])))
+    prof = dop_profile(los_rows(az[order], el[order]))
     last = np.r_[h[1:] != h[:-1], True] if h.size else np.zeros(0, bool)
     res = {"altitude_m": h[last], "n_visible": np.flatnonzero(last) + 1}
     for c, name in enumerate(DOP_KINDS):
@@ -790,7 +577,7 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
     The worst case over epochs is taken: a cell is unflyable if any epoch fails.
     """
     cell = _check_surface(surface)
-    az, el, meta = _as_time_sat(az_deg, el_deg)
+    az, el, meta = as_time_sat(az_deg, el_deg)
     kind = dop_kind_index(dop)
     kind_name = DOP_KINDS[kind]
     mask = check_mask(mask_deg)
@@ -800,7 +587,7 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
                          "DOP values, e.g. (2, 3, 4)")
     thr = np.unique(thr)  # sorted, duplicates dropped
     n_max = int(max(np.sum(np.isfinite(el) & (el >= mask), axis=1).max(), 0))
-    bound = DOP_BOUND_COEF[kind_name] / math.sqrt(max(n_max, 1))
+    bound = dop_lower_bound(kind_name, n_max)
     if thr[0] <= bound:
         raise InputError(
             f"{kind_name} threshold {thr[0]:g} can never be reached: with at most {n_max} "
@@ -815,7 +602,7 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
     fn = visibility_fn or _default_visibility()
 
     if isinstance(data, da.Array):
-        data, dy, dx = _overlap_prepare(data, depth)
+        data, _, _ = ensure_min_chunks(data, depth)
         n_epochs = az.shape[0]
         if n_epochs > 1 and data.npartitions < _EPOCH_SPLIT_BELOW_BLOCKS:
             epoch_sets: list[tuple[int, ...] | None] = [(t,) for t in range(n_epochs)]
@@ -824,7 +611,7 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
         runs = [functools.partial(_floor_block, az_grid_deg=az_grid, el_deg=el, cell_m=cell,
                                   thresholds=thr, kind=kind, mask_deg=mask, visibility_fn=fn,
                                   epochs=ep, dtype=np.float32) for ep in epoch_sets]
-        parts = _overlap_maps(data, depth, [_as_block_fn(r) for r in runs], ((thr.size,),),
+        parts = overlap_maps(data, depth, [_as_block_fn(r) for r in runs], ((thr.size,),),
                               np.float32)
         raw = parts[0] if len(parts) == 1 else da.stack(parts).max(axis=0)
     else:
@@ -868,7 +655,7 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
 def _prepare_sections(surface: xr.DataArray, az_deg: Any, el_deg: Any, altitudes_m: Any,
                       mask_deg: float) -> tuple:
     cell = _check_surface(surface)
-    az, el, meta = _as_time_sat(az_deg, el_deg)
+    az, el, meta = as_time_sat(az_deg, el_deg)
     mask = check_mask(mask_deg)
     alts = np.atleast_1d(np.asarray(altitudes_m, dtype=np.float64))
     if alts.ndim != 1 or alts.size == 0 or not np.all(np.isfinite(alts)):
@@ -888,7 +675,7 @@ def _section_array(surface: xr.DataArray, az: np.ndarray, el: np.ndarray, cell: 
     if isinstance(data, da.Array):
         run = functools.partial(_section_block, az_grid_deg=az_grid, el_deg=el, cell_m=cell,
                                 altitudes_m=alts, mask_deg=mask, visibility_fn=fn)
-        return _overlap_map(data, depth, _as_block_fn(run),
+        return overlap_map(data, depth, _as_block_fn(run),
                             ((az.shape[0],), (alts.size,), (6,)), np.float32)
     return dop_section_numpy(data, az_grid, el, cell, alts, mask, fn)
 
@@ -952,18 +739,6 @@ def dop_volume(surface: xr.DataArray, az_deg: Any, el_deg: Any, z_m: Any, *,
         "long_name": f"{DOP_KINDS[kind]}" + (" (worst case over the window)" if reduce else ""),
         "units": "1", "mask_deg": mask, **_window_attrs(meta, az.shape[0]),
         "comment": "+inf with fewer than 4 visible satellites; NaN below the surface"})
-
-
-def window_times(start_utc: Any, window_min: float = 20.0, step_min: float = 1.0) -> np.ndarray:
-    """Epochs [datetime64[s], UTC] of a time window: ``start``, ``start + step``, ... up to and
-    including ``start + window`` (default 20 min at every whole minute = 21 epochs; the
-    coverage floor is only claimed at the epochs: benchmarks/bench_coverage.py measures the
-    cost of 1 min vs seed 001's 5 min)."""
-    if not (step_min > 0 and window_min >= 0):
-        raise InputError(f"need step_min > 0 and window_min >= 0, got {step_min}, {window_min}")
-    start = np.datetime64(np.datetime64(start_utc, "s"))
-    n = int(math.floor(window_min / step_min + 1e-9)) + 1
-    return start + (np.arange(n) * step_min * 60.0).astype("timedelta64[s]")
 
 
 def coverage_from_almanac(surface: xr.DataArray, almanac_paths: Any, start_utc: Any, *,

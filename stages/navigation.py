@@ -46,6 +46,8 @@ sqrt(P_EE + P_NN)`` (horizontal), ``sigma_v_m = sqrt(P_UU)`` (vertical).
 
 from __future__ import annotations
 
+import functools
+
 import numba
 import numpy as np
 import scipy.linalg
@@ -87,8 +89,18 @@ def continuous_model(imu: ImuSpec, clock_h0: float = TCXO_H0, clock_hm2: float =
 
 
 def discretise(F: np.ndarray, Qc: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact transition matrix and process-noise covariance over ``dt_s`` (Van Loan 1978)."""
-    n = F.shape[0]
+    """Exact transition matrix and process-noise covariance over ``dt_s`` (Van Loan 1978).
+    Results are memoised per (F, Qc, dt) (a bounded LRU: trajectories repeat their steps)."""
+    F = np.ascontiguousarray(F, dtype=float)
+    Qc = np.ascontiguousarray(Qc, dtype=float)
+    phi, qd = _discretise_memo(F.tobytes(), Qc.tobytes(), F.shape[0], float(dt_s))
+    return phi.copy(), qd.copy()
+
+
+@functools.lru_cache(maxsize=4096)
+def _discretise_memo(f_bytes: bytes, q_bytes: bytes, n: int, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    F = np.frombuffer(f_bytes).reshape(n, n)
+    Qc = np.frombuffer(q_bytes).reshape(n, n)
     M = np.zeros((2 * n, 2 * n))
     M[:n, :n] = -F
     M[:n, n:] = Qc

@@ -54,7 +54,8 @@ Conservative bound (the contract)
 
 Layers: the numba kernel :func:`_scan_kernel`, the numpy runner
 :func:`visibility_heights_numpy`, the dask runner :func:`visibility_heights_dask`
-(``map_overlap``-style, halo from the data: :func:`shadow_halo_cells`), and the public
+(overlapped blocks of :mod:`skyroute.stages.overlap`, halo from the data:
+:func:`shadow_halo_cells`), and the public
 :func:`visibility_height` on ``xarray`` rasters.
 """
 
@@ -516,48 +517,25 @@ def visibility_heights_dask(surface, az_grid_deg, el_deg, cell_m: float, *,
     data's max/min and the lowest elevation; computed eagerly) on every side, so results are
     bit-identical to the unchunked runner.  Boundary: outside the map there is no obstacle
     (``boundary="none"``: edge blocks get no padding).  Chunks smaller than the halo are
-    merged (rechunk) first.  ``fill_nan="nearest"`` fills NaN holes per overlapped block.
+    merged (rechunk) first (runner: :func:`skyroute.stages.overlap.overlap_map`).
+    ``fill_nan="nearest"`` fills NaN holes per overlapped block.
     """
     import dask.array as dsa
+
+    from skyroute.stages.overlap import overlap_map
 
     arr = surface if _is_dask(surface) else dsa.from_array(np.asarray(surface))
     az = np.atleast_1d(np.asarray(az_grid_deg, dtype=np.float64))
     el = np.atleast_1d(np.asarray(el_deg, dtype=np.float64))
     hmax, hmin = _nan_extrema(arr)
     halo = _halo_from_relief(hmax - hmin, float(el.min()), cell_m)
-    # every chunk must be at least as wide as the overlap: merge small ones first
-    depth = {}
-    new_chunks = {}
-    for ax in (0, 1):
-        dim = arr.shape[ax]
-        chunks = arr.chunks[ax]
-        d = min(halo, dim)
-        if len(chunks) > 1 and min(chunks) < d:
-            size = max(d, max(chunks))
-            n_full, rem = divmod(dim, size)
-            merged = [size] * n_full + ([rem] if rem else [])
-            if 0 < rem < d:
-                merged = merged[:-2] + [size + rem]
-            new_chunks[ax] = tuple(merged)
-            chunks = new_chunks[ax]
-        depth[ax] = 0 if len(chunks) == 1 else d
-    if new_chunks:
-        arr = arr.rechunk(new_chunks)
-    starts = [np.concatenate([[0], np.cumsum(c)[:-1]]) for c in arr.chunks]
-    g = dsa.overlap.overlap(arr, depth=depth, boundary={0: "none", 1: "none"})
-    n = az.size
 
-    def block(h, block_info=None):
-        bi, bj = block_info[0]["chunk-location"]
-        r0 = int(starts[0][bi]) - (depth[0] if bi > 0 else 0)
-        c0 = int(starts[1][bj]) - (depth[1] if bj > 0 else 0)
+    def block(h: np.ndarray, origin: tuple[int, int], core: tuple[slice, slice]) -> np.ndarray:
         if fill_nan == "nearest":
             h = _fill_nearest(h)
-        return visibility_heights_numpy(h, az, el, cell_m, origin=(r0, c0))
+        return visibility_heights_numpy(h, az, el, cell_m, origin=origin)[(slice(None),) + core]
 
-    res = g.map_blocks(block, new_axis=0, chunks=((n,),) + g.chunks, dtype=np.float32)
-    return dsa.overlap.trim_internal(res, {0: 0, 1: depth[0], 2: depth[1]},
-                                     boundary={0: "none", 1: "none", 2: "none"})
+    return overlap_map(arr, halo, block, ((az.size,),), np.float32)
 
 
 def _fill_nearest(h: np.ndarray) -> np.ndarray:

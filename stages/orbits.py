@@ -18,7 +18,9 @@ Conventions
 from __future__ import annotations
 
 import datetime as _dt
+import math
 import warnings
+from typing import Any
 
 import numpy as np
 import xarray as xr
@@ -318,3 +320,54 @@ def check_mask(mask_deg: float) -> float:
     if not (0.0 <= m <= 60.0):
         raise InputError(f"elevation mask {mask_deg} deg is outside 0..60 deg (typical: 5, 10, 15)")
     return m
+
+
+# ------------------------------------------------------------------------------ epochs
+
+def window_times(start_utc: Any, window_min: float = 20.0, step_min: float = 1.0) -> np.ndarray:
+    """Epochs [datetime64[s], UTC] of a time window: ``start``, ``start + step``, ... up to and
+    including ``start + window`` (default 20 min at every whole minute = 21 epochs; the
+    coverage floor is only claimed at the epochs: benchmarks/bench_coverage.py measures the
+    cost of 1 min vs seed 001's 5 min)."""
+    if not (step_min > 0 and window_min >= 0):
+        raise InputError(f"need step_min > 0 and window_min >= 0, got {step_min}, {window_min}")
+    start = np.datetime64(np.datetime64(start_utc, "s"))
+    n = int(math.floor(window_min / step_min + 1e-9)) + 1
+    return start + (np.arange(n) * step_min * 60.0).astype("timedelta64[s]")
+
+
+def as_time_sat(az_deg: Any, el_deg: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Validated (time, sat) azimuth/elevation [deg] float64 arrays and ``{"time": values}``
+    when ``az_deg`` is a DataArray with a ``time`` dim (transposed to (time, sat) if it has a
+    ``sat`` dim); a 1D input is one epoch.  NaN marks an absent satellite."""
+    meta: dict[str, Any] = {}
+    if isinstance(az_deg, xr.DataArray) and "time" in az_deg.dims:
+        meta["time"] = az_deg["time"].values if "time" in az_deg.coords else None
+        if "sat" in az_deg.dims:
+            az_deg = az_deg.transpose("time", "sat")
+            if isinstance(el_deg, xr.DataArray) and "sat" in el_deg.dims:
+                el_deg = el_deg.transpose("time", "sat")
+    az = np.asarray(az_deg, dtype=np.float64)
+    el = np.asarray(el_deg, dtype=np.float64)
+    if az.shape != el.shape:
+        raise InputError(f"azimuth shape {az.shape} and elevation shape {el.shape} differ: "
+                         "give both as (time, sat) arrays of the same satellites")
+    if az.ndim == 1:
+        az, el = az[None, :], el[None, :]
+    if az.ndim != 2 or az.shape[0] == 0 or az.shape[1] == 0:
+        raise InputError(f"azimuth/elevation must be (time, sat) arrays, got shape {az.shape}")
+    if np.any(np.abs(el[np.isfinite(el)]) > 90.0):
+        raise InputError("elevations must be in [-90, 90] deg; did you pass radians or swap az/el?")
+    return az, el, meta
+
+
+def epoch_directions(az_deg: np.ndarray, el_deg: np.ndarray, mask_deg: float
+                     ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per epoch (row of the (time, sat) arrays), the (az, el) [deg] of the satellites at or
+    above the mask and above the horizon, in satellite order."""
+    out = []
+    for t in range(az_deg.shape[0]):
+        ok = (np.isfinite(az_deg[t]) & np.isfinite(el_deg[t]) & (el_deg[t] >= mask_deg)
+              & (el_deg[t] > 0.0))
+        out.append((az_deg[t, ok], el_deg[t, ok]))
+    return out

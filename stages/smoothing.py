@@ -408,8 +408,9 @@ def _vertical_cap(uz_max: float, uz_min: float, lim: KinematicLimits) -> float:
 
 def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=np.zeros((1, 3)),
                       fillet_ok: Callable[[np.ndarray, np.ndarray, np.ndarray], bool] | None = None,
-                      max_shrink: int = 6) -> CornerTrajectory:
-    """Fly the polygonal chain ``waypoints`` (n, 3) [m] from rest to rest within ``limits``.
+                      max_shrink: int = 6, v_start_mps: float = 0.0, stop_at: tuple[int, ...] = ()) -> CornerTrajectory:
+    """Fly the polygonal chain ``waypoints`` (n, 3) [m] from rest (or from ``v_start_mps``
+    along the first leg) to rest within ``limits``.
 
     Geometry: each interior vertex P (incoming unit u1, outgoing u2, turn angle theta) becomes
     a circular arc tangent to both legs, cut back ``d`` = half the shorter adjacent leg
@@ -427,7 +428,14 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
     ground speeds), the airspeed limit for every wind vector of ``winds`` (k, 3) [m/s]
     (:func:`_airspeed_cap`; on an arc with the bound |c| >= cos(theta / 2) of the tangents'
     combinations) and the vertical-rate limits; node speeds come from one forward and one
-    backward pass (|v_1^2 - v_0^2| <= 2 a L on lines, equal speeds at both ends of an arc)."""
+    backward pass (|v_1^2 - v_0^2| <= 2 a L on lines, equal speeds at both ends of an arc).
+
+    ``v_start_mps`` [m/s] (>= 0): the speed at the first waypoint, along the first leg (a
+    vehicle already flying that leg: the tactical replans of :mod:`skyroute.stages.tactical`).
+    Above the first leg's target speed it decelerates at the limit; above the first leg's
+    airspeed or vertical-rate cap, or too fast to stop where the chain requires it, it is a
+    :class:`~skyroute.stages.base.PlanningError`.  ``stop_at``: indices of interior vertices
+    where the vehicle must stop (no fillet), e.g. the point a tactical replan turns at."""
     w = np.asarray(waypoints, dtype=float)
     if w.ndim != 2 or w.shape[1] != 3 or w.shape[0] < 2 or not np.isfinite(w).all():
         raise InputError(f"waypoints must be finite with shape (n >= 2, 3) [m]; got {w.shape}")
@@ -435,6 +443,8 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
     length = np.linalg.norm(legs, axis=1)
     vleg = np.broadcast_to(np.asarray(leg_speed_mps, dtype=float), (legs.shape[0],)).copy()
     keep = length > 1e-9                     # drop repeated points
+    new_index = np.cumsum(np.r_[True, keep]) - 1
+    stop_at = {int(new_index[j]) for j in stop_at if 0 < j < w.shape[0] - 1}
     if not keep.all():
         w = np.concatenate([w[:1], w[1:][keep]])
         vleg, legs, length = vleg[keep], legs[keep], length[keep]
@@ -442,6 +452,9 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
         raise InputError("waypoints must contain two distinct points")
     if not (np.isfinite(vleg).all() and (vleg > 0).all()):
         raise InputError("leg_speed_mps must be finite and > 0 [m/s]")
+    v_start = float(v_start_mps)
+    if not (math.isfinite(v_start) and v_start >= 0):
+        raise InputError(f"v_start_mps = {v_start_mps} must be finite and >= 0 [m/s]")
     winds = np.atleast_2d(np.asarray(winds, dtype=float))
     a_max = float(limits.max_acceleration_mps2)
     tan_a = math.tan(math.radians(limits.max_flight_path_angle_deg))
@@ -454,6 +467,10 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
         u1, u2 = u[i - 1], u[i]
         cth = float(np.clip(u1 @ u2, -1.0, 1.0))
         th = math.acos(cth)
+        if i in stop_at:
+            kinds.append("stop")
+            why.append("requested stop")
+            continue
         if th < PASS_TURN_RAD:
             kinds.append("pass")
             why.append("")
@@ -492,6 +509,12 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
         if not cap > 0:
             raise PlanningError(f"leg {k} ({w[k].round(1).tolist()} -> {w[k + 1].round(1).tolist()}): the wind "
                                 f"exceeds the airspeed limit {limits.max_airspeed_mps} m/s, no ground speed is possible")
+        if k == 0 and v_start > 0:
+            hard = min(_airspeed_cap(u[0], winds, limits.max_airspeed_mps), _vertical_cap(u[0][2], u[0][2], limits))
+            if v_start > hard:
+                raise PlanningError(f"the current speed {v_start:.2f} m/s exceeds the first leg's airspeed / "
+                                    f"vertical-rate cap {hard:.2f} m/s")
+            node_cap[0] = v_start
         if lk > 1e-9:
             pieces.append((_LINE, a_pt, lk, cap, u[k], np.zeros(3), 0.0))
             node_cap.append(cap)
@@ -526,12 +549,19 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
             v[j + 1] = min(v[j + 1], math.sqrt(v[j] ** 2 + 2 * a_max * pc[2]))
         else:
             v[j + 1] = min(v[j + 1], v[j])
+    if v_start > 0:   # the start speed is given, not a cap: the backward pass may not lower it
+        need = v[0]
     for j in range(len(pieces) - 1, -1, -1):            # backward
         pc = pieces[j]
         if pc[0] == _LINE:
             v[j] = min(v[j], math.sqrt(v[j + 1] ** 2 + 2 * a_max * pc[2]))
         else:
             v[j] = min(v[j], v[j + 1])
+    if v_start > 0 and v[0] < need - 1e-9:
+        raise PlanningError(f"from {v_start:.2f} m/s the vehicle cannot slow down in time for the chain "
+                            f"(at most {v[0]:.2f} m/s at its start)")
+    if v_start > 0:
+        v[0] = v_start
     # phases
     rows = []       # (t0, kind, origin, e1, e2, s0, v0, a, R)
     t = 0.0
@@ -545,6 +575,11 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
             rows.append((t, _ARC, p0, e1, e2, 0.0, v0, 0.0, R))
             t += lk / v0
         else:
+            if v0 > cap:   # the start speed above the first leg's target: decelerate to it first
+                sd = (v0 * v0 - cap * cap) / (2 * a_max)
+                rows.append((t, _LINE, p0, e1, e2, 0.0, v0, -a_max, 0.0))
+                t += (v0 - cap) / a_max
+                p0, lk, v0 = p0 + sd * e1, lk - sd, cap
             vp = min(cap, math.sqrt(0.5 * (v0 * v0 + v1 * v1) + a_max * lk))
             vp = max(vp, v0, v1)
             s1 = max((vp * vp - v0 * v0) / (2 * a_max), 0.0)

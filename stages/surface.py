@@ -43,6 +43,10 @@ touching polygon of the polygon's height over the part inside the cell:
   degenerate face typed as roof gives its top along its trace.  A ridge keeps its height in
   every cell it crosses (sampling faces at cell centres and corners cut thin roof parts).
 
+Static obstacles announced during a flight (a crane: polygon + height above ground) are burnt
+into ``surface`` by :func:`burn_obstacles`: every touched cell (as above) takes at least the
+highest ground under the polygon plus the obstacle's height.
+
 The cost grows with the polygons' perimeter and area in cells (vertices, grid-line crossings,
 interior cell corners), not with the grid.  :func:`~skyroute.stages.grid.ring_cells` (centre-in
 scanline fill) stays for land use, where a cell takes the class at its centre.
@@ -522,6 +526,29 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
               f"({int(np.ceil(ground_window_m / px)) | 1} px of {px:g} m); buildings: more than "
               f"{building_threshold_m:g} m above it over the whole cell (tall vegetation is not told apart)")
     return DsmRaster(surface, surface_min, ground, ground_min, building, holes.n_interior, notes)
+
+
+def burn_obstacles(surface: np.ndarray, terrain: np.ndarray, grid: Grid, obstacles) -> np.ndarray:
+    """The surface [m] with static obstacles (e.g. cranes) burnt in, conservatively.
+
+    ``obstacles``: a sequence of ``(polygon, height_agl_m)``, the polygon an ``(k, 2)`` array of
+    map x, y [m] (not closed), the height [m] above the ground.  Every cell whose closed square
+    the polygon touches (:func:`polygon_max`: a corner or an edge counts) takes
+    ``max(surface, top)`` with ``top`` = the highest ``terrain`` [m] (cell maxima) over all the
+    cells the polygon touches + ``height_agl_m``: a rigid structure may stand on the highest
+    ground under it.  ``surface`` and ``terrain``: ``grid.shape`` arrays; returns a new array
+    (float64)."""
+    out = np.array(surface, dtype=np.float64)
+    terrain = np.asarray(terrain, dtype=np.float64)
+    for polygon, height_agl_m in obstacles:
+        xy = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+        _, index = polygon_max([[np.column_stack([xy, np.zeros(len(xy))])]], grid)
+        touched = index >= 0
+        if not touched.any():
+            continue  # outside the grid
+        top = float(terrain[touched].max()) + float(height_agl_m)
+        out[touched] = np.maximum(out[touched], top)
+    return out
 
 
 def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | None = None,

@@ -323,9 +323,9 @@ def test_dop_monte_carlo_position_scatter():
 
 def test_dop_degenerate_and_xarray():
     out = dop(np.array([[0.0, 90.0, 180.0, np.nan]]), np.array([[30.0, 40.0, 50.0, np.nan]]))
-    assert np.isnan(out["gdop"][0])                            # only 3 satellites
+    assert np.isposinf(out["gdop"][0])                         # only 3 satellites: no fix
     ring = dop(np.array([0.0, 90.0, 180.0, 270.0]), np.full(4, 10.0))
-    assert np.isnan(ring["gdop"])          # one elevation only: height and clock inseparable
+    assert np.isposinf(ring["gdop"])       # one elevation only: height and clock inseparable
     az = xr.DataArray(np.tile([0.0, 90.0, 180.0, 270.0, 0.0], (2, 1)), dims=("time", "sat"))
     el = xr.DataArray(np.tile([10.0, 10.0, 10.0, 10.0, 90.0], (2, 1)), dims=("time", "sat"))
     ds = dop(az, el, axis="sat")

@@ -206,7 +206,8 @@ class _Feasibility:
 
 def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_s: float = 0.0, seed: int = 0,
                max_iter: int = 5000, time_budget_s: float = 30.0, sigma_m: float = 30.0,
-               vertical_ratio: float = 0.5, step_m: float = 5.0, explore: float = 0.2) -> Step2Result:
+               vertical_ratio: float = 0.5, step_m: float = 5.0, explore: float = 0.2,
+               require_valid_chain: bool = True) -> Step2Result:
     """STEP II of seed 000 (Algorithm 1): make the STEP I chain conflict-free in time.
 
     Parameters
@@ -226,6 +227,9 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
     explore : probability that RANDOM_SAMPLE is centred on a uniformly drawn point of the STEP I
         chain instead of the last feasible point (lets other branches grow when the frontier is
         boxed in by a reserved volume; the paper's sampler always uses the last feasible point).
+    require_valid_chain : when False, legs of the chain that violate the static bounds do not
+        fail the call: the RRT grows around them (the tactical replans of
+        :mod:`skyroute.stages.tactical`, whose guiding chain may cross a new obstacle or zone).
 
     Returns a :class:`Step2Result`; never raises for an unsolvable case (status ``"failed"``
     with the reason), raises :class:`~skyroute.stages.base.InputError` for bad arguments.
@@ -259,15 +263,19 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
 
     # STEP I chain timing; bounds of its legs
     times, energy, valid = chain_timing(problem, W, t0_s)
-    if not valid.all():
+    if not valid.all() and not require_valid_chain:
+        times = t0_s + np.zeros(W.shape[0])
+        conf = np.ones(W.shape[0] - 1, bool)      # grow the RRT around the invalid legs
+    elif not valid.all():
         i = int(np.argmin(valid))
         why = problem.explain_motion(W[i], W[i + 1]) if hasattr(problem, "explain_motion") else "invalid"
         return _failed(f"STEP I leg {i} ({W[i].round(1).tolist()} -> {W[i + 1].round(1).tolist()}) violates the "
                        f"bounds ({why}); STEP II only resolves traffic conflicts", t_start=t_start)
-    if occupancy is not None and occupancy.caps.shape[0] and times[-1] > occupancy.t0_s + occupancy.t_total_s:
-        notes.append(f"the chain ends at t = {times[-1]:.1f} s, after the occupancy horizon "
-                     f"{occupancy.t0_s + occupancy.t_total_s:.1f} s: later traffic is unknown")
-    conf = chain_conflicts(occupancy, W, times)
+    else:
+        if occupancy is not None and occupancy.caps.shape[0] and times[-1] > occupancy.t0_s + occupancy.t_total_s:
+            notes.append(f"the chain ends at t = {times[-1]:.1f} s, after the occupancy horizon "
+                         f"{occupancy.t0_s + occupancy.t_total_s:.1f} s: later traffic is unknown")
+        conf = chain_conflicts(occupancy, W, times)
     if not conf.any():
         if energy[-1] > battery:
             return _failed(f"the STEP I chain needs {energy[-1] / 3600:.1f} Wh, more than the battery "

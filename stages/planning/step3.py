@@ -213,12 +213,14 @@ def _sky_times_s(sky: xr.Dataset, start_time_utc) -> np.ndarray:
 
 
 def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc,
-                  min_el_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  min_el_deg: float | None = None, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """LOS unit vectors (m, nsat, 3) (ENU) and visibility (m, nsat) bool of the sky's satellites
     at samples ``xyz`` (m, 3) at mission times ``t_s`` [s]: nearest epoch of ``sky``; a satellite
     is visible iff it is above the mask (``above_mask``, else el > ``min_el_deg`` or 0) and the
     sample altitude is >= its visibility height in the sample's cell (outside the map: no
-    obstacle)."""
+    obstacle).  ``cache``: a dict kept by the caller for one (sky, surface) pair: the
+    visibility heights of each epoch are then computed once over the whole grid and reused
+    (the tactical replans call this many times on the same maps)."""
     for v in ("az_deg", "el_deg", "los_enu"):
         if v not in sky:
             raise InputError(f"sky dataset lacks {v!r}: build it with skyroute.stages.almanac.sky_geometry")
@@ -252,6 +254,8 @@ def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc
     halo = int(math.ceil(relief / math.tan(math.radians(max(el_min, 0.1))) / g.resolution_m)) + 2
     r0, r1 = max(int(r[inside].min()) - halo, 0) if inside.any() else 0, min(int(r.max()) + halo + 1, g.ny)
     c0, c1 = max(int(c[inside].min()) - halo, 0) if inside.any() else 0, min(int(c.max()) + halo + 1, g.nx)
+    if cache is not None:
+        r0, r1, c0, c1 = 0, g.ny, 0, g.nx
     sub = h[r0:r1, c0:c1]
     for e in np.unique(ep):
         rows = np.nonzero(ep == e)[0]
@@ -259,8 +263,12 @@ def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc
         los[rows] = los_all[e][None, :, :]
         if sats.size == 0:
             continue
-        az_g = np.atleast_1d(grid_azimuth_deg(az[e, sats], g))
-        vh = visibility_heights_numpy(sub, az_g, el[e, sats], g.resolution_m, origin=(r0, c0))
+        vh = cache.get(int(e)) if cache is not None else None
+        if vh is None:
+            az_g = np.atleast_1d(grid_azimuth_deg(az[e, sats], g))
+            vh = visibility_heights_numpy(sub, az_g, el[e, sats], g.resolution_m, origin=(r0, c0))
+            if cache is not None:
+                cache[int(e)] = vh
         rr, cc, ii = r[rows], c[rows], inside[rows]
         for j, s in enumerate(sats):
             hv = np.where(ii, vh[j][np.clip(rr - r0, 0, sub.shape[0] - 1), np.clip(cc - c0, 0, sub.shape[1] - 1)],
@@ -278,7 +286,8 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
           occupancy: TrafficOccupancy | None = None, intruders: list[Intruder] | None = None,
           sample_dt_s: float = 0.5, check_spacing_m: float = 1.0, gnss_sigma_m: float = DEFAULT_UERE_M,
           gnss_period_s: float = 1.0, warmup_s: float = 60.0, label: str | None = None,
-          battery_reserve_pct: float = 0.0) -> Candidate:
+          battery_reserve_pct: float = 0.0, v_start_mps: float = 0.0, los_cache: dict | None = None,
+          stop_at: tuple[int, ...] = ()) -> Candidate:
     """Smooth, retime, check and cost one STEP II chain (see the module docstring).
 
     ``sky``: :func:`~skyroute.stages.almanac.sky_geometry` Dataset (time, sat) or None (no
@@ -292,7 +301,10 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     period; ``warmup_s`` [s]: the navigation filter runs this long at the start point before
     take-off (no initial-convergence transient in sigma_p).  ``battery_reserve_pct`` [%]: the
     energy must not exceed ``battery * (1 - reserve / 100)``.  Vehicle limits have no
-    tolerance (1e-6 numerical in the validator).
+    tolerance (1e-6 numerical in the validator).  ``v_start_mps`` [m/s]: speed at the first
+    waypoint along the first leg (a tactical replan of a vehicle in flight; 0: from rest).
+    ``los_cache``: see :func:`line_of_sight` (one dict per sky and surface); ``stop_at``:
+    chain vertices where the vehicle stops (:func:`~skyroute.stages.smoothing.corner_trajectory`).
     """
     t_start = time.perf_counter()
     lab = label if label is not None else (getattr(problem, "label", "") or "candidate")
@@ -316,7 +328,8 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     leg_speed = np.linalg.norm(np.diff(w, axis=0), axis=1) / seg_t
     try:
         traj = corner_trajectory(w, np.maximum(leg_speed, 1e-3), KinematicLimits.of(veh),
-                                 winds=_wind_vectors(problem, w), fillet_ok=_fillet_checker(problem))
+                                 winds=_wind_vectors(problem, w), fillet_ok=_fillet_checker(problem),
+                                 v_start_mps=v_start_mps, stop_at=stop_at)
     except PlanningError as exc:
         return _empty(lab, dop, [f"STEP III: {exc}"], t_start, step2_result.status)
     tc, pc, bad = _retimed_conflicts(occupancy, traj, t0, check_spacing_m)
@@ -378,7 +391,7 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
         t_w = t_abs[0] - gnss_period_s * np.arange(nw, 0, -1)
         t_all = np.concatenate([t_w, t_abs])
         p_all = np.concatenate([np.repeat(p[:1], nw, axis=0), p])
-        los, vis = line_of_sight(problem, sky, surface_2d, t_all, p_all, start_time_utc)
+        los, vis = line_of_sight(problem, sky, surface_2d, t_all, p_all, start_time_utc, cache=los_cache)
         nav = navigation_error(t_all, los, vis, imu=veh, gnss_sigma_m=gnss_sigma_m, dt_s=gnss_period_s)
         sigma = np.asarray(nav["sigma_p_m"].values, float)[nw:]
         nvis = vis.sum(axis=1)[nw:]

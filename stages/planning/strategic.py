@@ -39,6 +39,7 @@ from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz
 from skyroute.stages.planning.rrt import Step2Result, deconflict
 from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, Step1Result, plan_step1
 from skyroute.stages.planning.step3 import Candidate, _empty, choose, explain_no_plan, step3
+from skyroute.stages.smoothing import CornerTrajectory
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle
 
@@ -315,7 +316,47 @@ def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_ut
         ds["n_visible"] = ("sample", np.asarray(c.n_visible, np.int32), {"units": "1"})
         ds = ds.assign_coords(waypoint=np.arange(len(c.waypoints)))
         ds["waypoints"] = (("waypoint", "xyz"), np.asarray(c.waypoints, float), {"units": "m"})
+        if c.trajectory is not None:
+            tds = trajectory_to_dataset(c.trajectory, float(c.t_s[0]))
+            attrs = {**ds.attrs, **tds.attrs}
+            ds = ds.merge(tds)
+            ds.attrs = attrs
     return ds
+
+
+_TRAJ_PHASE = {"phase_t0_s": "s", "kind": "1", "s0": "m", "v0": "m s-1", "a": "m s-2", "radius_m": "m"}
+_TRAJ_VEC = ("origin", "e1", "e2")
+
+
+def trajectory_to_dataset(traj: CornerTrajectory, t0_s: float) -> xr.Dataset:
+    """The exact trajectory (its phases: :class:`~skyroute.stages.smoothing.CornerTrajectory`)
+    as ``traj_*`` variables (dims ``phase``, ``piece``), so a cached plan can be flown again
+    exactly (``skyroute fly``); ``traj_t0_s`` [s]: mission time of the trajectory's time 0."""
+    ds = xr.Dataset(coords={"phase": np.arange(traj.phase_t0_s.size), "piece": np.arange(traj.piece_t_s.size)})
+    for k, u in _TRAJ_PHASE.items():
+        ds[f"traj_{k}"] = ("phase", np.asarray(getattr(traj, k)), {"units": u})
+    for k in _TRAJ_VEC:
+        ds[f"traj_{k}"] = (("phase", "xyz"), np.asarray(getattr(traj, k), float), {"units": "m" if k == "origin" else "1"})
+    ds["traj_piece_t_s"] = ("piece", np.asarray(traj.piece_t_s, float), {"units": "s"})
+    ds["traj_piece_xyz_m"] = (("piece", "xyz"), np.asarray(traj.waypoints, float), {"units": "m"})
+    ds.attrs.update({"traj_t0_s": float(t0_s), "traj_duration_s": float(traj.duration_s),
+                     "traj_corner_kind": json.dumps(list(traj.corner_kind)),
+                     "traj_corner_reason": json.dumps(list(traj.corner_reason))})
+    return ds
+
+
+def trajectory_from_dataset(ds: xr.Dataset) -> tuple[CornerTrajectory, float] | None:
+    """``(trajectory, t0_s)`` back from :func:`trajectory_to_dataset` (None if absent)."""
+    if "traj_phase_t0_s" not in ds:
+        return None
+    kw = {k: np.asarray(ds[f"traj_{k}"].values) for k in (*_TRAJ_PHASE, *_TRAJ_VEC)}
+    kw["kind"] = kw["kind"].astype(np.int8)
+    traj = CornerTrajectory(duration_s=float(ds.attrs["traj_duration_s"]),
+                            piece_t_s=np.asarray(ds["traj_piece_t_s"].values, float),
+                            waypoints=np.asarray(ds["traj_piece_xyz_m"].values, float),
+                            corner_kind=tuple(json.loads(ds.attrs["traj_corner_kind"])),
+                            corner_reason=tuple(json.loads(ds.attrs["traj_corner_reason"])), **kw)
+    return traj, float(ds.attrs["traj_t0_s"])
 
 
 def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]]:
@@ -334,6 +375,8 @@ def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]
                           ds["alt_agl_m"].values, ds["speed_mps"].values, ds["sigma_p_m"].values,
                           ds["n_visible"].values, flyable=bool(row["flyable"]), reasons=reasons,
                           waypoints=ds["waypoints"].values, step2_status=str(row["status"].values), **kw)
+            tr = trajectory_from_dataset(ds)
+            c.trajectory = tr[0] if tr is not None else None
         else:
             c = Candidate(str(row["label"].values), None if np.isnan(d) else d, z, np.zeros((0, 3)), z, z, z,
                           np.zeros(0, int), flyable=bool(row["flyable"]), reasons=reasons,
@@ -343,5 +386,5 @@ def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]
     return chosen, cands
 
 
-__all__ = ["PlanningError", "StrategicPlan", "plan_from_dataset", "plan_strategic",
-           "plan_to_dataset"]
+__all__ = ["PlanningError", "StrategicPlan", "plan_from_dataset", "plan_strategic", "plan_to_dataset",
+           "trajectory_from_dataset", "trajectory_to_dataset"]

@@ -104,7 +104,8 @@ class FlightLog:
     ``"failed"`` with ``reason``.  Map context for the figures: ``grid`` (a
     :class:`~skyroute.stages.grid.Grid`), ``terrain_m``, ``surface_m`` and
     ``coverage_floor_m`` (ny, nx) [m] (the floor of the plan's DOP level ``dop_threshold``;
-    ``None`` without GNSS data), ``landing_xy`` (k, 2) [m] landing sites."""
+    ``None`` without GNSS data), ``landing_xy`` (k, 2) [m] landing sites; ``energy_Wh``: the
+    energy of the flown trajectory (rotor power in the last known wind)."""
 
     scenario: str
     crs_wkt: str
@@ -132,6 +133,7 @@ class FlightLog:
     surface_m: np.ndarray | None = None
     coverage_floor_m: np.ndarray | None = None
     landing_xy: np.ndarray | None = None
+    energy_Wh: float | None = None
 
     def flown(self) -> tuple[np.ndarray, np.ndarray]:
         """The whole flown trajectory ``(t_s (m,), xyz_m (m, 3))``, shared part boundaries once."""

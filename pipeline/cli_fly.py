@@ -1,0 +1,65 @@
+"""``skyroute fly``: fly a scenario's strategic plan through its events (tactical replay)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from skyroute.pipeline.cli import SCHEDULER_HELP
+
+
+def write_fly_folder(fr, out_dir: Path, command: str = "fly") -> dict:
+    """Write the flight outputs and ``summary.json`` of a ``fly`` folder; return the section."""
+    from skyroute.pipeline.cli import _write_folder_summary
+    from skyroute.stages.tactical.outputs import flight_section, write_flight
+
+    files = write_flight(fr.log, out_dir)
+    section = flight_section(fr.log)
+    _write_folder_summary(out_dir, command, fr.result, [str(p) for p in files.values()], {"fly": section})
+    return section
+
+
+@click.command("fly")
+@click.argument("scenario", required=False, default=None)
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default: ./skyroute-out/SCENARIO/fly).")
+@click.option("--events", "events_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="A YAML file of events (a top-level `events:` list) added to the scenario's.")
+@click.option("--t-rep", "t_rep_s", type=float, default=None,
+              help="Replanning timeout t_rep [s] (default: tactical.t_rep_s, 5 s).")
+@click.option("--tick", "tick_s", type=float, default=None, help="Simulation and output step [s] (default 0.1 s).")
+@click.option("--seed", type=int, default=None, help="Seed of the RRTs and the intruder report noise.")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
+@click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, cache_dir, scheduler, quiet) -> None:
+    """Fly the strategic plan of SCENARIO (default helsinki-tactical) in simulated time through
+    its events (seed 001 section 3.2): at each event the rest of the plan is checked; when it
+    is compromised, levels 1-3 replan (or the vehicle lands at the nearest reachable landing
+    site). Writes tactical.csv, flown.geojson, flown.csv, intruders.geojson, figures and
+    summary.json. Exit code 3 when the flight ends neither at the goal nor on a landing site."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.errors import InputError
+    from skyroute.pipeline.fly import fly_params, fly_scenario
+    from skyroute.pipeline.outputs import ensure_writable_dir
+    from skyroute.pipeline.settings import load_events_file, load_scenario, with_events
+
+    sc = load_scenario(scenario or "helsinki-tactical")
+    if events_file is not None:
+        sc = with_events(sc, events_file)
+    if not sc.events:
+        raise InputError(f"scenario {sc.name!r} has no events to fly through: add an `events:` list to it or "
+                         "give --events FILE")
+    fly_params(sc, t_rep_s, tick_s, seed)      # bad --t-rep / --tick: exit 2 before any work
+    out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fly")
+    fr = fly_scenario(sc, cache=Cache(cache_dir), scheduler=scheduler, progress=not quiet and sys.stderr.isatty(),
+                      t_rep_s=t_rep_s, tick_s=tick_s, seed=seed)
+    section = write_fly_folder(fr, out_dir)
+    from skyroute.stages.tactical.outputs import fly_summary_line
+
+    click.echo(fly_summary_line(section))
+    if section["outcome"] == "failed":
+        sys.exit(3)

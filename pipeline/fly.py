@@ -1,0 +1,165 @@
+"""``skyroute fly``: the tactical replay of a scenario's strategic plan through its events.
+
+The strategic plan and the maps come from the cached stages (:func:`run_scenario`); each
+map-changing event (wind, GNSS, obstacle) re-runs the stages it affects on the scenario with
+the events so far applied (:func:`~skyroute.pipeline.settings.scenario_at`: same cache, so
+unchanged stages are reused); the replay itself is
+:func:`skyroute.stages.tactical.replay.replay`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from skyroute.pipeline.cache import Cache
+from skyroute.pipeline.errors import InputError
+from skyroute.pipeline.runner import RunResult, run_scenario
+from skyroute.pipeline.settings import Scenario, check_event_times, scenario_at
+
+__all__ = ["FlyResult", "fly_scenario", "tactical_events"]
+
+MAP_STAGES = ("surface", "environment", "clearance", "wind", "coverage", "satellites")
+
+
+@dataclass
+class FlyResult:
+    result: RunResult      # the stages of the strategic plan
+    log: object            # skyroute.stages.tactical.log.FlightLog
+    map_updates: list      # RunResult of each map update
+
+
+def _world(result: RunResult):
+    from skyroute.stages.tactical.replay import World
+
+    def get(name):
+        return result.datasets[name].load() if name in result.datasets else None
+
+    surf = result["surface"]
+    return World(surface=surf[[v for v in ("terrain", "terrain_min", "surface") if v in surf]].load(),
+                 environment=get("environment"), clearance=get("clearance"), wind=get("wind"),
+                 coverage=get("coverage"), satellites=get("satellites"))
+
+
+def _terrain_at(surface: xr.Dataset, x, y) -> np.ndarray:
+    from skyroute.stages.grid import Grid
+
+    g = Grid.from_dataarray(surface["terrain"])
+    return np.asarray(surface["terrain"].values)[g.cell_of(np.asarray(x, float), np.asarray(y, float))]
+
+
+def tactical_events(sc: Scenario, surface: xr.Dataset) -> list:
+    """The scenario's events as :class:`~skyroute.stages.tactical.replay.TacticalEvent`
+    (map CRS, heights in the surface datum: AGL + the terrain of the cell)."""
+    from skyroute.stages.grid import Grid
+    from skyroute.stages.tactical.log import NoFlyZone
+    from skyroute.stages.tactical.replay import TacticalEvent
+    from skyroute.stages.traffic import Intruder
+
+    g = Grid.from_dataarray(surface["terrain"])
+    terrain = np.asarray(surface["terrain"].values, float)
+    out = []
+    for n, ev in enumerate(sc.events):
+        ident = getattr(ev, "id", None) or f"{ev.kind}-{n}"
+        label = f"{ev.kind} {ident}"
+        if ev.kind in ("intruder", "intruder_update"):
+            tr = np.asarray(ev.track(), float)
+            z = tr[:, 3] + _terrain_at(surface, tr[:, 1], tr[:, 2])
+            radius = getattr(ev, "radius_m", None)
+            if radius is None:
+                radius = _radius_of(sc, ev.id)
+            it = Intruder(ev.id, tr[:, 0], np.column_stack([tr[:, 1], tr[:, 2], z]), float(radius))
+            out.append(TacticalEvent(float(ev.t_s), ev.kind, label, intruder=it))
+        elif ev.kind == "nofly":
+            poly = np.asarray(ev.polygon_xy(sc), float)
+            r, c = g.cell_of(poly[:, 0], poly[:, 1])
+            r0, r1, c0, c1 = r.min(), r.max(), c.min(), c.max()
+            t_box = terrain[r0:r1 + 1, c0:c1 + 1]
+            start = float(ev.start_s if ev.start_s is not None else ev.t_s)
+            end = float(ev.end_s) if ev.end_s is not None else math.inf
+            zone = NoFlyZone(ident, poly, float(np.min(t_box) + ev.min_agl_m), float(np.max(t_box) + ev.max_agl_m),
+                             start, end)
+            out.append(TacticalEvent(float(ev.t_s), ev.kind, label, zone=zone))
+        else:
+            out.append(TacticalEvent(float(ev.t_s), ev.kind, label))
+    return out
+
+
+def _radius_of(sc: Scenario, ident: str) -> float:
+    for it in sc.traffic.intruders:
+        if it.id == ident:
+            return float(it.radius_m)
+    for ev in sc.events:
+        if ev.kind == "intruder" and ev.id == ident:
+            return float(ev.radius_m)
+    return 2.0
+
+
+def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None):
+    from skyroute.stages.tactical.replay import FlyParams
+
+    t = sc.tactical
+    return FlyParams(t_rep_s=t.t_rep_s if t_rep_s is None else t_rep_s, tick_s=t.tick_s if tick_s is None else tick_s,
+                     seed=t.seed if seed is None else seed, d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s,
+                     weights=tuple(sc.planner.weights), time_scaling_factors=tuple(t.time_scaling_factors),
+                     level2_iterations=t.level2_iterations, level3_iterations=t.level3_iterations,
+                     intruder_noise_m=t.intruder_noise_m, report_latency_s=t.report_latency_s,
+                     min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
+                     dop_kind=sc.gnss.dop_kind, uere_m=sc.gnss.uere_m,
+                     battery_reserve_pct=sc.constraints.battery_reserve_pct, step_cells=sc.planner.step_cells)
+
+
+def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "threads", progress: bool = False,
+                 t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
+                 result: RunResult | None = None) -> FlyResult:
+    """Plan (cached) and fly ``sc`` through its events.  Raises InputError (exit 2) for bad
+    parameters or events after the mission, PlanningError when there is no strategic plan."""
+    from skyroute.stages.base import PlanningError
+    from skyroute.stages.planning.strategic import plan_from_dataset, trajectory_from_dataset
+    from skyroute.stages.tactical.replay import replay
+    from skyroute.stages.traffic import intruders_for
+    from skyroute.stages.vehicle import load_vehicle
+
+    params = fly_params(sc, t_rep_s, tick_s, seed)   # bad values fail here, before any work
+    cache = cache or Cache()
+    if result is None:
+        result = run_scenario(sc, cache=cache, targets=["plan"], scheduler=scheduler, progress=progress)
+    plan_ds = result["plan"].load()
+    chosen, _cands = plan_from_dataset(plan_ds)
+    if chosen is None:
+        raise PlanningError(f"no strategic plan to fly: {plan_ds.attrs.get('reason', '')}")
+    tr = trajectory_from_dataset(plan_ds)
+    if tr is None:
+        raise PlanningError("the cached plan has no trajectory phases: re-run with `--force plan`")
+    traj, t0 = tr
+    problems = check_event_times(sc, float(t0 + traj.duration_s))
+    if problems:
+        raise InputError("; ".join(problems))
+    surface = result["surface"].load()
+    events = tactical_events(sc, surface)
+    updates: list[RunResult] = []
+    targets = [s for s in MAP_STAGES if s in result.datasets]
+
+    def world_at(t_s: float):
+        res = run_scenario(scenario_at(sc, t_s), cache=cache, targets=targets, scheduler=scheduler, progress=False)
+        updates.append(res)
+        return _world(res)
+
+    strategic = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else []
+    goal = chosen.xyz_m[-1]
+    log = replay(traj, t0, goal_xyz=goal, world=_world(result), world_at=world_at, events=events,
+                 strategic_intruders=strategic, vehicle=load_vehicle(sc.vehicle), params=params,
+                 start_time_utc=sc.mission.start_time_utc.isoformat(), dop_threshold=chosen.dop_threshold,
+                 scenario=sc.name, crs_wkt=str(surface["surface"].rio.crs),
+                 vertical_datum=surface["surface"].attrs.get("vertical_datum", ""))
+    return FlyResult(result, log, updates)
+
+
+def fly_outputs(fr: FlyResult, out_dir: Path) -> dict[str, Path]:
+    from skyroute.stages.tactical.outputs import write_flight
+
+    return write_flight(fr.log, out_dir)

@@ -1,0 +1,798 @@
+"""Tactical flight replay (seed 001 section 3.2): events, conflict checks, levels 1-3, landing.
+
+The vehicle flies the strategic plan in simulated time.  At each event (in the order the
+ownship learns of them) the knowledge is updated -- intruder tracks, temporary no-fly zones,
+and the maps (wind, GNSS coverage, new obstacles: ``world_at(t)`` recomputes them through the
+same cached stages) -- and the rest of the plan is checked from the event time ``t_e``:
+
+* separation from every known intruder (exact, :func:`~skyroute.stages.tactical.conflict.first_conflict`,
+  distance at equal times >= r_p + r_i + d_c),
+* the static bounds of the current maps (clearance and GNSS coverage floors, AGL limits,
+  no-fly cells: ``PlanningProblem.state_valid``), active temporary no-fly zones (polygon
+  widened by r_p, altitude band widened by r_p), and the airspeed limit in the current wind.
+
+The first violation at ``t_v`` gives ``t_coll = t_v - t_e``.  If ``t_coll <= t_rep`` the
+vehicle lands at once (contingency).  Otherwise a replanning takes effect at
+``t_eff = t_e + t_rep`` (the end of the fillet arc the vehicle is on, if it is on one): the
+vehicle keeps flying the plan until then, whatever the compute time, and the new plan starts
+there with the vehicle's velocity (:func:`~skyroute.stages.smoothing.corner_trajectory` with
+``v_start_mps``).  Three levels are tried, each deterministic (iteration counts, seeded RNG):
+
+1. **time scaling** (intruder conflicts in a non-frontal geometry, and temporary no-fly zones):
+   the same chain (:func:`~skyroute.stages.tactical.timeline.chain_of`), its legs up to the
+   encounter flown at ``s`` times their speed for ``s`` in ``time_scaling_factors`` (largest
+   first); the first ``s`` that gives a valid plan is the level's solution;
+2. **local RRT informed by the strategic path**: STEP II's RRT
+   (:func:`~skyroute.stages.planning.rrt.deconflict`) grown from the braking point ``P_b``
+   along the rest of the plan's chain, against the known traffic (occupancy maps of slices of
+   ``occupancy_slice_s``) and the current static bounds;
+3. **global RRT** from ``P_b`` to the goal, informed only by the straight line to the goal.
+
+``P_b`` is the point of the current plan a braking distance ``v^2 / (2 a_max)`` after
+``t_eff``: the vehicle stops there (a forced stop corner), so the new chain may turn sharply.  Every
+solution goes through the same STEP III (:func:`~skyroute.stages.planning.step3.step3`:
+corner smoothing, retiming within the hard limits, navigation error, eq. 15 costs with the
+tactical weights ``(w_l, 0, 0, w_e)`` -- seed 001 drops the risk and landing terms -- and the
+independent validator) with the energy left in the battery, and an exact separation check
+against every known intruder.  The valid solution with minimum f replaces the rest of the
+plan.  When none is valid the vehicle lands: the nearest landing site (environment stage)
+reachable with the energy left over a valid path (STEP I A* + STEP II + STEP III) to the
+approach point ``r_p`` above it.
+
+Randomness: intruder report noise and the RRTs come from ``np.random.default_rng(seed)``
+streams, so a seed gives one result on any machine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import xarray as xr
+
+from skyroute.stages import control
+from skyroute.stages.base import InputError, PlanningError, SkyrouteError
+from skyroute.stages.energy import rotor_power
+from skyroute.stages.planning.problem import PlanningProblem, build_problem
+from skyroute.stages.planning.rrt import Step2Result, chain_timing, deconflict
+from skyroute.stages.planning.step1 import plan_step1
+from skyroute.stages.planning.step3 import Candidate, step3, wind_sampler
+from skyroute.stages.smoothing import KinematicLimits
+from skyroute.stages.tactical.conflict import IntruderTracks, first_conflict
+from skyroute.stages.tactical.log import FlightLog, FlownPart, IntruderTrack, LevelAttempt, NoFlyZone
+from skyroute.stages.tactical.timeline import Segment, Timeline, chain_of, line_phase_at
+from skyroute.stages.traffic import Intruder, build_occupancy
+from skyroute.stages.vehicle import VehicleProfile
+
+__all__ = ["FlyParams", "TacticalEvent", "World", "encounter_geometry", "replay"]
+
+FRONTAL_DEG = 135.0        # encounter angle above which the geometry is frontal (level 1 refused)
+STATIC_INTRUDER_MPS = 0.5  # an intruder slower than this is treated as static (level 1 refused)
+
+
+@dataclass(frozen=True)
+class FlyParams:
+    """Replay parameters (scenario ``tactical:`` section and traffic margins).
+
+    ``t_rep_s`` [s]: replanning timeout (a replan takes effect that long after its event);
+    ``tick_s`` [s]: output and check sampling; ``d_c_m`` [m] / ``dt_c_s`` [s]: traffic
+    margins; ``weights``: eq. 11 weights (w_l, w_r, w_d, w_e) of the scenario (the tactical
+    cost keeps w_l and w_e); ``time_scaling_factors``: level-1 speed factors in (0, 1);
+    ``level2_iterations`` / ``level3_iterations``: RRT iteration counts; ``intruder_noise_m``
+    [m]: 1-sigma noise of reported intruder positions; ``report_latency_s`` [s]: delay before an
+    intruder event is known; ``occupancy_slice_s`` [s]: time slice of the replanning
+    occupancy maps; ``max_landing_sites``: sites tried for a contingency landing."""
+
+    t_rep_s: float = 5.0
+    tick_s: float = 0.1
+    seed: int = 0
+    d_c_m: float = 5.0
+    dt_c_s: float = 0.0
+    weights: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
+    time_scaling_factors: tuple[float, ...] = (0.8, 0.65, 0.5, 0.35, 0.25)
+    level2_iterations: int = 3000
+    level3_iterations: int = 5000
+    intruder_noise_m: float = 0.0
+    report_latency_s: float = 0.0
+    min_agl_m: float = 0.0
+    max_agl_m: float = 120.0
+    dop_kind: str = "PDOP"
+    uere_m: float = 3.0
+    battery_reserve_pct: float = 0.0
+    occupancy_slice_s: float = 1.0
+    max_landing_sites: int = 5
+    step_cells: int = 8
+
+    def __post_init__(self):
+        if not (self.t_rep_s > 0 and self.tick_s > 0 and self.occupancy_slice_s > 0):
+            raise InputError("t_rep_s, tick_s and occupancy_slice_s must be > 0 [s]")
+        if not all(0 < s < 1 for s in self.time_scaling_factors):
+            raise InputError(f"time_scaling_factors {self.time_scaling_factors} must be in (0, 1)")
+
+
+@dataclass(frozen=True)
+class TacticalEvent:
+    """One event, in the map CRS with heights in the surface datum.
+
+    ``kind``: intruder, intruder_update, wind, gnss, nofly, obstacle; ``t_s`` [s]: when it
+    happens; ``label``: e.g. ``"intruder tac-1"``.  ``intruder``: the declared track (intruder
+    kinds); ``zone``: the temporary no-fly zone (nofly); map-changing kinds (wind, gnss,
+    obstacle) are applied by the ``world_at`` callback of :func:`replay`."""
+
+    t_s: float
+    kind: str
+    label: str
+    intruder: Intruder | None = None
+    zone: NoFlyZone | None = None
+
+    @property
+    def changes_maps(self) -> bool:
+        return self.kind in ("wind", "gnss", "obstacle")
+
+
+@dataclass
+class World:
+    """The maps the ownship knows at some time (pipeline stage outputs, loaded)."""
+
+    surface: xr.Dataset
+    environment: xr.Dataset | None
+    clearance: xr.Dataset
+    wind: xr.Dataset | None
+    coverage: xr.Dataset | None
+    satellites: xr.Dataset | None
+    los_cache: dict = field(default_factory=dict)   # visibility heights per sky epoch (STEP III)
+    problems: dict = field(default_factory=dict)    # planning problems built on these maps
+
+
+def encounter_geometry(own_velocity_mps, intruder_velocity_mps) -> tuple[str, float]:
+    """``(kind, angle_deg)`` of an encounter from the two velocities (3,) [m/s]: the angle
+    between the horizontal velocities; ``"frontal"`` above :data:`FRONTAL_DEG` (head-on: a
+    change of speed along the path cannot separate the two), ``"static"`` for an intruder
+    slower than :data:`STATIC_INTRUDER_MPS` (nor can it then), else ``"crossing"`` (or
+    ``"overtaking"`` below 45 deg)."""
+    vo = np.asarray(own_velocity_mps, float)[:2]
+    vi = np.asarray(intruder_velocity_mps, float)[:2]
+    if np.linalg.norm(vi) < STATIC_INTRUDER_MPS:
+        return "static", float("nan")
+    if np.linalg.norm(vo) < 1e-9:
+        return "crossing", float("nan")
+    c = float(np.dot(vo, vi) / (np.linalg.norm(vo) * np.linalg.norm(vi)))
+    ang = math.degrees(math.acos(min(max(c, -1.0), 1.0)))
+    if ang > FRONTAL_DEG:
+        return "frontal", ang
+    return ("overtaking" if ang < 45.0 else "crossing"), ang
+
+
+# ------------------------------------------------------------------ knowledge
+
+
+@dataclass
+class _Known:
+    """What the ownship knows: believed intruder tracks, truth, zones."""
+
+    believed: dict[str, Intruder] = field(default_factory=dict)
+    truth: dict[str, IntruderTrack] = field(default_factory=dict)
+    zones: list[NoFlyZone] = field(default_factory=list)
+
+    def intruders(self) -> list[Intruder]:
+        return list(self.believed.values())
+
+
+def _noisy(intr: Intruder, sigma_m: float, rng: np.random.Generator) -> Intruder:
+    if sigma_m <= 0:
+        return intr
+    return Intruder(intr.id, intr.times_s, intr.xyz_m + rng.normal(0.0, sigma_m, intr.xyz_m.shape), intr.radius_m)
+
+
+def _truth_update(old: IntruderTrack, new: Intruder, t_upd: float) -> IntruderTrack:
+    """The old track until ``t_upd``, the new one from then (the latest declared track)."""
+    keep = old.t_s < t_upd - 1e-3
+    ts = [old.t_s[keep]]
+    ps = [old.xyz_m[keep]]
+    if old.t_s[0] < t_upd - 1e-3 < old.t_s[-1]:
+        ts.append(np.array([t_upd - 1e-3]))
+        ps.append(np.array([[np.interp(t_upd - 1e-3, old.t_s, old.xyz_m[:, k]) for k in range(3)]]))
+    later = new.times_s >= t_upd
+    if new.times_s[0] < t_upd < new.times_s[-1]:
+        ts.append(np.array([t_upd]))
+        ps.append(np.array([[np.interp(t_upd, new.times_s, new.xyz_m[:, k]) for k in range(3)]]))
+        later = new.times_s > t_upd
+    ts.append(new.times_s[later])
+    ps.append(new.xyz_m[later])
+    t = np.concatenate(ts)
+    p = np.concatenate(ps)
+    return IntruderTrack(old.id, new.radius_m, t, p, old.kind, old.known_from_s,
+                         [*old.declared, (t_upd, new.times_s.copy(), new.xyz_m.copy())])
+
+
+# ------------------------------------------------------------------ the replay
+
+
+class _Replay:
+    def __init__(self, timeline: Timeline, goal_xyz, world: World, world_at, events, strategic_intruders,
+                 vehicle: VehicleProfile, params: FlyParams, start_time_utc, dop_threshold):
+        self.tl = timeline
+        self.goal = np.asarray(goal_xyz, float)
+        self.world = world
+        self.world_at = world_at
+        self.veh = vehicle
+        self.p = params
+        self.events = sorted(events, key=lambda e: (self._known_at(e), e.t_s))
+        self.start_time_utc = start_time_utc
+        self.dop = dop_threshold
+        self.lim = KinematicLimits.of(vehicle)
+        self.known = _Known()
+        self.rng_noise = np.random.default_rng([params.seed, 1])
+        for it in strategic_intruders:
+            self.known.believed[it.id] = it
+            self.known.truth[it.id] = IntruderTrack(it.id, it.radius_m, it.times_s, it.xyz_m, "strategic", 0.0,
+                                                    [(0.0, it.times_s, it.xyz_m)])
+        self.attempts: list[LevelAttempt] = []
+        self.event_log: list[dict] = []
+        self.n_replan = 0
+        self.outcome, self.reason = "goal", ""
+        self.warnings: list[str] = []
+        self._zone_masks: dict[str, np.ndarray] = {}
+        self._grid_obj = None
+
+    def _known_at(self, ev: TacticalEvent) -> float:
+        lat = self.p.report_latency_s if ev.kind in ("intruder", "intruder_update") else 0.0
+        return ev.t_s + lat
+
+    # -------------------------------------------------------------- maps -> problem
+    def problem(self, start, goal, *, gnss: bool = True, zones_from_s: float = 0.0) -> PlanningProblem:
+        """The planning problem on the current maps: tactical weights, temporary no-fly zones
+        active at or after ``zones_from_s`` as no-fly cells (all altitudes: conservative).
+        Built once per maps, zones and GNSS flag; only the endpoints change between calls."""
+        zkey = tuple((z.id, tuple(z.polygon_xy.ravel())) for z in self.known.zones if z.end_s > zones_from_s)
+        key = (zkey, gnss, self.dop, self.p.weights, self.p.min_agl_m, self.p.max_agl_m, self.p.dop_kind, self.veh.name)
+        base = self.world.problems.get(key)
+        if base is None:
+            base = self.world.problems[key] = self._build_problem(start, goal, gnss, zones_from_s)
+            return base
+        return dataclasses.replace(base, start_xyz=tuple(map(float, start)), goal_xyz=tuple(map(float, goal)))
+
+    def _build_problem(self, start, goal, gnss: bool, zones_from_s: float) -> PlanningProblem:
+        w = self.world
+        surf = w.surface
+        clear = w.clearance["min_altitude_m"]
+        nofly = w.clearance["nofly"].values.astype(bool) if "nofly" in w.clearance else None
+        zmask = self._zone_mask(zones_from_s)
+        if zmask is not None:
+            nofly = zmask if nofly is None else (nofly | zmask)
+        floor_j = None
+        if gnss and w.coverage is not None and self.dop is not None:
+            floor_j = w.coverage["coverage_floor"].sel(threshold=self.dop)
+        risk = w.environment["risk_cost"] if w.environment is not None else None
+        land = w.environment["landing_cost"] if w.environment is not None else None
+        wl, _wr, _wd, we = self.p.weights
+        if wl == 0 and we == 0:
+            wl = 1.0
+        return build_problem(surf, clear, floor_j, risk, land, w.wind, self.veh, (wl, 0.0, 0.0, we),
+                             tuple(start), tuple(goal), self.p.min_agl_m, self.p.max_agl_m, self.dop,
+                             dop_kind=self.p.dop_kind, nofly=nofly, check_endpoints=False)
+
+    def _zone_mask(self, t_from_s: float) -> np.ndarray | None:
+        zones = [z for z in self.known.zones if z.end_s > t_from_s]
+        if not zones:
+            return None
+        g = self._grid()
+        m = np.zeros(g.shape, bool)
+        for z in zones:
+            zm = self._zone_masks.get(z.id)
+            if zm is None:
+                zm = self._zone_masks[z.id] = self._one_zone_mask(z, g)
+            m |= zm
+        return m
+
+    def _one_zone_mask(self, z: NoFlyZone, g) -> np.ndarray:
+        """Cells whose closed square meets the zone polygon widened by r_p."""
+        from shapely.geometry import Polygon, box
+
+        m = np.zeros(g.shape, bool)
+        r = self.veh.r_p_m
+        poly = Polygon(z.polygon_xy).buffer(r)
+        x0, y0, x1, y1 = poly.bounds
+        c0, c1 = int(np.floor((x0 - g.x0) / g.resolution_m)), int(np.floor((x1 - g.x0) / g.resolution_m))
+        r0, r1 = int(np.floor((g.y1 - y1) / g.resolution_m)), int(np.floor((g.y1 - y0) / g.resolution_m))
+        for rr in range(max(r0, 0), min(r1, g.ny - 1) + 1):
+            for cc in range(max(c0, 0), min(c1, g.nx - 1) + 1):
+                xa = g.x0 + cc * g.resolution_m
+                ya = g.y1 - (rr + 1) * g.resolution_m
+                if poly.intersects(box(xa, ya, xa + g.resolution_m, ya + g.resolution_m)):
+                    m[rr, cc] = True
+        return m
+
+    def _grid(self):
+        if self._grid_obj is None:
+            from skyroute.stages.grid import Grid
+
+            self._grid_obj = Grid.from_dataarray(self.world.surface["terrain"])
+        return self._grid_obj
+
+    # -------------------------------------------------------------- checks
+    def tracks(self) -> tuple[IntruderTracks, np.ndarray]:
+        intr = self.known.intruders()
+        sep = np.array([self.veh.r_p_m + i.radius_m + self.p.d_c_m for i in intr])
+        return IntruderTracks.from_intruders(intr), sep
+
+    def first_violation(self, t_s: np.ndarray, p: np.ndarray, problem: PlanningProblem) -> tuple[float, str, object]:
+        """Earliest violation ``(t [s], cause, detail)`` of a timed path; ``(inf, '', None)``."""
+        best = (math.inf, "", None)
+        if t_s.size < 2:
+            return best
+        intr = self.known.intruders()
+        if intr:
+            tracks, sep = self.tracks()
+            c = first_conflict(t_s, p, tracks, sep)
+            if c is not None and c.t_s < best[0]:
+                best = (c.t_s, f"separation from intruder {c.id!r} below {sep[c.index]:g} m "
+                               f"(closest {c.distance_m:.1f} m at t = {c.t_cpa_s:.1f} s)", c)
+        ok = np.asarray(problem.state_valid(p), bool)
+        if not ok.all():
+            k = int(np.argmin(ok))
+            if t_s[k] < best[0]:
+                best = (float(t_s[k]), f"static bounds at t = {t_s[k]:.1f} s: {problem.explain_invalid(p[k])}", None)
+        for z in self.known.zones:
+            k = _first_in_zone(t_s, p, z, self.veh.r_p_m)
+            if k >= 0 and t_s[k] < best[0]:
+                best = (float(t_s[k]), f"inside the temporary no-fly zone {z.id!r} at t = {t_s[k]:.1f} s", z)
+        v = np.gradient(p, t_s, axis=0) if t_s.size > 2 else np.diff(p, axis=0) / np.diff(t_s)[:, None]
+        if v.shape[0] == p.shape[0]:
+            air = np.linalg.norm(v - wind_sampler(problem)(p), axis=1)
+            bad = air > self.veh.max_airspeed_mps + 1e-6
+            if bad.any():
+                k = int(np.argmax(bad))
+                if t_s[k] < best[0]:
+                    best = (float(t_s[k]), f"airspeed {air[k]:.1f} m/s above {self.veh.max_airspeed_mps} m/s in the "
+                                           f"new wind at t = {t_s[k]:.1f} s", None)
+        return best
+
+    # -------------------------------------------------------------- energy
+    def energy_J(self, t_s: np.ndarray, p: np.ndarray, problem: PlanningProblem) -> float:
+        """Energy [J] of a timed path: rotor power at the airspeed (current wind), trapezoid."""
+        if t_s.size < 2:
+            return 0.0
+        v = np.gradient(p, t_s, axis=0)
+        wind = wind_sampler(problem)(p)
+        va = v - wind
+        speed = np.linalg.norm(v, axis=1)
+        sdir = np.divide(v, speed[:, None], out=np.zeros_like(v), where=speed[:, None] > 1e-9)
+        pw = rotor_power(va, np.einsum("ij,ij->i", va, sdir), v[:, 2], self.veh)["total_W"]
+        return float(np.trapezoid(pw, t_s))
+
+    # -------------------------------------------------------------- the loop
+    def run(self) -> None:
+        p = self.p
+        for ev in self.events:
+            control.check()
+            t_e = self._known_at(ev)
+            if t_e >= self.tl.t_end_s:
+                self.event_log.append(_ev(ev, t_e, math.inf, "after the flight ended"))
+                continue
+            t0 = time.perf_counter()
+            self.apply(ev, t_e)
+            update_s = time.perf_counter() - t0
+            t_s, pts = self.tl.samples(t_e, p.tick_s)
+            prob = self.problem(self.tl.sample(t_e), self.goal, zones_from_s=math.inf)   # zones: checked in time
+            t_v, cause, detail = self.first_violation(t_s, pts, prob)
+            if not math.isfinite(t_v):
+                self.event_log.append(_ev(ev, t_e, math.inf, "no conflict"))
+                continue
+            t_coll = t_v - t_e
+            k = self.n_replan
+            self.n_replan += 1
+            if t_coll <= p.t_rep_s:
+                why = f"t_coll {t_coll:.2f} s <= t_rep {p.t_rep_s:g} s ({cause})"
+                ok = self.land(k, ev, t_e, t_e, t_coll, update_s, why)
+                self.event_log.append(_ev(ev, t_e, t_coll, "landing" if ok else "failed", cause))
+                if not ok:
+                    return
+                continue
+            t_eff = self._effective_time(t_e + p.t_rep_s)
+            best = self.replan(k, ev, t_e, t_eff, t_coll, update_s, cause, detail)
+            if best is None:
+                why = f"no level found a valid plan ({cause})"
+                ok = self.land(k, ev, t_e, t_eff, t_coll, update_s, why)
+                self.event_log.append(_ev(ev, t_e, t_coll, "landing" if ok else "failed", cause))
+                if not ok:
+                    return
+                continue
+            self.event_log.append(_ev(ev, t_e, t_coll, f"replanned {best}", cause))
+        if self.outcome == "goal" and self.tl.segments[-1].part == "landing":
+            self.outcome = "landed"
+
+    def apply(self, ev: TacticalEvent, t_e: float) -> None:
+        if ev.kind == "intruder" or ev.kind == "intruder_update":
+            it = ev.intruder
+            assert it is not None
+            self.known.believed[it.id] = _noisy(it, self.p.intruder_noise_m, self.rng_noise)
+            if ev.kind == "intruder" or it.id not in self.known.truth:
+                self.known.truth[it.id] = IntruderTrack(it.id, it.radius_m, it.times_s, it.xyz_m, "tactical", t_e,
+                                                        [(ev.t_s, it.times_s, it.xyz_m)])
+            else:
+                self.known.truth[it.id] = _truth_update(self.known.truth[it.id], it, ev.t_s)
+        elif ev.kind == "nofly":
+            assert ev.zone is not None
+            self.known.zones.append(ev.zone)
+        elif ev.changes_maps:
+            self.world = self.world_at(ev.t_s)
+
+    def _effective_time(self, t: float) -> float:
+        """``t``, or the end of the fillet arc the vehicle is on at ``t``."""
+        k = self.tl.active(t)
+        seg = self.tl.segments[k]
+        t = min(t, seg.t_end_s)
+        i, line = line_phase_at(seg.traj, t - seg.t0_s)
+        while not line and i + 1 < seg.traj.phase_t0_s.size:
+            i += 1
+            t = seg.t0_s + float(seg.traj.phase_t0_s[i])
+            line = seg.traj.kind[i] == 0
+        return t
+
+    # -------------------------------------------------------------- chains
+    def rest_chain(self, t_eff: float) -> tuple[np.ndarray, np.ndarray, int, float]:
+        """The current plan's chain from its position at ``t_eff``: ``(vertices, leg speeds,
+        index of the leg t_eff is on (0 after the cut), speed at t_eff)``."""
+        seg = self.tl.segments[self.tl.active(t_eff)]
+        verts, speeds, leg_of = chain_of(seg.traj)
+        i, _line = line_phase_at(seg.traj, t_eff - seg.t0_s)
+        leg = int(leg_of[i])
+        p0 = seg.sample([t_eff])[0]
+        v0 = float(np.linalg.norm(seg.velocity([t_eff])[0]))
+        chain = np.concatenate([p0[None], verts[leg + 1:]])
+        return chain, speeds[leg:], leg, v0
+
+    def braking_point(self, chain: np.ndarray, v0: float) -> tuple[np.ndarray, int]:
+        """The chain cut the braking distance v0^2 / (2 a_max) (plus 0.5 m) after its start,
+        where the vehicle stops before turning onto the new chain (``stop_at``):
+        ``(chain up to and including P_b, number of vertices before P_b)``."""
+        d_b = v0 * v0 / (2.0 * self.lim.max_acceleration_mps2) + 0.5
+        legs = np.linalg.norm(np.diff(chain, axis=0), axis=1)
+        cum = np.concatenate([[0.0], np.cumsum(legs)])
+        if d_b >= cum[-1]:
+            return chain.copy(), chain.shape[0] - 1
+        j = int(np.searchsorted(cum, d_b, side="right")) - 1
+        pb = chain[j] + (chain[j + 1] - chain[j]) * ((d_b - cum[j]) / legs[j])
+        return np.concatenate([chain[: j + 1], pb[None]]), j + 1
+
+    # -------------------------------------------------------------- levels
+    def _finish(self, problem: PlanningProblem, chain: np.ndarray, speeds: np.ndarray, t_eff: float, v0: float,
+                label: str, budget_J: float, stop_at: tuple[int, ...] = ()) -> Candidate:
+        """STEP III of a tactical chain from ``t_eff`` at ``v0``, then the exact separation check."""
+        lengths = np.linalg.norm(np.diff(chain, axis=0), axis=1)
+        times = t_eff + np.concatenate([[0.0], np.cumsum(lengths / np.maximum(speeds, 1e-3))])
+        s2 = Step2Result(chain, times, np.zeros(chain.shape[0]), "tactical")
+        reserve = 100.0 * (1.0 - budget_J / self.veh.battery_energy_j)
+        if not reserve < 100.0:
+            raise PlanningError("no energy left in the battery")
+        sky = self.world.satellites
+        cand = step3(problem, s2, sky, self.world.surface["surface"].values, start_time_utc=self.start_time_utc,
+                     label=label, gnss_sigma_m=self.p.uere_m, battery_reserve_pct=max(reserve, 0.0),
+                     v_start_mps=v0, sample_dt_s=min(0.5, self.p.tick_s * 5), los_cache=self.world.los_cache,
+                     stop_at=stop_at)
+        if cand.t_s.size:
+            c = first_conflict(cand.t_s, cand.xyz_m, *self.tracks()) if self.known.intruders() else None
+            if c is not None:
+                cand.reasons.append(f"separation from intruder {c.id!r}: {c.distance_m:.1f} m at t = {c.t_cpa_s:.1f} s")
+            for z in self.known.zones:
+                k = _first_in_zone(cand.t_s, cand.xyz_m, z, self.veh.r_p_m)
+                if k >= 0:
+                    cand.reasons.append(f"inside the temporary no-fly zone {z.id!r} at t = {cand.t_s[k]:.1f} s")
+            cand.flyable = not cand.reasons
+        return cand
+
+    def budget_J(self, t_eff: float, problem: PlanningProblem) -> float:
+        t, p = self.tl.samples(0.0, self.p.tick_s, t_eff)
+        spent = self.energy_J(t, p, problem)
+        return self.veh.battery_energy_j * (1.0 - self.p.battery_reserve_pct / 100.0) - spent
+
+    def replan(self, k: int, ev: TacticalEvent, t_e: float, t_eff: float, t_coll: float, update_s: float,
+               cause: str, detail) -> str | None:
+        p = self.p
+        chain, speeds, _leg, v0 = self.rest_chain(t_eff)
+        t_arrive_old = self.tl.t_end_s
+        problem = self.problem(chain[0], self.goal, zones_from_s=t_eff)
+        budget = self.budget_J(t_eff, problem)
+        rows: list[tuple[LevelAttempt, Candidate | None, str]] = []
+
+        def row(level: str, cand: Candidate | None, secs: float, reasons: str) -> None:
+            ok = cand is not None and cand.flyable
+            rows.append((LevelAttempt(k, ev.label, ev.t_s, t_coll, level, ok,
+                                      cand.C_l if cand is not None else math.nan,
+                                      cand.C_e if cand is not None else math.nan,
+                                      cand.f if cand is not None else math.nan,
+                                      cand.max_sigma_p_m if cand is not None else math.nan, secs, update_s,
+                                      (float(cand.t_s[-1]) - t_arrive_old) if ok else math.nan, False, reasons),
+                         cand, level))
+
+        # level 1: time scaling
+        t0 = time.perf_counter()
+        why1 = ""
+        cand1 = None
+        if detail is not None and hasattr(detail, "own_velocity_mps"):
+            kind, ang = encounter_geometry(detail.own_velocity_mps, detail.intruder_velocity_mps)
+            if kind in ("frontal", "static"):
+                why1 = (f"{kind} encounter ({ang:.0f} deg): time scaling cannot separate it" if kind == "frontal"
+                        else "static intruder: time scaling cannot separate it")
+            t_enc = detail.t_s
+        elif detail is not None and isinstance(detail, NoFlyZone):
+            t_enc = detail.end_s
+        else:
+            why1 = "static conflict (maps or wind): time scaling cannot resolve it"
+            t_enc = math.nan
+        if not why1:
+            # the legs up to the encounter point are slowed
+            seg = self.tl.segments[self.tl.active(t_eff)]
+            pe = seg.sample([min(t_enc, seg.t_end_s)])[0] if math.isfinite(t_enc) else chain[-1]
+            legs = np.linalg.norm(np.diff(chain, axis=0), axis=1)
+            cum = np.concatenate([[0.0], np.cumsum(legs)])
+            # arc length of the encounter point along the chain: nearest point on the chain
+            d_enc = _along(chain, pe)
+            n_slow = int(np.searchsorted(cum, d_enc, side="left"))
+            n_slow = min(max(n_slow, 1), legs.size)
+            fails = []
+            problem1 = (problem if not any(z.end_s > t_eff for z in self.known.zones)
+                        else self.problem(chain[0], self.goal, zones_from_s=math.inf))   # zones: checked in time
+            for s in p.time_scaling_factors:
+                sp = speeds.copy()
+                sp[:n_slow] *= s
+                try:
+                    c = self._finish(problem1, chain, sp, t_eff, v0, f"L1 s={s:g}", budget)
+                except PlanningError as exc:
+                    fails.append(f"s={s:g}: {exc}")
+                    continue
+                if c.flyable:
+                    cand1 = c
+                    break
+                fails.append(f"s={s:g}: {'; '.join(c.reasons[:2])}")
+            if cand1 is None:
+                why1 = "no speed factor gave a valid plan: " + " | ".join(fails[-2:])
+        row("1", cand1, time.perf_counter() - t0, why1)
+
+        # levels 2 and 3: RRTs from the braking point
+        pre, nb = self.braking_point(chain, v0)
+        pb = pre[-1]
+        if nb >= chain.shape[0] - 1 and np.allclose(pb, chain[-1]):
+            row("2", None, 0.0, "the goal is within the braking distance")
+            row("3", None, 0.0, "the goal is within the braking distance")
+        else:
+            pre_speeds = speeds[: pre.shape[0] - 1]
+            t_b = t_eff + float(np.sum(np.linalg.norm(np.diff(pre, axis=0), axis=1) / np.maximum(pre_speeds, 1e-3)))
+            occ = self._occupancy(t_eff)
+            for level, W, iters, sigma in (("2", np.concatenate([pb[None], chain[nb:]]), p.level2_iterations, 30.0),
+                                           ("3", np.stack([pb, chain[-1]]), p.level3_iterations, 60.0)):
+                t0 = time.perf_counter()
+                cand, why = None, ""
+                try:
+                    s2 = deconflict(problem, W, occ, t0_s=t_b, seed=p.seed + 7919 * (k + 1) + int(level),
+                                    max_iter=iters, time_budget_s=600.0, sigma_m=sigma,
+                                    explore=0.2 if level == "2" else 0.4, require_valid_chain=False)
+                    if not s2.ok:
+                        why = s2.reason
+                    else:
+                        full = np.concatenate([pre, s2.waypoints[1:]])
+                        legs_full = np.diff(full, axis=0)
+                        sp = np.concatenate([pre_speeds, np.full(legs_full.shape[0] - pre_speeds.size,
+                                                                  self.veh.cruise_speed_mps)])
+                        cand = self._finish(problem, full, sp, t_eff, v0, f"L{level}", budget,
+                                            stop_at=(pre.shape[0] - 1,))
+                        why = "; ".join(cand.reasons)
+                except (PlanningError, InputError) as exc:
+                    why = str(exc)
+                row(level, cand, time.perf_counter() - t0, why)
+        # choose
+        valid = [(r, c, lv) for r, c, lv in rows if r.flyable and c is not None and math.isfinite(c.f)]
+        if valid:
+            r, c, lv = min(valid, key=lambda x: x[1].f)
+            r.chosen = True
+            for r2, _c2, _ in rows:
+                if r2 is not r and r2.flyable:
+                    r2.reasons = f"valid but f = {r2.f_m:.1f} m > {r.f_m:.1f} m of level {lv}"
+            self.attempts.extend(r2 for r2, _, _ in rows)
+            self.tl.add(Segment(c.trajectory, t_eff, f"L{lv}", k), t_eff)
+            return f"L{lv}"
+        self.attempts.extend(r2 for r2, _, _ in rows)
+        return None
+
+    def _occupancy(self, t_from: float):
+        intr = self.known.intruders()
+        if not intr:
+            return None
+        horizon = max(max(float(i.times_s[-1]) for i in intr) - t_from, 1.0)
+        n = max(int(math.ceil(horizon / self.p.occupancy_slice_s)), 1)
+        return build_occupancy(intr, horizon, n, self.veh.r_p_m + self.p.d_c_m, self.p.dt_c_s, t0_s=t_from)
+
+    # -------------------------------------------------------------- contingency landing
+    def land(self, k: int, ev: TacticalEvent, t_e: float, t_from: float, t_coll: float, update_s: float,
+             why: str) -> bool:
+        t_eff = self._effective_time(t_from)
+        chain, speeds, _leg, v0 = self.rest_chain(t_eff)
+        pre, _nb = self.braking_point(chain, v0)
+        pre_speeds = speeds[: pre.shape[0] - 1]
+        t_b = t_eff + float(np.sum(np.linalg.norm(np.diff(pre, axis=0), axis=1) / np.maximum(pre_speeds, 1e-3)))
+        pb = pre[-1]
+        t0 = time.perf_counter()
+        tried = []
+        for name, approach in self._landing_targets(pb):
+            control.check()
+            try:
+                problem = self.problem(pb, approach, gnss=False, zones_from_s=t_eff)
+                budget = self.budget_J(t_eff, problem)
+                s1 = plan_step1(problem, planner="astar", time_budget_s=5.0, seed=self.p.seed,
+                                step_cells=self.p.step_cells)
+                if not s1.solved:
+                    tried.append(f"{name}: {s1.reason or s1.status}")
+                    continue
+                s2 = deconflict(problem, s1.waypoints, self._occupancy(t_b), t0_s=t_b, seed=self.p.seed,
+                                max_iter=self.p.level2_iterations, time_budget_s=600.0)
+                if not s2.ok:
+                    tried.append(f"{name}: {s2.reason}")
+                    continue
+                full = np.concatenate([pre, s2.waypoints[1:]])
+                sp = np.concatenate([pre_speeds, np.full(full.shape[0] - 1 - pre_speeds.size,
+                                                          self.veh.cruise_speed_mps)])
+                cand = self._finish(problem, full, sp, t_eff, v0, "landing", budget, stop_at=(pre.shape[0] - 1,))
+            except (PlanningError, InputError) as exc:
+                tried.append(f"{name}: {exc}")
+                continue
+            if not cand.flyable:
+                tried.append(f"{name}: {'; '.join(cand.reasons[:2])}")
+                continue
+            self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "landing", True, cand.C_l, cand.C_e,
+                                              cand.f, cand.max_sigma_p_m, time.perf_counter() - t0, update_s,
+                                              float(cand.t_s[-1]) - self.tl.t_end_s, True,
+                                              f"{why}; landing at {name}"))
+            self.tl.add(Segment(cand.trajectory, t_eff, "landing", k), t_eff)
+            self.outcome, self.reason = "landed", f"contingency landing at {name}: {why}"
+            return True
+        self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "landing", False, math.nan, math.nan,
+                                          math.nan, math.nan, time.perf_counter() - t0, update_s, math.nan, True,
+                                          f"{why}; no reachable landing site: " + " | ".join(tried[:3])))
+        self.outcome = "failed"
+        self.reason = f"{why}; no landing site reachable: " + (" | ".join(tried[:3]) or "no landing site on the map")
+        self.tl.add(self.tl.segments[self.tl.active(t_eff)], t_eff)
+        return False
+
+    def _landing_targets(self, pb) -> list[tuple[str, np.ndarray]]:
+        """Approach points r_p above the landing sites nearest to ``pb`` (one cell per site:
+        the site cell nearest to the site's centre whose clearance floor allows it; the
+        surface there is the ground of a field or the roof of a flat-roof site)."""
+        env = self.world.environment
+        if env is None or "site_x" not in env.coords:
+            return []
+        g = self._grid()
+        site = np.asarray(env["landing_site"].values, bool)
+        top = np.asarray(self.world.surface["surface"].values, float)     # the ground or the flat roof
+        floor = np.asarray(self.world.clearance["min_altitude_m"].values, float)
+        r_p = self.veh.r_p_m
+        zone = self._zone_mask(0.0)
+        ok = site & np.isfinite(floor) & (floor <= top + r_p + 1e-9)
+        if zone is not None:
+            ok &= ~zone
+        rows, cols = np.nonzero(ok)
+        if rows.size == 0:
+            return []
+        cx = g.x0 + (cols + 0.5) * g.resolution_m
+        cy = g.y1 - (rows + 0.5) * g.resolution_m
+        sx, sy = np.asarray(env["site_x"].values, float), np.asarray(env["site_y"].values, float)
+        names = [str(n) for n in env["site_name"].values] if "site_name" in env.coords else [str(i) for i in range(sx.size)]
+        order = np.argsort(np.hypot(sx - pb[0], sy - pb[1]))
+        out = []
+        for i in order:
+            d = np.hypot(cx - sx[i], cy - sy[i])
+            j = int(np.argmin(d))
+            if d[j] > 100.0:
+                continue
+            z = top[rows[j], cols[j]] + r_p
+            out.append((f"{names[i] or 'site'} ({cx[j]:.0f}, {cy[j]:.0f})", np.array([cx[j], cy[j], z])))
+            if len(out) >= self.p.max_landing_sites:
+                break
+        return out
+
+
+def _ev(ev: TacticalEvent, t_known: float, t_coll: float, outcome: str, cause: str = "") -> dict:
+    return {"t_s": ev.t_s, "kind": ev.kind, "label": ev.label, "t_known_s": t_known, "t_coll_s": t_coll,
+            "outcome": outcome, "cause": cause}
+
+
+def _along(chain: np.ndarray, q: np.ndarray) -> float:
+    """Arc length [m] along ``chain`` of the point of it nearest to ``q``."""
+    a, b = chain[:-1], chain[1:]
+    ab = b - a
+    L2 = np.einsum("ij,ij->i", ab, ab)
+    s = np.clip(np.einsum("ij,ij->i", q - a, ab) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
+    d = np.linalg.norm(a + s[:, None] * ab - q, axis=1)
+    i = int(np.argmin(d))
+    cum = np.concatenate([[0.0], np.cumsum(np.sqrt(L2))])
+    return float(cum[i] + s[i] * math.sqrt(L2[i]))
+
+
+def _first_in_zone(t_s: np.ndarray, p: np.ndarray, z: NoFlyZone, r_m: float) -> int:
+    """Index of the first sample inside zone ``z`` (polygon and band widened by ``r_m``)
+    while it is active, or -1."""
+    from matplotlib.path import Path as MplPath
+
+    act = (t_s >= z.start_s) & (t_s <= z.end_s) & (p[:, 2] >= z.z_min_m - r_m) & (p[:, 2] <= z.z_max_m + r_m)
+    if not act.any():
+        return -1
+    from shapely.geometry import Polygon
+
+    poly = Polygon(z.polygon_xy).buffer(r_m)
+    path = MplPath(np.asarray(poly.exterior.coords))
+    inside = path.contains_points(p[:, :2]) & act
+    return int(np.argmax(inside)) if inside.any() else -1
+
+
+# ------------------------------------------------------------------ public entry
+
+
+def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Callable[[float], World],
+           events: Sequence[TacticalEvent], strategic_intruders: Sequence[Intruder], vehicle: VehicleProfile,
+           params: FlyParams, start_time_utc, dop_threshold: float | None, scenario: str = "",
+           crs_wkt: str = "", vertical_datum: str = "") -> FlightLog:
+    """Fly the strategic plan ``plan_traj`` (a CornerTrajectory starting at mission time
+    ``plan_t0_s`` [s]) through ``events`` (see the module docstring).  ``world``: the maps at
+    take-off; ``world_at(t_s)``: the maps after the map-changing events up to ``t_s``.
+    Returns the :class:`~skyroute.stages.tactical.log.FlightLog` (outcome ``goal``,
+    ``landed`` or ``failed`` with its reason)."""
+    if plan_traj is None:
+        raise InputError("the strategic plan has no trajectory to fly (re-run `skyroute plan`)")
+    tl = Timeline()
+    tl.add(Segment(plan_traj, float(plan_t0_s), "strategic", None), float(plan_t0_s))
+    t_comp = time.perf_counter()
+    _warm_up()
+    compile_s = time.perf_counter() - t_comp
+    r = _Replay(tl, goal_xyz, world, world_at, events, strategic_intruders, vehicle, params, start_time_utc,
+                dop_threshold)
+    try:
+        r.run()
+    except SkyrouteError:
+        raise
+    from skyroute.stages.grid import Grid
+
+    grid = Grid.from_dataarray(world.surface["terrain"])
+    planned_t = Segment(plan_traj, float(plan_t0_s)).times(plan_t0_s, plan_t0_s + plan_traj.duration_s, params.tick_s)
+    log = FlightLog(scenario, crs_wkt, vertical_datum, str(start_time_utc), planned_t,
+                    Segment(plan_traj, float(plan_t0_s)).sample(planned_t))
+    for seg, a, b in tl.pieces():
+        t = seg.times(a, b, params.tick_s)
+        if t.size < 2:
+            continue
+        log.parts.append(FlownPart(seg.part, t, seg.sample(t), np.linalg.norm(seg.velocity(t), axis=1),
+                                   seg.replanning))
+    t_f, p_f = log.flown()
+    log.energy_Wh = r.energy_J(t_f, p_f, r.problem(p_f[0], p_f[-1], zones_from_s=math.inf)) / 3600.0
+    log.attempts = r.attempts
+    log.events = r.event_log
+    log.intruders = list(r.known.truth.values())
+    log.nofly = list(r.known.zones)
+    log.outcome, log.reason = r.outcome, r.reason
+    log.dop_threshold = dop_threshold
+    log.t_rep_s, log.tick_s, log.seed = params.t_rep_s, params.tick_s, params.seed
+    log.own_radius_m, log.margin_m = vehicle.r_p_m, params.d_c_m
+    log.compile_s = compile_s
+    log.warnings = r.warnings
+    log.grid = grid
+    log.terrain_m = np.asarray(world.surface["terrain"].values, float)
+    log.surface_m = np.asarray(world.surface["surface"].values, float)
+    if world.coverage is not None and dop_threshold is not None:
+        log.coverage_floor_m = np.asarray(world.coverage["coverage_floor"].sel(threshold=dop_threshold).values, float)
+    env = world.environment
+    if env is not None and "site_x" in env.coords:
+        log.landing_xy = np.column_stack([env["site_x"].values, env["site_y"].values])
+    return log
+
+
+def _warm_up() -> None:
+    """Compile the kernels the levels use once (numba caches them on disk), so each level's
+    ``compute_s`` is its search + smoothing + validation, not compilation."""
+    t = np.array([0.0, 1.0, 2.0])
+    p = np.array([[0.0, 0.0, 10.0], [10.0, 0.0, 10.0], [20.0, 0.0, 10.0]])
+    it = Intruder("warm-up", np.array([0.0, 2.0]), np.array([[0.0, 100.0, 10.0], [20.0, 100.0, 10.0]]), 1.0)
+    first_conflict(t, p, IntruderTracks.from_intruders([it]), np.array([5.0]))
+    chain_timing  # noqa: B018  (imported for the type; STEP II kernels compile on first use)

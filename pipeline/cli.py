@@ -182,7 +182,7 @@ def _run_fly(sc, result, out_dir: Path, scheduler: str, quiet: bool) -> dict | N
     return {"files": [f"fly/{f}" for f in doc["files"]], "section": section}
 
 
-def _write_folder_summary(out_dir: Path, command: str, result, files, sections: dict) -> dict:
+def write_folder_summary(out_dir: Path, command: str, result, files, sections: dict) -> dict:
     """summary.json of a folder-writing command (files relative to ``out_dir``, stage warnings
     printed on stderr), removing the files an earlier summary listed that were not rewritten."""
     from skyroute.pipeline.outputs import (
@@ -233,7 +233,7 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
                           progress=not quiet and sys.stderr.isatty())
     files = write_map_geotiffs(result, out_dir)
     files.append(plot_maps_panel(result, out_dir / "maps.png"))
-    _write_folder_summary(out_dir, "maps", result, files, {"maps": {"stages": targets}})
+    write_folder_summary(out_dir, "maps", result, files, {"maps": {"stages": targets}})
     for f in files:
         click.echo(str(f))
 
@@ -296,7 +296,7 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
                           progress=not quiet and sys.stderr.isatty())
     files = write_plan_outputs(result, out_dir)
     plan = plan_section(result["plan"])
-    _write_folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan})
+    write_folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan})
     for f in files.values():
         click.echo(str(f))
     if plan["status"] == "flyable":
@@ -330,7 +330,7 @@ def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) ->
                           progress=not quiet and sys.stderr.isatty())
     cov = result["coverage"].load()
     files = write_coverage_outputs(cov, out_dir)
-    _write_folder_summary(out_dir, "coverage", result, files, {"coverage": {
+    write_folder_summary(out_dir, "coverage", result, files, {"coverage": {
         "dop_kind": str(cov.attrs.get("dop_kind", "")),
         "thresholds": [float(t) for t in cov["coverage_floor"]["threshold"].values]}})
     for f in files:

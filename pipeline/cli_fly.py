@@ -12,12 +12,12 @@ from skyroute.pipeline.cli import SCHEDULER_HELP
 
 def write_fly_folder(fr, out_dir: Path, command: str = "fly") -> dict:
     """Write the flight outputs and ``summary.json`` of a ``fly`` folder; return the section."""
-    from skyroute.pipeline.cli import _write_folder_summary
+    from skyroute.pipeline.cli import write_folder_summary
     from skyroute.stages.tactical.outputs import flight_section, write_flight
 
     files = write_flight(fr.log, out_dir)
     section = flight_section(fr.log)
-    _write_folder_summary(out_dir, command, fr.result, [str(p) for p in files.values()], {"fly": section})
+    write_folder_summary(out_dir, command, fr.result, [str(p) for p in files.values()], {"fly": section})
     return section
 
 

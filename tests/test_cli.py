@@ -160,4 +160,4 @@ def test_unknown_scenario_exit_2(runner):
     res = runner.invoke(main, ["run", "atlantis"])
     assert res.exit_code == 2
     assert res.output.strip() == ("error: unknown scenario 'atlantis'; known scenarios: helsinki-medical, "
-                                  "helsinki-traffic, monaco-helipads, rotterdam-canyon, san-gabriel-mountains")
+                                  "helsinki-tactical, helsinki-traffic, monaco-helipads, rotterdam-canyon, san-gabriel-mountains")

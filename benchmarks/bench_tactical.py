@@ -86,7 +86,7 @@ def main() -> None:
                          scenario=sc.name)
             for r in log.attempts:
                 rows.append({"city": name, "k": k, "level": r.level, "flyable": r.flyable, "chosen": r.chosen,
-                             "compute_s": r.compute_s, "t_coll_s": r.t_coll_s})
+                             "compute_s": r.compute_s, "t_coll_s": r.t_coll_s, "reasons": r.reasons})
             if not log.attempts:
                 rows.append({"city": name, "k": k, "level": "none", "flyable": True, "chosen": True,
                              "compute_s": 0.0, "t_coll_s": math.inf})
@@ -111,6 +111,15 @@ def _report(name: str, rows: list[dict], base_s: float) -> None:
         ch = sum(r["chosen"] for r in rs)
         p50, p95 = np.percentile(cs, 50), np.percentile(cs, 95)
         print(f"{lv:8s} {len(rs):6d} {ok / len(rs):8.1%} {ch:7d} {p50:9.1f} {p95:9.1f} {p95 / 1e3 / base_s:9.3f}")
+    fails = [r for r in rows if r["level"] == "landing" and not r["flyable"]]
+    if fails:
+        kinds = {"separation during the braking / landing path": "separation from intruder",
+                 "RRT found no way out of the reserved volumes": "STEP II reached",
+                 "cannot slow down for the corners": "cannot slow down",
+                 "navigation error above dp_max": "navigation error"}
+        counts = {k: sum(v in r["reasons"] for r in fails) for k, v in kinds.items()}
+        print("failed landings (" + str(len(fails)) + "), reasons named among the sites tried: "
+              + ", ".join(f"{k} {n}" for k, n in counts.items() if n))
     per = {}
     for r in rows:
         per[(r["city"], r["k"])] = per.get((r["city"], r["k"]), 0.0) + r["compute_s"]

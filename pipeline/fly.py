@@ -104,7 +104,7 @@ def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None 
 
     t = sc.tactical
     return FlyParams(t_rep_s=t.t_rep_s if t_rep_s is None else t_rep_s, tick_s=t.tick_s if tick_s is None else tick_s,
-                     seed=t.seed if seed is None else seed, d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s,
+                     seed=t.seed if seed is None else seed, d_c_m=sc.traffic.margin_m, dt_c_s=t.time_margin_s,
                      weights=tuple(sc.planner.weights), time_scaling_factors=tuple(t.time_scaling_factors),
                      level2_iterations=t.level2_iterations, level3_iterations=t.level3_iterations,
                      intruder_noise_m=t.intruder_noise_m, report_latency_s=t.report_latency_s,

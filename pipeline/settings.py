@@ -328,7 +328,9 @@ class TacticalSettings(FrozenModel):
     effect that long after its event), simulation tick ``tick_s`` [s], random ``seed``, 1-sigma
     position noise of reported intruder tracks ``intruder_noise_m`` [m], delay between an intruder
     event and when the ownship knows it ``report_latency_s`` [s], iteration budgets of the level-2
-    and level-3 RRTs, and the level-1 velocity scale factors tried in order."""
+    and level-3 RRTs, the level-1 velocity scale factors tried in order, and the time margin
+    ``time_margin_s`` [s] of the replanning occupancy maps (the tracks are fresh during the
+    flight; the strategic maps use ``traffic.time_margin_s``)."""
 
     t_rep_s: PositiveFloat = 5.0
     tick_s: PositiveFloat = 0.1
@@ -338,6 +340,7 @@ class TacticalSettings(FrozenModel):
     level2_iterations: Annotated[int, Field(ge=1)] = 3000
     level3_iterations: Annotated[int, Field(ge=1)] = 5000
     time_scaling_factors: tuple[Annotated[float, Field(gt=0, lt=1)], ...] = (0.8, 0.65, 0.5, 0.35, 0.25)
+    time_margin_s: NonNegFloat = 1.0
 
     @field_validator("time_scaling_factors")
     @classmethod

@@ -484,6 +484,11 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
             why.append("a fillet would exceed the flight-path angle")
             continue
         d = 0.5 * min(length[i - 1], length[i])
+        if i == 1 and v_start > 0:
+            # a vehicle already flying the first leg: no fillet at the chain's start competes for
+            # that leg, so the first corner may cut back all of it (a replan starting on a
+            # remnant of a leg keeps at least the fillet the plan had there)
+            d = min(length[0], length[1] if w.shape[0] == 3 else 0.5 * length[1])
         ok = False
         for _ in range(max_shrink + 1):
             if fillet_ok is None or fillet_ok(w[i] - d * u1, w[i], w[i] + d * u2):

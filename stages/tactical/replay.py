@@ -85,8 +85,9 @@ class FlyParams:
     """Replay parameters (scenario ``tactical:`` section and traffic margins).
 
     ``t_rep_s`` [s]: replanning timeout (a replan takes effect that long after its event);
-    ``tick_s`` [s]: output and check sampling; ``d_c_m`` [m] / ``dt_c_s`` [s]: traffic
-    margins; ``weights``: eq. 11 weights (w_l, w_r, w_d, w_e) of the scenario (the tactical
+    ``tick_s`` [s]: output and check sampling; ``d_c_m`` [m]: spatial traffic margin (the
+    separation is r_p + r_i + d_c); ``dt_c_s`` [s]: time margin of the replanning occupancy
+    maps; ``weights``: eq. 11 weights (w_l, w_r, w_d, w_e) of the scenario (the tactical
     cost keeps w_l and w_e); ``time_scaling_factors``: level-1 speed factors in (0, 1);
     ``level2_iterations`` / ``level3_iterations``: RRT iteration counts; ``intruder_noise_m``
     [m]: 1-sigma noise of reported intruder positions; ``report_latency_s`` [s]: delay before an
@@ -458,9 +459,8 @@ class _Replay:
         """The current plan's chain from its position at ``t_eff``: ``(vertices, leg speeds,
         number of leading vertices that are not the plan's own (0 or 1), speed at t_eff)``.
         The first leg is along the vehicle's velocity: on a line phase it is the rest of that
-        line; on a fillet arc it is the arc's tangent for the braking distance (then the
-        arc's end point and the plan's next vertices), a deviation of L^2 / (2 R) from the arc
-        that STEP III and the checks validate like any other leg."""
+        line; on a fillet arc it is the tangent up to where it meets the next leg (the rest
+        of the arc is that corner's fillet, which STEP III re-creates when there is room)."""
         seg = self.tl.segments[self.tl.active(t_eff)]
         tau = t_eff - seg.t0_s
         verts, speeds, leg_of = chain_of(seg.traj)
@@ -471,24 +471,22 @@ class _Replay:
         v0 = float(np.linalg.norm(vel))
         if line or v0 < 1e-6:
             return np.concatenate([p0[None], verts[leg + 1:]]), speeds[leg:], 0, v0
-        # on the arc at the corner verts[leg] (between legs leg-1 and leg): tangent, arc end, next vertices
+        # on the fillet arc at the corner verts[leg] (between legs leg-1 and leg): the rest of the
+        # arc is the fillet of the corner where the current tangent meets the next leg, at
+        # R tan(phi_rem / 2) ahead (phi_rem: the arc angle left); the chain goes through it
         t1 = float(seg.traj.phase_t0_s[i + 1]) if i + 1 < seg.traj.phase_t0_s.size else float(seg.traj.duration_s)
-        a_end = seg.traj.sample([t1])[0]
-        d_b = v0 * v0 / (2.0 * self.lim.max_acceleration_mps2) + 0.5
-        tan_pt = p0 + vel / v0 * min(d_b, max(float(np.linalg.norm(a_end - p0)), 0.5))
-        chain = [p0[None], tan_pt[None]]
-        if np.linalg.norm(a_end - tan_pt) > 0.5:
-            chain.append(a_end[None])
-        chain.append(verts[leg + 1:])
-        ch = np.concatenate(chain)
-        sp = np.concatenate([np.full(ch.shape[0] - 1 - speeds[leg:].size, max(v0, speeds[leg])), speeds[leg:]])
+        R = float(seg.traj.radius_m[i])
+        phi = min(v0 * (t1 - tau) / R, math.pi * 0.99)
+        v_rem = p0 + vel / v0 * (R * math.tan(phi / 2.0))
+        ch = np.concatenate([p0[None], v_rem[None], verts[leg + 1:]])
+        sp = np.concatenate([[max(v0, speeds[leg])], speeds[leg:]])
         return ch, sp, 1, v0
 
-    def braking_point(self, chain: np.ndarray, v0: float) -> tuple[np.ndarray, int]:
+    def braking_point(self, chain: np.ndarray, v0: float, scale: float = 1.0) -> tuple[np.ndarray, int]:
         """The chain cut the braking distance v0^2 / (2 a_max) (plus 0.5 m) after its start,
         where the vehicle stops before turning onto the new chain (``stop_at``):
         ``(chain up to and including P_b, number of vertices before P_b)``."""
-        d_b = v0 * v0 / (2.0 * self.lim.max_acceleration_mps2) + 0.5
+        d_b = scale * v0 * v0 / (2.0 * self.lim.max_acceleration_mps2) + 0.5
         legs = np.linalg.norm(np.diff(chain, axis=0), axis=1)
         cum = np.concatenate([[0.0], np.cumsum(legs)])
         if d_b >= cum[-1]:
@@ -599,36 +597,19 @@ class _Replay:
         row("1", cand1, time.perf_counter() - t0, why1)
 
         # levels 2 and 3: RRTs from the braking point
-        pre, nb = self.braking_point(chain, v0)
-        pb = pre[-1]
-        if nb >= chain.shape[0] - 1 and np.allclose(pb, chain[-1]):
-            row("2", None, 0.0, "the goal is within the braking distance")
-            row("3", None, 0.0, "the goal is within the braking distance")
-        else:
-            pre_speeds = speeds[: pre.shape[0] - 1]
-            t_b = t_eff + float(np.sum(np.linalg.norm(np.diff(pre, axis=0), axis=1) / np.maximum(pre_speeds, 1e-3)))
-            occ = self._occupancy(t_eff)
-            for level, W, iters, sigma in (("2", np.concatenate([pb[None], chain[nb:]]), p.level2_iterations, 30.0),
-                                           ("3", np.stack([pb, chain[-1]]), p.level3_iterations, 60.0)):
-                t0 = time.perf_counter()
-                cand, why = None, ""
-                try:
-                    s2 = deconflict(problem, W, occ, t0_s=t_b, seed=p.seed + 7919 * (k + 1) + int(level),
-                                    max_iter=iters, time_budget_s=600.0, sigma_m=sigma,
-                                    explore=0.2 if level == "2" else 0.4, require_valid_chain=False)
-                    if not s2.ok:
-                        why = s2.reason
-                    else:
-                        full = np.concatenate([pre, s2.waypoints[1:]])
-                        legs_full = np.diff(full, axis=0)
-                        sp = np.concatenate([pre_speeds, np.full(legs_full.shape[0] - pre_speeds.size,
-                                                                  self.veh.cruise_speed_mps)])
-                        cand = self._finish(problem, full, sp, t_eff, v0, f"L{level}", budget,
-                                            stop_at=(pre.shape[0] - 1,))
-                        why = "; ".join(cand.reasons)
-                except (PlanningError, InputError) as exc:
-                    why = str(exc)
-                row(level, cand, time.perf_counter() - t0, why)
+        occ = self._occupancy(t_eff)
+        for level, iters, sigma, explore in (("2", p.level2_iterations, 30.0, 0.2),
+                                             ("3", p.level3_iterations, 60.0, 0.4)):
+            t0 = time.perf_counter()
+
+            def tail(pre, nb, t_b, level=level, iters=iters, sigma=sigma, explore=explore):
+                W = (np.concatenate([pre[-1:], chain[nb:]]) if level == "2" else np.stack([pre[-1], chain[-1]]))
+                s2 = deconflict(problem, W, occ, t0_s=t_b, seed=p.seed + 7919 * (k + 1) + int(level), max_iter=iters,
+                                time_budget_s=600.0, sigma_m=sigma, explore=explore, require_valid_chain=False)
+                return s2.waypoints if s2.ok else s2.reason
+
+            cand, why = self._via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, f"L{level}", budget)
+            row(level, cand, time.perf_counter() - t0, why)
         # choose
         valid = [(r, c, lv) for r, c, lv in rows if r.flyable and c is not None and math.isfinite(c.f)]
         if valid:
@@ -652,37 +633,69 @@ class _Replay:
         return build_occupancy(intr, horizon, n, self.veh.r_p_m + self.p.d_c_m, self.p.dt_c_s, t0_s=t_from)
 
     # -------------------------------------------------------------- contingency landing
+    def _via_braking(self, chain, speeds, v0: float, t_eff: float, tail, problem_of, label: str, budget_J: float):
+        """A new chain that stops at the braking point ``P_b`` of the current one and continues
+        with ``tail(pre, nb, t_b)`` (waypoints from ``P_b``, or a reason string): ``(candidate or
+        None, reason)``.  When the vehicle cannot slow down in time for the corners between
+        ``t_eff`` and ``P_b`` (short remnants of old legs), ``P_b`` moves 2x and 4x farther."""
+        why = ""
+        for scale in (1.0, 2.0, 4.0):
+            pre, nb = self.braking_point(chain, v0, scale)
+            if nb >= chain.shape[0] - 1 and np.allclose(pre[-1], chain[-1]):
+                return None, "the goal is within the braking distance"
+            pre_speeds = speeds[: pre.shape[0] - 1]
+            t_b = t_eff + float(np.sum(np.linalg.norm(np.diff(pre, axis=0), axis=1) / np.maximum(pre_speeds, 1e-3)))
+            try:
+                wp = tail(pre, nb, t_b)
+                if isinstance(wp, str):
+                    return None, wp
+                full = np.concatenate([pre, wp[1:]])
+                sp = np.concatenate([pre_speeds, np.full(full.shape[0] - 1 - pre_speeds.size, self.veh.cruise_speed_mps)])
+                cand = self._finish(problem_of(pre[-1]), full, sp, t_eff, v0, label, budget_J,
+                                    stop_at=(pre.shape[0] - 1,))
+                why = "; ".join(cand.reasons)
+                if "cannot slow down" in why and scale < 4.0:     # STEP III reports it as a reason
+                    continue
+                return cand, why
+            except PlanningError as exc:
+                why = str(exc)
+                if "cannot slow down" not in why:
+                    return None, why
+            except InputError as exc:
+                return None, str(exc)
+        return None, why
+
     def land(self, k: int, ev: TacticalEvent, t_e: float, t_from: float, t_coll: float, update_s: float,
              why: str) -> bool:
         t_eff = self._effective_time(t_from)
-        chain, speeds, _leg, v0 = self.rest_chain(t_eff)
-        pre, _nb = self.braking_point(chain, v0)
-        pre_speeds = speeds[: pre.shape[0] - 1]
-        t_b = t_eff + float(np.sum(np.linalg.norm(np.diff(pre, axis=0), axis=1) / np.maximum(pre_speeds, 1e-3)))
-        pb = pre[-1]
+        chain, speeds, _lead, v0 = self.rest_chain(t_eff)
         t0 = time.perf_counter()
         tried = []
-        for name, approach in self._landing_targets(pb):
+        pb0 = self.braking_point(chain, v0)[0][-1]
+        for name, approach in self._landing_targets(pb0):
             control.check()
             try:
-                problem = self.problem(pb, approach, gnss=False, zones_from_s=t_eff)
+                problem = self.problem(pb0, approach, gnss=False, zones_from_s=t_eff)
                 budget = self.budget_J(t_eff, problem)
-                s1 = plan_step1(problem, planner="astar", time_budget_s=5.0, seed=self.p.seed,
-                                step_cells=self.p.step_cells)
-                if not s1.solved:
-                    tried.append(f"{name}: {s1.reason or s1.status}")
-                    continue
-                s2 = deconflict(problem, s1.waypoints, self._occupancy(t_b), t0_s=t_b, seed=self.p.seed,
-                                max_iter=self.p.level2_iterations, time_budget_s=600.0)
-                if not s2.ok:
-                    tried.append(f"{name}: {s2.reason}")
-                    continue
-                full = np.concatenate([pre, s2.waypoints[1:]])
-                sp = np.concatenate([pre_speeds, np.full(full.shape[0] - 1 - pre_speeds.size,
-                                                          self.veh.cruise_speed_mps)])
-                cand = self._finish(problem, full, sp, t_eff, v0, "landing", budget, stop_at=(pre.shape[0] - 1,))
             except (PlanningError, InputError) as exc:
                 tried.append(f"{name}: {exc}")
+                continue
+
+            def tail(pre, nb, t_b, problem=problem, approach=approach):
+                prob = self.problem(pre[-1], approach, gnss=False, zones_from_s=t_eff)
+                s1 = plan_step1(prob, planner="astar", time_budget_s=5.0, seed=self.p.seed, step_cells=self.p.step_cells)
+                if not s1.solved:
+                    return s1.reason or s1.status
+                s2 = deconflict(prob, s1.waypoints, self._occupancy(t_b), t0_s=t_b, seed=self.p.seed,
+                                max_iter=self.p.level2_iterations, time_budget_s=600.0)
+                return s2.waypoints if s2.ok else s2.reason
+
+            cand, reason = self._via_braking(chain, speeds, v0, t_eff, tail,
+                                             lambda pb, approach=approach: self.problem(pb, approach, gnss=False,
+                                                                                        zones_from_s=t_eff),
+                                             "landing", budget)
+            if cand is None:
+                tried.append(f"{name}: {reason}")
                 continue
             if not cand.flyable:
                 tried.append(f"{name}: {'; '.join(cand.reasons[:2])}")

@@ -81,7 +81,8 @@ def test_scenarios_lists_one_line_each(runner):
     assert res.exit_code == 0
     lines = res.output.strip().splitlines()
     assert len(lines) == len(scenario_paths())
-    assert lines[0].startswith("* helsinki-medical")
+    assert [ln.split()[1] for ln in lines if ln.startswith("*")] == ["helsinki-medical"]   # the default, marked
+    assert not any(ln.startswith("!") for ln in lines)                                      # every scenario valid
 
 
 def test_run_default_scenario_writes_outputs(runner, tmp_path):

@@ -484,11 +484,6 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
             why.append("a fillet would exceed the flight-path angle")
             continue
         d = 0.5 * min(length[i - 1], length[i])
-        if i == 1 and v_start > 0:
-            # a vehicle already flying the first leg: no fillet at the chain's start competes for
-            # that leg, so the first corner may cut back all of it (a replan starting on a
-            # remnant of a leg keeps at least the fillet the plan had there)
-            d = min(length[0], length[1] if w.shape[0] == 3 else 0.5 * length[1])
         ok = False
         for _ in range(max_shrink + 1):
             if fillet_ok is None or fillet_ok(w[i] - d * u1, w[i], w[i] + d * u2):
@@ -554,8 +549,8 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
             v[j + 1] = min(v[j + 1], math.sqrt(v[j] ** 2 + 2 * a_max * pc[2]))
         else:
             v[j + 1] = min(v[j + 1], v[j])
-    if v_start > 0:   # the start speed is given, not a cap: the backward pass may not lower it
-        need = v[0]
+    if v_start > 0:   # the start speed is given, not a cap: no pass may lower it
+        need = v_start
     for j in range(len(pieces) - 1, -1, -1):            # backward
         pc = pieces[j]
         if pc[0] == _LINE:
@@ -601,6 +596,12 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
                 t += (vp - v1) / a_max
         piece_t.append(t)
         pts.append(pieces[j + 1][1] if j + 1 < len(pieces) else w[-1])
+    # guard: the speed is continuous from phase to phase (a defect here would be an infinite
+    # acceleration the later checks sample only by chance)
+    for r0, r1 in zip(rows[:-1], rows[1:], strict=True):
+        v_end = r0[6] + r0[7] * (r1[0] - r0[0])
+        if abs(v_end - r1[6]) > 1e-6 * max(1.0, abs(r1[6])):
+            raise PlanningError(f"internal: speed jumps from {v_end:.3f} to {r1[6]:.3f} m/s at t = {r1[0]:.2f} s")
     cols = list(zip(*rows, strict=True))
     return CornerTrajectory(
         phase_t0_s=np.array(cols[0]), kind=np.array(cols[1], dtype=np.int8), origin=np.array(cols[2]),

@@ -581,17 +581,26 @@ class _Replay:
             problem1 = (problem if not any(z.end_s > t_eff for z in self.known.zones)
                         else self.problem(chain[0], self.goal, zones_from_s=math.inf))   # zones: checked in time
             for s in p.time_scaling_factors:
-                sp = speeds.copy()
-                sp[:n_slow] *= s
-                try:
-                    c = self._finish(problem1, chain, sp, t_eff, v0, f"L1 s={s:g}", budget)
-                except PlanningError as exc:
-                    fails.append(f"s={s:g}: {exc}")
-                    continue
-                if c.flyable:
-                    cand1 = c
+                # slow the legs up to the encounter; when the vehicle cannot slow down on the
+                # remnant of its current leg (arcs are flown at constant speed), start the
+                # slow-down one or two legs later
+                for first in range(min(3, n_slow)):
+                    sp = speeds.copy()
+                    sp[first:n_slow] *= s
+                    try:
+                        c = self._finish(problem1, chain, sp, t_eff, v0, f"L1 s={s:g}", budget)
+                    except PlanningError as exc:
+                        c, why = None, str(exc)
+                    else:
+                        why = "; ".join(c.reasons[:2])
+                    if c is not None and c.flyable:
+                        cand1 = c
+                        break
+                    if "cannot slow down" not in why:
+                        break
+                if cand1 is not None:
                     break
-                fails.append(f"s={s:g}: {'; '.join(c.reasons[:2])}")
+                fails.append(f"s={s:g}: {why}")
             if cand1 is None:
                 why1 = "no speed factor gave a valid plan: " + " | ".join(fails[-2:])
         row("1", cand1, time.perf_counter() - t0, why1)

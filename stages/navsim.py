@@ -329,6 +329,35 @@ def pdop_of(los_enu: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return dop_table(np.where(mask, az, np.nan), np.where(mask, el, np.nan))[..., 1]
 
 
+def flight_geometry(problem, sky: xr.Dataset, surface_2d, t_s, xyz_m, start_time_utc,
+                    cache: dict | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inputs of :func:`simulate` along a flight: ``(los_enu (m, nsat, 3), visible (m, nsat),
+    received_ok (m, nsat))`` of the satellites of ``sky``
+    (:func:`skyroute.stages.almanac.sky_geometry`) at samples ``xyz_m`` (m, 3) [m] in the map
+    frame of ``problem.grid`` at mission times ``t_s`` [s] (UTC of time 0: ``start_time_utc``).
+    Line of sight and occlusion by the surface heights ``surface_2d`` come from
+    :func:`skyroute.stages.planning.step3.line_of_sight` (nearest sky epoch, exact visibility
+    heights); ``received_ok`` is the sky's ``above_mask`` at the same epoch (above the
+    elevation mask, visible or hidden).  ``cache``: as for ``line_of_sight``."""
+    from skyroute.stages.planning.step3 import line_of_sight, sky_times_s
+
+    if "above_mask" not in sky:
+        raise InputError("sky dataset lacks 'above_mask': build it with skyroute.stages.almanac.sky_geometry")
+    los, vis = line_of_sight(problem, sky, surface_2d, t_s, xyz_m, start_time_utc, cache=cache)
+    ts = sky_times_s(sky, start_time_utc)
+    t = np.asarray(t_s, dtype=float).reshape(-1)
+    if ts.size > 1:                                   # nearest epoch, the rule of line_of_sight
+        ep = np.clip(np.searchsorted(ts, t), 1, ts.size - 1)
+        ep = np.where(np.abs(ts[ep - 1] - t) <= np.abs(ts[ep] - t), ep - 1, ep)
+    else:
+        ep = np.zeros(t.size, int)
+    el = np.asarray(sky["el_deg"].transpose("time", "sat").values, float)
+    az = np.asarray(sky["az_deg"].transpose("time", "sat").values, float)
+    up = np.asarray(sky["above_mask"].transpose("time", "sat").values, bool)
+    up = (up & np.isfinite(el) & (el > 0) & np.isfinite(az))[ep]
+    return los, vis & up, up
+
+
 def _pass_ids(hidden: np.ndarray) -> tuple[np.ndarray, int]:
     """Label each maximal run of consecutive hidden epochs of each satellite (-1 elsewhere)."""
     m, nsat = hidden.shape
@@ -591,4 +620,4 @@ def gaussian_containment(cov_m2, k: float = 3.0, nodes: int = 48) -> np.ndarray:
 
 
 __all__ = ["BIAS_DISTRIBUTIONS", "FILTERS", "GPS_RANGE_M", "NavsimParams", "containment", "error_cdf",
-           "gaussian_containment", "pdop_of", "proposed_beats_weak", "simulate"]
+           "flight_geometry", "gaussian_containment", "pdop_of", "proposed_beats_weak", "simulate"]

@@ -173,3 +173,41 @@ def test_bad_inputs():
         S.NavsimParams(nlos_reception_prob=1.5)
     with pytest.raises(InputError, match="runs"):
         S.simulate(t, xyz, los, vis, recv, runs=0)
+
+
+def test_street_canyon_flight_geometry():
+    """Shipped almanac over a synthetic street canyon (two rows of 30 m blocks along north):
+    flight_geometry's masks, then the seed 003 ordering on that geometry."""
+    import types
+
+    import pandas as pd
+
+    from skyroute.pipeline.settings import catalog_dir
+    from skyroute.stages.almanac import sky_geometry
+    from skyroute.stages.grid import Grid
+
+    x0, y0 = 385000.0, 6672000.0
+    g = Grid.from_bounds("EPSG:32635", x0, y0, x0 + 400, y0 + 600, 5.0)
+    surf = np.zeros(g.shape)
+    surf[:, 20:34] = 30.0                       # blocks x 100..170 m and 230..300 m, street 170..230
+    surf[:, 46:60] = 30.0
+    start = pd.Timestamp("2020-01-03T12:00:00Z")
+    lon, lat = g.to_lonlat(x0 + 200, y0 + 300)
+    with pytest.warns(UserWarning, match="unhealthy"):
+        sky = sky_geometry(catalog_dir() / "data" / "yuma_2020-01-03.txt",
+                           pd.date_range(start, periods=3, freq="60s"), lat, lon)
+    t = np.arange(0.0, 60.0, 0.1)
+    xyz = np.stack([np.full_like(t, x0 + 200), y0 + 100 + 6.0 * t, np.full_like(t, 15.0)], axis=1)
+    los, vis, recv = S.flight_geometry(types.SimpleNamespace(grid=g), sky, surf, t, xyz, start)
+    nearest = np.rint(t / 60.0).astype(int)
+    np.testing.assert_array_equal(recv, sky.above_mask.transpose("time", "sat").values[nearest])
+    assert not (vis & ~recv).any()
+    n_vis, n_recv = vis.sum(1), recv.sum(1)
+    assert (n_recv >= 8).all() and (n_vis < n_recv).all() and (n_vis >= 4).all()
+    # satellites seen along the street (azimuth near north/south) or high up are visible
+    el = sky.el_deg.transpose("time", "sat").values[nearest]
+    assert vis[recv & (el > 70.0)].all()
+    ds = S.simulate(t, xyz, los, vis, recv, runs=100, seed=2)
+    c = S.containment(ds)
+    assert c["weak"]["3sigma"] < c["proposed"]["3sigma"]
+    assert S.proposed_beats_weak(ds) > 0.5

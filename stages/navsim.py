@@ -372,6 +372,18 @@ def _pass_ids(hidden: np.ndarray) -> tuple[np.ndarray, int]:
     return ids, offset
 
 
+def _draw_nlos(rng: np.random.Generator, params: NavsimParams, shape: tuple[int, ...]
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Per (run, NLOS pass): received by reflection (bool) and its positive bias [m] (mean
+    ``nlos_bias_mean_m``; half-normal scale = mean * sqrt(pi / 2))."""
+    received = rng.random(shape) < params.nlos_reception_prob
+    if params.nlos_bias_distribution == "exponential":
+        bias = rng.exponential(params.nlos_bias_mean_m, shape)
+    else:
+        bias = np.abs(rng.standard_normal(shape)) * params.nlos_bias_mean_m * math.sqrt(math.pi / 2)
+    return received, bias
+
+
 def _update_epochs(t: np.ndarray, rate_hz: float) -> np.ndarray:
     period = 1.0 / rate_hz
     do = np.zeros(t.size, bool)
@@ -494,11 +506,7 @@ def simulate(t_s, xyz_m, los_enu, visible, received_ok, dop=None, params: Navsim
     pass_id, npass = _pass_ids(recv & ~vis)
     rng = np.random.default_rng(seed)
     seeds = rng.integers(0, 2**31 - 1, size=runs, dtype=np.int64)
-    rec_draw = rng.random((runs, max(npass, 1))) < params.nlos_reception_prob
-    if params.nlos_bias_distribution == "exponential":
-        bias = rng.exponential(params.nlos_bias_mean_m, (runs, max(npass, 1)))
-    else:
-        bias = np.abs(rng.standard_normal((runs, max(npass, 1)))) * params.nlos_bias_mean_m * math.sqrt(math.pi / 2)
+    rec_draw, bias = _draw_nlos(rng, params, (runs, max(npass, 1)))
 
     err_p = np.empty((runs, m, 3))
     err_w = np.empty((runs, m, 3))

@@ -211,3 +211,18 @@ def test_street_canyon_flight_geometry():
     c = S.containment(ds)
     assert c["weak"]["3sigma"] < c["proposed"]["3sigma"]
     assert S.proposed_beats_weak(ds) > 0.5
+
+
+@pytest.mark.parametrize("dist, ref", [("exponential", "expon"), ("half-normal", "halfnorm")])
+def test_nlos_bias_distribution(dist, ref):
+    from scipy import stats
+
+    p = S.NavsimParams(nlos_bias_distribution=dist, nlos_bias_mean_m=12.0, nlos_reception_prob=0.3)
+    received, bias = S._draw_nlos(np.random.default_rng(0), p, (200, 100))
+    n = bias.size
+    assert received.mean() == pytest.approx(0.3, abs=4 * np.sqrt(0.21 / n))
+    assert (bias > 0).all()
+    law = getattr(stats, ref)
+    scale = 12.0 if ref == "expon" else 12.0 * np.sqrt(np.pi / 2)
+    assert law(scale=scale).mean() == pytest.approx(12.0)
+    assert stats.kstest(bias.ravel(), law(scale=scale).cdf).pvalue > 0.01

@@ -159,6 +159,16 @@ def test_seeded():
     np.testing.assert_array_equal(a.err_weak_m.values, b.err_weak_m.values)
     np.testing.assert_array_equal(a.sigma_weak_m.values, b.sigma_weak_m.values)
     assert not np.allclose(a.err_proposed_m.values, c.err_proposed_m.values)
+    # each run reseeds its thread's generator: the numbers do not depend on the thread count
+    import numba
+
+    n0 = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        d = S.simulate(t, xyz, los, vis, recv, runs=16, seed=5)
+    finally:
+        numba.set_num_threads(n0)
+    np.testing.assert_array_equal(a.err_weak_m.values, d.err_weak_m.values)
 
 
 def test_bad_inputs():

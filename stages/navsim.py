@@ -57,14 +57,15 @@ Error model (:class:`NavsimParams`)
   signal is received by reflection with probability ``nlos_reception_prob`` (else not at
   all: no plausible reflector), with a positive bias ``b`` constant over the pass plus white
   noise of sigma ``nlos_noise_factor * sigma_uere_m``.  An NLOS signal always travels a
-  longer path, so its ranging error is positive (Groves 2013, ch. 9, multipath and NLOS reception: NLOS errors
-  are positive and typically tens of metres in urban canyons, unbounded in principle); for a
-  single reflection on a vertical wall facing the satellite at horizontal distance ``d`` the
-  extra path is ``2 d cos(el)`` (Hsu, "Analysis and modeling GPS NLOS effect in highly
-  urbanized area", GPS Solutions 22:7, 2018), e.g. 15 m for d = 10 m at el = 40 deg, the default mean.  Seed
-  003 makes the same point for a canyon (the reflected signal travels at least half its
-  width).  The bias distribution is ``"exponential"`` (default: the maximum-entropy law of a
-  positive quantity with a given mean) or ``"half-normal"``, with mean ``nlos_bias_mean_m``.
+  longer path, so its ranging error is positive (Groves 2013, ch. 9, multipath and NLOS
+  reception: NLOS errors are positive and typically tens of metres in urban canyons,
+  unbounded in principle); for a single reflection on a vertical wall facing the satellite
+  at horizontal distance ``d`` the extra path is ``2 d cos(el)`` (Hsu, "Analysis and
+  modeling GPS NLOS effect in highly urbanized area", GPS Solutions 22:7, 2018), e.g. 15 m
+  for d = 10 m at el = 40 deg, the default mean.  Seed 003 makes the same point for a canyon
+  (the reflected signal travels at least half its width).  The bias distribution is
+  ``"exponential"`` (default: the maximum-entropy law of a positive quantity with a given
+  mean) or ``"half-normal"``, with mean ``nlos_bias_mean_m``.
 * GNSS updates at ``gnss_rate_hz`` (1 Hz); between them the filters only propagate, so
   the output has the sigma and error at every epoch of ``t_s`` (e.g. 10 Hz).
 * DOP scaling (seed 003 eq. 26): ``R_i = mu_i * sigma_uere_m^2 * DOP`` when

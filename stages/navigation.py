@@ -165,6 +165,12 @@ def _as_imu(imu) -> ImuSpec:
     return load_vehicle(imu).imu
 
 
+def resolve_imu(imu: ImuSpec | VehicleProfile | str | dict) -> ImuSpec:
+    """The :class:`ImuSpec` of an ImuSpec, a VehicleProfile, a vehicle name or a dict of ImuSpec
+    fields (the resolution :func:`navigation_error` applies to its ``imu`` argument)."""
+    return _as_imu(imu)
+
+
 def _validate(times_s, los_enu, visible, gnss_sigma_m):
     t = np.asarray(times_s, dtype=float).reshape(-1)
     los = np.asarray(los_enu, dtype=float)
@@ -272,4 +278,4 @@ def navigation_error(times_s, los_enu, visible, imu: ImuSpec | VehicleProfile | 
 
 
 __all__ = ["DEFAULT_UERE_M", "STATE_NAMES", "continuous_model", "discretise", "los_from_az_el",
-           "navigation_error"]
+           "navigation_error", "resolve_imu"]

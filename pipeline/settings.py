@@ -323,6 +323,30 @@ def parse_planner(raw: dict) -> PlannerSettings:
 
 
 # --------------------------------------------------------------------------- tactical replay
+class NavsimSettings(FrozenModel):
+    """Navigation Monte Carlo (``skyroute navsim``, seed 003 section III): ``runs`` and
+    ``seed``; the trajectory is sampled at ``rate_hz`` [Hz] (GNSS updates at ``gnss_rate_hz``);
+    pseudorange error model of the satellites hidden by the surface (NLOS): received by
+    reflection with probability ``nlos_reception_prob``, with a positive bias per pass of mean
+    ``nlos_bias_mean_m`` [m] (``exponential`` or ``half-normal``) and white noise
+    ``nlos_noise_factor`` x UERE (``gnss.uere_m``); the weak filter's ``mu_nlos_weak``; the
+    proposed filter scales R by the local DOP (``scale_r_by_dop``); the surface model's own
+    uncertainty ``surface_uncertainty_m`` [m] is added to the safety bubble
+    r_phi = k sigma + surface_uncertainty_m (reported separately)."""
+
+    runs: Annotated[int, Field(ge=1, le=100000)] = 50
+    seed: int = 0
+    rate_hz: PositiveFloat = 10.0
+    gnss_rate_hz: PositiveFloat = 1.0
+    nlos_reception_prob: Annotated[float, Field(ge=0, le=1)] = 0.7
+    nlos_bias_mean_m: NonNegFloat = 15.0
+    nlos_bias_distribution: Literal["exponential", "half-normal"] = "exponential"
+    nlos_noise_factor: PositiveFloat = 2.0
+    mu_nlos_weak: PositiveFloat = 10.0
+    scale_r_by_dop: bool = True
+    surface_uncertainty_m: NonNegFloat = 1.0
+
+
 class TacticalSettings(FrozenModel):
     """Tactical replay (``skyroute fly``): replanning timeout ``t_rep_s`` [s] (a replan takes
     effect that long after its event), simulation tick ``tick_s`` [s], random ``seed``, 1-sigma
@@ -577,6 +601,7 @@ class Scenario(FrozenModel):
     traffic: TrafficSettings = TrafficSettings()
     planner: PlannerSettings = PlannerSettings()
     tactical: TacticalSettings = TacticalSettings()
+    navsim: NavsimSettings = NavsimSettings()
     events: tuple[Event, ...] = ()
     source_path: Path | None = Field(default=None, exclude=True)
 

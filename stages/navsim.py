@@ -628,5 +628,14 @@ def gaussian_containment(cov_m2, k: float = 3.0, nodes: int = 48) -> np.ndarray:
     return np.einsum("...ij,i,j->...", cdf, wmu, wphi)
 
 
-__all__ = ["BIAS_DISTRIBUTIONS", "FILTERS", "GPS_RANGE_M", "NavsimParams", "containment", "error_cdf",
+__all__ = ["BIAS_DISTRIBUTIONS", "FILTERS", "GPS_RANGE_M", "NavsimParams", "bubble_radius_m", "containment", "error_cdf",
            "flight_geometry", "gaussian_containment", "pdop_of", "proposed_beats_weak", "simulate"]
+
+
+def bubble_radius_m(sigma_m, k: float, surface_uncertainty_m: float = 0.0) -> np.ndarray:
+    """Safety bubble radius r_phi = k sigma + the surface model's uncertainty [m] (seed 003
+    Fig. 11: sigma = sqrt(sigma_x^2 + sigma_y^2 + sigma_z^2) of the filter)."""
+    if not (k > 0 and surface_uncertainty_m >= 0):
+        raise InputError(f"k = {k} must be > 0 and surface_uncertainty_m = {surface_uncertainty_m} >= 0 [m]")
+    return k * np.asarray(sigma_m, float) + float(surface_uncertainty_m)
+

@@ -217,3 +217,31 @@ def test_run_writes_the_flight_of_a_scenario_with_events(cache, tmp_path):
     res = CliRunner().invoke(main, ["fly", "helsinki-medical", "--events", str(late), "--out", str(tmp_path / "f"),
                                     "--cache-dir", str(cache.root)])
     assert res.exit_code == 2 and "error:" in res.output and "5000" in res.output, res.output
+
+
+@pytest.mark.slow
+def test_navsim_on_the_default_plan(cache, tmp_path):
+    """``skyroute navsim`` (issue 12, the Monte Carlo part) on helsinki-medical's plan: the
+    summary's containment fractions are in [0, 1] and ordered in k, the proposed filter's
+    3-sigma containment is >= 0.90 and not below the weak solution's (seed 003's ordering), and
+    navsim.csv has one row per run and epoch."""
+    import csv
+    import json
+
+    from click.testing import CliRunner
+
+    from skyroute.pipeline.cli import main
+
+    out = tmp_path / "ns"
+    res = CliRunner().invoke(main, ["navsim", "helsinki-medical", "--runs", "12", "--seed", "1", "--out", str(out),
+                                    "--cache-dir", str(cache.root), "-q"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "summary.json").read_text())
+    c = doc["navsim"]["containment"]
+    for f in ("proposed", "weak"):
+        v = [c[f][f"{k}sigma"] for k in (1, 2, 3)]
+        assert all(0.0 <= x <= 1.0 for x in v) and v == sorted(v)
+    assert c["proposed"]["3sigma"] >= 0.90 and c["proposed"]["3sigma"] >= c["weak"]["3sigma"]
+    rows = list(csv.DictReader((out / "navsim.csv").open()))
+    assert len(rows) == doc["navsim"]["runs"] * doc["navsim"]["epochs"]
+    assert all((out / f).is_file() for f in doc["files"])

@@ -33,3 +33,13 @@ def test_bad_events_file_names_the_file(tmp_path):
     assert res.exit_code == 2 and not ran
     assert "ev.yaml" in res.output and "unknown kind 'fog'" in res.output
     assert "Traceback" not in res.output
+
+
+def test_navsim_bad_trajectory_file(tmp_path):
+    bad = tmp_path / "flown.csv"
+    bad.write_text("a,b\n1,2\n")
+    cache = tmp_path / "cache"
+    res = CliRunner().invoke(main, ["navsim", "helsinki-medical", "--trajectory", str(bad), "--out",
+                                    str(tmp_path / "o"), "--cache-dir", str(cache)])
+    assert res.exit_code == 2 and res.output.startswith("error: --trajectory") and "t_s, x_m, y_m" in res.output
+    assert not (cache / "stages").exists()

@@ -1,0 +1,106 @@
+"""``skyroute navsim``: Monte Carlo navigation along a scenario's plan (or a flown trajectory).
+
+The plan, maps and sky come from the cached stages (:func:`run_scenario`, target ``plan``);
+the trajectory is the chosen plan's exact trajectory sampled at ``navsim.rate_hz`` (or the
+``flown.csv`` of ``skyroute fly``, resampled); the line of sight and occlusion along it come
+from the exact visibility heights (:func:`skyroute.stages.navsim.flight_geometry`) and the
+simulation is :func:`skyroute.stages.navsim.simulate`.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from skyroute.pipeline.cache import Cache
+from skyroute.pipeline.errors import InputError
+from skyroute.pipeline.runner import RunResult, run_scenario
+from skyroute.pipeline.settings import Scenario
+
+__all__ = ["NavsimResult", "navsim_params", "navsim_scenario", "read_flown_csv"]
+
+
+@dataclass
+class NavsimResult:
+    result: RunResult
+    ds: object                 # the simulate() Dataset
+    source: str                # "plan" or the flown.csv path
+    surface_uncertainty_m: float
+
+
+def navsim_params(sc: Scenario):
+    from skyroute.stages.navsim import NavsimParams
+
+    n = sc.navsim
+    return NavsimParams(sigma_uere_m=sc.gnss.uere_m, nlos_bias_mean_m=n.nlos_bias_mean_m,
+                        nlos_bias_distribution=n.nlos_bias_distribution, nlos_noise_factor=n.nlos_noise_factor,
+                        nlos_reception_prob=n.nlos_reception_prob, gnss_rate_hz=n.gnss_rate_hz,
+                        mu_nlos_weak=n.mu_nlos_weak, scale_r_by_dop=n.scale_r_by_dop)
+
+
+def read_flown_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(t_s, xyz_m)`` of a ``flown.csv`` written by ``skyroute fly`` (columns t_s, x_m, y_m,
+    z_m); one ``error:`` line for a file that is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"--trajectory {path}: no such file (give the flown.csv of `skyroute fly`)")
+    try:
+        with path.open(newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        t = np.array([float(r["t_s"]) for r in rows])
+        p = np.array([[float(r["x_m"]), float(r["y_m"]), float(r["z_m"])] for r in rows])
+    except (KeyError, ValueError, csv.Error) as exc:
+        raise InputError(f"--trajectory {path}: not a flown.csv of `skyroute fly` (needs columns t_s, x_m, y_m, "
+                         f"z_m; {exc})") from None
+    if t.size < 2 or not np.all(np.diff(t) > 0):
+        raise InputError(f"--trajectory {path}: needs at least two samples with increasing t_s")
+    return t, p
+
+
+def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | None = None, seed: int | None = None,
+                    trajectory: Path | None = None, scheduler: str = "threads", progress: bool = False) -> NavsimResult:
+    """Plan (cached) and simulate the navigation of ``sc``'s chosen plan or of ``trajectory``."""
+    from skyroute.stages.base import PlanningError
+    from skyroute.stages.grid import Grid
+    from skyroute.stages.navsim import flight_geometry, simulate
+    from skyroute.stages.planning.strategic import plan_from_dataset, trajectory_from_dataset
+    from skyroute.stages.vehicle import load_vehicle
+
+    n = sc.navsim
+    runs = n.runs if runs is None else runs
+    seed = n.seed if seed is None else seed
+    if not (isinstance(runs, int) and runs >= 1):
+        raise InputError(f"--runs {runs}: give an integer >= 1")
+    params = navsim_params(sc)
+    flown = read_flown_csv(trajectory) if trajectory is not None else None   # bad files: before any work
+    if not sc.data.almanacs:
+        raise InputError(f"scenario {sc.name!r} has no almanac (data.almanacs): navsim needs satellites")
+    result = run_scenario(sc, cache=cache or Cache(), targets=["plan"], scheduler=scheduler, progress=progress)
+    dt = 1.0 / n.rate_hz
+    if flown is None:
+        plan = result["plan"].load()
+        chosen, _ = plan_from_dataset(plan)
+        tr = trajectory_from_dataset(plan)
+        if chosen is None or tr is None:
+            raise PlanningError(f"no strategic plan to simulate: {plan.attrs.get('reason', '')}")
+        traj, t0 = tr
+        t = t0 + np.arange(0.0, traj.duration_s + 1e-9, dt)
+        xyz = traj.sample(t - t0)
+        source = "plan"
+    else:
+        tf, pf = flown
+        t = np.arange(tf[0], tf[-1] + 1e-9, dt)
+        xyz = np.column_stack([np.interp(t, tf, pf[:, k]) for k in range(3)])
+        source = str(trajectory)
+    surf = result["surface"].load()
+    holder = SimpleNamespace(grid=Grid.from_dataarray(surf["terrain"]))   # line_of_sight reads the grid only
+    sky = result["satellites"].load()
+    los, vis, up = flight_geometry(holder, sky, surf["surface"].values, t, xyz, sc.mission.start_time_utc.isoformat())
+    ds = simulate(t, xyz, los, vis, up, params=params, imu=load_vehicle(sc.vehicle), runs=runs, seed=seed)
+    ds.attrs.update({"scenario": sc.name, "source": source, "runs": runs, "seed": seed,
+                     "start_time_utc": sc.mission.start_time_utc.isoformat(), "rate_hz": n.rate_hz})
+    return NavsimResult(result, ds, source, float(n.surface_uncertainty_m))

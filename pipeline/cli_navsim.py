@@ -47,3 +47,8 @@ def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, schedul
     click.echo(f"navsim: {section['runs']} runs x {section['epochs']} epochs; 3-sigma containment proposed "
                f"{c['proposed']['3sigma']:.3f}, weak {c['weak']['3sigma']:.3f}; proposed error smaller "
                f"{section['proposed_beats_weak']:.1%} of the time -> {out_dir}")
+    pl = section.get("protection_level")
+    if pl is not None and pl["hpl_median_m"] is not None:
+        click.echo(f"navsim: protection level (solution separation) median HPL {pl['hpl_median_m']:.1f} m, "
+                   f"VPL {pl['vpl_median_m']:.1f} m, available {pl['availability']:.1%}; proposed error "
+                   f"contained {pl['containment_h']:.3f} (h) / {pl['containment_v']:.3f} (v)")

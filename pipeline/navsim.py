@@ -21,7 +21,7 @@ from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.runner import RunResult, run_scenario
 from skyroute.pipeline.settings import Scenario
 
-__all__ = ["NavsimResult", "navsim_params", "navsim_scenario", "read_flown_csv"]
+__all__ = ["NavsimResult", "add_protection_levels", "navsim_params", "navsim_scenario", "read_flown_csv"]
 
 
 @dataclass
@@ -40,6 +40,22 @@ def navsim_params(sc: Scenario):
                         nlos_bias_distribution=n.nlos_bias_distribution, nlos_noise_factor=n.nlos_noise_factor,
                         nlos_reception_prob=n.nlos_reception_prob, gnss_rate_hz=n.gnss_rate_hz,
                         mu_nlos_weak=n.mu_nlos_weak, scale_r_by_dop=n.scale_r_by_dop)
+
+
+def add_protection_levels(ds, los_enu, visible, sigma_uere_m: float, budget=None) -> None:
+    """Add ``hpl_m``, ``vpl_m`` (time) [m] to the simulate() Dataset ``ds`` (in place): the
+    single-fault solution-separation protection levels of the snapshot least squares of the
+    line-of-sight satellites (:func:`skyroute.stages.integrity.pl_series`, the proposed
+    filter's set), budgets in the variables' attrs (``budget_*``)."""
+    from skyroute.stages.integrity import IntegrityBudget, pl_series
+
+    budget = IntegrityBudget() if budget is None else budget
+    hpl, vpl = pl_series(los_enu, visible, sigma_uere_m, budget)
+    attrs = {f"budget_{k}": v for k, v in budget.as_dict().items()}
+    ds["hpl_m"] = ("time", hpl, {"units": "m", "long_name": "horizontal protection level, single-fault solution "
+                                 "separation of the line-of-sight snapshot (+inf = none)", **attrs})
+    ds["vpl_m"] = ("time", vpl, {"units": "m", "long_name": "vertical protection level, single-fault solution "
+                                 "separation of the line-of-sight snapshot (+inf = none)", **attrs})
 
 
 def read_flown_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -101,6 +117,7 @@ def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | Non
     sky = result["satellites"].load()
     los, vis, up = flight_geometry(holder, sky, surf["surface"].values, t, xyz, sc.mission.start_time_utc.isoformat())
     ds = simulate(t, xyz, los, vis, up, params=params, imu=load_vehicle(sc.vehicle), runs=runs, seed=seed)
+    add_protection_levels(ds, los, vis, params.sigma_uere_m)
     ds.attrs.update({"scenario": sc.name, "source": source, "runs": runs, "seed": seed,
                      "start_time_utc": sc.mission.start_time_utc.isoformat(), "rate_hz": n.rate_hz})
     return NavsimResult(result, ds, source, float(n.surface_uncertainty_m))

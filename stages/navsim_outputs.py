@@ -18,9 +18,10 @@ from typing import Any
 import numpy as np
 import xarray as xr
 
+from skyroute.stages.integrity import pl_containment
 from skyroute.stages.navsim import FILTERS, bubble_radius_m, containment, proposed_beats_weak
 
-__all__ = ["NAVSIM_COLUMNS", "navsim_section", "write_navsim"]
+__all__ = ["NAVSIM_COLUMNS", "navsim_section", "protection_level_section", "write_navsim"]
 
 NAVSIM_COLUMNS = ("run", "t_s", "err_proposed_m", "sigma_proposed_m", "err_weak_m", "sigma_weak_m", "n_visible",
                   "n_received", "n_nlos_used", "dop_visible", "dop_all")
@@ -55,7 +56,28 @@ def navsim_section(ds: xr.Dataset, surface_uncertainty_m: float) -> dict[str, An
         sec[f] = {"rms_error_m": _num(np.sqrt(np.mean(err ** 2))), "p95_error_m": _num(np.percentile(err, 95)),
                   "bubble_3sigma_median_m": _num(np.median(r3)), "bubble_3sigma_max_m": _num(np.max(r3))}
     sec["nlos_used_share"] = _num(np.mean(np.asarray(ds["n_nlos_used"].values) > 0))
+    if "hpl_m" in ds and "vpl_m" in ds:
+        sec["protection_level"] = protection_level_section(ds)
     return sec
+
+
+def protection_level_section(ds: xr.Dataset) -> dict[str, Any]:
+    """``protection_level`` of the navsim section (when ``ds`` has ``hpl_m``/``vpl_m``, e.g.
+    from :func:`skyroute.stages.integrity.pl_series`): median HPL/VPL [m] over the epochs with
+    a PL, their availability, the containment of the proposed filter's errors
+    (``|e_h| <= HPL``, ``|e_u| <= VPL``; :func:`~skyroute.stages.integrity.pl_containment`)
+    and the budgets.  The PL bounds the snapshot least-squares error; the filter's error is
+    typically smaller (it averages over time), so this containment is expected near 1."""
+    hpl = np.asarray(ds["hpl_m"].values, float)
+    vpl = np.asarray(ds["vpl_m"].values, float)
+    c = pl_containment(ds["err_proposed_m"].values, hpl, vpl)
+    ok = np.isfinite(hpl) & np.isfinite(vpl)
+    budgets = {k[len("budget_"):]: float(v) for k, v in ds["hpl_m"].attrs.items() if k.startswith("budget_")}
+    return {"method": "single-fault solution separation (ARAIM ADD v3.1), line-of-sight snapshot least squares",
+            "hpl_median_m": _num(np.median(hpl[ok])) if ok.any() else None,
+            "vpl_median_m": _num(np.median(vpl[ok])) if ok.any() else None,
+            "availability": _num(c["availability"]), "containment_h": _num(c["containment_h"]),
+            "containment_v": _num(c["containment_v"]), "budgets": budgets}
 
 
 def write_navsim(ds: xr.Dataset, out_dir, surface_uncertainty_m: float = 0.0, figures: bool = True

@@ -231,3 +231,33 @@ def test_sigma0_matches_gnss_lib_py_dop():
     d = I.separation_sigmas(_rows(AZ9, EL9), np.ones(9))
     assert math.hypot(*d["sigma0_m"][:2]) == pytest.approx(ref["HDOP"], rel=1e-9)
     assert d["sigma0_m"][2] == pytest.approx(ref["VDOP"], rel=1e-9)
+
+
+def test_navsim_section_protection_level():
+    """The navsim summary gains ``protection_level`` only when the Dataset has hpl_m/vpl_m;
+    every other key is unchanged; its containment is recounted here from the errors."""
+    from skyroute.pipeline.navsim import add_protection_levels
+    from skyroute.stages.navsim import NavsimParams, simulate
+    from skyroute.stages.navsim_outputs import navsim_section
+
+    t = np.arange(0.0, 20.0, 0.5)
+    xyz = np.stack([5.0 * t, np.zeros_like(t), np.full_like(t, 50.0)], axis=1)
+    los = np.broadcast_to(los_from_az_el(AZ9, EL9), (t.size, 9, 3)).copy()
+    recv = np.ones((t.size, 9), bool)
+    vis = recv.copy()
+    vis[t >= 15.0, :5] = False                                # 4 in line of sight: no PL there
+    ds = simulate(t, xyz, los, vis, recv, params=NavsimParams(), runs=8, seed=2)
+    before = navsim_section(ds, 1.0)
+    assert "protection_level" not in before
+    add_protection_levels(ds, los, vis, 3.0)
+    after = navsim_section(ds, 1.0)
+    pl = after.pop("protection_level")
+    assert after == before
+    hpl, vpl = I.pl_series(los, vis, 3.0)
+    ok = np.isfinite(hpl)
+    assert pl["availability"] == pytest.approx(ok.mean()) and 0 < ok.mean() < 1
+    e = ds["err_proposed_m"].values[:, ok]
+    assert pl["containment_h"] == pytest.approx(np.mean(np.hypot(e[..., 0], e[..., 1]) <= hpl[ok]))
+    assert pl["containment_v"] == pytest.approx(np.mean(np.abs(e[..., 2]) <= vpl[ok]))
+    assert pl["hpl_median_m"] == pytest.approx(np.median(hpl[ok]))
+    assert pl["budgets"] == I.IntegrityBudget().as_dict()

@@ -104,6 +104,8 @@ def write_navsim(ds: xr.Dataset, out_dir, surface_uncertainty_m: float = 0.0, fi
     files["navsim.csv"] = path
     if figures:
         files.update(_figures(ds, out, t, n, surface_uncertainty_m))
+        if "hpl_m" in ds and "vpl_m" in ds:
+            files.update(_pl_figure(ds, out, t, surface_uncertainty_m))
     return files
 
 
@@ -189,3 +191,40 @@ def _figures(ds, out: Path, t, n, s_unc) -> dict[str, Path]:
     fig.savefig(files["navsim_sats.png"])
     plt.close(fig)
     return files
+
+
+def _pl_figure(ds, out: Path, t, s_unc) -> dict[str, Path]:
+    """Protection levels vs the proposed filter's horizontal / vertical errors and its 3-sigma
+    bubble (``navsim_pl.png``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from skyroute.stages.figures import grow_until_unclipped
+
+    err = np.asarray(ds["err_proposed_m"].values, float)
+    parts = (("horizontal", np.hypot(err[..., 0], err[..., 1]), np.asarray(ds["hpl_m"].values, float), "HPL"),
+             ("vertical", np.abs(err[..., 2]), np.asarray(ds["vpl_m"].values, float), "VPL"))
+    r3 = bubble_radius_m(np.asarray(ds["sigma_proposed_m"].values, float), 3.0, s_unc)
+    fig, axes = plt.subplots(2, 1, figsize=(12, 6.5), dpi=100, sharex=True, layout="constrained")
+    for ax, (name, e, pl, lab) in zip(axes, parts, strict=True):
+        ax.plot(t, np.where(np.isfinite(pl), pl, np.nan), "k-", lw=1.4, label=f"{lab} (solution separation)")
+        ax.plot(t, r3, color="tab:purple", ls="--", lw=1.0, label=f"3-sigma bubble + {s_unc:g} m (3-D sigma)")
+        ax.plot(t, np.percentile(e, 95, axis=0), color="tab:blue", lw=1.0, label=f"{name} error, 95 % over runs")
+        ax.plot(t, e[0], color="tab:blue", lw=0.6, alpha=0.5, label=f"{name} error, run 0")
+        if (~np.isfinite(pl)).any():
+            ax.plot([], [], " ", label=f"gaps: no {lab} (fewer than 5 in\nline of sight or a critical satellite)")
+        ax.set_ylabel("[m]")
+        ax.set_ylim(bottom=0.0)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        ax.set_title(f"{name}: proposed filter", fontsize=10)
+    axes[-1].set_xlabel("mission time [s]")
+    name = ds.attrs.get("scenario", "")
+    fig.suptitle(f"{name + ': ' if name else ''}protection levels vs errors ({ds.sizes['run']} runs)")
+    path = out / "navsim_pl.png"
+    grow_until_unclipped(fig)
+    fig.savefig(path)
+    plt.close(fig)
+    return {"navsim_pl.png": path}

@@ -233,12 +233,12 @@ def test_sigma0_matches_gnss_lib_py_dop():
     assert d["sigma0_m"][2] == pytest.approx(ref["VDOP"], rel=1e-9)
 
 
-def test_navsim_section_protection_level():
+def test_navsim_section_protection_level(tmp_path):
     """The navsim summary gains ``protection_level`` only when the Dataset has hpl_m/vpl_m;
     every other key is unchanged; its containment is recounted here from the errors."""
     from skyroute.pipeline.navsim import add_protection_levels
     from skyroute.stages.navsim import NavsimParams, simulate
-    from skyroute.stages.navsim_outputs import navsim_section
+    from skyroute.stages.navsim_outputs import navsim_section, write_navsim
 
     t = np.arange(0.0, 20.0, 0.5)
     xyz = np.stack([5.0 * t, np.zeros_like(t), np.full_like(t, 50.0)], axis=1)
@@ -261,3 +261,6 @@ def test_navsim_section_protection_level():
     assert pl["containment_v"] == pytest.approx(np.mean(np.abs(e[..., 2]) <= vpl[ok]))
     assert pl["hpl_median_m"] == pytest.approx(np.median(hpl[ok]))
     assert pl["budgets"] == I.IntegrityBudget().as_dict()
+    files = write_navsim(ds, tmp_path, 1.0)
+    assert set(files) == {"navsim.csv", "navsim_errors.png", "navsim_bubble.png", "navsim_sats.png", "navsim_pl.png"}
+    assert files["navsim_pl.png"].stat().st_size > 10_000

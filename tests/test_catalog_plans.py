@@ -244,4 +244,9 @@ def test_navsim_on_the_default_plan(cache, tmp_path):
     assert c["proposed"]["3sigma"] >= 0.90 and c["proposed"]["3sigma"] >= c["weak"]["3sigma"]
     rows = list(csv.DictReader((out / "navsim.csv").open()))
     assert len(rows) == doc["navsim"]["runs"] * doc["navsim"]["epochs"]
+    # protection levels (issue 12 item 4): the snapshot PL over-bounds the filter error, and the
+    # HPL is at least its fault-free term Q^-1(P_HMI_H / 4) sigma_UERE HDOP >= 5.57 * 3 m * 2 / sqrt(32)
+    pl = doc["navsim"]["protection_level"]
+    assert pl["availability"] > 0.9 and pl["containment_h"] >= 0.99 and pl["containment_v"] >= 0.99
+    assert 5.0 < pl["hpl_median_m"] < pl["vpl_median_m"] < 100.0
     assert all((out / f).is_file() for f in doc["files"])

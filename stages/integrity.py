@@ -82,7 +82,7 @@ import scipy.stats
 from skyroute.stages.base import InputError
 
 __all__ = ["IntegrityBudget", "axis_risk", "fa_multipliers", "pl_containment", "pl_series", "protection_levels_enu",
-           "separation_sigmas", "solution_separation_pl"]
+           "separation_sigmas", "separation_test", "solution_separation_pl"]
 
 _LEVERAGE_MAX = 1.0 - 1e-9        # h_k above this: subset k is singular (satellite k critical)
 _BISECTION_STEPS = 80
@@ -278,6 +278,37 @@ def solution_separation_pl(G, sigma_i, budget: IntegrityBudget | None = None) ->
     """
     pl = protection_levels_enu(G, sigma_i, budget)
     return float(np.hypot(pl[0], pl[1])), float(pl[2])
+
+
+def separation_test(G, sigma_i, dy_m, budget: IntegrityBudget | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The solution separation test of one epoch's geometry on pseudorange residuals.
+
+    G : (n, 4) geometry rows; sigma_i : (n,) sigmas [m]; dy_m : (..., n) pseudorange
+    residuals [m] (measured minus predicted at the linearisation point; any leading dims,
+    e.g. Monte Carlo draws).  budget : :class:`IntegrityBudget` (the false-alert budget).
+
+    Returns ``detected`` (...) bool (some ``|x_k,q - x_0,q| > T_k,q``), the separations
+    ``x_k - x_0`` (..., n, 3) E, N, U [m] and the thresholds ``T_k,q`` (n, 3) [m]
+    (``S_k - S_0 = c_k (Q0 g_k)(g_k^T S0 - e_k^T)``, module docstring).  Unmonitorable
+    subsets (a critical satellite) get a separation of 0 and a threshold of +inf.
+    """
+    budget = IntegrityBudget() if budget is None else budget
+    G, s = _check_epoch(G, sigma_i)
+    dy = np.asarray(dy_m, float)
+    if dy.shape[-1:] != (s.size,) or not np.isfinite(dy).all():
+        raise InputError(f"dy_m must be finite residuals (..., n={s.size}) [m]; got {dy.shape}")
+    w = 1.0 / s**2
+    d = separation_sigmas(G, s)
+    mon = d["monitorable"]
+    N0 = G.T @ (w[:, None] * G)
+    Qg = np.linalg.solve(N0, G.T).T if d["solvable"] else np.zeros_like(G)          # (n, 4) = Q0 g_k
+    h = w * np.einsum("ia,ia->i", G, Qg)
+    c = np.where(mon, w / np.where(mon, 1.0 - h, 1.0), 0.0)
+    r = G @ (Qg * w[:, None]).T - np.eye(s.size)                                     # (k, i)
+    sep = (c[:, None] * Qg[:, :3]) * (dy @ r.T)[..., None]                          # (..., k, 3)
+    T = np.where(mon[:, None], fa_multipliers(max(int(mon.sum()), 1), budget) * d["sigma_ss_m"], np.inf)
+    return (np.abs(sep) > T).any(axis=(-1, -2)), sep, T
 
 
 def pl_series(los_enu, visible, sigma_uere_m, budget: IntegrityBudget | None = None, chunk: int = 512

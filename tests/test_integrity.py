@@ -264,3 +264,54 @@ def test_navsim_section_protection_level(tmp_path):
     files = write_navsim(ds, tmp_path, 1.0)
     assert set(files) == {"navsim.csv", "navsim_errors.png", "navsim_bubble.png", "navsim_sats.png", "navsim_pl.png"}
     assert files["navsim_pl.png"].stat().st_size > 10_000
+
+
+def _explicit_subsets(G, sig):
+    """Independent numpy: S_0, S_k (explicit solves) and sigma_ss, sigma_k (n, 3) [m]."""
+    W = np.diag(1.0 / sig**2)
+    S0 = np.linalg.solve(G.T @ W @ G, G.T @ W)
+    Sk, sss, sk = [], [], []
+    for k in range(len(sig)):
+        Wk = W.copy()
+        Wk[k, k] = 0.0
+        S = np.linalg.solve(G.T @ Wk @ G, G.T @ Wk)
+        Sk.append(S)
+        sss.append(np.sqrt(np.diag((S - S0) @ np.diag(sig**2) @ (S - S0).T))[:3])
+        sk.append(np.sqrt(np.diag(S @ np.diag(sig**2) @ S.T))[:3])
+    return S0, np.array(Sk), np.array(sss), np.array(sk)
+
+
+def test_separation_test_false_alert_and_faulted_monte_carlo():
+    """Detector on 20000 draws: fault-free, the alert rate stays within the false-alert budget
+    (union over axes, binomial bound); with a bias on one satellite, the rate of undetected
+    errors above the PL stays below the rigorous bound 2 Q((PL - T_k) / sigma_k) (undetected
+    means |x_k - x_0| <= T_k, and x_k is fault-free), thresholds recomputed independently here."""
+    n_draw = 20000
+    G = _rows(AZ9, EL9)
+    sig = np.full(9, 3.0)
+    budget = I.IntegrityBudget(p_hmi_hor=1e-2, p_hmi_vert=1e-2, p_fa_hor=1e-2, p_fa_vert=1e-2, p_sat=1e-3,
+                               p_thres=0.5)
+    S0, Sk, sss, sk = _explicit_subsets(G, sig)
+    kfa = np.array([norm.isf(budget.p_fa_hor / 36)] * 2 + [norm.isf(budget.p_fa_vert / 18)])
+    T_ref = kfa * sss
+    rng = np.random.default_rng(5)
+    eps = rng.standard_normal((n_draw, 9)) * sig
+    det, sep, T = I.separation_test(G, sig, eps, budget)
+    np.testing.assert_allclose(T, T_ref, rtol=1e-9)
+    np.testing.assert_allclose(sep[:7], np.einsum("kai,di->dka", (Sk - S0)[:, :3], eps[:7]), rtol=1e-9, atol=1e-9)
+    assert det.sum() <= binom.ppf(1 - 1e-4, n_draw, budget.p_fa_hor + budget.p_fa_vert)
+    pl = I.protection_levels_enu(G, sig, budget)
+    k = 1                                                                     # the satellite at el 60 deg
+    for bias in (5.0, 10.0, 20.0, 40.0):
+        dy = eps.copy()
+        dy[:, k] += bias
+        det, _, _ = I.separation_test(G, sig, dy, budget)
+        e0 = dy @ S0[:3].T
+        for q in range(3):
+            hmi = int(np.sum(~det & (np.abs(e0[:, q]) > pl[q])))
+            bound = 2 * norm.sf((pl[q] - T_ref[k, q]) / sk[k, q])
+            assert hmi <= binom.ppf(1 - 1e-4, n_draw, bound), (bias, q, hmi, bound)
+    # a large fault is detected nearly always
+    dy = eps.copy()
+    dy[:, k] += 200.0
+    assert I.separation_test(G, sig, dy, budget)[0].mean() > 0.99

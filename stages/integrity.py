@@ -180,6 +180,8 @@ def separation_sigmas(G, sigma_i, sigma_acc_i=None) -> dict[str, np.ndarray]:
         raise InputError(f"G must be finite (n, 4) geometry rows and sigma_i (n,) sigmas > 0 [m]; "
                          f"got {G.shape}, {s.shape}")
     sa = s if sigma_acc_i is None else np.asarray(sigma_acc_i, float).reshape(-1)
+    if sa.shape != s.shape or not (np.isfinite(sa).all() and (sa > 0).all()):
+        raise InputError(f"sigma_acc_i must be (n={s.size},) finite sigmas > 0 [m]; got {sa.shape}")
     s0, sk, sss, _, _, mon, ok = _subset_terms(G, 1.0 / s**2, 1.0 / sa**2, np.zeros_like(s))
     return {"sigma0_m": s0, "sigma_k_m": sk, "sigma_ss_m": sss, "monitorable": mon, "solvable": bool(ok)}
 

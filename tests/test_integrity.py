@@ -206,6 +206,10 @@ def test_pl_series_matches_epochs_and_containment():
         I.pl_series(los, vis[:, :3], 3.0)
     with pytest.raises(InputError):
         I.IntegrityBudget(p_sat=0.0)
+    with pytest.raises(InputError):
+        I.separation_sigmas(_rows(AZ9, EL9), np.full(9, 3.0), np.full(8, 3.0))
+    with pytest.raises(InputError):
+        I.solution_separation_pl(_rows(AZ9, EL9), np.full(9, -3.0))
 
 
 def test_sigma0_matches_dop():

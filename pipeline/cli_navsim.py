@@ -28,7 +28,8 @@ def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, schedul
     surface arrive by reflection with a positive bias, or not at all) and runs two EKFs: the
     proposed one (line-of-sight satellites only, R scaled by the local DOP) and the weak one
     (every received satellite). Writes navsim.csv, figures and summary.json with the
-    containment of the k-sigma safety bubble (k = 1, 2, 3) per filter."""
+    containment of the k-sigma safety bubble (k = 1, 2, 3) per filter, and the single-fault
+    solution-separation protection levels (HPL/VPL, ARAIM style) with their containment."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.cli import write_folder_summary
     from skyroute.pipeline.navsim import navsim_scenario

@@ -64,6 +64,9 @@ Budgets (:class:`IntegrityBudget`; the choices and why)
 * ``C_acc = C_int``: one pseudorange sigma for integrity and continuity (the navsim UERE;
   the ADD distinguishes URA from URE, which skyroute's error model does not).
 
+The detector itself (separations ``x_k - x_0`` and thresholds on pseudorange residuals) is
+:func:`separation_test`.
+
 No PL (``+inf``): fewer than 5 satellites (with 4 every subset has 3 satellites and no
 position: a fault cannot be detected, every satellite is critical), a geometry where a
 subset is singular (``h_k -> 1``: that satellite's fault is unobservable), or an

@@ -378,7 +378,7 @@ def animate_floor(series: xr.Dataset, threshold: float, path_t_s: Any, path_xyz_
     import matplotlib
     from matplotlib.animation import FuncAnimation, PillowWriter
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.colors import ListedColormap
+    from matplotlib.colors import BoundaryNorm, ListedColormap
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
@@ -409,8 +409,12 @@ def animate_floor(series: xr.Dataset, threshold: float, path_t_s: Any, path_xyz_
     gs = fig.add_gridspec(2, 1, height_ratios=[3.4, 1.0])
     ax = fig.add_subplot(gs[0])
     axz = fig.add_subplot(gs[1])
-    im = ax.imshow(fl[0], extent=extent, origin="upper", vmin=vmin, vmax=vmax, cmap="viridis",
-                   interpolation="nearest")
+    # ~12 colour bands at round heights: readable values, and long runs of one colour keep
+    # the GIF small
+    bands = MaxNLocator(nbins=12).tick_values(vmin, vmax)
+    cmap = matplotlib.colormaps["viridis"].resampled(len(bands) - 1)
+    im = ax.imshow(fl[0], extent=extent, origin="upper", cmap=cmap,
+                   norm=BoundaryNorm(bands, cmap.N), interpolation="nearest")
     grey = ax.imshow(np.where(np.isnan(fl[0]), 1.0, np.nan), extent=extent, origin="upper",
                      cmap=ListedColormap(["0.55"]), vmin=0, vmax=1, interpolation="nearest")
     ax.plot(p[:, 0], p[:, 1], color="white", lw=1.0, ls="--", zorder=5)
@@ -427,9 +431,9 @@ def animate_floor(series: xr.Dataset, threshold: float, path_t_s: Any, path_xyz_
     add_map_furniture(ax)
     info = ax.text(0.02, 0.98, "", transform=ax.transAxes, ha="left", va="top", fontsize=8,
                    zorder=11, bbox=dict(facecolor="white", alpha=0.8, lw=0, pad=2))
-    datum = str(series["coverage_floor"].attrs.get("vertical_datum", ""))[:30]
-    fig.colorbar(im, ax=ax, shrink=0.85, label=f"coverage floor [m] ({kind} < {dval:g})"
-                 + (f"\n{datum}" if datum else "") + "; grey = unflyable")
+    datum = str(series["coverage_floor"].attrs.get("vertical_datum", ""))[:24]
+    fig.colorbar(im, ax=ax, shrink=0.85, label=f"coverage floor [m{', ' + datum if datum else ''}]"
+                 f" for {kind} < {dval:g}\ngrey: unflyable at this epoch")
     title = ax.set_title("", fontsize=9)
     axz.plot(t, p[:, 2], color="C0", lw=1.5, label="vehicle altitude")
     axz.plot(te, f_v, color="C3", lw=1.2, marker=".", ms=3, label="floor under vehicle")

@@ -246,3 +246,16 @@ def test_animation_gif_frames(tmp_path):
         animate_floor(s, 6.0, t + 1000.0, xyz, tmp_path / "x.gif")
     with pytest.raises(InputError, match="not in the series"):
         animate_floor(s, 4.0, t, xyz, tmp_path / "x.gif")
+
+
+def test_messages_say_how_to_fix():
+    surf, sky, _ = _wall_case()
+    with pytest.raises(InputError, match="can never be reached"):
+        coverage_floor_series(surf, sky, (1.0,))
+    with pytest.raises(InputError, match="az_deg and el_deg"):
+        coverage_floor_series(surf, sky.drop_vars("el_deg"), (3.0,))
+    s = coverage_floor_series(surf, sky, (3.0,))
+    with pytest.raises(InputError, match=r"\(n, 3\)"):
+        floor_under_vehicle(s, 3.0, [0.0, 60.0], [[0.0, 0.0], [1.0, 1.0]])
+    with pytest.raises(InputError, match="strictly increasing"):
+        floor_under_vehicle(s, 3.0, [60.0, 0.0], np.zeros((2, 3)))

@@ -29,6 +29,7 @@ apart with ``times``).
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -431,9 +432,10 @@ def animate_floor(series: xr.Dataset, threshold: float, path_t_s: Any, path_xyz_
     add_map_furniture(ax)
     info = ax.text(0.02, 0.98, "", transform=ax.transAxes, ha="left", va="top", fontsize=8,
                    zorder=11, bbox=dict(facecolor="white", alpha=0.8, lw=0, pad=2))
-    datum = str(series["coverage_floor"].attrs.get("vertical_datum", ""))[:24]
-    fig.colorbar(im, ax=ax, shrink=0.85, label=f"coverage floor [m{', ' + datum if datum else ''}]"
-                 f" for {kind} < {dval:g}\ngrey: unflyable at this epoch")
+    datum = textwrap.shorten(str(series["coverage_floor"].attrs.get("vertical_datum", "")), 36,
+                             placeholder="...")
+    fig.colorbar(im, ax=ax, shrink=0.85, label=f"coverage floor [m] for {kind} < {dval:g}"
+                 + (f"\ndatum: {datum}" if datum else "") + "\ngrey: unflyable at this epoch")
     title = ax.set_title("", fontsize=9)
     axz.plot(t, p[:, 2], color="C0", lw=1.5, label="vehicle altitude")
     axz.plot(te, f_v, color="C3", lw=1.2, marker=".", ms=3, label="floor under vehicle")

@@ -169,12 +169,56 @@ def _as_fn(**kw: Any):
 # public
 # --------------------------------------------------------------------------------------------
 
+def _region_slices(surface: xr.DataArray, region_m: Sequence[float]) -> tuple[slice, slice]:
+    """(rows, cols) of the cells of ``surface`` that intersect ``region_m`` = (xmin, ymin,
+    xmax, ymax) [m], clipped to the map."""
+    try:
+        xmin, ymin, xmax, ymax = (float(v) for v in region_m)
+    except (TypeError, ValueError):
+        raise InputError(f"region_m must be (xmin, ymin, xmax, ymax) [m], got {region_m!r}") from None
+    x = np.asarray(surface["x"].values, float)
+    y = np.asarray(surface["y"].values, float)
+    half = 0.5 * float(x[1] - x[0])
+    cols = np.flatnonzero((x + half > xmin) & (x - half < xmax))
+    rows = np.flatnonzero((y + half > ymin) & (y - half < ymax))
+    if not (xmax > xmin and ymax > ymin) or cols.size == 0 or rows.size == 0:
+        raise InputError(f"region_m {tuple(region_m)} does not overlap the map (x {x[0] - half:.1f}"
+                         f" .. {x[-1] + half:.1f}, y {y[-1] - half:.1f} .. {y[0] + half:.1f} m)")
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
+def _region_parts(surface: xr.DataArray, rows: slice, cols: slice, min_el_deg: float,
+                  cell_m: float, fns: list, n_lead: int) -> list[da.Array]:
+    """One lazy ``(n_lead, rows, cols)`` array per epoch function: each runs on the region
+    extended by the shadow halo of the whole map (its relief), with the region's offset as
+    origin, so the values are those of the whole map's cells (no obstacle that can shadow the
+    region is left out)."""
+    from skyroute.stages.coverage import _halo_cells
+
+    ny, nx = surface.shape
+    halo = _halo_cells(surface.data, min_el_deg, cell_m)
+    r0, r1 = max(rows.start - halo, 0), min(rows.stop + halo, ny)
+    c0, c1 = max(cols.start - halo, 0), min(cols.stop + halo, nx)
+    ext = surface.data[r0:r1, c0:c1]
+    ext = (ext.astype(np.float32).rechunk(ext.shape) if isinstance(ext, da.Array)
+           else da.from_array(np.asarray(ext, np.float32), chunks=ext.shape))
+    core = (slice(rows.start - r0, rows.stop - r0), slice(cols.start - c0, cols.stop - c0))
+    shape = ((n_lead,), (rows.stop - rows.start,), (cols.stop - cols.start,))
+
+    def part(fn):
+        return ext.map_blocks(lambda b: fn(np.asarray(b), (r0, c0), core), chunks=shape,
+                              new_axis=[0], dtype=np.float32, meta=np.empty((0, 0, 0), np.float32))
+
+    return [part(fn) for fn in fns]
+
+
 def coverage_floor_series(surface: xr.DataArray, sky: xr.Dataset,
                           thresholds: Sequence[float] = (2.0, 3.0, 4.0), *, dop: str = "PDOP",
                           floor_m: float | np.ndarray | xr.DataArray | None = None,
                           ceiling_m: float | np.ndarray | xr.DataArray | None = None,
                           mask_deg: float = 5.0, times: Any = None,
-                          levels_m: Sequence[float] | None = None, chunks: Chunks = None,
+                          levels_m: Sequence[float] | None = None,
+                          region_m: Sequence[float] | None = None, chunks: Chunks = None,
                           visibility_fn: VisibilityFn | None = None) -> xr.Dataset:
     """The coverage floor per epoch (the digital morphing map of seed 003), lazily.
 
@@ -191,6 +235,10 @@ def coverage_floor_series(surface: xr.DataArray, sky: xr.Dataset,
         seconds after the first epoch of ``sky`` (e.g. the times of a flight).
     levels_m : optional altitudes [m] (surface datum): adds ``dop_volume`` (time, z, y, x), the
         DOP of kind ``dop`` at these levels per epoch, from the same visibility scan.
+    region_m : optional (xmin, ymin, xmax, ymax) [m]: only the cells of the map that meet this
+        box (seed 003's control volume, e.g. the flight's corridor), computed on the box
+        extended by the shadow halo of the whole map: the values equal those of the whole
+        map's series (tested).  One block per epoch (``chunks`` is not used).
     chunks : spatial blocks [cells] as in :func:`coverage_maps` (None: the surface's own dask
         chunks, or one block).  Every (block, epoch) is one dask task.
 
@@ -228,15 +276,22 @@ def coverage_floor_series(surface: xr.DataArray, sky: xr.Dataset,
     az_grid = _grid_azimuth(az, surface)
     floor_lim = _limit(floor_m, "floor_m", surface, -np.inf)
     ceil_lim = _limit(ceiling_m, "ceiling_m", surface, np.inf)
-    if chunks is None and not isinstance(surface.data, da.Array):
-        chunks = surface.shape  # one block, still lazy (one task per epoch)
-    data, depth = _surface_array(surface, chunks, _min_el(el, mask), cell, n_max,
-                                 thr.size + levels.size)
     n_t = az.shape[0]
     fns = [_as_fn(az_grid_deg=az_grid[t:t + 1], el_deg=el[t:t + 1], cell_m=cell, thresholds=thr,
                   kind=kind, mask_deg=mask, levels_m=levels, visibility_fn=visibility_fn)
            for t in range(n_t)]
-    parts = overlap_maps(data, depth, fns, ((thr.size + levels.size,),), np.float32)
+    n_lead = thr.size + levels.size
+    if region_m is not None:
+        rows, cols = _region_slices(surface, region_m)
+        parts = _region_parts(surface, rows, cols, _min_el(el, mask), cell, fns, n_lead)
+        surface = surface.isel(y=rows, x=cols)  # the output's grid
+        floor_lim, ceil_lim = (v[rows, cols] if np.ndim(v) == 2 else v
+                               for v in (floor_lim, ceil_lim))
+    else:
+        if chunks is None and not isinstance(surface.data, da.Array):
+            chunks = surface.shape  # one block, still lazy (one task per epoch)
+        data, depth = _surface_array(surface, chunks, _min_el(el, mask), cell, n_max, n_lead)
+        parts = overlap_maps(data, depth, fns, ((n_lead,),), np.float32)
     stacked = da.stack(parts)  # (time, J + A, y, x), one chunk per (epoch, block)
     raw = stacked[:, :thr.size]
     floor = da.maximum(raw, floor_lim)

@@ -259,3 +259,26 @@ def test_messages_say_how_to_fix():
         floor_under_vehicle(s, 3.0, [0.0, 60.0], [[0.0, 0.0], [1.0, 1.0]])
     with pytest.raises(InputError, match="strictly increasing"):
         floor_under_vehicle(s, 3.0, [60.0, 0.0], np.zeros((2, 3)))
+
+
+def test_region_equals_the_whole_map_cut():
+    # seed 003's control volume: a box of the map, computed with the halo, is the whole map's
+    # series cut to the box (values bit-identical), also at the map edge
+    surf = _towers()
+    sky = _yuma_sky(surf, window_min=4.0)
+    floor_m = surf + np.float32(3.0)
+    kw = dict(thresholds=(3.0, 5.0), floor_m=floor_m, ceiling_m=100.0, levels_m=[20.0, 60.0])
+    full = coverage_floor_series(surf, sky, **kw).load()
+    x, y = surf["x"].values, surf["y"].values
+    for box, (rs, cs) in [((x[20] - 1, y[40] - 1, x[35] + 1, y[25] + 1), (slice(25, 41), slice(20, 36))),
+                          ((x[0] - 50, y[-1] - 50, x[9] + 1, y[50] + 1), (slice(50, 60), slice(0, 10)))]:
+        part = coverage_floor_series(surf, sky, region_m=box, **kw).load()
+        cut = full.isel(y=rs, x=cs)
+        assert part.sizes["y"] == rs.stop - rs.start and part.sizes["x"] == cs.stop - cs.start
+        for name in ("coverage_floor", "unflyable", "dop_volume"):
+            assert np.array_equal(part[name].values, cut[name].values, equal_nan=True), name
+        assert np.array_equal(part["x"].values, cut["x"].values)
+    f = full["coverage_floor"].values
+    assert np.nanmax(np.abs(f - f[:1])) > 5.0  # epochs differ: no task was shared by mistake
+    with pytest.raises(InputError, match="does not overlap"):
+        coverage_floor_series(surf, sky, (3.0,), region_m=(0.0, 0.0, 10.0, 10.0))

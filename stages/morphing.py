@@ -429,7 +429,7 @@ def animate_floor(series: xr.Dataset, threshold: float, path_t_s: Any, path_xyz_
     ``series``: from :func:`coverage_floor_series`; ``path_t_s`` (n,) [s, the series' ``t_s``
     clock] and ``path_xyz_m`` (n, 3) [m] the vehicle's trajectory (map x, y and altitude in
     the surface datum).  At most ``max_frames`` epochs (evenly subsampled), ``fps`` frames per
-    second, ``dpi`` (the figure is 6.4 x 7.4 in).  ``frame_png``: also save the middle frame
+    second, ``dpi`` (the figure is ~6.6 in wide, its height follows the map).  ``frame_png``: also save the middle frame
     as a PNG (same drawing).  Grey = unflyable at that epoch.  Returns the GIF path."""
     import matplotlib
     from matplotlib.animation import FuncAnimation, PillowWriter
@@ -460,9 +460,15 @@ def animate_floor(series: xr.Dataset, threshold: float, path_t_s: Any, path_xyz_
         vmax = vmin + 1.0
     extent = image_extent(series["coverage_floor"])
 
-    fig = Figure(figsize=(6.4, 7.4), dpi=dpi, layout="constrained")
+    # size the figure to the map's aspect: the map ~4.6 in wide (at most 5.6 in tall), the
+    # colour bar beside it, the altitude inset 1.6 in tall below
+    aspect = (extent[3] - extent[2]) / (extent[1] - extent[0])
+    map_w = 4.6 if 4.6 * aspect <= 5.6 else 5.6 / aspect
+    map_h = map_w * aspect
+    fig = Figure(figsize=(max(map_w + 2.0, 5.2), max(map_h, 2.4) + 2.9), dpi=dpi,
+                 layout="constrained")
     FigureCanvasAgg(fig)
-    gs = fig.add_gridspec(2, 1, height_ratios=[3.4, 1.0])
+    gs = fig.add_gridspec(2, 1, height_ratios=[max(map_h, 2.4) + 0.6, 1.6])
     ax = fig.add_subplot(gs[0])
     axz = fig.add_subplot(gs[1])
     # ~12 colour bands at round heights: readable values, and long runs of one colour keep

@@ -108,19 +108,18 @@ def epoch_sky(sky: xr.Dataset, times: Any = None) -> xr.Dataset:
             raise InputError(f"times {t.min()} .. {t.max()} leave the span of sky {t_sky[0]} .. "
                              f"{t_sky[-1]}: compute the satellites over the whole flight "
                              "(e.g. a longer gnss.window_min)")
-        i1 = np.searchsorted(t_sky, t, side="left")
-        exact = (i1 < t_sky.size) & (t_sky[np.minimum(i1, t_sky.size - 1)] == t)
-        i1 = np.clip(i1, 1, max(t_sky.size - 1, 1))
-        i0 = i1 - 1
+        n = t_sky.size
+        i0 = np.clip(np.searchsorted(t_sky, t, side="right") - 1, 0, n - 1)  # t_sky[i0] <= t
+        i1 = np.minimum(i0 + 1, n - 1)
         span = (t_sky[i1] - t_sky[i0]).astype(np.float64)
         w = np.where(span > 0, (t - t_sky[i0]).astype(np.float64) / np.where(span > 0, span, 1), 0.0)
         w = w[:, None]
         d_az = np.mod(az0[i1] - az0[i0] + 180.0, 360.0) - 180.0
         az = np.mod(az0[i0] + w * d_az, 360.0)
         el = el0[i0] + w * (el0[i1] - el0[i0])
-        j = np.where(exact, np.searchsorted(t_sky, t, side="left"), 0)
-        az = np.where(exact[:, None], az0[j], az)
-        el = np.where(exact[:, None], el0[j], el)
+        exact = (t_sky[i0] == t)[:, None]  # an epoch of sky: its values as they are
+        az = np.where(exact, az0[i0], az)
+        el = np.where(exact, el0[i0], el)
     t_s = (t - start) / np.timedelta64(1, "s")
     sat = sky["sat"].values if "sat" in sky.coords else np.arange(az.shape[1])
     coords = {"time": ("time", t), "sat": ("sat", sat),

@@ -198,6 +198,8 @@ def test_epoch_sky_interpolates_and_refuses_extrapolation():
     assert np.array_equal(same["el_deg"].values, el, equal_nan=True)
     with pytest.raises(InputError, match="span of sky"):
         epoch_sky(sky, [61.0])
+    one = epoch_sky(sky.isel(time=[1]), [0.0])  # a single epoch
+    assert np.array_equal(one["az_deg"].values[0], az[1])
 
 
 def test_floor_under_vehicle():

@@ -244,4 +244,12 @@ def test_navsim_on_the_default_plan(cache, tmp_path):
     assert c["proposed"]["3sigma"] >= 0.90 and c["proposed"]["3sigma"] >= c["weak"]["3sigma"]
     rows = list(csv.DictReader((out / "navsim.csv").open()))
     assert len(rows) == doc["navsim"]["runs"] * doc["navsim"]["epochs"]
-    assert all((out / f).is_file() for f in doc["files"])
+    assert all((out / f).exists() for f in doc["files"])
+    # the digital morphing map: the floor per epoch over the flight, and its GIF
+    import xarray as xr
+    from PIL import Image
+
+    m = xr.open_zarr(out / "morphing.zarr", consolidated=False)
+    assert m.sizes["time"] >= 8 and "coverage_floor" in m
+    gif = out / doc["navsim"]["morphing"]["files"][1]
+    assert Image.open(gif).n_frames == m.sizes["time"]

@@ -28,11 +28,13 @@ def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, schedul
     surface arrive by reflection with a positive bias, or not at all) and runs two EKFs: the
     proposed one (line-of-sight satellites only, R scaled by the local DOP) and the weak one
     (every received satellite). Writes navsim.csv, figures and summary.json with the
-    containment of the k-sigma safety bubble (k = 1, 2, 3) per filter, and the single-fault
-    solution-separation protection levels (HPL/VPL, ARAIM style) with their containment."""
+    containment of the k-sigma safety bubble (k = 1, 2, 3) per filter, the single-fault
+    solution-separation protection levels (HPL/VPL, ARAIM style) with their containment, and
+    the digital morphing map: the coverage floor per epoch over the flight (morphing.zarr) and
+    a GIF of it under the moving vehicle."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.cli import write_folder_summary
-    from skyroute.pipeline.navsim import navsim_scenario
+    from skyroute.pipeline.navsim import navsim_scenario, write_morphing
     from skyroute.pipeline.outputs import ensure_writable_dir
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
     from skyroute.stages.navsim_outputs import navsim_section, write_navsim
@@ -41,9 +43,12 @@ def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, schedul
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "navsim")
     r = navsim_scenario(sc, cache=Cache(cache_dir), runs=runs, seed=seed, trajectory=trajectory, scheduler=scheduler,
                         progress=not quiet and sys.stderr.isatty())
-    files = write_navsim(r.ds, out_dir, r.surface_uncertainty_m)
+    files = list(write_navsim(r.ds, out_dir, r.surface_uncertainty_m).values())
+    morph = write_morphing(sc, r, out_dir)
     section = navsim_section(r.ds, r.surface_uncertainty_m)
-    write_folder_summary(out_dir, "navsim", r.result, [str(p) for p in files.values()], {"navsim": section})
+    section["morphing"] = {"files": [p.name for p in morph], "step_s": sc.navsim.morphing_step_s,
+                           "dop_threshold": r.dop_threshold}
+    write_folder_summary(out_dir, "navsim", r.result, [str(p) for p in [*files, *morph]], {"navsim": section})
     c = section["containment"]
     click.echo(f"navsim: {section['runs']} runs x {section['epochs']} epochs; 3-sigma containment proposed "
                f"{c['proposed']['3sigma']:.3f}, weak {c['weak']['3sigma']:.3f}; proposed error smaller "

@@ -30,6 +30,9 @@ class NavsimResult:
     ds: object                 # the simulate() Dataset
     source: str                # "plan" or the flown.csv path
     surface_uncertainty_m: float
+    t_s: np.ndarray | None = None        # the simulated trajectory
+    xyz_m: np.ndarray | None = None
+    dop_threshold: float | None = None   # the plan's coverage level (the morphing map's floor)
 
 
 def navsim_params(sc: Scenario):
@@ -107,11 +110,13 @@ def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | Non
         t = t0 + np.arange(0.0, traj.duration_s + 1e-9, dt)
         xyz = traj.sample(t - t0)
         source = "plan"
+        dop_threshold = chosen.dop_threshold
     else:
         tf, pf = flown
         t = np.arange(tf[0], tf[-1] + 1e-9, dt)
         xyz = np.column_stack([np.interp(t, tf, pf[:, k]) for k in range(3)])
         source = str(trajectory)
+        dop_threshold = max(sc.gnss.dop_thresholds)
     surf = result["surface"].load()
     holder = SimpleNamespace(grid=Grid.from_dataarray(surf["terrain"]))   # line_of_sight reads the grid only
     sky = result["satellites"].load()
@@ -120,4 +125,40 @@ def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | Non
     add_protection_levels(ds, los, vis, params.sigma_uere_m)
     ds.attrs.update({"scenario": sc.name, "source": source, "runs": runs, "seed": seed,
                      "start_time_utc": sc.mission.start_time_utc.isoformat(), "rate_hz": n.rate_hz})
-    return NavsimResult(result, ds, source, float(n.surface_uncertainty_m))
+    return NavsimResult(result, ds, source, float(n.surface_uncertainty_m), t, xyz, dop_threshold)
+
+
+def write_morphing(sc: Scenario, r: NavsimResult, out_dir: Path) -> list[Path]:
+    """The digital morphing map of the flight (issue 12 item 5): the coverage floor per epoch
+    every ``navsim.morphing_step_s`` over the flight's box (``morphing.zarr``) and a GIF of the
+    floor of the plan's DOP level under the moving vehicle (``morphing_<DOP><D>.gif``)."""
+    from skyroute.stages.morphing import animate_floor, coverage_floor_series
+
+    n = sc.navsim
+    if n.morphing_step_s <= 0 or r.dop_threshold is None:
+        return []
+    surf = r.result["surface"].load()
+    sky = r.result["satellites"].load()
+    t0 = float(r.t_s[0])
+    times = np.arange(t0, float(r.t_s[-1]) + 1e-9, n.morphing_step_s)
+    m = n.morphing_margin_m
+    lo, hi = r.xyz_m[:, :2].min(axis=0), r.xyz_m[:, :2].max(axis=0)
+    c, half = (lo + hi) / 2.0, float(np.max(hi - lo)) / 2.0 + m        # a square box: a readable map
+    g = r.result.scenario.grid
+    x0, y0, x1, y1 = g.bounds
+    box = (max(c[0] - half, x0), max(c[1] - half, y0), min(c[0] + half, x1), min(c[1] + half, y1))
+    terrain = surf["terrain"]
+    series = coverage_floor_series(surf["surface"], sky, thresholds=tuple(sc.gnss.dop_thresholds), dop=sc.gnss.dop_kind,
+                                   floor_m=terrain + sc.constraints.min_altitude_agl_m,
+                                   ceiling_m=surf.get("terrain_min", terrain) + sc.constraints.max_altitude_agl_m,
+                                   mask_deg=sc.gnss.elevation_mask_deg, times=times, region_m=box)
+    series = series.compute()
+    zarr_path = Path(out_dir) / "morphing.zarr"
+    from skyroute.pipeline.outputs import remove_path
+
+    remove_path(zarr_path)
+    series.drop_vars([v for v in series.variables if series[v].dtype.kind in "OU"], errors="ignore").to_zarr(
+        zarr_path, mode="w", consolidated=False)
+    gif = Path(out_dir) / f"morphing_{sc.gnss.dop_kind}{r.dop_threshold:g}.gif"
+    animate_floor(series, r.dop_threshold, r.t_s, r.xyz_m, gif)
+    return [zarr_path, gif]

@@ -246,7 +246,7 @@ def ensure_writable_dir(out_dir: Path | str, option: str = "--out") -> Path:
     return out_dir
 
 
-def _remove(path: Path) -> None:
+def remove_path(path: Path) -> None:
     """Remove a file, a symlink (not its target) or a folder, if there."""
     if path.is_symlink() or path.is_file():
         path.unlink()
@@ -259,7 +259,7 @@ def _copy_store(src: Path, dst: Path) -> None:
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(src, tmp)
-    _remove(dst)
+    remove_path(dst)
     os.rename(tmp, dst)
 
 
@@ -296,7 +296,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         dst = out_dir / rel
         src = Path(rec.path) / "data.zarr"
         if link:
-            _remove(dst)
+            remove_path(dst)
             os.symlink(src, dst)
         elif not (prev_keys.get(rel) == rec.key and dst.is_dir() and not dst.is_symlink()):
             _copy_store(src, dst)

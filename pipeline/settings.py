@@ -332,7 +332,9 @@ class NavsimSettings(FrozenModel):
     ``nlos_noise_factor`` x UERE (``gnss.uere_m``); the weak filter's ``mu_nlos_weak``; the
     proposed filter scales R by the local DOP (``scale_r_by_dop``); the surface model's own
     uncertainty ``surface_uncertainty_m`` [m] is added to the safety bubble
-    r_phi = k sigma + surface_uncertainty_m (reported separately)."""
+    r_phi = k sigma + surface_uncertainty_m (reported separately).  The digital morphing
+    map (the coverage floor per epoch under the flight) is computed every ``morphing_step_s``
+    [s] over the flight's box widened by ``morphing_margin_m`` [m] (0: not computed)."""
 
     runs: Annotated[int, Field(ge=1, le=100000)] = 50
     seed: int = 0
@@ -345,6 +347,8 @@ class NavsimSettings(FrozenModel):
     mu_nlos_weak: PositiveFloat = 10.0
     scale_r_by_dop: bool = True
     surface_uncertainty_m: NonNegFloat = 1.0
+    morphing_step_s: NonNegFloat = 10.0
+    morphing_margin_m: NonNegFloat = 100.0
 
 
 class TacticalSettings(FrozenModel):

@@ -249,4 +249,12 @@ def test_navsim_on_the_default_plan(cache, tmp_path):
     pl = doc["navsim"]["protection_level"]
     assert pl["availability"] > 0.9 and pl["containment_h"] >= 0.99 and pl["containment_v"] >= 0.99
     assert 5.0 < pl["hpl_median_m"] < pl["vpl_median_m"] < 100.0
-    assert all((out / f).is_file() for f in doc["files"])
+    assert all((out / f).exists() for f in doc["files"])
+    # the digital morphing map: the floor per epoch over the flight, and its GIF
+    import xarray as xr
+    from PIL import Image
+
+    m = xr.open_zarr(out / "morphing.zarr", consolidated=False)
+    assert m.sizes["time"] >= 8 and "coverage_floor" in m
+    gif = out / doc["navsim"]["morphing"]["files"][1]
+    assert Image.open(gif).n_frames == m.sizes["time"]

@@ -66,7 +66,7 @@ from skyroute.stages.smoothing import CornerTrajectory, KinematicLimits, corner_
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.wind import wind_in_column
 
-__all__ = ["Candidate", "choose", "explain_no_plan", "step3", "wind_sampler", "line_of_sight"]
+__all__ = ["Candidate", "choose", "explain_no_plan", "line_of_sight", "smooth_chain", "step3", "wind_sampler"]
 
 
 @dataclass
@@ -282,6 +282,19 @@ def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc
 # ------------------------------------------------------------------ STEP III
 
 
+def smooth_chain(problem, waypoints, segment_times_s, *, v_start_mps: float = 0.0,
+                 stop_at: tuple[int, ...] = ()) -> CornerTrajectory:
+    """Item 1 of STEP III alone: the corner trajectory of a timed chain (the legs' ground
+    speeds from ``segment_times_s``) within the vehicle's hard limits, the wind of the chain's
+    box and the fillet clearance check of ``problem`` (raises PlanningError when impossible).
+    :func:`step3` calls it; the tactical level 1 uses it to screen speed factors cheaply."""
+    w = np.asarray(waypoints, float)
+    leg_speed = np.linalg.norm(np.diff(w, axis=0), axis=1) / np.asarray(segment_times_s, float)
+    return corner_trajectory(w, np.maximum(leg_speed, 1e-3), KinematicLimits.of(problem.vehicle),
+                             winds=_wind_vectors(problem, w), fillet_ok=_fillet_checker(problem),
+                             v_start_mps=v_start_mps, stop_at=stop_at)
+
+
 def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d, *, start_time_utc=None,
           occupancy: TrafficOccupancy | None = None, intruders: list[Intruder] | None = None,
           sample_dt_s: float = 0.5, check_spacing_m: float = 1.0, gnss_sigma_m: float = DEFAULT_UERE_M,
@@ -325,11 +338,8 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
         return empty_candidate(lab, dop, ["STEP II chain has non-positive or infinite segment times"], t_start,
                       step2_result.status)
     reasons: list[str] = []
-    leg_speed = np.linalg.norm(np.diff(w, axis=0), axis=1) / seg_t
     try:
-        traj = corner_trajectory(w, np.maximum(leg_speed, 1e-3), KinematicLimits.of(veh),
-                                 winds=_wind_vectors(problem, w), fillet_ok=_fillet_checker(problem),
-                                 v_start_mps=v_start_mps, stop_at=stop_at)
+        traj = smooth_chain(problem, w, seg_t, v_start_mps=v_start_mps, stop_at=stop_at)
     except PlanningError as exc:
         return empty_candidate(lab, dop, [f"STEP III: {exc}"], t_start, step2_result.status)
     tc, pc, bad = _retimed_conflicts(occupancy, traj, t0, check_spacing_m)

@@ -60,7 +60,7 @@ from skyroute.stages.energy import rotor_power
 from skyroute.stages.planning.deconflict import Step2Result, chain_timing, deconflict
 from skyroute.stages.planning.problem import PlanningProblem, build_problem
 from skyroute.stages.planning.step1 import plan_step1
-from skyroute.stages.planning.step3 import Candidate, step3, wind_sampler
+from skyroute.stages.planning.step3 import Candidate, smooth_chain, step3, wind_sampler
 from skyroute.stages.smoothing import KinematicLimits
 from skyroute.stages.tactical.conflict import IntruderTracks, first_conflict
 from skyroute.stages.tactical.log import (
@@ -501,12 +501,7 @@ class _Replay:
     def _finish(self, problem: PlanningProblem, chain: np.ndarray, speeds: np.ndarray, t_eff: float, v0: float,
                 label: str, budget_J: float, stop_at: tuple[int, ...] = ()) -> Candidate:
         """STEP III of a tactical chain from ``t_eff`` at ``v0``, then the exact separation check."""
-        lengths = np.linalg.norm(np.diff(chain, axis=0), axis=1)
-        if np.any(lengths <= 1e-6):                  # drop repeated vertices (and their legs)
-            keep = np.r_[True, lengths > 1e-6]
-            new_index = np.cumsum(keep) - 1
-            stop_at = tuple(int(new_index[i]) for i in stop_at)
-            chain, speeds, lengths = chain[keep], np.asarray(speeds)[keep[1:]], lengths[keep[1:]]
+        chain, speeds, lengths, stop_at = _dedupe(chain, speeds, stop_at)
         times = t_eff + np.concatenate([[0.0], np.cumsum(lengths / np.maximum(speeds, 1e-3))])
         s2 = Step2Result(chain, times, np.zeros(chain.shape[0]), "tactical")
         reserve = 100.0 * (1.0 - budget_J / self.veh.battery_energy_j)
@@ -527,6 +522,27 @@ class _Replay:
                     cand.reasons.append(f"inside the temporary no-fly zone {z.id!r} at t = {cand.t_s[k]:.1f} s")
             cand.flyable = not cand.reasons
         return cand
+
+    def _screen_l1(self, problem, chain, speeds, t_eff: float, v0: float) -> str:
+        """Why a level-1 speed profile cannot work, from its corner trajectory alone (STEP
+        III's smoothing) and the exact separation and zone checks; '' when it may (then the
+        full STEP III and validator decide)."""
+        chain, speeds, lengths, _ = _dedupe(chain, speeds)
+        try:
+            tr = smooth_chain(problem, chain, lengths / np.maximum(speeds, 1e-3), v_start_mps=v0)
+        except PlanningError as exc:
+            return f"STEP III: {exc}"
+        tau = tr.sample_times(self.p.tick_s * 5)
+        t, pts = t_eff + tau, tr.sample(tau)
+        if self.known.intruders():
+            c = first_conflict(t, pts, *self.tracks())
+            if c is not None:
+                return f"separation from intruder {c.id!r}: {c.distance_m:.1f} m at t = {c.t_cpa_s:.1f} s"
+        for z in self.known.zones:
+            k = _first_in_zone(t, pts, z, self.veh.r_p_m)
+            if k >= 0:
+                return f"inside the temporary no-fly zone {z.id!r} at t = {t[k]:.1f} s"
+        return ""
 
     def budget_J(self, t_eff: float, problem: PlanningProblem) -> float:
         t, p = self.tl.samples(0.0, self.p.tick_s, t_eff)
@@ -587,12 +603,15 @@ class _Replay:
                 for first in range(min(3, n_slow)):
                     sp = speeds.copy()
                     sp[first:n_slow] *= s
-                    try:
-                        c = self._finish(problem1, chain, sp, t_eff, v0, f"L1 s={s:g}", budget)
-                    except PlanningError as exc:
-                        c, why = None, str(exc)
-                    else:
-                        why = "; ".join(c.reasons[:2])
+                    why = self._screen_l1(problem1, chain, sp, t_eff, v0)   # cheap: geometry + separation
+                    c = None
+                    if not why:
+                        try:
+                            c = self._finish(problem1, chain, sp, t_eff, v0, f"L1 s={s:g}", budget)
+                        except PlanningError as exc:
+                            why = str(exc)
+                        else:
+                            why = "; ".join(c.reasons[:2])
                     if c is not None and c.flyable:
                         cand1 = c
                         break
@@ -759,6 +778,19 @@ class _Replay:
             if len(out) >= self.p.max_landing_sites:
                 break
         return out
+
+
+def _dedupe(chain, speeds, stop_at=()):
+    """Drop repeated vertices (and their legs) of a chain: ``(chain, speeds, leg lengths, stop_at)``."""
+    chain = np.asarray(chain, float)
+    lengths = np.linalg.norm(np.diff(chain, axis=0), axis=1)
+    speeds = np.asarray(speeds, float)
+    if np.any(lengths <= 1e-6):
+        keep = np.r_[True, lengths > 1e-6]
+        new_index = np.cumsum(keep) - 1
+        stop_at = tuple(int(new_index[i]) for i in stop_at)
+        chain, speeds, lengths = chain[keep], speeds[keep[1:]], lengths[keep[1:]]
+    return chain, speeds, lengths, tuple(stop_at)
 
 
 def _ev(ev: TacticalEvent, t_known: float, t_coll: float, outcome: str, cause: str = "") -> dict:

@@ -220,13 +220,19 @@ class Constraints(FrozenModel):
     """Airspace and operating constraints.  ``max_altitude_agl_m`` may not exceed the
     vehicle's ``max_altitude_m`` (a scenario that asks more is an error listing both); when it
     is not given, the vehicle's maximum applies (120 m at most).  ``battery_reserve_pct`` [%]:
-    energy kept in the battery, the plan may use ``battery * (1 - reserve / 100)``."""
+    energy kept in the battery, the plan may use ``battery * (1 - reserve / 100)``.
+    ``clearance``: ``fixed`` keeps the vehicle sphere r_p from the obstacles; ``sboa`` (seed 003
+    safety bubble) plans each coverage level D_j with ``r_j = max(r_p, sboa_k sigma(D_j) +
+    navsim.surface_uncertainty_m)``, sigma(D_j) the navigation error bound where PDOP < D_j
+    (needs dop_kind PDOP or GDOP), and re-checks each sample with its predicted sigma_p(t)."""
 
     min_altitude_agl_m: NonNegFloat = 0.0
     max_altitude_agl_m: PositiveFloat = 120.0
     nofly_zones: Path | None = None
     level5_nofly: bool = False
     battery_reserve_pct: Annotated[float, Field(ge=0, lt=100)] = 0.0
+    clearance: Literal["fixed", "sboa"] = "fixed"
+    sboa_k: PositiveFloat = 3.0
 
     @model_validator(mode="after")
     def _order(self) -> Constraints:

@@ -426,7 +426,26 @@ class PlanSettings(FrozenModel):
     battery_reserve_pct: float = 0.0
 
 
+class PlanSboaSettings(PlanSettings):
+    """Plan settings with the safety bubble (``constraints.clearance: sboa``, seed 003): a
+    separate model so that the default ``fixed`` keeps its cache keys."""
+    sboa_k: float
+    surface_uncertainty_m: float
+    clearance: ClearanceSettings
+
+
 def _plan_settings(sc: Scenario) -> PlanSettings:
+    base = _plan_settings_fixed(sc)
+    if sc.constraints.clearance != "sboa":
+        return base
+    from skyroute.stages.sboa import check_dop_kind
+
+    check_dop_kind(sc.gnss.dop_kind)
+    return PlanSboaSettings(**dict(base), sboa_k=sc.constraints.sboa_k,
+                            surface_uncertainty_m=sc.navsim.surface_uncertainty_m, clearance=_clearance_settings(sc))
+
+
+def _plan_settings_fixed(sc: Scenario) -> PlanSettings:
     from skyroute.stages.vehicle import load_vehicle
 
     m, p = sc.mission, sc.planner
@@ -446,8 +465,10 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
     """Strategic plan (seed 000 III): STEP I-III for every coverage level and the choice."""
     from skyroute.stages.planning.strategic import plan_strategic, plan_to_dataset
 
-    plan = plan_strategic(surface, environment, wind, clearance, coverage, satellites, traffic,
-                          **plan_arguments(settings, surface))
+    kw = plan_arguments(settings, surface)
+    if isinstance(settings, PlanSboaSettings):
+        kw.update(sboa_levels(settings, surface, environment, coverage))
+    plan = plan_strategic(surface, environment, wind, clearance, coverage, satellites, traffic, **kw)
     return plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),
                            settings.start_time_utc)
 
@@ -463,6 +484,24 @@ def plan_arguments(s: PlanSettings, surface: xr.Dataset) -> dict:
                 time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, step_cells=s.step_cells,
                 min_agl_m=s.min_agl_m, max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m,
                 dt_c_s=s.dt_c_s, uere_m=s.uere_m, battery_reserve_pct=s.battery_reserve_pct)
+
+
+def sboa_levels(s: PlanSboaSettings, surface: xr.Dataset, environment: xr.Dataset,
+                coverage: xr.Dataset | None) -> dict:
+    """The safety-bubble arguments of ``plan_strategic``: per coverage level D_j the clearance
+    dataset of the clearance stage recomputed for ``r_j`` (:func:`~skyroute.stages.sboa.level_radius_m`)
+    and ``bubble = (k, surface_uncertainty_m)`` for the STEP III re-check."""
+    from skyroute.stages.sboa import level_radius_m
+    from skyroute.stages.vehicle import VehicleProfile
+
+    veh = VehicleProfile.model_validate(s.vehicle_profile)
+    by_level = {}
+    if coverage is not None:
+        for d in coverage["threshold"].values:
+            r = level_radius_m(float(d), veh.r_p_m, s.sboa_k, s.surface_uncertainty_m, imu=veh.imu, uere_m=s.uere_m)
+            by_level[float(d)] = clearance_stage(surface, environment,
+                                                 settings=s.clearance.model_copy(update={"radius_m": r}))
+    return dict(clearance_by_level=by_level, bubble=(s.sboa_k, s.surface_uncertainty_m))
 
 
 def plan_precheck(sc: Scenario, datasets: dict[str, xr.Dataset]) -> None:
@@ -484,5 +523,5 @@ register(Stage("plan", plan_stage, _plan_settings, inputs=("surface", "environme
                              "skyroute.stages.planning.bitstar", "skyroute.stages.planning.deconflict",
                              "skyroute.stages.planning.step3", "skyroute.stages.planning.validate",
                              "skyroute.stages.energy", "skyroute.stages.smoothing", "skyroute.stages.navigation",
-                             "skyroute.stages.vehicle"),
+                             "skyroute.stages.vehicle", "skyroute.stages.sboa", "skyroute.stages.clearance"),
                description="strategic plan: STEP I-III per DOP level and the chosen trajectory"))

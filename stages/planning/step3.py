@@ -61,7 +61,7 @@ from skyroute.stages.energy import rotor_power
 from skyroute.stages.navigation import DEFAULT_UERE_M, navigation_error
 from skyroute.stages.occlusion import grid_azimuth_deg, visibility_heights_numpy
 from skyroute.stages.planning.deconflict import Step2Result, leg_conflicts
-from skyroute.stages.planning.validate import validate_plan
+from skyroute.stages.planning.validate import validate_bubble, validate_plan
 from skyroute.stages.smoothing import CornerTrajectory, KinematicLimits, corner_trajectory
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.wind import wind_in_column
@@ -102,6 +102,7 @@ class Candidate:
     trajectory: CornerTrajectory | None = None
     step2_status: str = ""
     dp_max_m: float = float("nan")
+    clearance_radius_m: float = float("nan")   # r_j of a safety-bubble level (NaN: the fixed r_p)
 
     @property
     def energy_Wh(self) -> float:
@@ -300,7 +301,7 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
           sample_dt_s: float = 0.5, check_spacing_m: float = 1.0, gnss_sigma_m: float = DEFAULT_UERE_M,
           gnss_period_s: float = 1.0, warmup_s: float = 60.0, label: str | None = None,
           battery_reserve_pct: float = 0.0, v_start_mps: float = 0.0, los_cache: dict | None = None,
-          stop_at: tuple[int, ...] = ()) -> Candidate:
+          stop_at: tuple[int, ...] = (), bubble: tuple[float, float, float] | None = None) -> Candidate:
     """Smooth, retime, check and cost one STEP II chain (see the module docstring).
 
     ``sky``: :func:`~skyroute.stages.almanac.sky_geometry` Dataset (time, sat) or None (no
@@ -318,6 +319,9 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     waypoint along the first leg (a tactical replan of a vehicle in flight; 0: from rest).
     ``los_cache``: see :func:`line_of_sight` (one dict per sky and surface); ``stop_at``:
     chain vertices where the vehicle stops (:func:`~skyroute.stages.smoothing.corner_trajectory`).
+    ``bubble = (k, surface_uncertainty_m, r_p_m)``: safety bubble re-check (seed 003): every
+    sample must keep ``max(r_p, k sigma_p(t) + surface_uncertainty)`` [m] from the surface
+    prisms of ``surface_2d`` (:func:`~skyroute.stages.planning.validate.validate_bubble`).
     """
     t_start = time.perf_counter()
     lab = label if label is not None else (getattr(problem, "label", "") or "candidate")
@@ -425,6 +429,10 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
                          start_xyz=step2_result.waypoints[0], goal_xyz=step2_result.waypoints[-1],
                          battery_reserve_pct=battery_reserve_pct)
     reasons.extend(f"validation: {m}" for m in viol if "navigation error" not in m and "battery" not in m)
+    if bubble is not None and np.isfinite(sigma).all():
+        k_b, su_b, rp_b = bubble
+        radius = np.maximum(rp_b, k_b * sigma + su_b)
+        reasons.extend(f"validation: {m}" for m in validate_bubble(cand, grid=g, surface_m=surface_2d, radius_m=radius))
     cand.flyable = not reasons
     cand.dp_max_m = float(veh.max_position_error_m)
     cand.compute_time_s = time.perf_counter() - t_start

@@ -24,6 +24,7 @@ import json
 import os
 import threading
 import time
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -75,7 +76,9 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                    min_agl_m: float = 0.0, max_agl_m: float = 120.0, dop_kind: str = "PDOP",
                    intruders: list[Intruder] | None = None, d_c_m: float = 0.0, dt_c_s: float = 0.0,
                    uere_m: float = 3.0, workers: int | None = None, step_cells: int = STEP_CELLS,
-                   max_iterations: int | None = None, battery_reserve_pct: float = 0.0) -> StrategicPlan:
+                   max_iterations: int | None = None, battery_reserve_pct: float = 0.0,
+                   clearance_by_level: Mapping[float, xr.Dataset] | None = None,
+                   bubble: tuple[float, float] | None = None) -> StrategicPlan:
     """Plan the mission for every coverage level of ``coverage`` (one level without GNSS data).
 
     Levels with identical floor and coverage arrays are solved once.  With ``planner="astar"``
@@ -91,7 +94,13 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     weights that select only such terms raise
     :class:`~skyroute.stages.base.DegenerateCostError` before any planning
     (:mod:`skyroute.stages.planning.degenerate`).
-    ``battery_reserve_pct`` [%]: energy kept in the battery (STEP I and III use the rest)."""
+    ``battery_reserve_pct`` [%]: energy kept in the battery (STEP I and III use the rest).
+
+    Safety bubble (seed 003, :mod:`skyroute.stages.sboa`; both default to off):
+    ``clearance_by_level`` maps a DOP threshold D_j to the clearance dataset of its radius r_j
+    (used instead of ``clearance`` for that level; its ``radius_m`` attribute is recorded in the
+    candidate); ``bubble = (k, surface_uncertainty_m)`` makes STEP III re-check every sample at
+    ``max(r_p, k sigma_p(t) + surface_uncertainty_m)`` [m] from the surface."""
     t0 = time.perf_counter()
     wind_map = wind.load() if wind is not None else None
     cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
@@ -112,8 +121,17 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         levels = [(float(d), cov.sel(threshold=d)) for d in cov["threshold"].values]
     else:
         levels = [(None, None)]
-    problems = [build_problem(surf, clear, floor_j, risk, land, wind_map, veh, weights, start, goal, min_agl_m,
-                              max_agl_m, d, dop_kind=dop_kind, nofly=nofly, check_endpoints=False)
+    by_level = dict(clearance_by_level or {})
+
+    def level_clearance(d):
+        if d is None or d not in by_level:
+            return clear, nofly
+        c = by_level[d]
+        return c["min_altitude_m"].load(), (c["nofly"].load() if "nofly" in c else None)
+
+    problems = [build_problem(surf, level_clearance(d)[0], floor_j, risk, land, wind_map, veh, weights, start, goal,
+                              min_agl_m, max_agl_m, d, dop_kind=dop_kind, nofly=level_clearance(d)[1],
+                              check_endpoints=False)
                 for d, floor_j in levels]
     h2 = None
     if planner == "astar":   # one A* heuristic for all levels: that of the loosest (lowest floors)
@@ -143,7 +161,10 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         ticker.phase(problem.label, "STEP III")
         cand = step3(problem, s2, sky, surface_2d, start_time_utc=start_time_utc, occupancy=occ,
                      intruders=intruders, label=problem.label, gnss_sigma_m=uere_m,
-                     battery_reserve_pct=battery_reserve_pct)
+                     battery_reserve_pct=battery_reserve_pct,
+                     bubble=None if bubble is None else (float(bubble[0]), float(bubble[1]), float(veh.r_p_m)))
+        if d is not None and d in by_level:
+            cand.clearance_radius_m = float(by_level[d].attrs["radius_m"])
         cand.compute_time_s = time.perf_counter() - tl
         ticker.phase(problem.label, None)
         return s1, s2, cand
@@ -302,6 +323,8 @@ def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_ut
              "flight_time_s": "s", "compute_time_s": "s"}
     for k in _SCALARS:
         ds[k] = ("level", np.array([float(getattr(c, k)) for c in cands]), {"units": units[k]})
+    if any(np.isfinite(c.clearance_radius_m) for c in cands):   # safety bubble levels only
+        ds["clearance_radius_m"] = ("level", np.array([c.clearance_radius_m for c in cands]), {"units": "m"})
     ds["flyable"] = ("level", np.array([bool(c.flyable) for c in cands]), {"units": "1"})
     ds["reasons"] = ("level", np.array(["; ".join(c.reasons) for c in cands], dtype=object))
     ds["status"] = ("level", np.array([c.step2_status for c in cands], dtype=object))

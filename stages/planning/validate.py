@@ -43,7 +43,7 @@ from skyroute.stages.grid import Grid
 from skyroute.stages.traffic import Intruder, intruders_from_records
 from skyroute.stages.vehicle import VehicleProfile, load_vehicle
 
-__all__ = ["validate_plan", "intruder_clearance_m"]
+__all__ = ["intruder_clearance_m", "surface_clearance_m", "validate_bubble", "validate_plan"]
 
 _MAX_LISTED = 5  # sample indices quoted per violation
 MIN_HORIZONTAL_M = 2.0  # [m] chords with less horizontal motion are exempt from the angle limit
@@ -287,3 +287,52 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
             out.append(f"navigation error sigma_p {float(np.nanmax(s)):.2f} m exceeds dp_max "
                        f"{veh.max_position_error_m} m")
     return out
+
+
+def surface_clearance_m(xyz_m, *, grid: Grid, surface_m, radius_m) -> np.ndarray:
+    """Distance [m] from each point ``xyz_m`` (m, 3) to the nearest surface prism (cell footprint
+    x (-inf, surface]) among the cells within ``radius_m`` [m] (scalar or (m,)) of it, by brute
+    force over every such cell; +inf when none is that close.  Points inside a prism get 0."""
+    q = np.asarray(xyz_m, float).reshape(-1, 3)
+    r = np.broadcast_to(np.asarray(radius_m, float), (q.shape[0],))
+    s = _raster(surface_m, grid, "surface_m")
+    res = grid.resolution_m
+    out = np.full(q.shape[0], np.inf)
+    for i, (x, y, z) in enumerate(q):
+        n = int(math.ceil(r[i] / res)) + 1
+        col = int(math.floor((x - grid.x0) / res))
+        row = int(math.floor((grid.y1 - y) / res))
+        r0, r1 = max(row - n, 0), min(row + n + 1, grid.ny)
+        c0, c1 = max(col - n, 0), min(col + n + 1, grid.nx)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        cx = grid.x0 + (np.arange(c0, c1) + 0.5) * res            # cell centres
+        cy = grid.y1 - (np.arange(r0, r1) + 0.5) * res
+        dx = np.maximum(np.abs(x - cx) - res / 2, 0.0)[None, :]
+        dy = np.maximum(np.abs(y - cy) - res / 2, 0.0)[:, None]
+        dz = np.maximum(z - s[r0:r1, c0:c1], 0.0)            # above the top, or 0 beside the prism
+        d = np.sqrt(dx * dx + dy * dy + dz * dz)
+        d = d[d <= r[i]]
+        if d.size:
+            out[i] = float(d.min())
+    return out
+
+
+def validate_bubble(candidate, *, grid: Grid, surface_m, radius_m, tol_m: float = 1e-6) -> list[str]:
+    """Safety bubble check (seed 003): every sample of ``candidate`` (``t_s``, ``xyz_m``) at
+    least ``radius_m`` [m] (scalar or one per sample) from every surface prism of ``surface_m``
+    (:func:`surface_clearance_m`, brute force on the raw raster).  Returns the violations."""
+    t, p = _samples(candidate)
+    r = np.asarray(radius_m, float)
+    if r.ndim and r.shape != t.shape:
+        raise InputError(f"radius_m must be a scalar or one value per sample ({t.size}); got shape {r.shape}")
+    if not (np.isfinite(r).all() and (r >= 0).all()):
+        raise InputError("radius_m must be finite and >= 0 [m]")
+    r = np.broadcast_to(r, t.shape)
+    d = surface_clearance_m(p, grid=grid, surface_m=surface_m, radius_m=r)
+    bad = d < r - tol_m
+    if not bad.any():
+        return []
+    k = int(np.argmin(np.where(bad, d - r, np.inf)))
+    return [f"inside the safety bubble of the surface (closest {float(d[k]):.2f} m < r = {float(r[k]):.2f} m at "
+            f"t = {t[k]:.1f} s): {_where(bad, t, p)}"]

@@ -189,3 +189,30 @@ def test_bubble_recheck_rejects_a_plan_too_close(plans):
     plan = _plans_inputs(g, s, veh, bubble=(5.0, 1.0))
     assert plan.chosen is None
     assert all(any("inside the safety bubble" in r for r in c.reasons) for c in plan.candidates)
+
+
+def test_settings_fixed_keeps_the_plan_settings_and_sboa_adds_its_own():
+    """Default ``fixed``: the plan stage settings are the unchanged PlanSettings model (same cache
+    key); ``sboa``: its own model carrying k, the surface uncertainty and the clearance settings."""
+    from skyroute.pipeline.model import stable_hash
+    from skyroute.pipeline.settings import load_scenario
+    from skyroute.pipeline.stages_builtin import (
+        PlanSboaSettings,
+        PlanSettings,
+        _clearance_settings,
+        _plan_settings,
+        _plan_settings_fixed,
+    )
+
+    sc = load_scenario("helsinki-medical")
+    assert sc.constraints.clearance == "fixed"
+    s = _plan_settings(sc)
+    assert type(s) is PlanSettings and stable_hash(s) == stable_hash(_plan_settings_fixed(sc))
+    sb = sc.model_copy(update={"constraints": sc.constraints.model_copy(update={"clearance": "sboa", "sboa_k": 2.0})})
+    p = _plan_settings(sb)
+    assert isinstance(p, PlanSboaSettings) and stable_hash(p) != stable_hash(s)
+    assert p.sboa_k == 2.0 and p.surface_uncertainty_m == sc.navsim.surface_uncertainty_m
+    assert p.clearance == _clearance_settings(sc)
+    hd = sb.model_copy(update={"gnss": sb.gnss.model_copy(update={"dop_kind": "HDOP"})})
+    with pytest.raises(InputError, match="PDOP or GDOP"):
+        _plan_settings(hd)

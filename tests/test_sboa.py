@@ -4,6 +4,7 @@ and a synthetic plan with and without the bubble (distances by an all-cells brut
 
 from __future__ import annotations
 
+import csv
 import warnings
 
 import numpy as np
@@ -18,7 +19,8 @@ from skyroute.stages.clearance import clearance_dataset
 from skyroute.stages.environment import environment_risk_dataset
 from skyroute.stages.grid import Grid
 from skyroute.stages.navigation import los_from_az_el, navigation_error
-from skyroute.stages.planning.strategic import plan_strategic, plan_to_dataset
+from skyroute.stages.planning.outputs import CANDIDATE_COLUMNS, write_plan
+from skyroute.stages.planning.strategic import plan_from_dataset, plan_strategic, plan_to_dataset
 from skyroute.stages.planning.validate import surface_clearance_m, validate_bubble
 from skyroute.stages.sboa import check_dop_kind, level_radius_m, level_sigma_m
 from skyroute.stages.vehicle import load_vehicle
@@ -175,6 +177,19 @@ def test_sboa_plan_keeps_the_bubble_and_the_fixed_plan_does_not(plans):
     ds = plan_to_dataset(sboa, g.crs, "", START)
     assert np.allclose(ds["clearance_radius_m"].values, [radii[3.0], radii[5.0]])
     assert "clearance_radius_m" not in plan_to_dataset(fixed, g.crs, "", START)
+    _, back = plan_from_dataset(ds)
+    assert [c.clearance_radius_m for c in back] == pytest.approx([radii[3.0], radii[5.0]])
+
+
+def test_candidates_csv_has_the_radius_column_only_with_sboa(plans, tmp_path):
+    g, _, _, radii, fixed, sboa = plans
+    for name, plan in (("fixed", fixed), ("sboa", sboa)):
+        write_plan(plan.chosen, plan.candidates, g, tmp_path / name, START, "", figures=False)
+    with open(tmp_path / "fixed" / "candidates.csv") as f:
+        assert list(csv.DictReader(f).fieldnames) == list(CANDIDATE_COLUMNS)
+    with open(tmp_path / "sboa" / "candidates.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [float(r["clearance_radius_m"]) for r in rows] == pytest.approx([radii[3.0], radii[5.0]], abs=0.005)
 
 
 def test_bubble_recheck_rejects_a_plan_too_close(plans):

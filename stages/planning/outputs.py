@@ -142,8 +142,13 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
                      _fmt(c.C_e, 1), _fmt(c.f, 1), _fmt(bool(c.flyable)), _fmt(c.max_sigma_p_m, 3),
                      _fmt(c.energy_Wh, 2), _fmt(c.flight_time_s, 1), _fmt(c.compute_time_s, 2),
                      _fmt(candidate is not None and c is candidate), "; ".join(c.reasons)])
+    cols = CANDIDATE_COLUMNS
+    radii = [float(getattr(c, "clearance_radius_m", math.nan)) for c in candidates]
+    if any(math.isfinite(r) for r in radii):   # safety bubble levels (sboa)
+        cols = (*cols, "clearance_radius_m")
+        rows = [[*row, _fmt(r, 2)] for row, r in zip(rows, radii, strict=True)]
     files["candidates.csv"] = out / "candidates.csv"
-    write_csv(files["candidates.csv"], CANDIDATE_COLUMNS, rows)
+    write_csv(files["candidates.csv"], cols, rows)
     if candidate is None:
         return files
     gj = plan_geojson(candidate, grid_or_crs, start_time_utc, vertical_datum)

@@ -410,6 +410,8 @@ def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]
             c = Candidate(str(row["label"].values), None if np.isnan(d) else d, z, np.zeros((0, 3)), z, z, z,
                           np.zeros(0, int), flyable=bool(row["flyable"]), reasons=reasons,
                           step2_status=str(row["status"].values), **kw)
+        if "clearance_radius_m" in ds:
+            c.clearance_radius_m = float(row["clearance_radius_m"])
         cands.append(c)
     chosen = cands[chosen_i] if chosen_i >= 0 else None
     return chosen, cands

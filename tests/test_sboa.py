@@ -231,3 +231,34 @@ def test_settings_fixed_keeps_the_plan_settings_and_sboa_adds_its_own():
     hd = sb.model_copy(update={"gnss": sb.gnss.model_copy(update={"dop_kind": "HDOP"})})
     with pytest.raises(InputError, match="PDOP or GDOP"):
         _plan_settings(hd)
+
+
+@pytest.mark.slow
+def test_helsinki_medical_with_the_bubble_flies_clear_of_it(cache):
+    """The default scenario with ``constraints.clearance: sboa``: it flies, each level records
+    its r_j, and the chosen trajectory keeps r_j and max(r_p, k sigma_p(t) + surface
+    uncertainty) from every surface prism (all-cells brute force)."""
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.pipeline.settings import load_scenario
+
+    sc = load_scenario("helsinki-medical")
+    sc = sc.model_copy(update={"constraints": sc.constraints.model_copy(update={"clearance": "sboa"})})
+    r = run_scenario(sc, cache=cache, targets=["plan"])
+    plan, surf = r.datasets["plan"], r.datasets["surface"]
+    chosen, cands = plan_from_dataset(plan)
+    assert chosen is not None and chosen.flyable, plan.attrs["reason"]
+    veh = load_vehicle(sc.vehicle)
+    k, su = sc.constraints.sboa_k, sc.navsim.surface_uncertainty_m
+    radii = [level_radius_m(d, veh.r_p_m, k, su, imu=veh.imu, uere_m=sc.gnss.uere_m) for d in sc.gnss.dop_thresholds]
+    assert [c.clearance_radius_m for c in cands] == pytest.approx(radii)
+    g = Grid.from_dataarray(surf["surface"])
+    s = surf["surface"].values
+    x0, y0 = chosen.xyz_m[:, 0].min() - 60, chosen.xyz_m[:, 1].min() - 60   # cells within 60 m of the route
+    x1, y1 = chosen.xyz_m[:, 0].max() + 60, chosen.xyz_m[:, 1].max() + 60
+    cols = slice(max(int((x0 - g.x0) // g.resolution_m), 0), int((x1 - g.x0) // g.resolution_m) + 1)
+    rows = slice(max(int((g.y1 - y1) // g.resolution_m), 0), int((g.y1 - y0) // g.resolution_m) + 1)
+    sub = Grid(crs_wkt=g.crs_wkt, x0=g.x0 + cols.start * g.resolution_m, y1=g.y1 - rows.start * g.resolution_m,
+               nx=s[rows, cols].shape[1], ny=s[rows, cols].shape[0], resolution_m=g.resolution_m)
+    d = _prism_distance(chosen.xyz_m, sub, s[rows, cols])
+    need = np.maximum(veh.r_p_m, k * chosen.sigma_p_m + su)
+    assert (d >= need - 1e-6).all() and (d >= chosen.clearance_radius_m - 1e-6).all(), float(d.min())

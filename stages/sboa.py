@@ -19,14 +19,16 @@ GNSS period, warm-up and initial prior as STEP III).  For a static geometry ``G`
    trace ``UERE^2 PDOP^2``;
 2. the position/velocity/bias dynamics are the same on the three axes and isotropic, so in the
    eigenbasis of ``M`` the filter splits into three 1-D filters; the position variance of each is
-   an increasing, concave function ``g`` of its measurement variance ``s_i``
+   an increasing, concave (checked numerically, not proved) function ``g`` of its measurement
+   variance ``s_i``
    (``sum s_i = UERE^2 PDOP^2``), so by Jensen ``sum g(s_i) <= 3 g(UERE^2 PDOP^2 / 3)``: the
    worst geometry for a given PDOP is the isotropic one;
 3. the isotropic geometry used here, six lines of sight along +-E, +-N, +-U (``G^T G =
    diag(2, 2, 2, 6)``, clock decoupled, PDOP = sqrt(1.5)) with the pseudorange sigma scaled
    to ``UERE D / sqrt(1.5)``, has PDOP ``D`` at UERE;
-4. the prior of STEP III is above the steady state, so the covariance decreases with time
-   (Riccati monotonicity): its largest value in flight is just after the warm-up.  The bound is
+4. after the first seconds the covariance decreases with time towards the steady state
+   (checked numerically: the largest value after the 60 s warm-up is at its first cycle),
+   so its largest value in flight is just after the warm-up.  The bound is
    the largest sigma over the first update cycle after the warm-up, with the longest gap
    between updates STEP III can produce (``gnss_period_s + sample_dt_s``), sampled finely.
 

@@ -150,7 +150,8 @@ def plan_section(ds) -> dict[str, Any]:
     ``status`` (``flyable`` | ``no_flyable_plan``), the chosen candidate's ``label``,
     ``dop_threshold``, ``f_m``, ``C_l_m``, ``C_r_m``, ``C_d_m``, ``C_e_m``, ``length_m`` (3-D
     length of the written trajectory), ``energy_Wh``, ``flight_time_s`` (None when no plan) and
-    ``reasons`` (one per level that is not flyable, "label: why"; empty when a plan flies)."""
+    ``reasons`` (one per level that is not flyable, "label: why"; empty when a plan flies); with
+    ``constraints.clearance: sboa`` also the chosen level's ``clearance_radius_m`` r_j [m]."""
     chosen = int(ds.attrs.get("chosen_level", -1))
     reasons = []
     for i in range(ds.sizes.get("level", 0)):
@@ -167,6 +168,8 @@ def plan_section(ds) -> dict[str, Any]:
                    f_m=_num(row["f"]), C_l_m=_num(row["C_l"]), C_r_m=_num(row["C_r"]), C_d_m=_num(row["C_d"]),
                    C_e_m=_num(row["C_e"]), length_m=_num(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()),
                    energy_Wh=_num(float(row["energy_J"]) / 3600.0), flight_time_s=_num(row["flight_time_s"]))
+        if "clearance_radius_m" in ds:   # constraints.clearance: sboa
+            sec["clearance_radius_m"] = _num(row["clearance_radius_m"])
         reasons = []
     else:
         why = str(ds.attrs.get("reason", "")).removeprefix("no flyable plan: ")

@@ -178,6 +178,10 @@ def test_sboa_plan_keeps_the_bubble_and_the_fixed_plan_does_not(plans):
     assert np.allclose(ds["clearance_radius_m"].values, [radii[3.0], radii[5.0]])
     assert "clearance_radius_m" not in plan_to_dataset(fixed, g.crs, "", START)
     _, back = plan_from_dataset(ds)
+    from skyroute.pipeline.outputs import plan_section
+
+    assert plan_section(ds)["clearance_radius_m"] == pytest.approx(sboa.chosen.clearance_radius_m, abs=1e-3)
+    assert "clearance_radius_m" not in plan_section(plan_to_dataset(fixed, g.crs, "", START))
     assert [c.clearance_radius_m for c in back] == pytest.approx([radii[3.0], radii[5.0]])
 
 

@@ -21,7 +21,7 @@ from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.runner import RunResult, run_scenario
 from skyroute.pipeline.settings import Scenario
 
-__all__ = ["NavsimResult", "add_protection_levels", "navsim_params", "navsim_scenario", "read_flown_csv"]
+__all__ = ["NavsimResult", "add_protection_levels", "integrity_budget", "navsim_params", "navsim_scenario", "read_flown_csv"]
 
 
 @dataclass
@@ -33,6 +33,16 @@ class NavsimResult:
     t_s: np.ndarray | None = None        # the simulated trajectory
     xyz_m: np.ndarray | None = None
     dop_threshold: float | None = None   # the plan's coverage level (the morphing map's floor)
+
+
+def integrity_budget(sc: Scenario):
+    """The protection level's budgets of ``sc.navsim`` (integrity and false alert split
+    equally between horizontal and vertical)."""
+    from skyroute.stages.integrity import IntegrityBudget
+
+    n = sc.navsim
+    return IntegrityBudget(p_hmi_hor=n.pl_p_hmi / 2, p_hmi_vert=n.pl_p_hmi / 2, p_fa_hor=n.pl_p_fa / 2,
+                           p_fa_vert=n.pl_p_fa / 2, p_sat=n.pl_p_sat)
 
 
 def navsim_params(sc: Scenario):
@@ -122,7 +132,7 @@ def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | Non
     sky = result["satellites"].load()
     los, vis, up = flight_geometry(holder, sky, surf["surface"].values, t, xyz, sc.mission.start_time_utc.isoformat())
     ds = simulate(t, xyz, los, vis, up, params=params, imu=load_vehicle(sc.vehicle), runs=runs, seed=seed)
-    add_protection_levels(ds, los, vis, params.sigma_uere_m)
+    add_protection_levels(ds, los, vis, params.sigma_uere_m, budget=integrity_budget(sc))
     ds.attrs.update({"scenario": sc.name, "source": source, "runs": runs, "seed": seed,
                      "start_time_utc": sc.mission.start_time_utc.isoformat(), "rate_hz": n.rate_hz})
     return NavsimResult(result, ds, source, float(n.surface_uncertainty_m), t, xyz, dop_threshold)

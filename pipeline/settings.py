@@ -340,7 +340,10 @@ class NavsimSettings(FrozenModel):
     uncertainty ``surface_uncertainty_m`` [m] is added to the safety bubble
     r_phi = k sigma + surface_uncertainty_m (reported separately).  The digital morphing
     map (the coverage floor per epoch under the flight) is computed every ``morphing_step_s``
-    [s] over the flight's box widened by ``morphing_margin_m`` [m] (0: not computed)."""
+    [s] over the flight's box widened by ``morphing_margin_m`` [m] (0: not computed).  The
+    protection level's budgets per epoch: integrity ``pl_p_hmi`` and false alert ``pl_p_fa``
+    (each split equally between horizontal and vertical), satellite fault prior ``pl_p_sat``
+    (:class:`skyroute.stages.integrity.IntegrityBudget` explains the defaults)."""
 
     runs: Annotated[int, Field(ge=1, le=100000)] = 50
     seed: int = 0
@@ -355,6 +358,9 @@ class NavsimSettings(FrozenModel):
     surface_uncertainty_m: NonNegFloat = 1.0
     morphing_step_s: NonNegFloat = 10.0
     morphing_margin_m: NonNegFloat = 100.0
+    pl_p_hmi: Annotated[float, Field(gt=0, lt=1)] = 1e-7
+    pl_p_fa: Annotated[float, Field(gt=0, lt=1)] = 4e-6
+    pl_p_sat: Annotated[float, Field(ge=0, lt=1)] = 1e-5
 
 
 class TacticalSettings(FrozenModel):

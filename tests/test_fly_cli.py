@@ -43,3 +43,17 @@ def test_navsim_bad_trajectory_file(tmp_path):
                                     str(tmp_path / "o"), "--cache-dir", str(cache)])
     assert res.exit_code == 2 and res.output.startswith("error: --trajectory") and "t_s, x_m, y_m" in res.output
     assert not (cache / "stages").exists()
+
+
+def test_protection_level_budgets_from_the_scenario():
+    """navsim.pl_p_hmi / pl_p_fa / pl_p_sat set the protection level's budgets; the defaults
+    are the documented IntegrityBudget."""
+    from skyroute.pipeline.navsim import integrity_budget
+    from skyroute.pipeline.settings import NavsimSettings, load_scenario
+    from skyroute.stages.integrity import IntegrityBudget
+
+    sc = load_scenario("helsinki-medical")
+    assert integrity_budget(sc) == IntegrityBudget()
+    sc = sc.model_copy(update={"navsim": NavsimSettings(pl_p_hmi=1e-5, pl_p_fa=1e-4, pl_p_sat=1e-4)})
+    b = integrity_budget(sc)
+    assert (b.p_hmi_hor, b.p_hmi_vert, b.p_fa_hor, b.p_fa_vert, b.p_sat) == (5e-6, 5e-6, 5e-5, 5e-5, 1e-4)

@@ -112,6 +112,46 @@ def _discretise_memo(f_bytes: bytes, q_bytes: bytes, n: int, dt_s: float) -> tup
 
 
 @numba.njit(cache=True, nogil=True)
+def propagate_covariance(P, phi, q, tmp):
+    """P <- phi P phi^T + q, in place and symmetric (``tmp``: (n, n) scratch).  The one
+    propagation of the filter covariance (this module's analysis and the Monte Carlo filters
+    of :mod:`skyroute.stages.navsim`)."""
+    n = P.shape[0]
+    for r in range(n):                     # tmp = phi P
+        for c in range(n):
+            s = 0.0
+            for k in range(n):
+                s += phi[r, k] * P[k, c]
+            tmp[r, c] = s
+    for r in range(n):                     # P = tmp phi^T + Q
+        for c in range(r, n):
+            s = 0.0
+            for k in range(n):
+                s += tmp[r, k] * phi[c, k]
+            s += q[r, c]
+            P[r, c] = s
+            P[c, r] = s
+
+
+@numba.njit(cache=True, nogil=True)
+def scalar_update(P, ue, un, uu, r_var, ph, gain):
+    """Sequential scalar update of one pseudorange, h = [-u, 0, 0, 1 (clock), 0] with ``u``
+    = (ue, un, uu) and variance ``r_var`` [m^2]: the Kalman gain into ``gain`` (n,) and
+    P <- P - K h P in place (``ph``: (n,) scratch, P h^T on return)."""
+    n = P.shape[0]
+    for r in range(n):                     # ph = P h^T
+        ph[r] = -P[r, 0] * ue - P[r, 1] * un - P[r, 2] * uu + P[r, 9]
+    s = -ph[0] * ue - ph[1] * un - ph[2] * uu + ph[9] + r_var
+    for r in range(n):
+        gain[r] = ph[r] / s
+    for r in range(n):
+        for c in range(r, n):
+            v = P[r, c] - gain[r] * ph[c]
+            P[r, c] = v
+            P[c, r] = v
+
+
+@numba.njit(cache=True, nogil=True)
 def _kf_kernel(phis, qds, step_idx, los, vis, r_var, do_update, p0, out):
     """Covariance recursion: propagate (epoch > 0), then sequential scalar pseudorange updates.
     out[i] = posterior covariance at epoch i."""
@@ -120,38 +160,14 @@ def _kf_kernel(phis, qds, step_idx, los, vis, r_var, do_update, p0, out):
     P = p0.copy()
     tmp = np.empty((n, n))
     ph = np.empty(n)
+    gain = np.empty(n)
     for i in range(m):
         if i > 0:
-            phi = phis[step_idx[i]]
-            q = qds[step_idx[i]]
-            for r in range(n):                     # tmp = phi P
-                for c in range(n):
-                    s = 0.0
-                    for k in range(n):
-                        s += phi[r, k] * P[k, c]
-                    tmp[r, c] = s
-            for r in range(n):                     # P = tmp phi^T + Q
-                for c in range(r, n):
-                    s = 0.0
-                    for k in range(n):
-                        s += tmp[r, k] * phi[c, k]
-                    s += q[r, c]
-                    P[r, c] = s
-                    P[c, r] = s
+            propagate_covariance(P, phis[step_idx[i]], qds[step_idx[i]], tmp)
         if do_update[i]:
             for j in range(nsat):
-                if not vis[i, j]:
-                    continue
-                ue, un, uu = los[i, j, 0], los[i, j, 1], los[i, j, 2]
-                for r in range(n):                 # ph = P h^T, h = [-u, 0.., 1 (clock), 0]
-                    ph[r] = -P[r, 0] * ue - P[r, 1] * un - P[r, 2] * uu + P[r, 9]
-                s = -ph[0] * ue - ph[1] * un - ph[2] * uu + ph[9] + r_var[i, j]
-                for r in range(n):
-                    kr = ph[r] / s
-                    for c in range(r, n):
-                        v = P[r, c] - kr * ph[c]
-                        P[r, c] = v
-                        P[c, r] = v
+                if vis[i, j]:
+                    scalar_update(P, los[i, j, 0], los[i, j, 1], los[i, j, 2], r_var[i, j], ph, gain)
         out[i] = P
 
 
@@ -277,5 +293,5 @@ def navigation_error(times_s, los_enu, visible, imu: ImuSpec | VehicleProfile | 
     return ds
 
 
-__all__ = ["DEFAULT_UERE_M", "STATE_NAMES", "continuous_model", "discretise", "los_from_az_el",
+__all__ = ["DEFAULT_UERE_M", "STATE_NAMES", "continuous_model", "discretise", "los_from_az_el", "propagate_covariance", "scalar_update",
            "navigation_error", "resolve_imu"]

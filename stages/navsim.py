@@ -165,41 +165,6 @@ class NavsimParams:
 # --------------------------------------------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True)
-def _propagate_cov(P, phi, q, tmp):
-    """P <- phi P phi^T + q (in place, symmetric)."""
-    n = P.shape[0]
-    for r in range(n):
-        for c in range(n):
-            s = 0.0
-            for k in range(n):
-                s += phi[r, k] * P[k, c]
-            tmp[r, c] = s
-    for r in range(n):
-        for c in range(r, n):
-            s = q[r, c]
-            for k in range(n):
-                s += tmp[r, k] * phi[c, k]
-            P[r, c] = s
-            P[c, r] = s
-
-
-@numba.njit(cache=True, nogil=True)
-def _scalar_gain(P, ue, un, uu, r_var, ph, gain):
-    """Kalman gain of one pseudorange (h = [-u, 0, 0, 1, 0]) into ``gain``; P <- P - K h P."""
-    n = P.shape[0]
-    for r in range(n):
-        ph[r] = -P[r, 0] * ue - P[r, 1] * un - P[r, 2] * uu + P[r, 9]
-    s = -ph[0] * ue - ph[1] * un - ph[2] * uu + ph[9] + r_var
-    for r in range(n):
-        gain[r] = ph[r] / s
-    for r in range(n):
-        for c in range(r, n):
-            v = P[r, c] - gain[r] * ph[c]
-            P[r, c] = v
-            P[c, r] = v
-
-
-@numba.njit(cache=True, nogil=True)
 def _gain_kernel(phis, qds, step_idx, los, used, r_var, do_update, p0, gains, ppos, sigma):
     """Deterministic covariance pass: gains (m, nsat, 11) of the sequential scalar updates of
     the used satellites, posterior position covariance ppos (m, 3, 3) and sigma (m,)."""
@@ -210,11 +175,11 @@ def _gain_kernel(phis, qds, step_idx, los, used, r_var, do_update, p0, gains, pp
     ph = np.empty(n)
     for i in range(m):
         if i > 0:
-            _propagate_cov(P, phis[step_idx[i]], qds[step_idx[i]], tmp)
+            nav.propagate_covariance(P, phis[step_idx[i]], qds[step_idx[i]], tmp)
         if do_update[i]:
             for j in range(nsat):
                 if used[i, j]:
-                    _scalar_gain(P, los[i, j, 0], los[i, j, 1], los[i, j, 2], r_var[i, j], ph, gains[i, j])
+                    nav.scalar_update(P, los[i, j, 0], los[i, j, 1], los[i, j, 2], r_var[i, j], ph, gains[i, j])
         for a in range(3):
             for b in range(3):
                 ppos[i, a, b] = P[a, b]
@@ -275,7 +240,7 @@ def _run(seed, phis, qds, qchols, step_idx, do_update, los, vis, recv, pass_id, 
             _matvec(phis[s_i], ew, tmp)
             for k in range(n):
                 ew[k] = tmp[k] + w[k]
-            _propagate_cov(P, phis[s_i], qds[s_i], ptmp)
+            nav.propagate_covariance(P, phis[s_i], qds[s_i], ptmp)
         used_nlos = 0
         if do_update[i]:
             for j in range(nsat):
@@ -294,7 +259,7 @@ def _run(seed, phis, qds, qchols, step_idx, do_update, los, vis, recv, pass_id, 
                     eps = bias_draw[pid] + sig_nlos * np.random.standard_normal()
                     used_nlos += 1
                 res = _residual(ew, ue, un, uu, eps, rng_m)
-                _scalar_gain(P, ue, un, uu, r_weak[i, j], ph, kw)
+                nav.scalar_update(P, ue, un, uu, r_weak[i, j], ph, kw)
                 for k in range(n):
                     ew[k] -= kw[k] * res
         for a in range(3):

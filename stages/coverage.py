@@ -83,7 +83,7 @@ from skyroute.stages.overlap import BlockFn, ensure_min_chunks, overlap_map, ove
 __all__ = [
     "DOP_BOUND_COEF", "DOP_KINDS", "Chunks", "VisibilityFn", "column_dop_profile",
     "coverage_floor_numpy", "coverage_from_almanac", "coverage_maps", "dop_kind_index",
-    "dop_lower_bound", "dop_section", "dop_section_numpy", "dop_volume", "los_rows",
+    "check_thresholds", "dop_lower_bound", "dop_section", "dop_section_numpy", "dop_volume", "los_rows",
     "open_sky_dop", "window_times",
 ]
 
@@ -536,6 +536,30 @@ def column_dop_profile(visibility_height_m: Any, az_deg: Any, el_deg: Any,
     return res
 
 
+def check_thresholds(thresholds, dop: str, el_deg: np.ndarray, mask_deg: float
+                     ) -> tuple[int, float, np.ndarray, int]:
+    """Validate the coverage request: ``(DOP kind index, mask [deg], thresholds sorted without
+    duplicates, the most satellites above the mask at one epoch)``.  A threshold at or below the lowest DOP possible with the most satellites
+    above the mask at any epoch of ``el_deg`` (time, sat) can never be reached: InputError."""
+    kind = dop_kind_index(dop)
+    kind_name = DOP_KINDS[kind]
+    mask = check_mask(mask_deg)
+    thr = np.asarray(list(thresholds), dtype=np.float64).ravel()
+    if thr.size == 0 or not np.all(np.isfinite(thr)):
+        raise InputError(f"thresholds {list(thresholds)} must be a non-empty list of finite "
+                         "DOP values, e.g. (2, 3, 4)")
+    thr = np.unique(thr)  # sorted, duplicates dropped
+    n_max = int(max(np.sum(np.isfinite(el_deg) & (el_deg >= mask), axis=1).max(), 0))
+    bound = dop_lower_bound(kind_name, n_max)
+    if thr[0] <= bound:
+        raise InputError(
+            f"{kind_name} threshold {thr[0]:g} can never be reached: with at most {n_max} "
+            f"satellites above the {mask:g} deg mask, {kind_name} >= "
+            f"{DOP_BOUND_COEF[kind_name]:.3g}/sqrt({n_max}) = {bound:.3f}; use thresholds above "
+            "it (typically 2-6)")
+    return kind, mask, thr, n_max
+
+
 def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
                   thresholds: Sequence[float] = (2.0, 3.0, 4.0), dop: str = "PDOP",
                   floor_m: float | np.ndarray | xr.DataArray | None = None,
@@ -578,22 +602,8 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
     """
     cell = _check_surface(surface)
     az, el, meta = as_time_sat(az_deg, el_deg)
-    kind = dop_kind_index(dop)
+    kind, mask, thr, n_max = check_thresholds(thresholds, dop, el, mask_deg)
     kind_name = DOP_KINDS[kind]
-    mask = check_mask(mask_deg)
-    thr = np.asarray(list(thresholds), dtype=np.float64).ravel()
-    if thr.size == 0 or not np.all(np.isfinite(thr)):
-        raise InputError(f"thresholds {list(thresholds)} must be a non-empty list of finite "
-                         "DOP values, e.g. (2, 3, 4)")
-    thr = np.unique(thr)  # sorted, duplicates dropped
-    n_max = int(max(np.sum(np.isfinite(el) & (el >= mask), axis=1).max(), 0))
-    bound = dop_lower_bound(kind_name, n_max)
-    if thr[0] <= bound:
-        raise InputError(
-            f"{kind_name} threshold {thr[0]:g} can never be reached: with at most {n_max} "
-            f"satellites above the {mask:g} deg mask, {kind_name} >= "
-            f"{DOP_BOUND_COEF[kind_name]:.3g}/sqrt({n_max}) = {bound:.3f}; use thresholds above "
-            "it (typically 2-6)")
     az_grid = _grid_azimuth(az, surface)
     min_el = _min_el(el, mask)
     floor_lim = _limit(floor_m, "floor_m", surface, -np.inf)

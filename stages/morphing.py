@@ -41,7 +41,6 @@ import xarray as xr
 from skyroute.stages.base import InputError
 from skyroute.stages.coverage import (  # the window floor's own building blocks
     _FULL,
-    DOP_BOUND_COEF,
     DOP_KINDS,
     Chunks,
     VisibilityFn,
@@ -56,12 +55,11 @@ from skyroute.stages.coverage import (  # the window floor's own building blocks
     _surface_array,
     _visibility,
     _wrap,
-    dop_kind_index,
-    dop_lower_bound,
+    check_thresholds,
     open_sky_dop,
 )
 from skyroute.stages.dop import los_rows
-from skyroute.stages.orbits import as_time_sat, as_utc_times, check_mask, epoch_directions
+from skyroute.stages.orbits import as_time_sat, as_utc_times, epoch_directions
 from skyroute.stages.overlap import overlap_maps
 
 __all__ = ["animate_floor", "coverage_floor_series", "epoch_sky", "floor_under_vehicle"]
@@ -253,22 +251,8 @@ def coverage_floor_series(surface: xr.DataArray, sky: xr.Dataset,
     cell = _check_surface(surface)
     ep = epoch_sky(sky, times)
     az, el = ep["az_deg"].values, ep["el_deg"].values
-    kind = dop_kind_index(dop)
+    kind, mask, thr, n_max = check_thresholds(thresholds, dop, el, mask_deg)
     kind_name = DOP_KINDS[kind]
-    mask = check_mask(mask_deg)
-    thr = np.asarray(list(thresholds), dtype=np.float64).ravel()
-    if thr.size == 0 or not np.all(np.isfinite(thr)):
-        raise InputError(f"thresholds {list(thresholds)} must be a non-empty list of finite "
-                         "DOP values, e.g. (2, 3, 4)")
-    thr = np.unique(thr)
-    n_max = int(max(np.sum(np.isfinite(el) & (el >= mask), axis=1).max(), 0))
-    bound = dop_lower_bound(kind_name, n_max)
-    if thr[0] <= bound:
-        raise InputError(
-            f"{kind_name} threshold {thr[0]:g} can never be reached: with at most {n_max} "
-            f"satellites above the {mask:g} deg mask, {kind_name} >= "
-            f"{DOP_BOUND_COEF[kind_name]:.3g}/sqrt({n_max}) = {bound:.3f}; use thresholds above "
-            "it (typically 2-6)")
     levels = np.asarray([] if levels_m is None else list(levels_m), dtype=np.float64).ravel()
     if not np.all(np.isfinite(levels)):
         raise InputError("levels_m must be finite altitudes [m] in the surface's vertical datum")

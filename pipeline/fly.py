@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import xarray as xr
@@ -45,20 +44,13 @@ def _world(result: RunResult):
                  coverage=get("coverage"), satellites=get("satellites"))
 
 
-def _terrain_at(surface: xr.Dataset, x, y) -> np.ndarray:
-    from skyroute.stages.grid import Grid
-
-    g = Grid.from_dataarray(surface["terrain"])
-    return np.asarray(surface["terrain"].values)[g.cell_of(np.asarray(x, float), np.asarray(y, float))]
-
-
 def tactical_events(sc: Scenario, surface: xr.Dataset) -> list:
     """The scenario's events as :class:`~skyroute.stages.tactical.replay.TacticalEvent`
     (map CRS, heights in the surface datum: AGL + the terrain of the cell)."""
     from skyroute.stages.grid import Grid
     from skyroute.stages.tactical.log import NoFlyZone
     from skyroute.stages.tactical.replay import TacticalEvent
-    from skyroute.stages.traffic import Intruder
+    from skyroute.stages.traffic import intruders_for
 
     g = Grid.from_dataarray(surface["terrain"])
     terrain = np.asarray(surface["terrain"].values, float)
@@ -67,12 +59,10 @@ def tactical_events(sc: Scenario, surface: xr.Dataset) -> list:
         ident = getattr(ev, "id", None) or f"{ev.kind}-{n}"
         label = f"{ev.kind} {ident}"
         if ev.kind in ("intruder", "intruder_update"):
-            tr = np.asarray(ev.track(), float)
-            z = tr[:, 3] + _terrain_at(surface, tr[:, 1], tr[:, 2])
             radius = getattr(ev, "radius_m", None)
             if radius is None:
                 radius = _radius_of(sc, ev.id)
-            it = Intruder(ev.id, tr[:, 0], np.column_stack([tr[:, 1], tr[:, 2], z]), float(radius))
+            (it,) = intruders_for([{"id": ev.id, "radius_m": float(radius), "waypoints": ev.track()}], surface)
             out.append(TacticalEvent(float(ev.t_s), ev.kind, label, intruder=it))
         elif ev.kind == "nofly":
             poly = np.asarray(ev.polygon_xy(sc), float)
@@ -157,9 +147,3 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
                  scenario=sc.name, crs_wkt=str(surface["surface"].rio.crs),
                  vertical_datum=surface["surface"].attrs.get("vertical_datum", ""))
     return FlyResult(result, log, updates)
-
-
-def fly_outputs(fr: FlyResult, out_dir: Path) -> dict[str, Path]:
-    from skyroute.stages.tactical.outputs import write_flight
-
-    return write_flight(fr.log, out_dir)

@@ -66,7 +66,8 @@ from skyroute.stages.smoothing import CornerTrajectory, KinematicLimits, corner_
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.wind import wind_in_column
 
-__all__ = ["Candidate", "choose", "explain_no_plan", "line_of_sight", "smooth_chain", "step3", "wind_sampler"]
+__all__ = ["Candidate", "choose", "explain_no_plan", "flight_power_W", "line_of_sight", "smooth_chain", "step3",
+           "wind_sampler"]
 
 
 @dataclass
@@ -142,6 +143,17 @@ def wind_sampler(problem):
         return wind_in_column(w4, wz, wr, wc, h)
 
     return f
+
+
+def flight_power_W(v_mps, wind_mps, vehicle) -> np.ndarray:
+    """Rotor power [W] (m,) of the vehicle flying ground velocities ``v_mps`` (m, 3) in the wind
+    ``wind_mps`` (m, 3): the airspeed ``v - wind``, its component along the ground track and
+    the climb rate (:func:`~skyroute.stages.energy.rotor_power`; eq. 12 / 15 of seed 000)."""
+    v = np.asarray(v_mps, float)
+    va = v - np.asarray(wind_mps, float)
+    speed = np.linalg.norm(v, axis=1)
+    sdir = np.divide(v, speed[:, None], out=np.zeros_like(v), where=speed[:, None] > 1e-9)
+    return rotor_power(va, np.einsum("ij,ij->i", va, sdir), v[:, 2], vehicle)["total_W"]
 
 
 def _cells(grid, pts):
@@ -370,8 +382,7 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     # wind, power, energy ratio (eq. 12 / 15)
     wind = wind_sampler(problem)(p)
     va = v - wind
-    sdir = np.divide(v, speed[:, None], out=np.zeros_like(v), where=speed[:, None] > 1e-9)
-    pw = rotor_power(va, np.einsum("ij,ij->i", va, sdir), v[:, 2], veh)["total_W"]
+    pw = flight_power_W(v, wind, veh)
     p0 = rotor_power(v, speed, v[:, 2], veh)["total_W"]
     beta_e = pw / p0
     beta_r = np.asarray(problem.risk_cost, float)[r, c]

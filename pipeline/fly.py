@@ -9,6 +9,7 @@ unchanged stages are reused); the replay itself is
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -32,15 +33,25 @@ class FlyResult:
     map_updates: list      # RunResult of each map update
 
 
-def _world(result: RunResult):
+def _world(result: RunResult, sc: Scenario | None = None, radius_m: float | None = None):
+    """The replay's maps from a run's stages.  With ``radius_m`` (the safety bubble's r_j of
+    the plan's level, ``constraints.clearance: sboa``) the clearance maps are the clearance
+    stage's for r_j, as the plan stage used them, instead of the cached ones for r_p."""
     from skyroute.stages.tactical.replay import World
 
     def get(name):
         return result.datasets[name].load() if name in result.datasets else None
 
     surf = result["surface"]
+    clearance = get("clearance")
+    if radius_m is not None and sc is not None:
+        from skyroute.pipeline.stages_builtin import _clearance_settings, clearance_stage
+
+        clearance = clearance_stage(surf, result["environment"],
+                                    settings=_clearance_settings(sc).model_copy(update={"radius_m": float(radius_m)}))
+        clearance = clearance.load()
     return World(surface=surf[[v for v in ("terrain", "terrain_min", "surface") if v in surf]].load(),
-                 environment=get("environment"), clearance=get("clearance"), wind=get("wind"),
+                 environment=get("environment"), clearance=clearance, wind=get("wind"),
                  coverage=get("coverage"), satellites=get("satellites"))
 
 
@@ -126,6 +137,14 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     if tr is None:
         raise PlanningError("the cached plan has no trajectory phases: re-run with `--force plan`")
     traj, t0 = tr
+    radius = None
+    if sc.constraints.clearance == "sboa":       # the safety bubble of the plan's level (seed 003)
+        radius = float(chosen.clearance_radius_m)
+        if not math.isfinite(radius):
+            raise PlanningError("the cached plan has no safety-bubble radius: re-run with `--force plan`")
+        params = dataclasses.replace(params, bubble_k=float(sc.constraints.sboa_k),
+                                     surface_uncertainty_m=float(sc.navsim.surface_uncertainty_m),
+                                     clearance_radius_m=radius)
     problems = check_event_times(sc, float(t0 + traj.duration_s))
     if problems:
         raise InputError("; ".join(problems))
@@ -137,11 +156,11 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     def world_at(t_s: float):
         res = run_scenario(scenario_at(sc, t_s), cache=cache, targets=targets, scheduler=scheduler, progress=False)
         updates.append(res)
-        return _world(res)
+        return _world(res, sc, radius)
 
     strategic = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else []
     goal = chosen.xyz_m[-1]
-    log = replay(traj, t0, goal_xyz=goal, world=_world(result), world_at=world_at, events=events,
+    log = replay(traj, t0, goal_xyz=goal, world=_world(result, sc, radius), world_at=world_at, events=events,
                  strategic_intruders=strategic, vehicle=load_vehicle(sc.vehicle), params=params,
                  start_time_utc=sc.mission.start_time_utc.isoformat(), dop_threshold=chosen.dop_threshold,
                  scenario=sc.name, crs_wkt=str(surface["surface"].rio.crs),

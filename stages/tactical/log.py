@@ -127,6 +127,8 @@ class FlightLog:
     seed: int = 0
     own_radius_m: float = 0.0
     margin_m: float = 0.0
+    # safety bubble (constraints.clearance: sboa): {"k", "surface_uncertainty_m", "clearance_radius_m"}
+    bubble: dict | None = None
     compile_s: float = 0.0       # [s] kernel compilation and the take-off maps' line-of-sight heights
     warnings: list[str] = field(default_factory=list)
     grid: object | None = None

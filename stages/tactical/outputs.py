@@ -355,6 +355,8 @@ def flight_section(log: FlightLog) -> dict[str, Any]:
             "energy_Wh": _num(energy) if energy is not None else None, "compile_s": _num(log.compile_s),
             "t_rep_s": _num(log.t_rep_s), "tick_s": _num(log.tick_s), "seed": int(log.seed),
             "dop_threshold": _num(log.dop_threshold) if log.dop_threshold is not None else None,
+            "clearance": "sboa" if getattr(log, "bubble", None) else "fixed",
+            "safety_bubble": {k: _num(v) for k, v in log.bubble.items()} if getattr(log, "bubble", None) else None,
             "warnings": list(log.warnings)}
 
 

@@ -406,6 +406,7 @@ _PLUGINS = {
     "skyroute.pipeline.cli_occlusion": "visibility_height_command",
     "skyroute.pipeline.cli_fly": "fly_command",
     "skyroute.pipeline.cli_navsim": "navsim_command",
+    "skyroute.pipeline.cli_regress": "regress_command",
 }
 
 

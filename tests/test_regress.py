@@ -87,3 +87,34 @@ def test_regress_end_to_end(tmp_path):
                                     "--cache-dir", str(cache.root)])
     assert res.exit_code == 1, res.output
     assert "plan.length_m" in res.output and "fail" in res.output and "1 fail" in res.output
+    # `skyroute compare` on the same cache: the astar row is the cached plan, its clearance the
+    # brute-force distance over every cell (no skyroute code), and an unknown planner is refused
+    res = CliRunner().invoke(main, ["compare", "helsinki-medical", "--planners", "astar", "--out",
+                                    str(tmp_path / "cmp"), "--cache-dir", str(cache.root), "-q"])
+    assert res.exit_code == 0, res.output
+    import csv
+
+    import numpy as np
+
+    from skyroute.pipeline.compare import compare_planners
+    from skyroute.pipeline.settings import load_scenario
+    from skyroute.stages.vehicle import load_vehicle
+
+    (row,) = list(csv.DictReader((tmp_path / "cmp" / "compare.csv").open()))
+    assert row["flyable"] == "true" and abs(float(row["f_m"]) - figs["plan.f_m"]) < 1e-3
+    assert abs(float(row["length_m"]) - figs["plan.length_m"]) < 1e-3
+    sc = load_scenario("helsinki-medical")
+    rows, maps = compare_planners(sc, ["astar"], cache=cache)
+    surf = maps["surface"]["surface"]
+    x, y, s = surf["x"].values, surf["y"].values, np.asarray(surf.values, float)
+    h = abs(x[1] - x[0]) / 2
+    d = []
+    for px, py, pz in rows[0].xyz_m[::4]:
+        dx = np.maximum(np.abs(px - x) - h, 0)[None, :]
+        dy = np.maximum(np.abs(py - y) - h, 0)[:, None]
+        d.append(np.sqrt(dx**2 + dy**2 + np.maximum(pz - s, 0) ** 2).min())
+    assert min(d) >= float(row["min_clearance_m"]) - 1e-6
+    assert float(row["min_clearance_m"]) >= load_vehicle(sc.vehicle).r_p_m - 1e-6
+    bad = CliRunner().invoke(main, ["compare", "helsinki-medical", "--planners", "astar,warp-drive",
+                                    "--out", str(tmp_path / "cmp2"), "--cache-dir", str(cache.root)])
+    assert bad.exit_code == 2 and "unknown planner(s) warp-drive" in bad.output

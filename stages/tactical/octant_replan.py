@@ -1,7 +1,7 @@
 """The octant tactical method of the flight replay (``skyroute fly --tactical octant``, seed 004).
 
-Known traffic, zones (section III-A).  At every intruder event the known intruders' states at
-that time (position and velocity of their believed tracks) are predicted ``zone_period_s``
+Known traffic, zones (section III-A).  At an intruder event, once a period T_p has passed or the
+set of known intruders flying then has changed, the known intruders' states at that time (position and velocity of their believed tracks) are predicted ``zone_period_s``
 (T_p) ahead and the map's rectangle is partitioned (:class:`~skyroute.stages.tactical.zones.ZoneTracker`);
 when the dense zone definition changes, its zones become temporary obstacles from then to
 ``t + T_p`` (full height, polygon widened by r_p), which every octant manoeuvre must avoid
@@ -11,7 +11,8 @@ definitions are recorded in ``FlightLog.dense_zones``.
 Conflict with one intruder (section III-D).  When the rest of the plan loses separation from
 an intruder, the vehicle keeps its plan until that intruder breaches the periphery
 ``periphery_m`` (P_r) -- not before the replanning time ``t_e + t_rep`` -- then, at that time
-``t_eff``: the octants the intruder's straight relative path crosses inside P_r are occupied;
+``t_eff`` (when no escape below is valid from there, P_r grows by 1.5, 2 and 3: the intruder is
+known, so the vehicle may react earlier): the octants the intruder's straight relative path crosses inside P_r are occupied;
 the vacant ones are ranked (forward hemisphere first, farther from the path first,
 :func:`~skyroute.stages.tactical.octant.rank_octants`), then the vacant pockets.  For each
 escape direction ``e`` (its elevation limited to 80 % of the vehicle's flight-path angle) and
@@ -50,6 +51,7 @@ __all__ = ["intruder_state", "octant_replan", "update_zones"]
 
 ESCAPE_FACTORS = (2.0, 4.0, 6.0)      # escape distances D in units of the separation
 MAX_DIRECTIONS = 6                    # escape directions tried (octants, then pockets)
+PERIPHERY_GROWTH = (1.0, 1.5, 2.0, 3.0)   # P_r factors tried when no escape is valid
 
 
 def intruder_state(intr, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
@@ -70,11 +72,13 @@ def update_zones(rp, t_s: float) -> None:
     if rp.zone_tracker is None:
         ws = (g.x0, g.x0 + g.nx * g.resolution_m, g.y1 - g.ny * g.resolution_m, g.y1)
         rp.zone_tracker = ZoneTracker(ws, period_s=rp.p.zone_period_s)
-    states = [s for s in (intruder_state(i, t_s) for i in rp.known.intruders()) if s is not None]
-    xyz = np.array([s[0] for s in states]).reshape(-1, 3)
-    vel = np.array([s[1] for s in states]).reshape(-1, 3)
+    live = [(i.id, s) for i in rp.known.intruders() if (s := intruder_state(i, t_s)) is not None]
+    xyz = np.array([s[0] for _, s in live]).reshape(-1, 3)
+    vel = np.array([s[1] for _, s in live]).reshape(-1, 3)
     own = rp.tl.sample(t_s)
-    part, changed = rp.zone_tracker.update(t_s, own[:2], rp.goal[:2], xyz, vel)
+    ids = tuple(sorted(i for i, _ in live))
+    part, changed = rp.zone_tracker.update(t_s, own[:2], rp.goal[:2], xyz, vel, force=ids != rp.zone_ids)
+    rp.zone_ids = ids
     if not changed:
         return
     T = rp.p.zone_period_s
@@ -95,12 +99,12 @@ def _point_at(chain: np.ndarray, s_m: float) -> tuple[np.ndarray, int]:
     return chain[j] + (chain[j + 1] - chain[j]) * ((s_m - cum[j]) / max(legs[j], 1e-12)), j + 1
 
 
-def _breach_time(rp, t_from: float, index: int) -> float:
-    """First time >= ``t_from`` the intruder ``index`` is within the periphery of the plan."""
+def _breach_time(rp, t_from: float, index: int, periphery_m: float) -> float:
+    """First time >= ``t_from`` the intruder ``index`` is within ``periphery_m`` of the plan."""
     tracks, _ = rp.tracks()
     t_s, pts = rp.tl.samples(t_from, rp.p.tick_s)
     sep = np.zeros(tracks.n)
-    sep[index] = rp.p.periphery_m
+    sep[index] = periphery_m
     c = first_conflict(t_s, pts, tracks, sep)
     return c.t_s if c is not None else t_from
 
@@ -128,12 +132,42 @@ def octant_replan(rp, k: int, ev, t_e: float, t_eff0: float, t_v: float, t_coll:
                   detail) -> str | None:
     """Resolve the intruder conflict ``detail`` (a :class:`~skyroute.stages.tactical.conflict.Conflict`
     at ``t_v`` [s]) of the replay ``rp`` with the octant manoeuvre; ``"octant"`` when flown, else
-    None (the caller lands).  Adds its :class:`LevelAttempt` row."""
+    None (the caller lands).  Adds its :class:`LevelAttempt` row.  The manoeuvre starts when
+    the intruder breaches P_r (``periphery_m``); when no escape is valid from there, P_r grows
+    (x 1.5, 2, 3: the intruder is known, so it can be reacted to earlier), never earlier than
+    ``t_eff0`` (the replanning time)."""
+    t0 = time.perf_counter()
+    tried_all: list[str] = []
+    for grow in PERIPHERY_GROWTH:
+        P = grow * rp.p.periphery_m
+        t_b = _breach_time(rp, t_e, detail.index, P)
+        t_eff = rp._effective_time(max(t_eff0, min(t_b, t_v)))
+        res = _escape(rp, t_eff, P, detail, cause)
+        tried_all.append(res["head"] + (": " + " | ".join(res["tried"][-2:]) if res["chosen"] is None else ""))
+        if res["chosen"] is not None or t_b <= t_eff0:
+            break
+    secs = time.perf_counter() - t0
+    if res["chosen"] is None:
+        rp.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "octant", False, math.nan, math.nan, math.nan,
+                                        math.nan, secs, update_s, math.nan, False,
+                                        "no escape valid: " + " || ".join(tried_all)))
+        return None
+    cand, name, D = res["chosen"]
+    rp.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "octant", True, cand.C_l, cand.C_e, cand.f,
+                                    cand.max_sigma_p_m, secs, update_s, float(cand.t_s[-1]) - rp.tl.t_end_s, True,
+                                    f"{res['head']}; escape {name} D = {D:.0f} m, min f of {res['n_ok']} valid "
+                                    f"escapes ({cause})" + (f"; earlier: {' || '.join(tried_all[:-1])}"
+                                                            if len(tried_all) > 1 else "")))
+    rp.tl.add(Segment(cand.trajectory, t_eff, "octant", k), t_eff)
+    return "octant"
+
+
+def _escape(rp, t_eff: float, P_r: float, detail, cause: str) -> dict:
+    """The escapes from ``t_eff`` (module docstring): ``{"chosen": (candidate, name, D) or
+    None, "n_ok", "tried", "head"}``."""
     from skyroute.stages.tactical.replay import _along, _first_in_zone
 
     p = rp.p
-    t0 = time.perf_counter()
-    t_eff = rp._effective_time(max(t_eff0, min(_breach_time(rp, t_e, detail.index), t_v)))
     chain, speeds, _lead, v0 = rp.rest_chain(t_eff)
     own = chain[0]
     vel = rp.tl.velocity(t_eff)
@@ -144,7 +178,7 @@ def octant_replan(rp, k: int, ev, t_e: float, t_eff0: float, t_v: float, t_coll:
     q, w = (st[0] - own, st[1]) if st is not None else (detail.intruder_xyz_m - own, detail.intruder_velocity_mps)
     frame = body_frame(vel, rp.goal - own)
     sep_i = rp.veh.r_p_m + intr.radius_m + p.d_c_m
-    P = max(p.periphery_m, float(np.linalg.norm(q)) + 1e-6)
+    P = max(P_r, float(np.linalg.norm(q)) + 1e-6)
     ch = _chord(frame @ q, frame @ (w - vel), P)
     chords = [] if ch is None else [(q + ch[0] * (w - vel), q + ch[1] * (w - vel))]
     vac, occ = rank_octants(chords, frame, P)
@@ -197,18 +231,6 @@ def octant_replan(rp, k: int, ev, t_e: float, t_eff0: float, t_v: float, t_coll:
                     chosen = (cand, name, D)
                 break                     # a longer escape in the same direction only costs more
             tried.append(f"{name} D={D:.0f} m: {why[:120]}")
-    secs = time.perf_counter() - t0
     head = (f"intruder {detail.id!r} breaches P_r = {P:.0f} m at t = {t_eff:.1f} s; occupied octants "
             f"{list(occ)}, vacant {vac}")
-    if chosen is None:
-        rp.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "octant", False, math.nan, math.nan, math.nan,
-                                        math.nan, secs, update_s, math.nan, False,
-                                        f"{head}; no escape valid: " + " | ".join(tried[-3:])))
-        return None
-    cand, name, D = chosen
-    rp.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "octant", True, cand.C_l, cand.C_e, cand.f,
-                                    cand.max_sigma_p_m, secs, update_s, float(cand.t_s[-1]) - rp.tl.t_end_s, True,
-                                    f"{head}; escape {name} D = {D:.0f} m, min f of {n_ok} valid escapes ({cause}); not valid: "
-                                    + " | ".join(tried)))
-    rp.tl.add(Segment(cand.trajectory, t_eff, "octant", k), t_eff)
-    return "octant"
+    return {"chosen": chosen, "n_ok": n_ok, "tried": tried, "head": head}

@@ -265,6 +265,7 @@ class _Replay:
         self.zone_tracker = None              # the octant method's zone partitioning (octant_replan)
         self.dense_zones: list[NoFlyZone] = []
         self.dense_zone_log: list[dict] = []
+        self.zone_ids: tuple[str, ...] | None = None   # intruders of the last zone determination
 
     def _known_at(self, ev: TacticalEvent) -> float:
         lat = self.p.report_latency_s if ev.kind in ("intruder", "intruder_update") else 0.0

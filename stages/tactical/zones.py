@@ -312,10 +312,11 @@ class ZoneTracker:
     recomputations: int = 0
     history: list = field(default_factory=list)
 
-    def update(self, t_s: float, own_xy, goal_xy, xyz_m, vel_mps, acc_mps2=None) -> tuple[ZonePartition, bool]:
-        """At ``t_s`` [s]: if a period has passed, predict and partition again.  Returns
-        ``(partition, changed)``."""
-        if self.current is not None and t_s < self.t_last_s + self.period_s - 1e-9:
+    def update(self, t_s: float, own_xy, goal_xy, xyz_m, vel_mps, acc_mps2=None, *,
+               force: bool = False) -> tuple[ZonePartition, bool]:
+        """At ``t_s`` [s]: if a period has passed (or ``force``: e.g. the known traffic changed),
+        predict and partition again.  Returns ``(partition, changed)``."""
+        if self.current is not None and not force and t_s < self.t_last_s + self.period_s - 1e-9:
             return self.current, False
         pred = predict_intruders(np.reshape(xyz_m, (-1, 3)), np.reshape(vel_mps, (-1, 3)), self.period_s,
                                  None if acc_mps2 is None else np.reshape(acc_mps2, (-1, 3)),

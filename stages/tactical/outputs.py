@@ -1,11 +1,11 @@
 """Outputs of a tactical replay (``skyroute fly``), written from a :class:`~.log.FlightLog` only.
 
 * ``tactical.csv``: one row per level attempted per replanning (seed 001 Tables 3, 5):
-  :data:`TACTICAL_COLUMNS`.  ``level`` is ``1``, ``2``, ``3`` or ``landing``; infinite values
+  :data:`TACTICAL_COLUMNS`.  ``level`` is ``1``, ``2``, ``3``, ``octant`` or ``landing``; infinite values
   are written ``inf``, undefined ones ``nan``; exactly one ``chosen=true`` per replanning
   (:func:`write_flight` raises :class:`~skyroute.stages.base.InputError` otherwise).
 * ``flown.geojson``: RFC 7946 FeatureCollection of the ownship only, one ``LineString`` per
-  flown part (``part`` = strategic / L1 / L2 / L3 / landing) of ``[lon, lat, z]`` (WGS 84,
+  flown part (``part`` = strategic / L1 / L2 / L3 / octant / landing) of ``[lon, lat, z]`` (WGS 84,
   ``z`` [m] in the surface's vertical datum, NOT ellipsoidal: the properties say so), with
   ``t_s`` and ``times_utc`` (ISO 8601 UTC) per vertex.
 * ``intruders.geojson``: one ``LineString`` per intruder (truth track: ``id``, ``kind``,
@@ -317,7 +317,8 @@ def flight_section(log: FlightLog) -> dict[str, Any]:
     time, horizontal and 3-D length), ``min_separation`` (:func:`min_separations`, brute force
     every ``separation_step_s``), ``nofly`` (:func:`nofly_time_inside`), ``flight_time_s``,
     ``length_m``, ``energy_Wh`` (None when the log has none), ``compile_s`` and the replay's
-    settings (``t_rep_s``, ``tick_s``, ``seed``, ``dop_threshold``)."""
+    settings (``t_rep_s``, ``tick_s``, ``seed``, ``dop_threshold``), ``tactical_method`` (levels or
+    octant) and ``dense_zones`` (octant method: the zone definitions, :mod:`.octant_replan`)."""
     _check(log)
     t, p = log.flown()
     by: dict[int, list] = {}

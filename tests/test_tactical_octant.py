@@ -152,3 +152,17 @@ def test_super_conflict_4_uavs():
     assert _brute_min_sep(res, 7.0, 7.0) >= -1e-6
     # without avoidance all four would meet at the centre
     assert res.kinds.get("octant", 0) > 0 and np.all(res.delay_s >= -0.1) and res.delay_s.max() > 0.5
+
+
+def test_tactical_method_is_checked():
+    from click.testing import CliRunner
+
+    from skyroute.pipeline.cli import main
+    from skyroute.stages.base import InputError as BaseInputError
+    from skyroute.stages.tactical.replay import TACTICAL_METHODS, FlyParams
+
+    assert TACTICAL_METHODS == ("levels", "octant") and FlyParams().method == "levels"
+    with pytest.raises(BaseInputError, match="levels, octant"):
+        FlyParams(method="potential")
+    res = CliRunner().invoke(main, ["fly", "helsinki-tactical", "--tactical", "potential"])
+    assert res.exit_code == 2 and "levels" in res.output and "octant" in res.output

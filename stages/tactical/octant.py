@@ -319,7 +319,9 @@ def fly_fleet(start_xyz, goal_xyz, *, speed_mps: float, radius_m, margin_m: floa
               max_elevation_deg: float = 35.26, goal_tol_m: float = 0.5) -> FleetResult:
     """Fly N own UAVs from ``start_xyz`` (N, 3) to ``goal_xyz`` (N, 3) [m] at ``speed_mps``
     with the octant avoidance and the priority rule (module docstring), among straight-flying
-    intruders (M, 3) [m, m/s].  Separation of a pair: ``radius_i + radius_j + margin_m``."""
+    intruders (M, 3) [m, m/s].  Separation of a pair: ``radius_i + radius_j + margin_m``.  A UAV
+    within ``goal_tol_m`` [m] of its goal has arrived and leaves the airspace (it is no longer a
+    threat); the intruders are non-cooperative (they keep their velocity)."""
     S = np.asarray(start_xyz, float).reshape(-1, 3)
     G = np.asarray(goal_xyz, float).reshape(-1, 3)
     n = S.shape[0]

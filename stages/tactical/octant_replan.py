@@ -12,8 +12,9 @@ Conflict with one intruder (section III-D).  When the rest of the plan loses sep
 an intruder, the vehicle keeps its plan until that intruder breaches the periphery
 ``periphery_m`` (P_r) -- not before the replanning time ``t_e + t_rep`` -- then, at that time
 ``t_eff`` (when no escape below is valid from there, P_r grows by 1.5, 2 and 3: the intruder is
-known, so the vehicle may react earlier): the octants the intruder's straight relative path crosses inside P_r are occupied;
-the vacant ones are ranked (forward hemisphere first, farther from the path first,
+known, so the vehicle may react earlier): the octants crossed inside P_r by the straight
+relative paths of that intruder and of every other known intruder then inside P_r are
+occupied; the vacant ones are ranked (forward hemisphere first, farther from the paths first,
 :func:`~skyroute.stages.tactical.octant.rank_octants`), then the vacant pockets.  For each
 escape direction ``e`` (its elevation limited to 80 % of the vehicle's flight-path angle) and
 escape distance ``D`` in (2, 4, 6) x the separation, the new chain follows the plan to the point
@@ -179,8 +180,16 @@ def _escape(rp, t_eff: float, P_r: float, detail, cause: str) -> dict:
     frame = body_frame(vel, rp.goal - own)
     sep_i = rp.veh.r_p_m + intr.radius_m + p.d_c_m
     P = max(P_r, float(np.linalg.norm(q)) + 1e-6)
-    ch = _chord(frame @ q, frame @ (w - vel), P)
-    chords = [] if ch is None else [(q + ch[0] * (w - vel), q + ch[1] * (w - vel))]
+    threats = [(q, w)]                     # the conflicting intruder and every other one inside P_r
+    for other in rp.known.intruders():
+        so = intruder_state(other, t_eff) if other.id != detail.id else None
+        if so is not None and float(np.linalg.norm(so[0] - own)) <= P:
+            threats.append((so[0] - own, so[1]))
+    chords = []
+    for qi, wi in threats:
+        ch = _chord(frame @ qi, frame @ (wi - vel), P)
+        if ch is not None:
+            chords.append((qi + ch[0] * (wi - vel), qi + ch[1] * (wi - vel)))
     vac, occ = rank_octants(chords, frame, P)
     el_max = 0.8 * rp.veh.max_flight_path_angle_deg
     tan_el = math.tan(math.radians(el_max))

@@ -100,7 +100,8 @@ def _radius_of(sc: Scenario, ident: str) -> float:
     return 2.0
 
 
-def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None):
+def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
+               method: str | None = None):
     from skyroute.stages.tactical.replay import FlyParams
 
     t = sc.tactical
@@ -111,13 +112,16 @@ def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None 
                      intruder_noise_m=t.intruder_noise_m, report_latency_s=t.report_latency_s,
                      min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
                      dop_kind=sc.gnss.dop_kind, uere_m=sc.gnss.uere_m,
-                     battery_reserve_pct=sc.constraints.battery_reserve_pct, step_cells=sc.planner.step_cells)
+                     battery_reserve_pct=sc.constraints.battery_reserve_pct, step_cells=sc.planner.step_cells,
+                     method=t.method if method is None else method, periphery_m=t.periphery_m,
+                     zone_period_s=t.zone_period_s)
 
 
 def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "threads", progress: bool = False,
                  t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
-                 result: RunResult | None = None) -> FlyResult:
-    """Plan (cached) and fly ``sc`` through its events.  Raises InputError (exit 2) for bad
+                 result: RunResult | None = None, method: str | None = None) -> FlyResult:
+    """Plan (cached) and fly ``sc`` through its events.  ``method``: tactical method
+    (``levels`` or ``octant``; default ``tactical.method``).  Raises InputError (exit 2) for bad
     parameters or events after the mission, PlanningError when there is no strategic plan."""
     from skyroute.stages.base import PlanningError
     from skyroute.stages.planning.strategic import plan_from_dataset, trajectory_from_dataset
@@ -125,7 +129,7 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     from skyroute.stages.traffic import intruders_for
     from skyroute.stages.vehicle import load_vehicle
 
-    params = fly_params(sc, t_rep_s, tick_s, seed)   # bad values fail here, before any work
+    params = fly_params(sc, t_rep_s, tick_s, seed, method)   # bad values fail here, before any work
     cache = cache or Cache()
     if result is None:
         result = run_scenario(sc, cache=cache, targets=["plan"], scheduler=scheduler, progress=progress)

@@ -370,7 +370,10 @@ class TacticalSettings(FrozenModel):
     event and when the ownship knows it ``report_latency_s`` [s], iteration budgets of the level-2
     and level-3 RRTs, the level-1 velocity scale factors tried in order, and the time margin
     ``time_margin_s`` [s] of the replanning occupancy maps (the tracks are fresh during the
-    flight; the strategic maps use ``traffic.time_margin_s``)."""
+    flight; the strategic maps use ``traffic.time_margin_s``).  ``method``: how an intruder
+    conflict is resolved, ``levels`` (levels 1-3, seed 001) or ``octant`` (seed 004: dense-traffic
+    zones predicted ``zone_period_s`` [s] ahead and the octant manoeuvre once the intruder is
+    within ``periphery_m`` [m]; other conflicts still go through levels 1-3)."""
 
     t_rep_s: PositiveFloat = 5.0
     tick_s: PositiveFloat = 0.1
@@ -381,6 +384,9 @@ class TacticalSettings(FrozenModel):
     level3_iterations: Annotated[int, Field(ge=1)] = 5000
     time_scaling_factors: tuple[Annotated[float, Field(gt=0, lt=1)], ...] = (0.8, 0.65, 0.5, 0.35, 0.25)
     time_margin_s: NonNegFloat = 1.0
+    method: Literal["levels", "octant"] = "levels"
+    periphery_m: PositiveFloat = 60.0
+    zone_period_s: PositiveFloat = 10.0
 
     @field_validator("time_scaling_factors")
     @classmethod

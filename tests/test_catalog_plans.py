@@ -132,8 +132,8 @@ TACTICAL = [n for n in CATALOG if load_scenario(n).events]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", TACTICAL)
-def test_tactical_scenarios_fly_safely(name, cache, tmp_path):
+@pytest.mark.parametrize(("name", "method"), [(n, "levels") for n in TACTICAL] + [("helsinki-tactical", "octant")])
+def test_tactical_scenarios_fly_safely(name, method, cache, tmp_path):
     """``skyroute fly`` on every shipped scenario with events (issue 11), checked from its
     written files only: the distance at equal times between the flown trajectory and every
     intruder's truth track (both linear between their samples) is at least r_p + r_i + d_c at
@@ -150,9 +150,11 @@ def test_tactical_scenarios_fly_safely(name, cache, tmp_path):
     sc = load_scenario(name)
     veh = load_vehicle(sc.vehicle)
     out = tmp_path / "fly"
-    res = CliRunner().invoke(main, ["fly", name, "--out", str(out), "--cache-dir", str(cache.root), "-q"])
+    res = CliRunner().invoke(main, ["fly", name, "--out", str(out), "--cache-dir", str(cache.root), "-q",
+                                    "--tactical", method])
     assert res.exit_code == 0, res.output
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["fly"]["tactical_method"] == method
     assert summary["command"] == "fly" and all((out / f).is_file() for f in summary["files"])
     rows = list(csv.DictReader((out / "flown.csv").open()))
     t = np.array([float(r["t_s"]) for r in rows])
@@ -187,6 +189,13 @@ def test_tactical_scenarios_fly_safely(name, cache, tmp_path):
         assert summary["fly"]["outcome"] == "landed"
         land = [r for r in rows if r["part"] == "landing"]
         assert land and [r["level"] for r in tac] == ["landing"]
+    elif method == "octant":
+        # seed 004: the intruder conflicts by the octant manoeuvre, the police zone by levels 1-3
+        assert summary["fly"]["outcome"] == "goal"
+        chosen = [r["level"] for r in tac if r["chosen"] == "true"]
+        assert "octant" in chosen and {"octant"} <= set(chosen) <= {"octant", "1", "2", "3"}
+        assert "octant" in {r["part"] for r in rows}
+        assert summary["fly"]["dense_zones"]
     else:
         assert summary["fly"]["outcome"] == "goal"
         assert {r["level"] for r in tac if r["chosen"] == "true"} >= ({"1", "2"} if name == "helsinki-tactical" else {"2"})

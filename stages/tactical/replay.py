@@ -79,8 +79,9 @@ from skyroute.stages.tactical.timeline import Segment, Timeline, chain_of, line_
 from skyroute.stages.traffic import Intruder, build_occupancy
 from skyroute.stages.vehicle import VehicleProfile
 
-__all__ = ["FlyParams", "TacticalEvent", "World", "encounter_geometry", "replay"]
+__all__ = ["TACTICAL_METHODS", "FlyParams", "TacticalEvent", "World", "encounter_geometry", "replay"]
 
+TACTICAL_METHODS = ("levels", "octant")
 FRONTAL_DEG = 135.0        # encounter angle above which the geometry is frontal (level 1 refused)
 STATIC_INTRUDER_MPS = 0.5  # an intruder slower than this is treated as static (level 1 refused)
 
@@ -97,7 +98,11 @@ class FlyParams:
     ``level2_iterations`` / ``level3_iterations``: RRT iteration counts; ``intruder_noise_m``
     [m]: 1-sigma noise of reported intruder positions; ``report_latency_s`` [s]: delay before an
     intruder event is known; ``occupancy_slice_s`` [s]: time slice of the replanning
-    occupancy maps; ``max_landing_sites``: sites tried for a contingency landing.
+    occupancy maps; ``max_landing_sites``: sites tried for a contingency landing;
+    ``method``: ``levels`` (levels 1-3) or ``octant`` (seed 004: zone partitioning and the
+    octant manoeuvre for intruder conflicts, :mod:`.octant_replan`); ``periphery_m`` [m]: the
+    octant method's sensing periphery P_r; ``zone_period_s`` [s]: its zone prediction period
+    T_p.
 
     Safety bubble (``constraints.clearance: sboa``, seed 003; default off): ``bubble_k`` k
     makes every STEP III of the replay re-check its samples at max(r_p, k sigma_p(t) +
@@ -127,8 +132,15 @@ class FlyParams:
     bubble_k: float | None = None
     surface_uncertainty_m: float = 0.0
     clearance_radius_m: float | None = None
+    method: str = "levels"
+    periphery_m: float = 60.0
+    zone_period_s: float = 10.0
 
     def __post_init__(self):
+        if self.method not in TACTICAL_METHODS:
+            raise InputError(f"tactical method {self.method!r}: use one of {', '.join(TACTICAL_METHODS)}")
+        if not (self.periphery_m > 0 and self.zone_period_s > 0):
+            raise InputError("periphery_m [m] and zone_period_s [s] must be > 0")
         if not (self.t_rep_s > 0 and self.tick_s > 0 and self.occupancy_slice_s > 0):
             raise InputError("t_rep_s, tick_s and occupancy_slice_s must be > 0 [s]")
         if not all(0 < s < 1 for s in self.time_scaling_factors):
@@ -267,6 +279,10 @@ class _Replay:
         self.warnings: list[str] = []
         self._zone_masks: dict[str, np.ndarray] = {}
         self._grid_obj = None
+        self.zone_tracker = None              # the octant method's zone partitioning (octant_replan)
+        self.dense_zones: list[NoFlyZone] = []
+        self.dense_zone_log: list[dict] = []
+        self.zone_ids: tuple[str, ...] | None = None   # intruders of the last zone determination
 
     def _known_at(self, ev: TacticalEvent) -> float:
         lat = self.p.report_latency_s if ev.kind in ("intruder", "intruder_update") else 0.0
@@ -400,6 +416,10 @@ class _Replay:
                 continue
             t0 = time.perf_counter()
             self.apply(ev, t_e)
+            if p.method == "octant" and ev.kind in ("intruder", "intruder_update"):
+                from skyroute.stages.tactical.octant_replan import update_zones
+
+                update_zones(self, t_e)
             update_s = time.perf_counter() - t0
             t_s, pts = self.tl.samples(t_e, p.tick_s)
             prob = self.problem(self.tl.sample(t_e), self.goal, zones_from_s=math.inf)   # zones: checked in time
@@ -418,7 +438,12 @@ class _Replay:
                     return
                 continue
             t_eff = self._effective_time(t_e + p.t_rep_s)
-            best = self.replan(k, ev, t_e, t_eff, t_coll, update_s, cause, detail)
+            if p.method == "octant" and hasattr(detail, "own_velocity_mps"):
+                from skyroute.stages.tactical.octant_replan import octant_replan
+
+                best = octant_replan(self, k, ev, t_e, t_eff, t_v, t_coll, update_s, cause, detail)
+            else:
+                best = self.replan(k, ev, t_e, t_eff, t_coll, update_s, cause, detail)
             if best is None:
                 why = f"no level found a valid plan ({cause})"
                 ok = self.land(k, ev, t_e, t_eff, t_coll, update_s, why)
@@ -892,6 +917,8 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
         log.bubble = {"k": params.bubble[0], "surface_uncertainty_m": params.bubble[1],
                       "clearance_radius_m": params.clearance_radius_m}
     log.compile_s = compile_s
+    log.method = params.method
+    log.dense_zones = list(r.dense_zone_log)
     log.warnings = r.warnings
     log.grid = grid
     last = r.world          # the maps at the end of the flight (new obstacles, GNSS outages included)

@@ -135,9 +135,13 @@ def pyproj_skips_geoid(model: str = "EGM96") -> bool:
     """True when pyproj's own ``EPSG:4326+<model> -> EPSG:4979`` transformation would skip
     the geoid (its best operation needs a grid that is not available, so it falls back to a
     ballpark one with N = 0), the silent failure this module avoids."""
+    import warnings
+
     from pyproj.transformer import TransformerGroup
 
-    tg = TransformerGroup(f"EPSG:4326+{_EPSG_VERTICAL[model]}", "EPSG:4979", always_xy=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)   # "Best transformation is not available": the point
+        tg = TransformerGroup(f"EPSG:4326+{_EPSG_VERTICAL[model]}", "EPSG:4979", always_xy=True)
     return not tg.best_available
 
 

@@ -195,7 +195,9 @@ def write_folder_summary(out_dir: Path, command: str, result, files, sections: d
 
     rel = relative_files(out_dir, files)
     remove_stale(Path(out_dir), previous_summary(Path(out_dir)), rel, command)
-    warnings = stage_warnings(result)
+    from skyroute.pipeline.plan_exports import pilot_export_warnings
+
+    warnings = stage_warnings(result) + (pilot_export_warnings(result) if command == "plan" else [])
     _report_warnings(warnings)
     sc = result.scenario
     return write_summary(out_dir, command, rel, warnings, {
@@ -255,8 +257,9 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
 def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, cache_dir, scheduler, quiet) -> None:
     """Strategic plan of SCENARIO (seed 000 III): for every GNSS coverage level D_j, STEP I
     (BIT* or A*), STEP II (deconfliction against known traffic) and STEP III (min-snap, navigation
-    error, eq. 15 costs); writes plan.geojson, waypoints.csv, candidates.csv and figures of the
-    flyable candidate with minimum f (or candidates.csv with every reason when none is flyable,
+    error, eq. 15 costs); writes plan.geojson, waypoints.csv, candidates.csv, figures and the
+    pilot exports (plan.kml, plan.plan for QGroundControl, plan.gpkg, intent.json: ASTM F3548)
+    of the flyable candidate with minimum f (or candidates.csv with every reason when none is flyable,
     exit code 3)."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.errors import InputError

@@ -54,7 +54,9 @@ def plot_surface(result: RunResult, path: Path) -> Path:
 
 
 def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
-    """plan.geojson, waypoints.csv, candidates.csv and figures of the cached plan stage.
+    """plan.geojson, waypoints.csv, candidates.csv, figures and the pilot exports
+    (:mod:`skyroute.pipeline.plan_exports`: plan.kml, plan.plan, plan.gpkg, intent.json) of
+    the cached plan stage.
 
     The plan was validated independently (``stages.planning.validate``) when it was made;
     the chosen trajectory is validated again here and nothing is written if it fails."""
@@ -78,10 +80,15 @@ def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
         if problems:
             raise PlanningError("refusing to write a plan that fails validation: " + "; ".join(problems))
     cost = result["environment"]["risk_cost"].values if "environment" in result.datasets else None
-    return write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
-                      ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
-                      terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
-                      cost_label="ground risk cost (normalised, 0-1) [-]")
+    files = write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
+                       ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
+                       terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
+                       cost_label="ground risk cost (normalised, 0-1) [-]")
+    if chosen is not None:
+        from skyroute.pipeline.plan_exports import write_pilot_exports
+
+        files.update(write_pilot_exports(result, Path(out_dir)))
+    return files
 
 
 def revalidate(result: RunResult, chosen) -> list[str]:
@@ -342,4 +349,6 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         "output_keys": output_keys,
         **sections,
     }
-    return write_summary(out_dir, command, files, stage_warnings(result), sections)
+    from skyroute.pipeline.plan_exports import pilot_export_warnings
+
+    return write_summary(out_dir, command, files, stage_warnings(result) + pilot_export_warnings(result), sections)

@@ -1,0 +1,103 @@
+"""Pilot exports of the chosen plan (``skyroute plan`` and ``skyroute run``): ``plan.kml``,
+``plan.plan`` (QGroundControl), ``plan.gpkg`` and ``intent.json`` (the ASTM F3548
+OperationalIntentDetails of the plan), beside plan.geojson (which keeps the surface datum).
+
+Absolute heights come from :func:`scenario_height_reference` (the surface model's vertical
+datum, or ``data.ground``).  When they cannot be had (local ground without ``data.ground``, a
+datum without a conversion, no geoid grid on disk) ``plan.kml`` and ``intent.json`` are not
+written, ``plan.plan`` gets home altitude 0 m, the GeoPackage has no intents layer, and
+:func:`pilot_export_warnings` says why (in summary.json ``warnings``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from skyroute.pipeline.errors import SkyrouteError
+from skyroute.pipeline.graph import RunResult
+from skyroute.stages.geoid import HeightReference, height_reference
+
+__all__ = ["INTENT_TIME_BUFFER_S", "pilot_export_warnings", "scenario_height_reference", "write_pilot_exports"]
+
+INTENT_TIME_BUFFER_S = 5.0    # [s] before and after each volume
+INTENT_MAX_VOLUME_S = 30.0    # [s] longest volume
+
+
+def scenario_height_reference(scenario, surface_datum: str) -> HeightReference:
+    """The :class:`~skyroute.stages.geoid.HeightReference` of a scenario whose surface model
+    is in ``surface_datum`` (``data.ground`` when given); InputError naming ``data.ground``."""
+    g = scenario.data.ground
+    return height_reference(surface_datum, g.height_m if g else None, g.vertical_datum if g else None)
+
+
+def _reference_or_reason(result: RunResult) -> tuple[HeightReference | None, str | None]:
+    plan = result["plan"]
+    try:
+        ref = scenario_height_reference(result.scenario, str(plan.attrs.get("vertical_datum", "")))
+        ref.ellipsoidal_m(0.0, 0.0, 0.0)   # the geoid grid is on disk
+        return ref, None
+    except SkyrouteError as exc:
+        return None, str(exc)
+
+
+def pilot_export_warnings(result: RunResult) -> list[str]:
+    """Why plan.kml / intent.json were not written (empty when they were or no plan flies)."""
+    if "plan" not in result.datasets or int(result["plan"].attrs.get("chosen_level", -1)) < 0:
+        return []
+    _, why = _reference_or_reason(result)
+    return [] if why is None else [f"exports: plan.kml and intent.json not written, plan.plan home altitude 0 m: "
+                                   f"{why}"]
+
+
+def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:
+    """Write the pilot exports of the chosen plan of ``result`` to ``out_dir``; returns the
+    paths by file name (nothing when no plan flies)."""
+    from pyproj import Transformer
+
+    from skyroute.stages.exports import plan_kml, qgc_plan, write_json, write_plan_gpkg
+    from skyroute.stages.intents import parse_intent, plan_intent
+    from skyroute.stages.planning.step3 import utc_of
+    from skyroute.stages.vehicle import load_vehicle
+
+    ds = result["plan"].load()
+    if int(ds.attrs.get("chosen_level", -1)) < 0:
+        return {}
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    sc = result.scenario
+    veh = load_vehicle(sc.vehicle)
+    ref, _ = _reference_or_reason(result)
+    to_ll = Transformer.from_crs(ds.attrs["crs"], 4326, always_xy=True)
+    x, y, z = (np.asarray(ds[k].values, float) for k in ("x_m", "y_m", "z_m"))
+    lon, lat = (np.asarray(a) for a in to_ll.transform(x, y))
+    times = utc_of(ds.attrs["start_time_utc"], ds["t_s"].values)
+    home_z = float(z[0] - float(ds["alt_agl_m"].values[0]))       # ground under the start, surface datum
+    wp = np.asarray(ds["waypoints"].values, float)
+    wlon, wlat = (np.asarray(a) for a in to_ll.transform(wp[:, 0], wp[:, 1]))
+    files: dict[str, Path] = {}
+    label = str(ds["label"].values[int(ds.attrs["chosen_level"])])
+    home_amsl = 0.0
+    intent = None
+    wabs = None
+    if ref is not None:
+        home_amsl = float(ref.egm96_m(lon[0], lat[0], home_z))
+        wabs = ref.egm96_m(wlon, wlat, wp[:, 2])
+        files["plan.kml"] = out / "plan.kml"
+        files["plan.kml"].write_text(plan_kml(lon, lat, ref.egm96_m(lon, lat, z), times, f"skyroute {sc.name} {label}",
+                                              f"Surface datum of the plan: {ds.attrs.get('vertical_datum', '')}."))
+        _, intent = plan_intent(ds, ref.ellipsoidal_m, vehicle_radius_m=veh.safety_distance_m,
+                                k_sigma=sc.constraints.sboa_k, time_buffer_s=INTENT_TIME_BUFFER_S,
+                                max_volume_s=INTENT_MAX_VOLUME_S)
+        parse_intent(intent)   # F3548 schema and limits
+        files["intent.json"] = write_json(out / "intent.json", intent)
+    files["plan.plan"] = write_json(out / "plan.plan", qgc_plan(wlon, wlat, wp[:, 2] - home_z, home_amsl,
+                                                                cruise_speed_mps=veh.cruise_speed_mps))
+    b = sc.grid.bounds
+    cx, cy = to_ll.transform([b[0], b[2], b[2], b[0]], [b[1], b[1], b[3], b[3]])
+    files["plan.gpkg"] = write_plan_gpkg(out / "plan.gpkg", lon_deg=lon, lat_deg=lat, z_m=z,
+                                         vertical_datum=str(ds.attrs.get("vertical_datum", "")), times_utc=times,
+                                         label=label, waypoints_lonlat_z=np.column_stack([wlon, wlat, wp[:, 2]]),
+                                         waypoints_rel_m=wp[:, 2] - home_z, waypoints_abs_m=wabs, intent=intent,
+                                         aoi_lonlat=(min(cx), min(cy), max(cx), max(cy)))
+    return files

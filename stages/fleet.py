@@ -8,7 +8,7 @@ altitude bands overlap AND their time windows overlap (open intervals: bands or 
 only touch do not overlap).  An intent is accepted when none of its volumes intersects an
 accepted volume (:func:`accept_fcfs`).
 
-:class:`VolumeIndex` holds the accepted volumes: an STRtree over their footprints (shapely,
+:class:`VolumeIndex` holds the accepted volumes: an STRtree over their footprints' bounding boxes (shapely,
 rebuilt when the not-yet-indexed tail grows past ``rebuild_every``; the tail is checked by
 brute force meanwhile), numpy arrays of the altitude and time intervals, and the exact area
 test only for the pairs that pass the box, altitude and time filters.
@@ -134,7 +134,7 @@ class VolumeIndex:
         qp, qi = _arrays(vols)
         pairs: list[tuple[int, int]] = []
         if self._tree is not None:
-            qidx, aidx = self._tree.query(qp, predicate="intersects")
+            qidx, aidx = self._tree.query(qp)    # bounding boxes only: the intervals filter before GEOS
             ok = _exact(qp, qi, self._ap, self._ai, qidx, aidx, self.min_area_m2)
             pairs += list(zip(qidx[ok].tolist(), aidx[ok].tolist(), strict=True))
         n_tail = len(self._polys) - self._n_tree

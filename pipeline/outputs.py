@@ -318,13 +318,16 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         produce("figures/surface.png", "surface", lambda p: plot_surface(result, p))
     sections: dict[str, Any] = {}
     if "plan" in result.datasets:
+        from skyroute.pipeline.plan_exports import export_key
+
+        plan_key = f"{keys['plan']}+{export_key(result)}"   # the pilot exports also read data.ground
         old = [f for f in prev_files if f.startswith("plan/")]
-        if prev_keys.get("plan/") == keys["plan"] and old and all((out_dir / f).is_file() for f in old):
+        if prev_keys.get("plan/") == plan_key and old and all((out_dir / f).is_file() for f in old):
             plan_files = old
         else:
             written = write_plan_outputs(result, out_dir / "plan")
             plan_files = [Path(p).relative_to(out_dir).as_posix() for p in written.values()]
-        output_keys["plan/"] = keys["plan"]
+        output_keys["plan/"] = plan_key
         files.extend(plan_files)
         # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
         from dask.local import get_sync

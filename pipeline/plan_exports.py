@@ -18,7 +18,7 @@ from skyroute.pipeline.errors import SkyrouteError
 from skyroute.pipeline.graph import RunResult
 from skyroute.stages.geoid import HeightReference, height_reference
 
-__all__ = ["INTENT_TIME_BUFFER_S", "pilot_export_warnings", "scenario_height_reference", "write_pilot_exports"]
+__all__ = ["INTENT_TIME_BUFFER_S", "export_key", "pilot_export_warnings", "scenario_height_reference", "write_pilot_exports"]
 
 INTENT_TIME_BUFFER_S = 5.0    # [s] before and after each volume
 INTENT_MAX_VOLUME_S = 30.0    # [s] longest volume
@@ -48,6 +48,19 @@ def pilot_export_warnings(result: RunResult) -> list[str]:
     _, why = _reference_or_reason(result)
     return [] if why is None else [f"exports: plan.kml and intent.json not written, plan.plan home altitude 0 m: "
                                    f"{why}"]
+
+
+def export_key(result: RunResult) -> str:
+    """Hash of what the exports depend on beyond the plan stage's key: ``data.ground``, the
+    buffers (``constraints.sboa_k``, the vehicle's ``safety_distance_m``, the intent time
+    constants) and whether absolute heights are available (a geoid grid installed later)."""
+    from skyroute.pipeline.model import stable_hash
+
+    sc = result.scenario
+    g = sc.data.ground
+    return stable_hash("pilot-exports-1", None if g is None else (g.height_m, g.vertical_datum),
+                       sc.constraints.sboa_k, INTENT_TIME_BUFFER_S, INTENT_MAX_VOLUME_S,
+                       pilot_export_warnings(result))
 
 
 def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:

@@ -10,7 +10,9 @@
   ``AltitudeMode`` 1 (relative): MAV_CMD_NAV_TAKEOFF (22) at the start to the first waypoint's
   height, MAV_CMD_NAV_WAYPOINT (16) at every piece boundary of the trajectory, MAV_CMD_NAV_LAND
   (21) at the goal.  ``params`` = [p1..p4, latitude, longitude, altitude]; home =
-  ``plannedHomePosition`` [lat, lon, AMSL altitude] on the ground under the start.
+  ``plannedHomePosition`` [lat, lon, AMSL altitude] on the ground under the start.  The
+  vehicle flies straight between waypoints: on a fillet arc of the plan that is the chord,
+  inside the arc by at most its sagitta (the arc's own volume is the intent's business).
 * ``plan.gpkg`` (OGC GeoPackage via pyogrio, EPSG:4326): layer ``plan`` (the trajectory,
   LineString Z, z in the surface datum as in plan.geojson, stated in a field), ``waypoints``
   (piece boundaries, Point Z, relative and absolute heights), ``intents`` (the F3548 volumes:

@@ -251,7 +251,7 @@ def intent_conformance(doc: dict, lon_deg, lat_deg, h_w84_m, times_utc) -> float
     import shapely
 
     lon, lat, h = (np.asarray(a, float) for a in (lon_deg, lat_deg, h_w84_m))
-    t = pd.to_datetime(np.asarray(times_utc), utc=True).asi8
+    t = pd.DatetimeIndex(pd.to_datetime(np.asarray(times_utc), utc=True)).as_unit("ns").asi8
     inside = np.zeros(lon.size, bool)
     for poly, v in zip(intent_polygons_lonlat(doc), doc["volumes"], strict=True):
         ts = pd.Timestamp(v["time_start"]["value"]).value

@@ -203,3 +203,20 @@ def test_local_ground_without_data_ground(tmp_path):
     assert sorted(files) == ["plan.gpkg", "plan.plan"]
     (w,) = pilot_export_warnings(res)
     assert "data.ground" in w and "plan.kml" in w
+
+
+def test_export_key_follows_data_ground():
+    """`skyroute run` reuses plan/* only while the plan key AND this key are unchanged, so an
+    edited data.ground rewrites plan.kml / intent.json."""
+    from skyroute.pipeline.plan_exports import export_key
+
+    base = load_scenario("helsinki-medical")
+    ds, _ = _plan_dataset(base)
+
+    def key(ground):
+        sc = base.model_copy(update={"data": base.data.model_copy(update={"ground": ground})})
+        return export_key(_Result(sc, ds))
+
+    a = key(GroundReference(height_m=10.0, vertical_datum="EGM96 geoid"))
+    assert a == key(GroundReference(height_m=10.0, vertical_datum="EGM96 geoid"))
+    assert a != key(GroundReference(height_m=11.0, vertical_datum="EGM96 geoid")) != key(None)

@@ -26,7 +26,7 @@ import shapely
 from skyroute.stages.base import InputError
 
 __all__ = ["MIN_AREA_M2", "FleetDecision", "Volume4", "VolumeIndex", "accept_fcfs", "conflicts_naive",
-           "volumes_intersect", "volumes_of_intent"]
+           "volumes_intersect", "volumes_of_intent", "volumes_of_plan"]
 
 MIN_AREA_M2 = 1e-4
 
@@ -67,6 +67,13 @@ def volumes_of_intent(doc: dict, crs, start_time_utc) -> list[Volume4]:
                            (pd.Timestamp(v["time_start"]["value"]) - t0).total_seconds(),
                            (pd.Timestamp(v["time_end"]["value"]) - t0).total_seconds()))
     return out
+
+
+def volumes_of_plan(volumes: Sequence, t_offset_s: float = 0.0) -> list[Volume4]:
+    """:class:`Volume4` s of :func:`skyroute.stages.intents.plan_volumes` output (map CRS,
+    WGS 84 altitudes, mission times shifted by ``t_offset_s`` [s], e.g. a delayed departure)."""
+    return [Volume4(shapely.Polygon(v.outline_xy_m), v.alt_lower_m, v.alt_upper_m, v.t_start_s + t_offset_s,
+                    v.t_end_s + t_offset_s) for v in volumes]
 
 
 def volumes_intersect(a: Volume4, b: Volume4, min_area_m2: float = MIN_AREA_M2) -> bool:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import shapely
+import shapely.affinity
 
 from skyroute.stages.base import InputError
 from skyroute.stages.fleet import (
@@ -96,3 +97,30 @@ def test_volumes_of_intent_round_trip():
     (v,) = volumes_of_intent(doc, crs, "2026-01-01T00:00:00Z")
     assert v.polygon.area == pytest.approx(1500.0, abs=1e-3)
     assert (v.alt_lower_m, v.alt_upper_m, v.t_start_s, v.t_end_s) == (40.0, 60.0, 10.0, 70.0)
+
+
+def test_plan_intents_conflict_only_when_they_meet_in_time():
+    """Two missions on the same route (intents of stages/intents.py): same departure ->
+    rejected; departure after the first intent's last volume ends -> accepted; a route 40 m to
+    the side (buffers ~4 m) -> accepted at the same time."""
+    from skyroute.stages.fleet import volumes_of_plan
+    from skyroute.stages.intents import plan_volumes
+    from skyroute.stages.smoothing import KinematicLimits, corner_trajectory
+    from skyroute.stages.vehicle import load_vehicle
+
+    chain = np.array([[0.0, 0.0, 30.0], [300.0, 50.0, 50.0], [400.0, 300.0, 50.0]])
+    traj = corner_trajectory(chain, np.full(2, 12.0), KinematicLimits.of(load_vehicle("dji-m300-rtk")))
+    t_s = traj.sample_times(0.5)
+    sigma = np.full(t_s.size, 0.5)
+
+    def vols():
+        return plan_volumes(traj, 0.0, t_s, sigma, lambda p: p[:, 2] + 20.0, vehicle_radius_m=2.0)
+
+    first = volumes_of_plan(vols())
+    end = max(v.t_end_s for v in first)
+    later = volumes_of_plan(vols(), t_offset_s=end + 0.01)
+    side = [Volume4(shapely.affinity.translate(v.polygon, 0.0, 40.0), v.alt_lower_m, v.alt_upper_m, v.t_start_s,
+                    v.t_end_s) for v in first]
+    dec, _ = accept_fcfs([("a", first), ("same", volumes_of_plan(vols())), ("later", later), ("side", side)])
+    assert [d.accepted for d in dec] == [True, False, True, True]
+    assert dec[1].conflicts_with == ("a",)

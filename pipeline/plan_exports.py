@@ -46,8 +46,16 @@ def pilot_export_warnings(result: RunResult) -> list[str]:
     if "plan" not in result.datasets or int(result["plan"].attrs.get("chosen_level", -1)) < 0:
         return []
     _, why = _reference_or_reason(result)
-    return [] if why is None else [f"exports: plan.kml and intent.json not written, plan.plan home altitude 0 m: "
-                                   f"{why}"]
+    if why is not None:
+        return [f"exports: plan.kml and intent.json not written, plan.plan home altitude 0 m: {why}"]
+    if not _has_sigma(result["plan"]):
+        return ["exports: intent.json not written: the plan has no predicted navigation error sigma_p (no GNSS "
+                "data), which sizes the intent's volumes"]
+    return []
+
+
+def _has_sigma(plan) -> bool:
+    return "sigma_p_m" in plan and bool(np.all(np.isfinite(np.asarray(plan["sigma_p_m"].values, float))))
 
 
 def export_key(result: RunResult) -> str:
@@ -99,6 +107,7 @@ def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:
         files["plan.kml"] = out / "plan.kml"
         files["plan.kml"].write_text(plan_kml(lon, lat, ref.egm96_m(lon, lat, z), times, f"skyroute {sc.name} {label}",
                                               f"Surface datum of the plan: {ds.attrs.get('vertical_datum', '')}."))
+    if ref is not None and _has_sigma(ds):
         _, intent = plan_intent(ds, ref.ellipsoidal_m, vehicle_radius_m=veh.safety_distance_m,
                                 k_sigma=sc.constraints.sboa_k, time_buffer_s=INTENT_TIME_BUFFER_S,
                                 max_volume_s=INTENT_MAX_VOLUME_S)

@@ -220,3 +220,16 @@ def test_export_key_follows_data_ground():
     a = key(GroundReference(height_m=10.0, vertical_datum="EGM96 geoid"))
     assert a == key(GroundReference(height_m=10.0, vertical_datum="EGM96 geoid"))
     assert a != key(GroundReference(height_m=11.0, vertical_datum="EGM96 geoid")) != key(None)
+
+
+@pytest.mark.skipif(not HAVE_EGM96, reason="egm96_15.gtx not installed (apt-get install proj-data)")
+def test_no_sigma_no_intent(tmp_path):
+    base = load_scenario("helsinki-medical")
+    sc = base.model_copy(update={"data": base.data.model_copy(
+        update={"ground": GroundReference(height_m=GROUND_M, vertical_datum="EGM96 geoid")})})
+    ds, _ = _plan_dataset(sc)
+    ds["sigma_p_m"][:] = np.nan
+    res = _Result(sc, ds)
+    assert sorted(write_pilot_exports(res, tmp_path)) == ["plan.gpkg", "plan.kml", "plan.plan"]
+    (w,) = pilot_export_warnings(res)
+    assert "intent.json not written" in w and "sigma_p" in w

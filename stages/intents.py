@@ -3,7 +3,8 @@
 A plan's exact trajectory (:class:`~skyroute.stages.smoothing.CornerTrajectory`: straight
 lines and circular fillet arcs) is cut into chunks: at every piece boundary (a line meets an
 arc or a stop) and, within a piece, into equal parts of at most ``max_volume_s`` [s] (on an
-arc also short enough that its sagitta is at most half the buffer).  Each
+arc also short enough that its sagitta is at most half the buffer; on a climb or descent
+also of at most ``max_dz_m`` [m] of height).  Each
 chunk becomes one ``Volume4D``:
 
 * **outline**: the convex hull of the chunk's densely sampled path (spacing <= ``spacing_m``),
@@ -63,10 +64,11 @@ class IntentVolume:
     buffer_m: float
 
 
-def _chunks(trajectory, max_volume_s: float, r_m: float) -> list[tuple[float, float]]:
+def _chunks(trajectory, max_volume_s: float, r_m: float, max_dz_m: float) -> list[tuple[float, float]]:
     """Chunk times: the pieces, each cut into parts of at most ``max_volume_s``; on an arc of
     radius R flown at v also of at most ``sqrt(4 R r_m) / v`` (the arc's sagitta over a part,
-    which the convex hull adds, stays below r_m / 2)."""
+    which the convex hull adds, stays below r_m / 2); a piece climbing or descending |dz| is
+    cut into at least ``|dz| / max_dz_m`` parts (thin altitude bands)."""
     piece_t_s = np.asarray(trajectory.piece_t_s, float)
     out = []
     for a, b in zip(piece_t_s[:-1], piece_t_s[1:], strict=True):
@@ -77,7 +79,8 @@ def _chunks(trajectory, max_volume_s: float, r_m: float) -> list[tuple[float, fl
         dur = max_volume_s
         if int(trajectory.kind[i]) != 0 and float(trajectory.v0[i]) > 0:
             dur = min(dur, math.sqrt(4.0 * float(trajectory.radius_m[i]) * max(r_m, 0.01)) / float(trajectory.v0[i]))
-        n = max(1, int(math.ceil((b - a) / dur - 1e-9)))
+        dz = float(np.ptp(trajectory.sample([a, b])[:, 2]))
+        n = max(1, int(math.ceil((b - a) / dur - 1e-9)), int(math.ceil(dz / max_dz_m - 1e-9)))
         edges = np.linspace(a, b, n + 1)
         out.extend(zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True))
     return out
@@ -93,7 +96,7 @@ def _sigma_bracket(t_s: np.ndarray, sigma: np.ndarray, ta: float, tb: float) -> 
 def plan_volumes(trajectory, t0_s: float, t_s, sigma_p_m, height_w84: Callable[[np.ndarray], np.ndarray], *,
                  vehicle_radius_m: float, k_sigma: float = 3.0, time_buffer_s: float = 5.0,
                  max_volume_s: float = 30.0, spacing_m: float = 1.0, margin_m: float = 0.05,
-                 simplify_m: float = 0.1, max_vertices: int = MAX_VERTICES) -> list[IntentVolume]:
+                 simplify_m: float = 0.1, max_dz_m: float = 10.0, max_vertices: int = MAX_VERTICES) -> list[IntentVolume]:
     """The 4-D volumes of a plan (see the module docstring).
 
     ``trajectory``: the plan's CornerTrajectory (map CRS [m], z in the surface datum) whose time
@@ -102,7 +105,8 @@ def plan_volumes(trajectory, t0_s: float, t_s, sigma_p_m, height_w84: Callable[[
     WGS 84 ellipsoidal heights [m]; ``vehicle_radius_m`` [m]: half the vehicle's size;
     ``k_sigma``: sigma multiplier; ``time_buffer_s`` [s] before and after each chunk;
     ``max_volume_s`` [s]: longest chunk; ``spacing_m`` [m]: path sampling; ``simplify_m`` [m]:
-    the hull of the samples is simplified by this much and the buffer grown by as much."""
+    the hull of the samples is simplified by this much and the buffer grown by as much;
+    ``max_dz_m`` [m]: largest climb or descent within one volume."""
     import shapely
 
     t_s = np.asarray(t_s, float)
@@ -118,8 +122,8 @@ def plan_volumes(trajectory, t0_s: float, t_s, sigma_p_m, height_w84: Callable[[
             raise InputError(f"{name} must be a finite number >= 0, got {v}")
     if margin_m < 0.01:
         raise InputError(f"margin_m {margin_m} must be >= 0.01 m (F3548's 1 cm intersection precision)")
-    if not (max_volume_s > 0 and spacing_m > 0):
-        raise InputError("max_volume_s and spacing_m must be > 0")
+    if not (max_volume_s > 0 and spacing_m > 0 and max_dz_m > 0):
+        raise InputError("max_volume_s, spacing_m and max_dz_m must be > 0")
     T = float(trajectory.duration_s)
     if not T > 0:
         raise InputError("the trajectory has no duration")
@@ -127,7 +131,7 @@ def plan_volumes(trajectory, t0_s: float, t_s, sigma_p_m, height_w84: Callable[[
     r_min = float(np.min(np.asarray(trajectory.radius_m)[arcs])) if arcs.any() else math.inf
     tc = np.linspace(0.0, T, max(int(T / 0.05), 2) + 1)
     v_max = float(np.max(np.linalg.norm(trajectory.velocity(tc), axis=1))) * 1.05 + 1e-3
-    chunks = _chunks(trajectory, max_volume_s, k_sigma * float(np.min(sigma)) + vehicle_radius_m + margin_m)
+    chunks = _chunks(trajectory, max_volume_s, k_sigma * float(np.min(sigma)) + vehicle_radius_m + margin_m, max_dz_m)
     pts_per_chunk = []
     for ta, tb in chunks:
         n = max(2, int(math.ceil((tb - ta) * v_max / spacing_m)) + 1)
@@ -159,7 +163,7 @@ def _volume(parts, t0_s, t_s, sigma, height_w84, r_min, vehicle_radius_m, k_sigm
     core = shapely.MultiPoint(pp[:, :2]).convex_hull
     if isinstance(core, shapely.Polygon):
         core = core.simplify(simplify_m)   # every hull vertex within simplify_m of the simplified hull
-        r_h += simplify_m
+    r_h += simplify_m
     poly = core.buffer(r_h / math.cos(math.pi / (4 * _QUAD_SEGS)), quad_segs=_QUAD_SEGS).convex_hull
     poly = shapely.segmentize(poly, _EDGE_MAX_M)
     ring = np.asarray(poly.exterior.coords)[:-1]

@@ -158,3 +158,16 @@ def test_bad_inputs():
         intents.plan_volumes(traj, 0.0, t_s, np.full(t_s.size, np.nan), lambda p: p[:, 2], vehicle_radius_m=0.5)
     with pytest.raises(InputError, match="vehicle_radius_m"):
         intents.plan_volumes(traj, 0.0, t_s, np.ones(t_s.size), lambda p: p[:, 2], vehicle_radius_m=-1.0)
+
+
+def test_altitude_bands_are_thin(plan):
+    """Each band is the chunk's height range (<= max_dz_m = 10 m, the default) plus the buffer
+    above and below (ellipsoidal offset is a constant here: local ground on the ellipsoid)."""
+    traj, t0, t_s, sigma, _, kw, vols, _ = plan
+    for v in vols:
+        tau = np.linspace(v.t_start_s + 5.0 - t0, v.t_end_s - 5.0 - t0, 500)
+        z = traj.sample(tau)[:, 2]
+        assert np.ptp(z) <= 10.0 + 1e-6
+        r_v = v.buffer_m - 0.05 - 0.1          # the margin and simplification are horizontal only
+        assert v.alt_lower_m == pytest.approx(z.min() + 35.0 - r_v, abs=0.011)
+        assert v.alt_upper_m == pytest.approx(z.max() + 35.0 + r_v, abs=0.011)

@@ -195,9 +195,7 @@ def write_folder_summary(out_dir: Path, command: str, result, files, sections: d
 
     rel = relative_files(out_dir, files)
     remove_stale(Path(out_dir), previous_summary(Path(out_dir)), rel, command)
-    from skyroute.pipeline.plan_exports import pilot_export_warnings
-
-    warnings = stage_warnings(result) + (pilot_export_warnings(result) if command == "plan" else [])
+    warnings = stage_warnings(result)
     _report_warnings(warnings)
     sc = result.scenario
     return write_summary(out_dir, command, rel, warnings, {
@@ -299,7 +297,11 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
                           progress=not quiet and sys.stderr.isatty())
     files = write_plan_outputs(result, out_dir)
     plan = plan_section(result["plan"])
-    write_folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan})
+    from skyroute.pipeline.outputs import relative_files
+    from skyroute.pipeline.plan_exports import exports_section
+
+    exports = exports_section(result, relative_files(out_dir, list(files.values())))
+    write_folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan, "exports": exports})
     for f in files.values():
         click.echo(str(f))
     if plan["status"] == "flyable":

@@ -333,6 +333,9 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         from dask.local import get_sync
 
         sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
+        from skyroute.pipeline.plan_exports import exports_section
+
+        sections["exports"] = exports_section(result, [f for f in plan_files if f.startswith("plan/")])
     if extra is not None:
         files.extend(extra["files"])
         sections["fly"] = extra["section"]
@@ -352,6 +355,4 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         "output_keys": output_keys,
         **sections,
     }
-    from skyroute.pipeline.plan_exports import pilot_export_warnings
-
-    return write_summary(out_dir, command, files, stage_warnings(result) + pilot_export_warnings(result), sections)
+    return write_summary(out_dir, command, files, stage_warnings(result), sections)

@@ -6,7 +6,8 @@ Absolute heights come from :func:`scenario_height_reference` (the surface model'
 datum, or ``data.ground``).  When they cannot be had (local ground without ``data.ground``, a
 datum without a conversion, no geoid grid on disk) ``plan.kml`` and ``intent.json`` are not
 written, ``plan.plan`` gets home altitude 0 m, the GeoPackage has no intents layer, and
-:func:`pilot_export_warnings` says why (in summary.json ``warnings``)."""
+:func:`pilot_export_notes` says why (summary.json ``exports.notes``: a note, not a warning,
+since the catalog's OSM-only cities have no ``data.ground``)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from skyroute.pipeline.errors import SkyrouteError
 from skyroute.pipeline.graph import RunResult
 from skyroute.stages.geoid import HeightReference, height_reference
 
-__all__ = ["INTENT_TIME_BUFFER_S", "export_key", "pilot_export_warnings", "scenario_height_reference", "write_pilot_exports"]
+__all__ = ["INTENT_TIME_BUFFER_S", "export_key", "exports_section", "pilot_export_notes", "scenario_height_reference", "write_pilot_exports"]
 
 INTENT_TIME_BUFFER_S = 5.0    # [s] before and after each volume
 INTENT_MAX_VOLUME_S = 30.0    # [s] longest volume
@@ -41,7 +42,7 @@ def _reference_or_reason(result: RunResult) -> tuple[HeightReference | None, str
         return None, str(exc)
 
 
-def pilot_export_warnings(result: RunResult) -> list[str]:
+def pilot_export_notes(result: RunResult) -> list[str]:
     """Why plan.kml / intent.json were not written (empty when they were or no plan flies)."""
     if "plan" not in result.datasets or int(result["plan"].attrs.get("chosen_level", -1)) < 0:
         return []
@@ -68,7 +69,14 @@ def export_key(result: RunResult) -> str:
     g = sc.data.ground
     return stable_hash("pilot-exports-1", None if g is None else (g.height_m, g.vertical_datum),
                        sc.constraints.sboa_k, INTENT_TIME_BUFFER_S, INTENT_MAX_VOLUME_S,
-                       pilot_export_warnings(result))
+                       pilot_export_notes(result))
+
+
+def exports_section(result: RunResult, files: list[str]) -> dict:
+    """summary.json ``exports``: the pilot export ``files`` written (of ``files``, relative
+    paths) and the ``notes`` of :func:`pilot_export_notes`."""
+    names = ("plan.kml", "plan.plan", "plan.gpkg", "intent.json")
+    return {"files": sorted(f for f in files if f.rsplit("/", 1)[-1] in names), "notes": pilot_export_notes(result)}
 
 
 def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:

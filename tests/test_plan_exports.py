@@ -15,7 +15,7 @@ import pytest
 import shapely
 from pyproj import Transformer
 
-from skyroute.pipeline.plan_exports import pilot_export_warnings, write_pilot_exports
+from skyroute.pipeline.plan_exports import pilot_export_notes, write_pilot_exports
 from skyroute.pipeline.settings import GroundReference, load_scenario
 from skyroute.stages import geoid
 from skyroute.stages.base import DataError
@@ -201,7 +201,7 @@ def test_local_ground_without_data_ground(tmp_path):
     res = _Result(sc, ds)
     files = write_pilot_exports(res, tmp_path)
     assert sorted(files) == ["plan.gpkg", "plan.plan"]
-    (w,) = pilot_export_warnings(res)
+    (w,) = pilot_export_notes(res)
     assert "data.ground" in w and "plan.kml" in w
 
 
@@ -231,5 +231,5 @@ def test_no_sigma_no_intent(tmp_path):
     ds["sigma_p_m"][:] = np.nan
     res = _Result(sc, ds)
     assert sorted(write_pilot_exports(res, tmp_path)) == ["plan.gpkg", "plan.kml", "plan.plan"]
-    (w,) = pilot_export_warnings(res)
+    (w,) = pilot_export_notes(res)
     assert "intent.json not written" in w and "sigma_p" in w

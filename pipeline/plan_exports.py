@@ -23,6 +23,7 @@ __all__ = ["INTENT_TIME_BUFFER_S", "export_key", "exports_section", "pilot_expor
 
 INTENT_TIME_BUFFER_S = 5.0    # [s] before and after each volume
 INTENT_MAX_VOLUME_S = 30.0    # [s] longest volume
+MAP_LAYER_MAX_CELLS = 4_000_000   # the GeoPackage's building layer only for maps up to this size
 
 
 def scenario_height_reference(scenario, surface_datum: str) -> HeightReference:
@@ -123,11 +124,18 @@ def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:
         files["intent.json"] = write_json(out / "intent.json", intent)
     files["plan.plan"] = write_json(out / "plan.plan", qgc_plan(wlon, wlat, wp[:, 2] - home_z, home_amsl,
                                                                 cruise_speed_mps=veh.cruise_speed_mps))
+    buildings = None
+    if "surface" in result.datasets and sc.grid.nx * sc.grid.ny <= MAP_LAYER_MAX_CELLS:
+        from skyroute.stages.exports import building_footprints
+
+        surf = result["surface"]
+        buildings = building_footprints(surf["building_id"].values, surf["surface"].values, sc.grid.transform,
+                                        sc.grid.crs)
     b = sc.grid.bounds
     cx, cy = to_ll.transform([b[0], b[2], b[2], b[0]], [b[1], b[1], b[3], b[3]])
     files["plan.gpkg"] = write_plan_gpkg(out / "plan.gpkg", lon_deg=lon, lat_deg=lat, z_m=z,
                                          vertical_datum=str(ds.attrs.get("vertical_datum", "")), times_utc=times,
                                          label=label, waypoints_lonlat_z=np.column_stack([wlon, wlat, wp[:, 2]]),
                                          waypoints_rel_m=wp[:, 2] - home_z, waypoints_abs_m=wabs, intent=intent,
-                                         aoi_lonlat=(min(cx), min(cy), max(cx), max(cy)))
+                                         aoi_lonlat=(min(cx), min(cy), max(cx), max(cy)), buildings=buildings)
     return files

@@ -16,7 +16,8 @@
 * ``plan.gpkg`` (OGC GeoPackage via pyogrio, EPSG:4326): layer ``plan`` (the trajectory,
   LineString Z, z in the surface datum as in plan.geojson, stated in a field), ``waypoints``
   (piece boundaries, Point Z, relative and absolute heights), ``intents`` (the F3548 volumes:
-  polygons with altitude bands [m, WGS 84 ellipsoid] and RFC 3339 times) and ``aoi`` (the map
+  polygons with altitude bands [m, WGS 84 ellipsoid] and RFC 3339 times), ``map_buildings``
+  (the surface model's building footprints with their top heights) and ``aoi`` (the map
   extent).
 """
 
@@ -32,7 +33,7 @@ import numpy as np
 
 from skyroute.stages.base import InputError
 
-__all__ = ["KML_NS", "QGC_FRAME_GLOBAL_RELATIVE_ALT", "plan_kml", "qgc_plan", "write_json", "write_plan_gpkg"]
+__all__ = ["KML_NS", "QGC_FRAME_GLOBAL_RELATIVE_ALT", "building_footprints", "plan_kml", "qgc_plan", "write_json", "write_plan_gpkg"]
 
 KML_NS = "http://www.opengis.net/kml/2.2"
 GX_NS = "http://www.google.com/kml/ext/2.2"
@@ -135,14 +136,45 @@ def write_json(path: Path | str, doc: dict) -> Path:
     return path
 
 
+def building_footprints(building_id, surface_m, transform, crs) -> tuple[list, np.ndarray, np.ndarray]:
+    """Footprints of the surface model's buildings as WGS 84 polygons (lon, lat [deg]): one per
+    ``building_id`` >= 0 (the cells it covers, merged; ``transform``: the grid's affine),
+    with its id and top height [m] (highest ``surface_m`` cell, the surface datum)."""
+    import shapely
+    from pyproj import Transformer
+    from rasterio.features import shapes
+
+    bid = np.asarray(building_id, np.int32)
+    surf = np.asarray(surface_m, float)
+    if bid.shape != surf.shape:
+        raise InputError("building_id and surface_m must have the same shape")
+    tr = Transformer.from_crs(crs, 4326, always_xy=True)
+    parts: dict[int, list] = {}
+    for geom, val in shapes(bid, mask=bid >= 0, transform=transform, connectivity=4):
+        parts.setdefault(int(val), []).append(shapely.geometry.shape(geom))
+    ids = np.array(sorted(parts), dtype=np.int32)
+    tops = np.full(ids.size, np.nan)
+    if ids.size:
+        order = np.argsort(bid.ravel(), kind="stable")
+        sb = bid.ravel()[order]
+        lo, hi = np.searchsorted(sb, ids, "left"), np.searchsorted(sb, ids, "right")
+        sv = surf.ravel()[order]
+        tops = np.array([float(np.max(sv[a:b])) for a, b in zip(lo, hi, strict=True)])
+    polys = [shapely.transform(shapely.union_all(parts[int(i)]), lambda xy: np.column_stack(tr.transform(xy[:, 0], xy[:, 1])))
+             for i in ids]
+    return polys, ids, tops
+
+
 def write_plan_gpkg(path: Path | str, *, lon_deg, lat_deg, z_m, vertical_datum: str, times_utc: list[str],
                     label: str, waypoints_lonlat_z: np.ndarray, waypoints_rel_m, waypoints_abs_m=None,
-                    intent: dict | None = None, aoi_lonlat: tuple[float, float, float, float] | None = None) -> Path:
+                    intent: dict | None = None, aoi_lonlat: tuple[float, float, float, float] | None = None,
+                    buildings: tuple[list, np.ndarray, np.ndarray] | None = None) -> Path:
     """GeoPackage of a plan (see the module docstring).  ``z_m`` [m]: trajectory heights in
     ``vertical_datum``; ``waypoints_lonlat_z`` (n, 3) piece boundaries [deg, deg, m in the
     surface datum], ``waypoints_rel_m`` [m] above home, ``waypoints_abs_m`` [m] above mean sea
     level (or None); ``intent``: an F3548 OperationalIntentDetails dict; ``aoi_lonlat``
-    (west, south, east, north) [deg]."""
+    (west, south, east, north) [deg]; ``buildings``: :func:`building_footprints` output (layer
+    ``map_buildings``, tops in ``vertical_datum``)."""
     import shapely
     from pyogrio.raw import write
 
@@ -177,6 +209,12 @@ def write_plan_gpkg(path: Path | str, *, lon_deg, lat_deg, z_m, vertical_datum: 
                np.array([v["time_end"]["value"] for v in vols], dtype=object)],
               ["volume", "alt_lower_w84_m", "alt_upper_w84_m", "time_start", "time_end"],
               layer="intents", geometry_type="Polygon", append=True, **common)
+    if buildings is not None and len(buildings[0]):
+        polys, ids, tops = buildings
+        write(path, np.asarray(shapely.to_wkb(polys), dtype=object),
+              [np.asarray(ids, np.int32), np.asarray(tops, float), np.array([vertical_datum] * len(ids), dtype=object)],
+              ["building_id", "top_m", "vertical_datum"], layer="map_buildings", geometry_type="MultiPolygon",
+              promote_to_multi=True, append=True, **common)
     if aoi_lonlat is not None:
         write(path, np.array([shapely.to_wkb(shapely.box(*aoi_lonlat))], dtype=object),
               [np.array(["map extent"], dtype=object)], ["name"], layer="aoi", geometry_type="Polygon",

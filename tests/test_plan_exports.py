@@ -72,9 +72,9 @@ QGC_SCHEMA = {
 class _Result:
     """The parts of a RunResult the exports read."""
 
-    def __init__(self, scenario, plan):
+    def __init__(self, scenario, plan, surface=None):
         self.scenario = scenario
-        self.datasets = {"plan": plan}
+        self.datasets = {"plan": plan} if surface is None else {"plan": plan, "surface": surface}
 
     def __getitem__(self, name):
         return self.datasets[name]
@@ -103,8 +103,25 @@ def exported(tmp_path_factory):
     out = tmp_path_factory.mktemp("exports")
     if not HAVE_EGM96:
         pytest.skip("egm96_15.gtx not installed (apt-get install proj-data)")
-    files = write_pilot_exports(_Result(sc, ds), out)
+    files = write_pilot_exports(_Result(sc, ds, _surface(sc)), out)
     return sc, ds, traj, out, files
+
+
+BUILDINGS = {7: (slice(10, 20), slice(30, 45), 25.0), 9: (slice(50, 53), slice(5, 9), 12.5)}   # rows, cols, top
+
+
+def _surface(sc):
+    """Two rectangular buildings on the scenario grid."""
+    import xarray as xr
+
+    g = sc.grid
+    bid = np.full(g.shape, -1, np.int32)
+    surf = np.zeros(g.shape, np.float32)
+    for i, (r, c, top) in BUILDINGS.items():
+        bid[r, c] = i
+        surf[r, c] = top
+        surf[r.start, c.start] = top + 1.0   # the top is the highest cell
+    return xr.Dataset({"building_id": (("y", "x"), bid), "surface": (("y", "x"), surf)})
 
 
 def _lonlat(sc, x, y):
@@ -178,7 +195,20 @@ def test_geopackage_layers(exported):
     # sqlite3 (no GDAL): the GeoPackage's own table of contents and its CRS
     with sqlite3.connect(gpkg) as con:
         rows = dict(con.execute("SELECT table_name, srs_id FROM gpkg_contents").fetchall())
-    assert rows == {"plan": 4326, "waypoints": 4326, "intents": 4326, "aoi": 4326}
+    assert rows == {"plan": 4326, "waypoints": 4326, "intents": 4326, "aoi": 4326, "map_buildings": 4326}
+    # the building layer: back in the map CRS, each footprint is its cells' rectangle
+    meta, _, geom, fields = read(gpkg, layer="map_buildings")
+    to_map = Transformer.from_crs(4326, sc.grid.crs, always_xy=True)
+    g = sc.grid
+    ids = list(fields[list(meta["fields"]).index("building_id")])
+    tops = fields[list(meta["fields"]).index("top_m")]
+    assert sorted(ids) == sorted(BUILDINGS)
+    for k, i in enumerate(ids):
+        r, c, top = BUILDINGS[i]
+        poly = shapely.transform(shapely.from_wkb(geom[k]), lambda xy: np.column_stack(to_map.transform(xy[:, 0], xy[:, 1])))
+        want = shapely.box(g.x0 + c.start * g.resolution_m, g.y1 - r.stop * g.resolution_m,
+                           g.x0 + c.stop * g.resolution_m, g.y1 - r.start * g.resolution_m)
+        assert poly.symmetric_difference(want).area < 1e-3 and tops[k] == top + 1.0
 
 
 def test_intent_json_contains_the_plan(exported):

@@ -228,8 +228,8 @@ def parse_intent(doc: dict):
     for i, v in enumerate(oi.volumes):
         verts = v.volume.outline_polygon.vertices
         nv += len(verts)
-        if len(verts) < 3 or (verts[0].lat, verts[0].lng) == (verts[-1].lat, verts[-1].lng):
-            raise InputError(f"volume {i}: a polygon needs >= 3 vertices and no repeated closing vertex")
+        if len(verts) < 3 or len({(p.lat, p.lng) for p in verts}) != len(verts):
+            raise InputError(f"volume {i}: a polygon needs >= 3 vertices, none repeated (nor the closing one)")
         for which in ("time_start", "time_end"):
             if not str(v[which].value).endswith("Z"):
                 raise InputError(f"volume {i}: {which} {v[which].value} is not RFC 3339 UTC ending in Z")

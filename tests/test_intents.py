@@ -107,6 +107,11 @@ def test_round_trip_through_uas_standards(plan):
     bad["volumes"][0]["time_start"]["value"] = bad["volumes"][0]["time_start"]["value"][:-1] + "+00:00"
     with pytest.raises(InputError, match="ending in Z"):
         intents.parse_intent(bad)
+    bad = json.loads(json.dumps(doc))
+    vx = bad["volumes"][0]["volume"]["outline_polygon"]["vertices"]
+    vx.append(dict(vx[0]))      # a closed ring: F3548 forbids the repeated closing vertex
+    with pytest.raises(InputError, match="none repeated"):
+        intents.parse_intent(bad)
 
 
 def test_vertex_limit_merges_volumes(plan):

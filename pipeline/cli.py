@@ -300,7 +300,7 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
     from skyroute.pipeline.outputs import relative_files
     from skyroute.pipeline.plan_exports import exports_section
 
-    exports = exports_section(result, relative_files(out_dir, list(files.values())))
+    exports = exports_section(result, relative_files(out_dir, list(files.values())), out_dir)
     write_folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan, "exports": exports})
     for f in files.values():
         click.echo(str(f))

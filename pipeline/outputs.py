@@ -335,7 +335,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
         from skyroute.pipeline.plan_exports import exports_section
 
-        sections["exports"] = exports_section(result, [f for f in plan_files if f.startswith("plan/")])
+        sections["exports"] = exports_section(result, [f for f in plan_files if f.startswith("plan/")], out_dir)
     if extra is not None:
         files.extend(extra["files"])
         sections["fly"] = extra["section"]

@@ -11,6 +11,7 @@ since the catalog's OSM-only cities have no ``data.ground``)."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ from skyroute.pipeline.errors import SkyrouteError
 from skyroute.pipeline.graph import RunResult
 from skyroute.stages.geoid import HeightReference, height_reference
 
-__all__ = ["INTENT_TIME_BUFFER_S", "export_key", "exports_section", "pilot_export_notes", "scenario_height_reference", "write_pilot_exports"]
+__all__ = ["INTENT_TIME_BUFFER_S", "export_key", "exports_section", "intent_summary", "pilot_export_notes", "scenario_height_reference", "write_pilot_exports"]
 
 INTENT_TIME_BUFFER_S = 5.0    # [s] before and after each volume
 INTENT_MAX_VOLUME_S = 30.0    # [s] longest volume
@@ -73,11 +74,41 @@ def export_key(result: RunResult) -> str:
                        pilot_export_notes(result))
 
 
-def exports_section(result: RunResult, files: list[str]) -> dict:
-    """summary.json ``exports``: the pilot export ``files`` written (of ``files``, relative
-    paths) and the ``notes`` of :func:`pilot_export_notes`."""
+def exports_section(result: RunResult, files: list[str], out_dir: Path | None = None) -> dict:
+    """summary.json ``exports``: the pilot export ``files`` written (of ``files``, paths
+    relative to ``out_dir``), the ``notes`` of :func:`pilot_export_notes` and, when
+    ``intent.json`` was written, ``intent``: its ``volumes``, ``vertices``, ``time_start`` /
+    ``time_end`` and ``conformance`` (:func:`intent_conformance`: share of the exact trajectory,
+    sampled every 0.05 s, inside the volumes; 1.0 by construction)."""
     names = ("plan.kml", "plan.plan", "plan.gpkg", "intent.json")
-    return {"files": sorted(f for f in files if f.rsplit("/", 1)[-1] in names), "notes": pilot_export_notes(result)}
+    sec: dict = {"files": sorted(f for f in files if f.rsplit("/", 1)[-1] in names),
+                 "notes": pilot_export_notes(result)}
+    intent_file = next((f for f in sec["files"] if f.endswith("intent.json")), None)
+    if intent_file is not None and out_dir is not None:
+        sec["intent"] = intent_summary(result, json.loads((Path(out_dir) / intent_file).read_text()))
+    return sec
+
+
+def intent_summary(result: RunResult, intent: dict) -> dict:
+    """Size, time span and measured conformance of the plan's ``intent`` (see :func:`exports_section`)."""
+    import pandas as pd
+    from pyproj import Transformer
+
+    from skyroute.stages.intents import intent_conformance
+    from skyroute.stages.planning.strategic import trajectory_from_dataset
+
+    ds = result["plan"]
+    traj, t0 = trajectory_from_dataset(ds)
+    ref, _ = _reference_or_reason(result)
+    tau = np.append(np.arange(0.0, traj.duration_s, 0.05), traj.duration_s)
+    p = traj.sample(tau)
+    lon, lat = Transformer.from_crs(ds.attrs["crs"], 4326, always_xy=True).transform(p[:, 0], p[:, 1])
+    t = pd.Timestamp(ds.attrs["start_time_utc"]) + pd.to_timedelta(t0 + tau, unit="s")
+    vols = intent["volumes"]
+    return {"volumes": len(vols), "vertices": sum(len(v["volume"]["outline_polygon"]["vertices"]) for v in vols),
+            "time_start": min(v["time_start"]["value"] for v in vols),
+            "time_end": max(v["time_end"]["value"] for v in vols),
+            "conformance": intent_conformance(intent, lon, lat, ref.ellipsoidal_m(lon, lat, p[:, 2]), t)}
 
 
 def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:

@@ -130,9 +130,16 @@ def _lonlat(sc, x, y):
 
 
 def test_files(exported):
-    *_, out, files = exported
+    from skyroute.pipeline.plan_exports import exports_section
+
+    sc, ds, _, out, files = exported
     assert sorted(files) == ["intent.json", "plan.gpkg", "plan.kml", "plan.plan"]
     assert all(p.parent == out and p.stat().st_size > 0 for p in files.values())
+    sec = exports_section(_Result(sc, ds), [*files, "plan.geojson"], out)
+    assert sec["files"] == sorted(files) and sec["notes"] == []
+    intent = json.loads((out / "intent.json").read_text())
+    assert sec["intent"]["volumes"] == len(intent["volumes"]) and sec["intent"]["conformance"] == 1.0
+    assert sec["intent"]["time_start"] == intent["volumes"][0]["time_start"]["value"]
 
 
 def test_kml_absolute_altitudes(exported):

@@ -165,6 +165,34 @@ class Obstacle(FrozenModel):
         return _check_polygon(v, "x_m, y_m")
 
 
+class GroundReference(FrozenModel):
+    """Where the surface model's 0 m lies, for absolute heights (operational intents in WGS 84
+    ellipsoidal metres, KML, QGroundControl home altitude): surface heights + ``height_m`` [m]
+    are heights in ``vertical_datum`` ('EGM96 geoid', 'EGM2008 geoid' or 'WGS 84 ellipsoid').
+    Required when the ground is flat local ground (OSM-only cities: the height of the ground
+    there) or in a datum skyroute cannot convert (e.g. NAP: the EGM96 height of NAP 0 m)."""
+
+    height_m: float
+    vertical_datum: str
+
+    @field_validator("vertical_datum")
+    @classmethod
+    def _known(cls, v: str) -> str:
+        from skyroute.stages.geoid import datum_kind
+
+        if datum_kind(v) not in ("EGM96", "EGM2008", "ellipsoid"):
+            raise ValueError(f"vertical datum {v!r} not understood: use 'EGM96 geoid', 'EGM2008 geoid' or "
+                             "'WGS 84 ellipsoid'")
+        return v
+
+    @field_validator("height_m")
+    @classmethod
+    def _finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError("height_m must be a finite number [m]")
+        return v
+
+
 class DataSources(FrozenModel):
     buildings: BuildingsSource | None = None
     terrain: TerrainSource | None = None
@@ -178,6 +206,7 @@ class DataSources(FrozenModel):
     wind: GriddedWind | None = None
     almanacs: tuple[Path, ...] = ()
     obstacles: tuple[Obstacle, ...] = ()
+    ground: GroundReference | None = None
 
 
 class MissionPoint(FrozenModel):

@@ -1,0 +1,379 @@
+"""Compiled kernels of the numerical potential field (:mod:`skyroute.stages.planning.potential`).
+
+Private to that module: the voxel arrays are flat C-order views of (nz, ny, nx) arrays, the
+26 neighbour offsets are ``OFFS`` (dk, di, dj) with their lengths ``steps`` [m] given by the
+caller.  Every kernel polls ``stop`` (a :class:`~skyroute.stages.control.StopFlag` array) and
+returns early when it is set.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+OFFS = np.array([(dk, di, dj) for dk in (-1, 0, 1) for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                 if (dk, di, dj) != (0, 0, 0)], dtype=np.int64)
+# index of the opposite offset: OFFS[OPP[o]] == -OFFS[o]
+OPP = np.array([int(np.nonzero((OFFS == -OFFS[o]).all(axis=1))[0][0]) for o in range(26)], dtype=np.int64)
+NO_PARENT = -1
+
+
+# --------------------------------------------------------------------------- indexed binary heap
+
+
+@numba.njit(cache=True, inline="always")
+def _swap(hk, hn, pos, a, b):
+    ka, na = hk[a], hn[a]
+    hk[a], hn[a] = hk[b], hn[b]
+    hk[b], hn[b] = ka, na
+    pos[hn[a]] = a
+    pos[hn[b]] = b
+
+
+@numba.njit(cache=True)
+def _sift_up(hk, hn, pos, i):
+    while i > 0:
+        p = (i - 1) >> 1
+        if hk[p] <= hk[i]:
+            break
+        _swap(hk, hn, pos, i, p)
+        i = p
+
+
+@numba.njit(cache=True)
+def _sift_down(hk, hn, pos, i, n):
+    while True:
+        a = 2 * i + 1
+        if a >= n:
+            break
+        b = a + 1
+        m = a if (b >= n or hk[a] <= hk[b]) else b
+        if hk[i] <= hk[m]:
+            break
+        _swap(hk, hn, pos, i, m)
+        i = m
+
+
+@numba.njit(cache=True)
+def _push_or_decrease(hk, hn, pos, n, node, key):
+    """Insert ``node`` with ``key`` or lower its key; returns the new heap size."""
+    p = pos[node]
+    if p >= 0:
+        if key < hk[p]:
+            hk[p] = key
+            _sift_up(hk, hn, pos, p)
+        return n
+    hk[n] = key
+    hn[n] = node
+    pos[node] = n
+    _sift_up(hk, hn, pos, n)
+    return n + 1
+
+
+# --------------------------------------------------------------------------- wave propagation
+
+
+@numba.njit(cache=True)
+def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop):
+    """Dijkstra wave from ``seeds`` over the free voxels (26 neighbours).
+
+    ``free`` (N,) uint8; ``weight`` (N,) float32 > 0 per voxel (edge u-v costs
+    ``steps[o] * (weight[u] + weight[v]) / 2``); ``U`` (N,) float64: inf except the seeds'
+    start values (upper bounds elsewhere are allowed: the wave only lowers values, which makes
+    it the incremental update too); ``parent`` (N,) int8: offset index towards the voxel a
+    value came from (-1 for seeds).  Returns the number of voxels settled (-1 if stopped)."""
+    N = free.size
+    pos = np.full(N, -1, dtype=np.int32)
+    cap = 1024
+    hk = np.empty(cap, dtype=np.float64)
+    hn = np.empty(cap, dtype=np.int64)
+    n = 0
+    for s in seeds:
+        if n >= cap:
+            cap *= 2
+            hk2 = np.empty(cap, dtype=np.float64)
+            hn2 = np.empty(cap, dtype=np.int64)
+            hk2[:n] = hk[:n]
+            hn2[:n] = hn[:n]
+            hk, hn = hk2, hn2
+        n = _push_or_decrease(hk, hn, pos, n, s, U[s])
+    nyx = ny * nx
+    settled = 0
+    while n > 0:
+        if (settled & 0xFFFF) == 0 and stop[0] != 0:
+            return -1
+        v = hn[0]
+        kv = hk[0]
+        n -= 1
+        pos[v] = -2                    # settled
+        if n > 0:
+            hk[0] = hk[n]
+            hn[0] = hn[n]
+            pos[hn[0]] = 0
+            _sift_down(hk, hn, pos, 0, n)
+        settled += 1
+        k = v // nyx
+        r = v - k * nyx
+        i = r // nx
+        j = r - i * nx
+        wv = weight[v]
+        for o in range(27):
+            if o == 13:
+                continue
+            dk = o // 9 - 1
+            di = (o // 3) % 3 - 1
+            dj = o % 3 - 1
+            kk = k + dk
+            ii = i + di
+            jj = j + dj
+            if kk < 0 or kk >= nz or ii < 0 or ii >= ny or jj < 0 or jj >= nx:
+                continue
+            u = (kk * ny + ii) * nx + jj
+            if free[u] == 0 or pos[u] == -2:
+                continue
+            oi = o if o < 13 else o - 1          # index into the 26 offsets (centre skipped)
+            c = kv + steps[oi] * 0.5 * (wv + weight[u])
+            if c < U[u]:
+                U[u] = c
+                parent[u] = 25 - oi              # offset from u back to v (opposite)
+                if n >= cap:
+                    cap *= 2
+                    hk2 = np.empty(cap, dtype=np.float64)
+                    hn2 = np.empty(cap, dtype=np.int64)
+                    hk2[:n] = hk[:n]
+                    hn2[:n] = hn[:n]
+                    hk, hn = hk2, hn2
+                n = _push_or_decrease(hk, hn, pos, n, u, c)
+    return settled
+
+
+@numba.njit(cache=True)
+def affected_kernel(parent, changed, nz, ny, nx, out):
+    """``out[v] = 1`` when the parent chain of ``v`` reaches a voxel with ``changed != 0``
+    (``v`` included), else 0: the voxels whose value may depend on a change.  O(N)."""
+    N = parent.size
+    state = np.zeros(N, dtype=np.int8)          # 0 unknown, 1 affected, 2 not
+    stack = np.empty(N if N < 1 << 16 else 1 << 16, dtype=np.int64)
+    nyx = ny * nx
+    for v0 in range(N):
+        if state[v0] != 0:
+            continue
+        top = 0
+        v = v0
+        res = 2
+        while True:
+            if state[v] != 0:
+                res = state[v]
+                break
+            if changed[v] != 0:
+                res = 1
+                state[v] = 1
+                break
+            p = parent[v]
+            if p < 0:
+                res = 2
+                state[v] = 2
+                break
+            if top >= stack.size:
+                s2 = np.empty(stack.size * 2, dtype=np.int64)
+                s2[:top] = stack[:top]
+                stack = s2
+            stack[top] = v
+            top += 1
+            o = p if p < 13 else p + 1
+            dk = o // 9 - 1
+            di = (o // 3) % 3 - 1
+            dj = o % 3 - 1
+            k = v // nyx
+            r = v - k * nyx
+            i = r // nx
+            j = r - i * nx
+            v = ((k + dk) * ny + (i + di)) * nx + (j + dj)
+        for t in range(top):
+            state[stack[t]] = res
+    for v in range(N):
+        out[v] = 1 if state[v] == 1 else 0
+
+
+# --------------------------------------------------------------------------- skeleton
+
+
+@numba.njit(cache=True, parallel=True)
+def ridge_kernel(free, D, nz, ny, nx, min_d, out):
+    """``out[k, i, j] = 1`` for free voxels on a ridge of the clearance ``D``: along at least
+    one of the 13 lines through the voxel, D is >= both line neighbours and > one of them (a
+    neighbour that is not free or outside counts as lower), and D >= ``min_d``."""
+    for k in numba.prange(nz):
+        for i in range(ny):
+            for j in range(nx):
+                out[k, i, j] = 0
+                if free[k, i, j] == 0:
+                    continue
+                d = D[k, i, j]
+                if d < min_d:
+                    continue
+                for o in range(13):
+                    dk = o // 9 - 1
+                    di = (o // 3) % 3 - 1
+                    dj = o % 3 - 1
+                    ka, ia, ja = k + dk, i + di, j + dj
+                    kb, ib, jb = k - dk, i - di, j - dj
+                    da = -1.0
+                    db = -1.0
+                    if 0 <= ka < nz and 0 <= ia < ny and 0 <= ja < nx and free[ka, ia, ja] != 0:
+                        da = D[ka, ia, ja]
+                    if 0 <= kb < nz and 0 <= ib < ny and 0 <= jb < nx and free[kb, ib, jb] != 0:
+                        db = D[kb, ib, jb]
+                    if d >= da and d >= db and (d > da or d > db):
+                        out[k, i, j] = 1
+                        break
+
+
+@numba.njit(cache=True)
+def ascent_kernel(free, D, skel, nz, ny, nx, k, i, j, out):
+    """Steepest ascent of ``D`` over the free 26 neighbours from (k, i, j) until a skeleton
+    voxel or a local maximum; writes the visited flat indices to ``out``, returns their count."""
+    n = 0
+    out[n] = (k * ny + i) * nx + j
+    n += 1
+    while n < out.size and skel[k, i, j] == 0:
+        best = D[k, i, j]
+        bk, bi, bj = -1, -1, -1
+        for o in range(27):
+            dk = o // 9 - 1
+            di = (o // 3) % 3 - 1
+            dj = o % 3 - 1
+            if dk == 0 and di == 0 and dj == 0:
+                continue
+            kk, ii, jj = k + dk, i + di, j + dj
+            if 0 <= kk < nz and 0 <= ii < ny and 0 <= jj < nx and free[kk, ii, jj] != 0:
+                if D[kk, ii, jj] > best:
+                    best = D[kk, ii, jj]
+                    bk, bi, bj = kk, ii, jj
+        if bk < 0:
+            break
+        k, i, j = bk, bi, bj
+        out[n] = (k * ny + i) * nx + j
+        n += 1
+    return n
+
+
+@numba.njit(cache=True)
+def descent_kernel(free, U, nz, ny, nx, v, out):
+    """Gradient motion: from flat index ``v`` move to the free 26-neighbour of least ``U``
+    while it is strictly lower; writes the visited indices to ``out``, returns their count."""
+    nyx = ny * nx
+    n = 0
+    out[n] = v
+    n += 1
+    while n < out.size:
+        k = v // nyx
+        r = v - k * nyx
+        i = r // nx
+        j = r - i * nx
+        best = U[v]
+        bv = -1
+        for o in range(27):
+            dk = o // 9 - 1
+            di = (o // 3) % 3 - 1
+            dj = o % 3 - 1
+            if dk == 0 and di == 0 and dj == 0:
+                continue
+            kk, ii, jj = k + dk, i + di, j + dj
+            if 0 <= kk < nz and 0 <= ii < ny and 0 <= jj < nx:
+                u = (kk * ny + ii) * nx + jj
+                if free[u] != 0 and U[u] < best:
+                    best = U[u]
+                    bv = u
+        if bv < 0:
+            break
+        v = bv
+        out[n] = v
+        n += 1
+    return n
+
+
+@numba.njit(cache=True)
+def segment_clearance_kernel(a, bs, free, D, x0, y1, z0, h, dz, nz, ny, nx, step, out):
+    """For each segment a -> bs[m] [m]: the least ``D`` over the voxels met at samples every
+    ``step`` [m] (a voxel that is not free or outside counts 0); the end points themselves are
+    not sampled (the start / goal may sit in a partly blocked voxel)."""
+    for m in range(bs.shape[0]):
+        dx = bs[m, 0] - a[0]
+        dy = bs[m, 1] - a[1]
+        dzz = bs[m, 2] - a[2]
+        L = math.sqrt(dx * dx + dy * dy + dzz * dzz)
+        ns = max(1, int(math.ceil(L / step)))
+        best = np.inf
+        for s in range(1, ns):
+            t = s / ns
+            x = a[0] + t * dx
+            y = a[1] + t * dy
+            z = a[2] + t * dzz
+            j = int(math.floor((x - x0) / h))
+            i = int(math.floor((y1 - y) / h))
+            k = int(math.floor((z - z0) / dz))
+            d = 0.0
+            if 0 <= k < nz and 0 <= i < ny and 0 <= j < nx and free[k, i, j] != 0:
+                d = D[k, i, j]
+            if d < best:
+                best = d
+        out[m] = best
+
+
+@numba.njit(cache=True)
+def reseed_kernel(free, weight, U, parent, nz, ny, nx, steps, cand, blocked_from):
+    """For each flat index in ``cand`` (free voxels): lower ``U`` / set ``parent`` from the best
+    free 26-neighbour not flagged in ``blocked_from`` (``U[n] + edge cost``).  Returns the
+    candidates with a finite value (the seeds of the incremental wave)."""
+    nyx = ny * nx
+    out = np.empty(cand.size, dtype=np.int64)
+    m = 0
+    for t in range(cand.size):
+        v = cand[t]
+        if free[v] == 0:
+            continue
+        k = v // nyx
+        r = v - k * nyx
+        i = r // nx
+        j = r - i * nx
+        for o in range(27):
+            if o == 13:
+                continue
+            kk = k + o // 9 - 1
+            ii = i + (o // 3) % 3 - 1
+            jj = j + o % 3 - 1
+            if kk < 0 or kk >= nz or ii < 0 or ii >= ny or jj < 0 or jj >= nx:
+                continue
+            u = (kk * ny + ii) * nx + jj
+            if free[u] == 0 or blocked_from[u] != 0 or not np.isfinite(U[u]):
+                continue
+            oi = o if o < 13 else o - 1
+            c = U[u] + steps[oi] * 0.5 * (weight[v] + weight[u])
+            if c < U[v]:
+                U[v] = c
+                parent[v] = oi                    # offset from v to u
+        if np.isfinite(U[v]):
+            out[m] = v
+            m += 1
+    return out[:m]
+
+
+@numba.njit(cache=True)
+def neighbours_kernel(idx, nz, ny, nx, out):
+    """``out[u] = 1`` for every voxel in ``idx`` and its 26 neighbours."""
+    nyx = ny * nx
+    for t in range(idx.size):
+        v = idx[t]
+        k = v // nyx
+        r = v - k * nyx
+        i = r // nx
+        j = r - i * nx
+        for o in range(27):
+            kk = k + o // 9 - 1
+            ii = i + (o // 3) % 3 - 1
+            jj = j + o % 3 - 1
+            if 0 <= kk < nz and 0 <= ii < ny and 0 <= jj < nx:
+                out[(kk * ny + ii) * nx + jj] = 1

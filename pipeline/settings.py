@@ -287,7 +287,7 @@ class TrafficSettings(FrozenModel):
     time_margin_s: NonNegFloat = 5.0
 
 
-PLANNERS = ("astar", "bitstar")
+PLANNERS = ("astar", "bitstar", "potential")
 
 
 class PlannerSettings(FrozenModel):

@@ -205,7 +205,8 @@ def wave_propagation(free: np.ndarray, seeds, seed_values=None, steps_m=None, we
     ``weight`` (nz, ny, nx) > 0: cost per metre of each voxel (a move costs its length times
     the mean of its two voxels' weights; default 1).  Returns (potential (nz, ny, nx) float64,
     inf where not reached; parent (nz, ny, nx) int8: offset index towards the neighbour the
-    value came from, -1 for seeds and unreached)."""
+    value came from, -1 for seeds and unreached).  A diagonal move needs every voxel of the box
+    it spans free (no corner cutting: the segment between the centres stays in free voxels)."""
     from skyroute.stages.planning.potential_kernels import wave_kernel
 
     free = np.ascontiguousarray(free, dtype=bool)
@@ -402,8 +403,13 @@ def update_potential(pf: PotentialField, free_new: np.ndarray, obstacle_new: np.
     cidx = np.flatnonzero(wchg.ravel())
     U = pf.potential_m.ravel().copy()
     parent = pf.parent.ravel().copy()
+    # a move needs its whole box free (no corner cutting): a voxel whose freedom changed
+    # touches the moves between any two of its neighbours
+    through = np.zeros(U.size, dtype=np.uint8)
+    neighbours_kernel(np.flatnonzero((free_new != vm.free).ravel()), nz, ny, nx, through)
+    through |= wchg.ravel().view(np.uint8)
     aff = np.empty(U.size, dtype=np.uint8)
-    affected_kernel(parent, wchg.ravel().view(np.uint8), nz, ny, nx, aff)
+    affected_kernel(parent, through, nz, ny, nx, aff)
     g = int(np.ravel_multi_index(pf.goal, vm.shape))
     aff[g] = 0
     U[aff.view(bool)] = np.inf

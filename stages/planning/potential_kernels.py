@@ -72,6 +72,24 @@ def _push_or_decrease(hk, hn, pos, n, node, key):
     return n + 1
 
 
+@numba.njit(cache=True, inline="always")
+def _move_ok(free, k, i, j, dk, di, dj, ny, nx):
+    """No corner cutting: every voxel of the box spanned by the move (k, i, j) -> (k+dk, i+di,
+    j+dj) is free (the straight segment between the two centres then stays inside free voxels;
+    the target is checked by the caller)."""
+    for a in range(2):
+        for b in range(2):
+            for c in range(2):
+                if a * dk == 0 and b * di == 0 and c * dj == 0:
+                    continue
+                if a == 1 and b == 1 and c == 1:
+                    continue
+                u = ((k + a * dk) * ny + (i + b * di)) * nx + (j + c * dj)
+                if free[u] == 0:
+                    return False
+    return True
+
+
 # --------------------------------------------------------------------------- wave propagation
 
 
@@ -131,7 +149,7 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop):
             if kk < 0 or kk >= nz or ii < 0 or ii >= ny or jj < 0 or jj >= nx:
                 continue
             u = (kk * ny + ii) * nx + jj
-            if free[u] == 0 or pos[u] == -2:
+            if free[u] == 0 or pos[u] == -2 or not _move_ok(free, k, i, j, dk, di, dj, ny, nx):
                 continue
             oi = o if o < 13 else o - 1          # index into the 26 offsets (centre skipped)
             c = kv + steps[oi] * 0.5 * (wv + weight[u])
@@ -284,7 +302,7 @@ def descent_kernel(free, U, nz, ny, nx, v, out):
             kk, ii, jj = k + dk, i + di, j + dj
             if 0 <= kk < nz and 0 <= ii < ny and 0 <= jj < nx:
                 u = (kk * ny + ii) * nx + jj
-                if free[u] != 0 and U[u] < best:
+                if free[u] != 0 and U[u] < best and _move_ok(free, k, i, j, dk, di, dj, ny, nx):
                     best = U[u]
                     bv = u
         if bv < 0:
@@ -349,6 +367,8 @@ def reseed_kernel(free, weight, U, parent, nz, ny, nx, steps, cand, blocked_from
                 continue
             u = (kk * ny + ii) * nx + jj
             if free[u] == 0 or blocked_from[u] != 0 or not np.isfinite(U[u]):
+                continue
+            if not _move_ok(free, k, i, j, o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1, ny, nx):
                 continue
             oi = o if o < 13 else o - 1
             c = U[u] + steps[oi] * 0.5 * (weight[v] + weight[u])

@@ -63,6 +63,10 @@ DEFAULT_OFF_SKELETON_WEIGHT = 8.0
 _OFFS = np.array([(dk, di, dj) for dk in (-1, 0, 1) for di in (-1, 0, 1) for dj in (-1, 0, 1)
                   if (dk, di, dj) != (0, 0, 0)], dtype=np.int64)
 
+# offset o' of the kernel run on (y, x, z) arrays -> index of the same move in _OFFS (z, y, x)
+_P2O = np.array([int(np.nonzero((_OFFS == (dc, da, db)).all(axis=1))[0][0]) for da, db, dc in _OFFS],
+                dtype=np.int64)
+
 
 # --------------------------------------------------------------------------- bitmap
 
@@ -226,11 +230,27 @@ def wave_propagation(free: np.ndarray, seeds, seed_values=None, steps_m=None, we
          else np.ascontiguousarray(weight, dtype=np.float32).ravel())
     if w.size != free.size or not (w > 0).all():
         raise InputError("weight must be > 0 on the bitmap's shape")
-    U = np.full(free.size, np.inf)
-    U[seeds] = np.minimum(U[seeds], vals)
-    parent = np.full(free.size, -1, dtype=np.int8)
     st = np.zeros(1, dtype=np.int8) if stop is None else stop
-    n = wave_kernel(free.ravel().view(np.uint8), w, *shape, steps, seeds, U, parent, st)
+    if shape[0] < shape[2]:
+        # the kernel runs with the shortest axis (the levels) fastest in memory: a voxel's 26
+        # neighbours then lie in 3 short runs (1.6 x faster on the Helsinki bitmap)
+        pshape = (shape[1], shape[2], shape[0])
+        fr = np.ascontiguousarray(free.transpose(1, 2, 0))
+        wp = np.ascontiguousarray(w.reshape(shape).transpose(1, 2, 0)).ravel()
+        k, i, j = np.unravel_index(seeds, shape)
+        ps = np.ravel_multi_index((i, j, k), pshape)
+        U = np.full(free.size, np.inf)
+        U[ps] = np.minimum(U[ps], vals)
+        parent = np.full(free.size, -1, dtype=np.int8)
+        n = wave_kernel(fr.ravel().view(np.uint8), wp, *pshape, steps[_P2O], ps, U, parent, st)
+        U = np.ascontiguousarray(U.reshape(pshape).transpose(2, 0, 1))
+        parent = np.ascontiguousarray(np.where(parent >= 0, _P2O[parent], -1).astype(np.int8)
+                                      .reshape(pshape).transpose(2, 0, 1))
+    else:
+        U = np.full(free.size, np.inf)
+        U[seeds] = np.minimum(U[seeds], vals)
+        parent = np.full(free.size, -1, dtype=np.int8)
+        n = wave_kernel(free.ravel().view(np.uint8), w, *shape, steps, seeds, U, parent, st)
     if n < 0:
         control.check()
     return U.reshape(shape), parent.reshape(shape)

@@ -20,58 +20,6 @@ OPP = np.array([int(np.nonzero((OFFS == -OFFS[o]).all(axis=1))[0][0]) for o in r
 NO_PARENT = -1
 
 
-# --------------------------------------------------------------------------- indexed binary heap
-
-
-@numba.njit(cache=True, inline="always")
-def _swap(hk, hn, pos, a, b):
-    ka, na = hk[a], hn[a]
-    hk[a], hn[a] = hk[b], hn[b]
-    hk[b], hn[b] = ka, na
-    pos[hn[a]] = a
-    pos[hn[b]] = b
-
-
-@numba.njit(cache=True)
-def _sift_up(hk, hn, pos, i):
-    while i > 0:
-        p = (i - 1) >> 1
-        if hk[p] <= hk[i]:
-            break
-        _swap(hk, hn, pos, i, p)
-        i = p
-
-
-@numba.njit(cache=True)
-def _sift_down(hk, hn, pos, i, n):
-    while True:
-        a = 2 * i + 1
-        if a >= n:
-            break
-        b = a + 1
-        m = a if (b >= n or hk[a] <= hk[b]) else b
-        if hk[i] <= hk[m]:
-            break
-        _swap(hk, hn, pos, i, m)
-        i = m
-
-
-@numba.njit(cache=True)
-def _push_or_decrease(hk, hn, pos, n, node, key):
-    """Insert ``node`` with ``key`` or lower its key; returns the new heap size."""
-    p = pos[node]
-    if p >= 0:
-        if key < hk[p]:
-            hk[p] = key
-            _sift_up(hk, hn, pos, p)
-        return n
-    hk[n] = key
-    hn[n] = node
-    pos[node] = n
-    _sift_up(hk, hn, pos, n)
-    return n + 1
-
-
 @numba.njit(cache=True, inline="always")
 def _move_ok(free, k, i, j, dk, di, dj, ny, nx):
     """No corner cutting: every voxel of the box spanned by the move (k, i, j) -> (k+dk, i+di,
@@ -95,75 +43,129 @@ def _move_ok(free, k, i, j, dk, di, dj, ny, nx):
 
 @numba.njit(cache=True)
 def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop):
-    """Dijkstra wave from ``seeds`` over the free voxels (26 neighbours).
+    """Exact Dijkstra wave from ``seeds`` over the free voxels (26 neighbours, no corner
+    cutting), with buckets of width q = the least edge cost (Dinitz): a voxel of bucket b
+    cannot be improved by another voxel of bucket b (that would cost >= q more), so a bucket's
+    voxels are settled in any order -- here by increasing index, for memory locality -- and
+    every voxel once, in O(N * 26) plus a sort per bucket.  The kernel is indifferent to the
+    axis order: (nz, ny, nx) are the three axes of the flat C-order arrays, ``steps`` in the
+    matching offset order.
 
     ``free`` (N,) uint8; ``weight`` (N,) float32 > 0 per voxel (edge u-v costs
     ``steps[o] * (weight[u] + weight[v]) / 2``); ``U`` (N,) float64: inf except the seeds'
-    start values (upper bounds elsewhere are allowed: the wave only lowers values, which makes
-    it the incremental update too); ``parent`` (N,) int8: offset index towards the voxel a
+    start values (finite upper bounds elsewhere are allowed: the wave only lowers values, which
+    makes it the incremental update too); ``parent`` (N,) int8: offset index towards the voxel a
     value came from (-1 for seeds).  Returns the number of voxels settled (-1 if stopped)."""
     N = free.size
-    pos = np.full(N, -1, dtype=np.int32)
+    wmin = np.inf
+    wmax = 0.0
+    for v in range(N):
+        if free[v] != 0:
+            if weight[v] < wmin:
+                wmin = weight[v]
+            if weight[v] > wmax:
+                wmax = weight[v]
+    q = steps.min() * wmin
+    nb = int(math.ceil(steps.max() * wmax / q)) + 2
     cap = 1024
-    hk = np.empty(cap, dtype=np.float64)
-    hn = np.empty(cap, dtype=np.int64)
-    n = 0
-    for s in seeds:
-        if n >= cap:
-            cap *= 2
-            hk2 = np.empty(cap, dtype=np.float64)
-            hn2 = np.empty(cap, dtype=np.int64)
-            hk2[:n] = hk[:n]
-            hn2[:n] = hn[:n]
-            hk, hn = hk2, hn2
-        n = _push_or_decrease(hk, hn, pos, n, s, U[s])
+    buf = np.empty((nb, cap), dtype=np.int64)
+    cnt = np.zeros(nb, dtype=np.int64)
+    state = np.zeros(N, dtype=np.uint8)           # 0 not settled, 2 settled
+    order = np.argsort(U[seeds])
+    sp = 0
+    nseeds = seeds.size
+    queued = 0
+    cur = 0
     nyx = ny * nx
     settled = 0
-    while n > 0:
-        if (settled & 0xFFFF) == 0 and stop[0] != 0:
-            return -1
-        v = hn[0]
-        kv = hk[0]
-        n -= 1
-        pos[v] = -2                    # settled
-        if n > 0:
-            hk[0] = hk[n]
-            hn[0] = hn[n]
-            pos[hn[0]] = 0
-            _sift_down(hk, hn, pos, 0, n)
-        settled += 1
-        k = v // nyx
-        r = v - k * nyx
-        i = r // nx
-        j = r - i * nx
-        wv = weight[v]
-        for o in range(27):
-            if o == 13:
+    while True:
+        if queued == 0:
+            while sp < nseeds and state[seeds[order[sp]]] != 0:
+                sp += 1
+            if sp >= nseeds:
+                break
+            cur = int(math.floor(U[seeds[order[sp]]] / q))
+        while sp < nseeds:                        # seeds inside the window [cur, cur + nb - 2]
+            sv = seeds[order[sp]]
+            b = int(math.floor(U[sv] / q))
+            if b > cur + nb - 2:
+                break
+            if b < cur:
+                b = cur
+            sl = b % nb
+            if cnt[sl] >= cap:
+                buf2 = np.empty((nb, 2 * cap), dtype=np.int64)
+                buf2[:, :cap] = buf
+                buf = buf2
+                cap *= 2
+            buf[sl, cnt[sl]] = sv
+            cnt[sl] += 1
+            queued += 1
+            sp += 1
+        slot = cur % nb
+        m = cnt[slot]
+        if m == 0:
+            cur += 1
+            continue
+        items = np.sort(buf[slot, :m])
+        cnt[slot] = 0
+        queued -= m
+        for t in range(m):
+            v = items[t]
+            if state[v] == 2:
                 continue
-            dk = o // 9 - 1
-            di = (o // 3) % 3 - 1
-            dj = o % 3 - 1
-            kk = k + dk
-            ii = i + di
-            jj = j + dj
-            if kk < 0 or kk >= nz or ii < 0 or ii >= ny or jj < 0 or jj >= nx:
-                continue
-            u = (kk * ny + ii) * nx + jj
-            if free[u] == 0 or pos[u] == -2 or not _move_ok(free, k, i, j, dk, di, dj, ny, nx):
-                continue
-            oi = o if o < 13 else o - 1          # index into the 26 offsets (centre skipped)
-            c = kv + steps[oi] * 0.5 * (wv + weight[u])
-            if c < U[u]:
-                U[u] = c
-                parent[u] = 25 - oi              # offset from u back to v (opposite)
-                if n >= cap:
-                    cap *= 2
-                    hk2 = np.empty(cap, dtype=np.float64)
-                    hn2 = np.empty(cap, dtype=np.int64)
-                    hk2[:n] = hk[:n]
-                    hn2[:n] = hn[:n]
-                    hk, hn = hk2, hn2
-                n = _push_or_decrease(hk, hn, pos, n, u, c)
+            state[v] = 2
+            settled += 1
+            if (settled & 0xFFFF) == 0 and stop[0] != 0:
+                return -1
+            k = v // nyx
+            r = v - k * nyx
+            i = r // nx
+            j = r - i * nx
+            inner = 0 < k < nz - 1 and 0 < i < ny - 1 and 0 < j < nx - 1
+            if inner:                              # fast path: all 26 neighbours free
+                for o in range(27):
+                    if free[v + ((o // 9 - 1) * ny + ((o // 3) % 3 - 1)) * nx + (o % 3 - 1)] == 0:
+                        inner = False
+                        break
+            Uv = U[v]
+            wv = weight[v]
+            for o in range(27):
+                if o == 13:
+                    continue
+                dk = o // 9 - 1
+                di = (o // 3) % 3 - 1
+                dj = o % 3 - 1
+                kk = k + dk
+                ii = i + di
+                jj = j + dj
+                if not inner:
+                    if kk < 0 or kk >= nz or ii < 0 or ii >= ny or jj < 0 or jj >= nx:
+                        continue
+                u = (kk * ny + ii) * nx + jj
+                if state[u] == 2:
+                    continue
+                if not inner:
+                    if free[u] == 0 or not _move_ok(free, k, i, j, dk, di, dj, ny, nx):
+                        continue
+                oi = o if o < 13 else o - 1      # index into the 26 offsets (centre skipped)
+                c = Uv + steps[oi] * 0.5 * (wv + weight[u])
+                if c < U[u]:
+                    U[u] = c
+                    parent[u] = 25 - oi          # offset from u back to v (opposite)
+                    b = int(math.floor(c / q))
+                    if b <= cur:
+                        b = cur + 1
+                    sl = b % nb
+                    if cnt[sl] >= cap:
+                        buf2 = np.empty((nb, 2 * cap), dtype=np.int64)
+                        buf2[:, :cap] = buf
+                        buf = buf2
+                        cap *= 2
+                    buf[sl, cnt[sl]] = u
+                    cnt[sl] += 1
+                    queued += 1
+        cur += 1
     return settled
 
 

@@ -59,6 +59,8 @@ from skyroute.stages.base import InputError
 from skyroute.stages.planning.problem import PlanningProblem
 
 DEFAULT_OFF_SKELETON_WEIGHT = 8.0
+DEFAULT_VOXEL_M = 2.0       # [m] default voxel edge (snapped to a multiple of the grid resolution)
+DEFAULT_MARGIN_M = 250.0    # [m] default workspace: the start-goal box plus this margin
 # 26 neighbour offsets (dk, di, dj), centre excluded, in the kernels' order
 _OFFS = np.array([(dk, di, dj) for dk in (-1, 0, 1) for di in (-1, 0, 1) for dj in (-1, 0, 1)
                   if (dk, di, dj) != (0, 0, 0)], dtype=np.int64)
@@ -125,28 +127,43 @@ class VoxelMap:
         return np.all((kij >= 0) & (kij < np.array(self.shape)), axis=1)
 
 
+def default_voxel_m(resolution_m: float) -> float:
+    """The default voxel size [m]: the multiple of the grid resolution nearest to
+    :data:`DEFAULT_VOXEL_M` (at least one cell)."""
+    return resolution_m * max(1, round(DEFAULT_VOXEL_M / resolution_m))
+
+
 def occupancy_bitmap(problem: PlanningProblem, voxel_m: float | None = None, dz_m: float | None = None,
-                     z_ref_m: float | None = None) -> VoxelMap:
+                     z_ref_m: float | None = None, bounds_m: tuple[float, float, float, float] | None = None
+                     ) -> VoxelMap:
     """The conservative 3-D bitmap of ``problem`` (module docstring, step 1).
 
-    ``voxel_m`` [m]: horizontal voxel size, a whole multiple of the grid resolution (default:
-    the resolution); ``dz_m`` [m]: voxel height (default ``voxel_m``); ``z_ref_m`` [m]: an
-    altitude that falls on a voxel centre (default the start's).  Rows / columns of the grid
-    that do not fill a whole block are left out (east / south edge)."""
+    ``voxel_m`` [m]: horizontal voxel size, a whole multiple of the grid resolution (default
+    :func:`default_voxel_m`); ``dz_m`` [m]: voxel height (default ``voxel_m``); ``z_ref_m``
+    [m]: an altitude that falls on a voxel centre (default the start's); ``bounds_m``
+    (xmin, ymin, xmax, ymax) [m]: the part of the grid to cover (default all; snapped outward
+    to cells, clipped to the grid).  Rows / columns that do not fill a whole block are left out
+    (east / south edge)."""
     g = problem.grid
     res = g.resolution_m
-    h = res if voxel_m is None else float(voxel_m)
+    h = default_voxel_m(res) if voxel_m is None else float(voxel_m)
     block = int(round(h / res))
     if block < 1 or abs(block * res - h) > 1e-6 * res:
         raise InputError(f"voxel_m {voxel_m} m must be a whole multiple of the grid resolution {res:g} m")
     dz = h if dz_m is None else float(dz_m)
     if not (math.isfinite(dz) and dz > 0):
         raise InputError(f"dz_m {dz_m} must be > 0 [m]")
-    NY, NX = g.ny // block, g.nx // block
+    r0, c0, r1, c1 = 0, 0, g.ny, g.nx
+    if bounds_m is not None:
+        xmin, ymin, xmax, ymax = (float(v) for v in bounds_m)
+        c0, c1 = max(0, math.floor((xmin - g.x0) / res)), min(g.nx, math.ceil((xmax - g.x0) / res))
+        r0, r1 = max(0, math.floor((g.y1 - ymax) / res)), min(g.ny, math.ceil((g.y1 - ymin) / res))
+    NY, NX = (r1 - r0) // block, (c1 - c0) // block
     if NY < 1 or NX < 1:
-        raise InputError(f"voxel_m {h:g} m is larger than the grid ({g.ny} x {g.nx} cells of {res:g} m)")
-    fl = problem.floor_m[:NY * block, :NX * block].reshape(NY, block, NX, block).max(axis=(1, 3))
-    ce = problem.ceiling_m[:NY * block, :NX * block].reshape(NY, block, NX, block).min(axis=(1, 3))
+        raise InputError(f"voxel_m {h:g} m is larger than the area ({r1 - r0} x {c1 - c0} cells of {res:g} m)")
+    rs, cs = slice(r0, r0 + NY * block), slice(c0, c0 + NX * block)
+    fl = problem.floor_m[rs, cs].reshape(NY, block, NX, block).max(axis=(1, 3))
+    ce = problem.ceiling_m[rs, cs].reshape(NY, block, NX, block).min(axis=(1, 3))
     ok = np.isfinite(fl) & (fl <= ce)
     if not ok.any():
         raise InputError(f"{problem.label}: no column admits any altitude (floors above ceilings everywhere)")
@@ -160,7 +177,7 @@ def occupancy_bitmap(problem: PlanningProblem, voxel_m: float | None = None, dz_
     zhi = zlo + dz
     free = (fl[None] <= zlo[:, None, None]) & (zhi[:, None, None] <= ce[None])
     obstacle = zlo[:, None, None] < fl[None]
-    return VoxelMap(g.x0, g.y1, float(z0), h, dz, block, free, obstacle, fl, ce)
+    return VoxelMap(g.x0 + c0 * res, g.y1 - r0 * res, float(z0), h, dz, block, free, obstacle, fl, ce)
 
 
 def clearance_map(vmap: VoxelMap) -> np.ndarray:
@@ -508,7 +525,9 @@ def reduce_waypoints(problem: PlanningProblem, pf: PotentialField, chain, cleara
         clear = np.empty(js.size)
         segment_clearance_kernel(w[i], np.ascontiguousarray(w[js]), freeu8, pf.clearance_m, vm.x0_m, vm.y1_m,
                                  vm.z0_m, vm.voxel_m, vm.dz_m, nz, ny, nx, vm.voxel_m / 4, clear)
-        need = np.array([dv[i + 1:j].min() if j > i + 1 else np.inf for j in js])
+        # least clearance of the vertices each shortcut replaces: need[j] = min dv[i+1:j]
+        cm = np.minimum.accumulate(dv[i + 1:])                      # cm[m] = min dv[i+1 .. i+1+m]
+        need = np.where(js > i + 1, cm[np.maximum(js - i - 2, 0)], np.inf)
         good = ok & (clear >= need - tol)
         good |= ok & (js == i + 1)
         if good.any():
@@ -516,8 +535,17 @@ def reduce_waypoints(problem: PlanningProblem, pf: PotentialField, chain, cleara
         elif ok.any():
             j = int(js[np.argmax(ok)])
         else:
-            j = i + 1
-            all_ok = False
+            # stuck (e.g. right above the goal, steeper than the flight-path angle allows):
+            # from the previous kept vertex, the farthest valid motion beyond this one
+            p = out[-2] if len(out) >= 2 else -1
+            okp = (problem.motion_valid(np.repeat(w[p:p + 1], js.size, axis=0), w[js]) if p >= 0
+                   else np.zeros(js.size, bool))
+            if okp.any():
+                out.pop()
+                j = int(js[np.argmax(okp)])
+            else:
+                j = i + 1
+                all_ok = False
         out.append(j)
         i = j
     return w[out], all_ok
@@ -535,10 +563,12 @@ def minimum_jerk(p0, p1, duration_s: float, t_s) -> np.ndarray:
 
 
 def plan_potential(problem: PlanningProblem, voxel_m: float | None = None, dz_m: float | None = None, *,
+                   margin_m: float | None = DEFAULT_MARGIN_M,
                    off_skeleton_weight: float = DEFAULT_OFF_SKELETON_WEIGHT, vertical_weight: float | None = None,
                    clearance_tol_m: float | None = None, time_limit_s: float = math.inf) -> dict:
-    """STEP I by the numerical potential field (module docstring).  ``vertical_weight``
-    default ``1 / tan(max flight-path angle)``.  Returns a dict: ``waypoints`` (k, 3) [m] or
+    """STEP I by the numerical potential field (module docstring).  The workspace is the
+    start-goal box plus ``margin_m`` [m] (None: the whole grid); ``vertical_weight`` default
+    ``1 / tan(max flight-path angle)``.  Returns a dict: ``waypoints`` (k, 3) [m] or
     None, ``reason`` ("" when solved), ``field`` (:class:`PotentialField` or None),
     ``voxel_path`` (flat indices of the gradient motion), ``valid`` (every chain segment a
     valid motion), ``compute_s``, ``stopped_by`` ("" or "time")."""
@@ -546,7 +576,11 @@ def plan_potential(problem: PlanningProblem, voxel_m: float | None = None, dz_m:
     if vertical_weight is None:
         vertical_weight = 1.0 / math.tan(math.radians(problem.vehicle.max_flight_path_angle_deg))
     res = {"waypoints": None, "reason": "", "field": None, "voxel_path": None, "valid": False, "stopped_by": ""}
-    vm = occupancy_bitmap(problem, voxel_m, dz_m)
+    bounds = None
+    if margin_m is not None:
+        (xs, ys, _), (xg, yg, _) = problem.start_xyz, problem.goal_xyz
+        bounds = (min(xs, xg) - margin_m, min(ys, yg) - margin_m, max(xs, xg) + margin_m, max(ys, yg) + margin_m)
+    vm = occupancy_bitmap(problem, voxel_m, dz_m, bounds_m=bounds)
     s = entry_voxel(problem, vm, problem.start_xyz)
     gl = entry_voxel(problem, vm, problem.goal_xyz)
     if s is None or gl is None:
@@ -584,6 +618,6 @@ def plan_potential(problem: PlanningProblem, voxel_m: float | None = None, dz_m:
     return res
 
 
-__all__ = ["DEFAULT_OFF_SKELETON_WEIGHT", "PotentialField", "VoxelMap", "clearance_map", "connect_to_skeleton",
-           "descend", "entry_voxel", "minimum_jerk", "neighbour_steps_m", "occupancy_bitmap", "plan_potential",
+__all__ = ["DEFAULT_MARGIN_M", "DEFAULT_OFF_SKELETON_WEIGHT", "DEFAULT_VOXEL_M", "PotentialField", "VoxelMap",
+           "clearance_map", "connect_to_skeleton", "default_voxel_m", "descend", "entry_voxel", "minimum_jerk", "neighbour_steps_m", "occupancy_bitmap", "plan_potential",
            "potential_field", "reduce_waypoints", "skeleton", "update_potential", "wave_propagation"]

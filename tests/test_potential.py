@@ -269,3 +269,21 @@ def test_errors_say_how_to_fix():
         P.occupancy_bitmap(pr, voxel_m=3.0)
     with pytest.raises(InputError, match="free voxel"):
         P.wave_propagation(np.zeros((2, 2, 2), bool), [0])
+
+
+@pytest.mark.parametrize("shape", [(6, 12, 14), (14, 12, 6)])   # both memory layouts of the kernel
+def test_wave_stopped_at_a_target_keeps_every_lower_value_exact(shape):
+    rng = np.random.default_rng(7)
+    free = _random_free(rng, shape, 0.3)
+    s = int(np.flatnonzero(free)[0])
+    steps = np.sqrt(((OFFS * np.array([2.0, 2.0, 2.0])) ** 2).sum(axis=1))
+    full, _ = P.wave_propagation(free, [s], steps_m=steps)
+    reach = np.flatnonzero(np.isfinite(full))
+    t = int(reach[np.argsort(full.ravel()[reach])[reach.size // 2]])     # a voxel of median potential
+    part, _ = P.wave_propagation(free, [s], steps_m=steps, target=t)
+    assert np.isfinite(full.ravel()[t])
+    fin = np.isfinite(part)
+    np.testing.assert_allclose(part[fin], full[fin], rtol=1e-12)
+    assert np.all(fin[full <= full.ravel()[t]])               # everything below the target is there
+    assert fin.sum() < 0.8 * reach.size                        # and the wave did stop early
+    assert _local_minima(part, free, s).size == 0

@@ -219,7 +219,7 @@ def neighbour_steps_m(vmap: VoxelMap, vertical_weight: float = 1.0) -> np.ndarra
 
 
 def wave_propagation(free: np.ndarray, seeds, seed_values=None, steps_m=None, weight=None,
-                     stop: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     stop: np.ndarray | None = None, target: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Wave propagation (26 neighbours, compiled Dijkstra) over the ``free`` voxels (nz, ny, nx)
     from ``seeds`` (flat indices) with ``seed_values`` [m] (default 0).  ``steps_m`` (26,):
     length of each neighbour move (default 1 for all: the seed's L^1 wave, a BFS hop count);
@@ -227,7 +227,9 @@ def wave_propagation(free: np.ndarray, seeds, seed_values=None, steps_m=None, we
     the mean of its two voxels' weights; default 1).  Returns (potential (nz, ny, nx) float64,
     inf where not reached; parent (nz, ny, nx) int8: offset index towards the neighbour the
     value came from, -1 for seeds and unreached).  A diagonal move needs every voxel of the box
-    it spans free (no corner cutting: the segment between the centres stays in free voxels)."""
+    it spans free (no corner cutting: the segment between the centres stays in free voxels).
+    ``target`` (a flat index): stop once it is reached; only the voxels of potential up to
+    about the target's keep a value (the rest inf), enough for the gradient motion from it."""
     from skyroute.stages.planning.potential_kernels import wave_kernel
 
     free = np.ascontiguousarray(free, dtype=bool)
@@ -259,7 +261,11 @@ def wave_propagation(free: np.ndarray, seeds, seed_values=None, steps_m=None, we
         U = np.full(free.size, np.inf)
         U[ps] = np.minimum(U[ps], vals)
         parent = np.full(free.size, -1, dtype=np.int8)
-        n = wave_kernel(fr.ravel().view(np.uint8), wp, *pshape, steps[_P2O], ps, U, parent, st)
+        tp = -1
+        if target is not None:
+            tk, ti, tj = np.unravel_index(int(target), shape)
+            tp = int(np.ravel_multi_index((ti, tj, tk), pshape))
+        n = wave_kernel(fr.ravel().view(np.uint8), wp, *pshape, steps[_P2O], ps, U, parent, st, tp)
         U = np.ascontiguousarray(U.reshape(pshape).transpose(2, 0, 1))
         parent = np.ascontiguousarray(np.where(parent >= 0, _P2O[parent], -1).astype(np.int8)
                                       .reshape(pshape).transpose(2, 0, 1))
@@ -267,7 +273,8 @@ def wave_propagation(free: np.ndarray, seeds, seed_values=None, steps_m=None, we
         U = np.full(free.size, np.inf)
         U[seeds] = np.minimum(U[seeds], vals)
         parent = np.full(free.size, -1, dtype=np.int8)
-        n = wave_kernel(free.ravel().view(np.uint8), w, *shape, steps, seeds, U, parent, st)
+        n = wave_kernel(free.ravel().view(np.uint8), w, *shape, steps, seeds, U, parent, st,
+                        -1 if target is None else int(target))
     if n < 0:
         control.check()
     return U.reshape(shape), parent.reshape(shape)
@@ -319,12 +326,15 @@ def connect_to_skeleton(vmap: VoxelMap, clearance_m: np.ndarray, skel: np.ndarra
 
 def potential_field(vmap: VoxelMap, goal_kij, connect=(), *, off_skeleton_weight: float = DEFAULT_OFF_SKELETON_WEIGHT,
                     vertical_weight: float = 1.0, min_clearance_m: float = 0.0,
-                    clearance_m: np.ndarray | None = None, time_limit_s: float = math.inf) -> PotentialField:
+                    clearance_m: np.ndarray | None = None, time_limit_s: float = math.inf,
+                    until=None) -> PotentialField:
     """The W-potential of ``vmap`` towards the free voxel ``goal_kij`` (k, i, j) (module
     docstring, steps 2-5).  ``connect``: further voxels (the start's) joined to the skeleton
     by clearance ascent; ``off_skeleton_weight`` >= 1 (K); ``vertical_weight`` > 0;
     ``clearance_m``: a precomputed :func:`clearance_map`.  Past ``time_limit_s`` [s] the wave
-    stops and :class:`~skyroute.stages.control.Interrupted`-style cancellation is honoured."""
+    stops with TimeoutError (a cancel request raises Interrupted).  ``until`` (k, i, j): stop
+    the wave once that voxel (the start) is reached (:func:`wave_propagation` ``target``; such
+    a field cannot be given to :func:`update_potential`)."""
     if not (math.isfinite(off_skeleton_weight) and off_skeleton_weight >= 1):
         raise InputError(f"off_skeleton_weight {off_skeleton_weight} must be >= 1 (1: plain shortest path)")
     if not (math.isfinite(vertical_weight) and vertical_weight > 0):
@@ -353,8 +363,9 @@ def potential_field(vmap: VoxelMap, goal_kij, connect=(), *, off_skeleton_weight
     pf = PotentialField(vmap, D, skel, np.empty(0), np.empty(0, np.int8), g, float(off_skeleton_weight),
                         float(vertical_weight), conn_idx, t)
     with control.StopFlag(time_limit_s) as stop:
+        tgt = None if until is None else int(np.ravel_multi_index(tuple(int(c) for c in until), vmap.shape))
         U, parent = wave_propagation(vmap.free, [np.ravel_multi_index(g, vmap.shape)], None, pf.steps_m,
-                                     pf.weight(), stop.array)
+                                     pf.weight(), stop.array, tgt)
         if stop.expired:
             raise TimeoutError(f"potential field: the wave did not finish within {time_limit_s:g} s")
     t["wave"] = time.perf_counter() - t1
@@ -576,6 +587,7 @@ def plan_potential(problem: PlanningProblem, voxel_m: float | None = None, dz_m:
     if vertical_weight is None:
         vertical_weight = 1.0 / math.tan(math.radians(problem.vehicle.max_flight_path_angle_deg))
     res = {"waypoints": None, "reason": "", "field": None, "voxel_path": None, "valid": False, "stopped_by": ""}
+    # the wave stops at the start (until=s): the field holds the potential up to the start's
     bounds = None
     if margin_m is not None:
         (xs, ys, _), (xg, yg, _) = problem.start_xyz, problem.goal_xyz
@@ -591,7 +603,7 @@ def plan_potential(problem: PlanningProblem, voxel_m: float | None = None, dz_m:
         return res
     try:
         pf = potential_field(vm, gl, [s], off_skeleton_weight=off_skeleton_weight, vertical_weight=vertical_weight,
-                             time_limit_s=time_limit_s - (time.perf_counter() - t0))
+                             time_limit_s=time_limit_s - (time.perf_counter() - t0), until=s)
     except TimeoutError as exc:
         res["reason"], res["stopped_by"] = f"{problem.label}: {exc}", "time"
         res["compute_s"] = time.perf_counter() - t0

@@ -42,7 +42,7 @@ def _move_ok(free, k, i, j, dk, di, dj, ny, nx):
 
 
 @numba.njit(cache=True)
-def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop):
+def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=-1):
     """Exact Dijkstra wave from ``seeds`` over the free voxels (26 neighbours, no corner
     cutting), with buckets of width q = the least edge cost (Dinitz): a voxel of bucket b
     cannot be improved by another voxel of bucket b (that would cost >= q more), so a bucket's
@@ -55,7 +55,10 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop):
     ``steps[o] * (weight[u] + weight[v]) / 2``); ``U`` (N,) float64: inf except the seeds'
     start values (finite upper bounds elsewhere are allowed: the wave only lowers values, which
     makes it the incremental update too); ``parent`` (N,) int8: offset index towards the voxel a
-    value came from (-1 for seeds).  Returns the number of voxels settled (-1 if stopped)."""
+    value came from (-1 for seeds).  ``target`` >= 0: stop once the bucket holding that voxel is
+    settled (every voxel of lower potential is then final); the unsettled voxels get inf / -1
+    (their tentative values are larger than the target's anyway).  Returns the number of voxels
+    settled (-1 if stopped)."""
     N = free.size
     wmin = np.inf
     wmax = 0.0
@@ -166,6 +169,12 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop):
                     cnt[sl] += 1
                     queued += 1
         cur += 1
+        if target >= 0 and state[target] == 2:
+            for v in range(N):
+                if state[v] != 2:
+                    U[v] = np.inf
+                    parent[v] = -1
+            break
     return settled
 
 

@@ -287,3 +287,12 @@ def test_wave_stopped_at_a_target_keeps_every_lower_value_exact(shape):
     assert np.all(fin[full <= full.ravel()[t]])               # everything below the target is there
     assert fin.sum() < 0.8 * reach.size                        # and the wave did stop early
     assert _local_minima(part, free, s).size == 0
+
+
+def test_potential_is_a_known_planner_everywhere():
+    from skyroute.pipeline.settings import PLANNERS as SETTINGS_PLANNERS
+    from skyroute.pipeline.settings import parse_planner
+    from skyroute.stages.planning.step1 import PLANNERS
+
+    assert "potential" in PLANNERS and "potential" in SETTINGS_PLANNERS
+    assert parse_planner({"name": "potential"}).name == "potential"

@@ -41,6 +41,27 @@ def _move_ok(free, k, i, j, dk, di, dj, ny, nx):
 # --------------------------------------------------------------------------- wave propagation
 
 
+@numba.njit(cache=True, parallel=True)
+def _classify_kernel(free, nz, ny, nx, state):
+    """state[v] = 1 blocked, 0 free with all 26 neighbours free (inside the box), 3 other free."""
+    for k in numba.prange(nz):
+        for i in range(ny):
+            for j in range(nx):
+                v = (k * ny + i) * nx + j
+                if free[v] == 0:
+                    state[v] = 1
+                    continue
+                s = 0
+                if k == 0 or k == nz - 1 or i == 0 or i == ny - 1 or j == 0 or j == nx - 1:
+                    s = 3
+                else:
+                    for o in range(27):
+                        if free[v + ((o // 9 - 1) * ny + ((o // 3) % 3 - 1)) * nx + (o % 3 - 1)] == 0:
+                            s = 3
+                            break
+                state[v] = s
+
+
 @numba.njit(cache=True)
 def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=-1):
     """Exact Dijkstra wave from ``seeds`` over the free voxels (26 neighbours, no corner
@@ -73,7 +94,8 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
     cap = 1024
     buf = np.empty((nb, cap), dtype=np.int64)
     cnt = np.zeros(nb, dtype=np.int64)
-    state = np.zeros(N, dtype=np.uint8)           # 0 not settled, 2 settled
+    state = np.empty(N, dtype=np.uint8)           # 0 inner, 3 other free, 1 blocked, 2 settled
+    _classify_kernel(free, nz, ny, nx, state)
     order = np.argsort(U[seeds])
     sp = 0
     nseeds = seeds.size
@@ -83,13 +105,16 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
     settled = 0
     while True:
         if queued == 0:
-            while sp < nseeds and state[seeds[order[sp]]] != 0:
+            while sp < nseeds and state[seeds[order[sp]]] == 2:
                 sp += 1
             if sp >= nseeds:
                 break
             cur = int(math.floor(U[seeds[order[sp]]] / q))
         while sp < nseeds:                        # seeds inside the window [cur, cur + nb - 2]
             sv = seeds[order[sp]]
+            if state[sv] == 2:
+                sp += 1
+                continue
             b = int(math.floor(U[sv] / q))
             if b > cur + nb - 2:
                 break
@@ -115,8 +140,10 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
         queued -= m
         for t in range(m):
             v = items[t]
-            if state[v] == 2:
+            stv = state[v]
+            if stv == 2:
                 continue
+            inner = stv == 0                        # fast path: all 26 neighbours free
             state[v] = 2
             settled += 1
             if (settled & 0xFFFF) == 0 and stop[0] != 0:
@@ -125,12 +152,6 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
             r = v - k * nyx
             i = r // nx
             j = r - i * nx
-            inner = 0 < k < nz - 1 and 0 < i < ny - 1 and 0 < j < nx - 1
-            if inner:                              # fast path: all 26 neighbours free
-                for o in range(27):
-                    if free[v + ((o // 9 - 1) * ny + ((o // 3) % 3 - 1)) * nx + (o % 3 - 1)] == 0:
-                        inner = False
-                        break
             Uv = U[v]
             wv = weight[v]
             for o in range(27):
@@ -146,10 +167,11 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
                     if kk < 0 or kk >= nz or ii < 0 or ii >= ny or jj < 0 or jj >= nx:
                         continue
                 u = (kk * ny + ii) * nx + jj
-                if state[u] == 2:
+                su = state[u]
+                if su == 2 or su == 1:
                     continue
                 if not inner:
-                    if free[u] == 0 or not _move_ok(free, k, i, j, dk, di, dj, ny, nx):
+                    if not _move_ok(free, k, i, j, dk, di, dj, ny, nx):
                         continue
                 oi = o if o < 13 else o - 1      # index into the 26 offsets (centre skipped)
                 c = Uv + steps[oi] * 0.5 * (wv + weight[u])

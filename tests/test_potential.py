@@ -248,6 +248,10 @@ def test_update_potential_equals_full_recompute():
     np.testing.assert_allclose(up.potential_m, U, rtol=1e-12, atol=1e-9)
     assert not np.array_equal(U[np.isfinite(U)], pf.potential_m[np.isfinite(U)])   # the change mattered
     assert up.timings_s["affected_voxels"] < vm.free.sum()
+    from skyroute.stages.base import InputError
+
+    with pytest.raises(InputError, match="whole field"):
+        P.update_potential(P.potential_field(vm, gl, [s], until=s), free2, obst2)
 
 
 def test_minimum_jerk_closed_form():

@@ -289,7 +289,7 @@ class PotentialField:
     included), ``potential_m`` (float64 [m of weighted length], inf where not reached),
     ``parent`` (int8, see :func:`wave_propagation`), all (nz, ny, nx); ``goal`` (k, i, j);
     ``connections``: flat indices added to the skeleton by the start / goal connection;
-    ``timings_s``: wall clock of each step [s]."""
+    ``timings_s``: wall clock of each step [s]; ``partial``: the wave stopped at the start."""
 
     vmap: VoxelMap
     clearance_m: np.ndarray
@@ -301,6 +301,7 @@ class PotentialField:
     vertical_weight: float
     connections: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     timings_s: dict = field(default_factory=dict)
+    partial: bool = False       # the wave stopped at a target (``until``): values only up to it
 
     @property
     def steps_m(self) -> np.ndarray:
@@ -370,7 +371,7 @@ def potential_field(vmap: VoxelMap, goal_kij, connect=(), *, off_skeleton_weight
             raise TimeoutError(f"potential field: the wave did not finish within {time_limit_s:g} s")
     t["wave"] = time.perf_counter() - t1
     t["total"] = time.perf_counter() - t0
-    return replace(pf, potential_m=U, parent=parent)
+    return replace(pf, potential_m=U, parent=parent, partial=until is not None)
 
 
 def descend(pf: PotentialField, start_kij) -> np.ndarray:
@@ -404,6 +405,8 @@ def update_potential(pf: PotentialField, free_new: np.ndarray, obstacle_new: np.
     )
 
     t0 = time.perf_counter()
+    if pf.partial:
+        raise InputError("update_potential needs a whole field: compute it with potential_field(..., until=None)")
     vm = pf.vmap
     free_new = np.ascontiguousarray(free_new, dtype=bool)
     if free_new.shape != vm.shape:

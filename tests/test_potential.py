@@ -300,3 +300,16 @@ def test_potential_is_a_known_planner_everywhere():
 
     assert "potential" in PLANNERS and "potential" in SETTINGS_PLANNERS
     assert parse_planner({"name": "potential"}).name == "potential"
+
+
+def test_cropped_bitmap_is_the_same_voxels_as_the_whole_one():
+    g, ds, surf, clear = _city(5)
+    pr = _problem(ds, clear)
+    full = P.occupancy_bitmap(pr)
+    crop = P.occupancy_bitmap(pr, bounds_m=(21.0, 13.0, 77.0, 61.0))   # snapped outward to cells
+    assert crop.x0_m == 20.0 and crop.y1_m == 62.0 and crop.shape[1:] == (25, 29)
+    kz = np.round((crop.z - full.z0_m) / full.dz_m - 0.5).astype(int)   # same level centres
+    assert np.allclose(full.z[kz], crop.z)
+    i0, j0 = round((full.y1_m - crop.y1_m) / full.voxel_m), round((crop.x0_m - full.x0_m) / full.voxel_m)
+    sub = full.free[kz][:, i0:i0 + crop.shape[1], j0:j0 + crop.shape[2]]
+    np.testing.assert_array_equal(crop.free, sub)

@@ -316,7 +316,7 @@ class TrafficSettings(FrozenModel):
     time_margin_s: NonNegFloat = 5.0
 
 
-PLANNERS = ("astar", "bitstar")
+PLANNERS = ("astar", "bitstar", "potential")
 
 
 class PlannerSettings(FrozenModel):

@@ -2,7 +2,9 @@
 
 For each GNSS coverage level D_j one :class:`~skyroute.stages.planning.problem.PlanningProblem`
 is solved by a planner (``"bitstar"``: OMPL BIT*, seed 000; ``"astar"``: the deterministic
-lattice A* of :mod:`.grid_planner`), giving an optimised polygonal chain and its costs.
+lattice A* of :mod:`.grid_planner`; ``"potential"``: the numerical potential field of
+:mod:`.potential`, seed 004 III-B, deterministic, no refinement so that its standoff is kept),
+giving an optimised polygonal chain and its costs.
 
 Energy feasibility (seed 000 III-A.3): when the chain needs more energy E_w than the battery
 holds, the level is re-planned with a larger length weight (w_l doubled; w_l = sum of the
@@ -33,7 +35,7 @@ from skyroute.stages.base import InputError, UnknownNameError
 from skyroute.stages.planning.grid_planner import STEP_CELLS, plan_grid, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 
-PLANNERS = ("bitstar", "astar")
+PLANNERS = ("bitstar", "astar", "potential")
 # BIT* is stopped by an iteration count (reproducible run to run: same scenario + seed, same
 # plan); the count stands for the time budget at this rate, measured on the Helsinki default
 # scenario (2 m grid, real wind): 48-60 k iterations in 5 s on an idle core, 4.6 k/s on a
@@ -99,6 +101,12 @@ def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, se
                 deadline: float = math.inf) -> tuple[np.ndarray | None, dict]:
     """One plan; ``deadline``: ``time.perf_counter()`` value at which the level's cap ends."""
     left = deadline - time.perf_counter()
+    if planner == "potential":          # seed 004 III-B: numerical potential field (deterministic)
+        from skyroute.stages.planning.potential import plan_potential
+
+        r = plan_potential(problem, time_limit_s=left)
+        return r["waypoints"], {"stopped_by": r["stopped_by"] or "completed", "reason": r["reason"],
+                                "compute_s": r["compute_s"]}
     if planner == "astar":
         r = plan_grid(problem, step_cells=step_cells, refine=refine, h2=h2, time_limit_s=left)
         return r["waypoints"], {"lattice_f": r["lattice_f"], "expanded": r["expanded"],
@@ -129,6 +137,8 @@ def _no_path_reason(label: str, planner: str, info: dict, cap_s: float, time_bud
     if info.get("stopped_by") == "time":
         return (f"{label}: {planner} budget exhausted: no path found within the wall-clock cap of {cap_s:g} s "
                 f"({LEVEL_CAP_FACTOR:g} x the {time_budget_s:g} s budget)")
+    if planner == "potential":
+        return info.get("reason") or f"{label}: the potential field found no path"
     if planner == "astar":
         return (f"{label}: A* searched the whole lattice ({info.get('expanded', 0)} nodes expanded): no path "
                 "from start to goal within the altitude bounds, no-fly zones, flight-path angle and wind limits")
@@ -191,7 +201,7 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
         info["tries"].append({"weights": tuple(w), "solved": True, "energy_J": pc["energy_J"], "f": pc["f"], **inf})
         if best is None or pc["energy_J"] < best[1]["energy_J"]:
             best = (wp, pc, tuple(w), attempt + 1)
-        if pc["energy_J"] <= battery:
+        if pc["energy_J"] <= battery or planner == "potential":   # the potential ignores the weights
             break
         w[0] = 2.0 * w[0] if w[0] > 0 else float(sum(w))
     wp, pc, wused, ntry = best

@@ -1,0 +1,432 @@
+"""Compiled kernels of the numerical potential field (:mod:`skyroute.stages.planning.potential`).
+
+Private to that module: the voxel arrays are flat C-order views of (nz, ny, nx) arrays, the
+26 neighbour offsets are ``OFFS`` (dk, di, dj) with their lengths ``steps`` [m] given by the
+caller.  Every kernel polls ``stop`` (a :class:`~skyroute.stages.control.StopFlag` array) and
+returns early when it is set.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+OFFS = np.array([(dk, di, dj) for dk in (-1, 0, 1) for di in (-1, 0, 1) for dj in (-1, 0, 1)
+                 if (dk, di, dj) != (0, 0, 0)], dtype=np.int64)
+# index of the opposite offset: OFFS[OPP[o]] == -OFFS[o]
+OPP = np.array([int(np.nonzero((OFFS == -OFFS[o]).all(axis=1))[0][0]) for o in range(26)], dtype=np.int64)
+NO_PARENT = -1
+
+
+@numba.njit(cache=True, inline="always")
+def _move_ok(free, k, i, j, dk, di, dj, ny, nx):
+    """No corner cutting: every voxel of the box spanned by the move (k, i, j) -> (k+dk, i+di,
+    j+dj) is free (the straight segment between the two centres then stays inside free voxels;
+    the target is checked by the caller)."""
+    for a in range(2):
+        for b in range(2):
+            for c in range(2):
+                if a * dk == 0 and b * di == 0 and c * dj == 0:
+                    continue
+                if a == 1 and b == 1 and c == 1:
+                    continue
+                u = ((k + a * dk) * ny + (i + b * di)) * nx + (j + c * dj)
+                if free[u] == 0:
+                    return False
+    return True
+
+
+# --------------------------------------------------------------------------- wave propagation
+
+
+@numba.njit(cache=True, parallel=True)
+def _classify_kernel(free, nz, ny, nx, state):
+    """state[v] = 1 blocked, 0 free with all 26 neighbours free (inside the box), 3 other free."""
+    for k in numba.prange(nz):
+        for i in range(ny):
+            for j in range(nx):
+                v = (k * ny + i) * nx + j
+                if free[v] == 0:
+                    state[v] = 1
+                    continue
+                s = 0
+                if k == 0 or k == nz - 1 or i == 0 or i == ny - 1 or j == 0 or j == nx - 1:
+                    s = 3
+                else:
+                    for o in range(27):
+                        if free[v + ((o // 9 - 1) * ny + ((o // 3) % 3 - 1)) * nx + (o % 3 - 1)] == 0:
+                            s = 3
+                            break
+                state[v] = s
+
+
+@numba.njit(cache=True)
+def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=-1):
+    """Exact Dijkstra wave from ``seeds`` over the free voxels (26 neighbours, no corner
+    cutting), with buckets of width q = the least edge cost (Dinitz): a voxel of bucket b
+    cannot be improved by another voxel of bucket b (that would cost >= q more), so a bucket's
+    voxels are settled in any order -- here by increasing index, for memory locality -- and
+    every voxel once, in O(N * 26) plus a sort per bucket.  The kernel is indifferent to the
+    axis order: (nz, ny, nx) are the three axes of the flat C-order arrays, ``steps`` in the
+    matching offset order.
+
+    ``free`` (N,) uint8; ``weight`` (N,) float32 > 0 per voxel (edge u-v costs
+    ``steps[o] * (weight[u] + weight[v]) / 2``); ``U`` (N,) float64: inf except the seeds'
+    start values (finite upper bounds elsewhere are allowed: the wave only lowers values, which
+    makes it the incremental update too); ``parent`` (N,) int8: offset index towards the voxel a
+    value came from (-1 for seeds).  ``target`` >= 0: stop once the bucket holding that voxel is
+    settled (every voxel of lower potential is then final); the unsettled voxels get inf / -1
+    (their tentative values are larger than the target's anyway).  Returns the number of voxels
+    settled (-1 if stopped)."""
+    N = free.size
+    wmin = np.inf
+    wmax = 0.0
+    for v in range(N):
+        if free[v] != 0:
+            if weight[v] < wmin:
+                wmin = weight[v]
+            if weight[v] > wmax:
+                wmax = weight[v]
+    q = steps.min() * wmin
+    nb = int(math.ceil(steps.max() * wmax / q)) + 2
+    cap = 1024
+    buf = np.empty((nb, cap), dtype=np.int64)
+    cnt = np.zeros(nb, dtype=np.int64)
+    state = np.empty(N, dtype=np.uint8)           # 0 inner, 3 other free, 1 blocked, 2 settled
+    _classify_kernel(free, nz, ny, nx, state)
+    order = np.argsort(U[seeds])
+    sp = 0
+    nseeds = seeds.size
+    queued = 0
+    cur = 0
+    nyx = ny * nx
+    settled = 0
+    while True:
+        if queued == 0:
+            while sp < nseeds and state[seeds[order[sp]]] == 2:
+                sp += 1
+            if sp >= nseeds:
+                break
+            cur = int(math.floor(U[seeds[order[sp]]] / q))
+        while sp < nseeds:                        # seeds inside the window [cur, cur + nb - 2]
+            sv = seeds[order[sp]]
+            if state[sv] == 2:
+                sp += 1
+                continue
+            b = int(math.floor(U[sv] / q))
+            if b > cur + nb - 2:
+                break
+            if b < cur:
+                b = cur
+            sl = b % nb
+            if cnt[sl] >= cap:
+                buf2 = np.empty((nb, 2 * cap), dtype=np.int64)
+                buf2[:, :cap] = buf
+                buf = buf2
+                cap *= 2
+            buf[sl, cnt[sl]] = sv
+            cnt[sl] += 1
+            queued += 1
+            sp += 1
+        slot = cur % nb
+        m = cnt[slot]
+        if m == 0:
+            cur += 1
+            continue
+        items = np.sort(buf[slot, :m])
+        cnt[slot] = 0
+        queued -= m
+        for t in range(m):
+            v = items[t]
+            stv = state[v]
+            if stv == 2:
+                continue
+            inner = stv == 0                        # fast path: all 26 neighbours free
+            state[v] = 2
+            settled += 1
+            if (settled & 0xFFFF) == 0 and stop[0] != 0:
+                return -1
+            k = v // nyx
+            r = v - k * nyx
+            i = r // nx
+            j = r - i * nx
+            Uv = U[v]
+            wv = weight[v]
+            for o in range(27):
+                if o == 13:
+                    continue
+                dk = o // 9 - 1
+                di = (o // 3) % 3 - 1
+                dj = o % 3 - 1
+                kk = k + dk
+                ii = i + di
+                jj = j + dj
+                if not inner:
+                    if kk < 0 or kk >= nz or ii < 0 or ii >= ny or jj < 0 or jj >= nx:
+                        continue
+                u = (kk * ny + ii) * nx + jj
+                su = state[u]
+                if su == 2 or su == 1:
+                    continue
+                if not inner:
+                    if not _move_ok(free, k, i, j, dk, di, dj, ny, nx):
+                        continue
+                oi = o if o < 13 else o - 1      # index into the 26 offsets (centre skipped)
+                c = Uv + steps[oi] * 0.5 * (wv + weight[u])
+                if c < U[u]:
+                    U[u] = c
+                    parent[u] = 25 - oi          # offset from u back to v (opposite)
+                    b = int(math.floor(c / q))
+                    if b <= cur:
+                        b = cur + 1
+                    sl = b % nb
+                    if cnt[sl] >= cap:
+                        buf2 = np.empty((nb, 2 * cap), dtype=np.int64)
+                        buf2[:, :cap] = buf
+                        buf = buf2
+                        cap *= 2
+                    buf[sl, cnt[sl]] = u
+                    cnt[sl] += 1
+                    queued += 1
+        cur += 1
+        if target >= 0 and state[target] == 2:
+            for v in range(N):
+                if state[v] != 2:
+                    U[v] = np.inf
+                    parent[v] = -1
+            break
+    return settled
+
+
+@numba.njit(cache=True)
+def affected_kernel(parent, changed, nz, ny, nx, out):
+    """``out[v] = 1`` when the parent chain of ``v`` reaches a voxel with ``changed != 0``
+    (``v`` included), else 0: the voxels whose value may depend on a change.  O(N)."""
+    N = parent.size
+    state = np.zeros(N, dtype=np.int8)          # 0 unknown, 1 affected, 2 not
+    stack = np.empty(N if N < 1 << 16 else 1 << 16, dtype=np.int64)
+    nyx = ny * nx
+    for v0 in range(N):
+        if state[v0] != 0:
+            continue
+        top = 0
+        v = v0
+        res = 2
+        while True:
+            if state[v] != 0:
+                res = state[v]
+                break
+            if changed[v] != 0:
+                res = 1
+                state[v] = 1
+                break
+            p = parent[v]
+            if p < 0:
+                res = 2
+                state[v] = 2
+                break
+            if top >= stack.size:
+                s2 = np.empty(stack.size * 2, dtype=np.int64)
+                s2[:top] = stack[:top]
+                stack = s2
+            stack[top] = v
+            top += 1
+            o = p if p < 13 else p + 1
+            dk = o // 9 - 1
+            di = (o // 3) % 3 - 1
+            dj = o % 3 - 1
+            k = v // nyx
+            r = v - k * nyx
+            i = r // nx
+            j = r - i * nx
+            v = ((k + dk) * ny + (i + di)) * nx + (j + dj)
+        for t in range(top):
+            state[stack[t]] = res
+    for v in range(N):
+        out[v] = 1 if state[v] == 1 else 0
+
+
+# --------------------------------------------------------------------------- skeleton
+
+
+@numba.njit(cache=True, parallel=True)
+def ridge_kernel(free, D, nz, ny, nx, min_d, out):
+    """``out[k, i, j] = 1`` for free voxels on a ridge of the clearance ``D``: along at least
+    one of the 13 lines through the voxel, D is >= both line neighbours and > one of them (a
+    neighbour that is not free or outside counts as lower), and D >= ``min_d``."""
+    for k in numba.prange(nz):
+        for i in range(ny):
+            for j in range(nx):
+                out[k, i, j] = 0
+                if free[k, i, j] == 0:
+                    continue
+                d = D[k, i, j]
+                if d < min_d:
+                    continue
+                for o in range(13):
+                    dk = o // 9 - 1
+                    di = (o // 3) % 3 - 1
+                    dj = o % 3 - 1
+                    ka, ia, ja = k + dk, i + di, j + dj
+                    kb, ib, jb = k - dk, i - di, j - dj
+                    da = -1.0
+                    db = -1.0
+                    if 0 <= ka < nz and 0 <= ia < ny and 0 <= ja < nx and free[ka, ia, ja] != 0:
+                        da = D[ka, ia, ja]
+                    if 0 <= kb < nz and 0 <= ib < ny and 0 <= jb < nx and free[kb, ib, jb] != 0:
+                        db = D[kb, ib, jb]
+                    if d >= da and d >= db and (d > da or d > db):
+                        out[k, i, j] = 1
+                        break
+
+
+@numba.njit(cache=True)
+def ascent_kernel(free, D, skel, nz, ny, nx, k, i, j, out):
+    """Steepest ascent of ``D`` over the free 26 neighbours from (k, i, j) until a skeleton
+    voxel or a local maximum; writes the visited flat indices to ``out``, returns their count."""
+    n = 0
+    out[n] = (k * ny + i) * nx + j
+    n += 1
+    while n < out.size and skel[k, i, j] == 0:
+        best = D[k, i, j]
+        bk, bi, bj = -1, -1, -1
+        for o in range(27):
+            dk = o // 9 - 1
+            di = (o // 3) % 3 - 1
+            dj = o % 3 - 1
+            if dk == 0 and di == 0 and dj == 0:
+                continue
+            kk, ii, jj = k + dk, i + di, j + dj
+            if 0 <= kk < nz and 0 <= ii < ny and 0 <= jj < nx and free[kk, ii, jj] != 0:
+                if D[kk, ii, jj] > best:
+                    best = D[kk, ii, jj]
+                    bk, bi, bj = kk, ii, jj
+        if bk < 0:
+            break
+        k, i, j = bk, bi, bj
+        out[n] = (k * ny + i) * nx + j
+        n += 1
+    return n
+
+
+@numba.njit(cache=True)
+def descent_kernel(free, U, nz, ny, nx, v, out):
+    """Gradient motion: from flat index ``v`` move to the free 26-neighbour of least ``U``
+    while it is strictly lower; writes the visited indices to ``out``, returns their count."""
+    nyx = ny * nx
+    n = 0
+    out[n] = v
+    n += 1
+    while n < out.size:
+        k = v // nyx
+        r = v - k * nyx
+        i = r // nx
+        j = r - i * nx
+        best = U[v]
+        bv = -1
+        for o in range(27):
+            dk = o // 9 - 1
+            di = (o // 3) % 3 - 1
+            dj = o % 3 - 1
+            if dk == 0 and di == 0 and dj == 0:
+                continue
+            kk, ii, jj = k + dk, i + di, j + dj
+            if 0 <= kk < nz and 0 <= ii < ny and 0 <= jj < nx:
+                u = (kk * ny + ii) * nx + jj
+                if free[u] != 0 and U[u] < best and _move_ok(free, k, i, j, dk, di, dj, ny, nx):
+                    best = U[u]
+                    bv = u
+        if bv < 0:
+            break
+        v = bv
+        out[n] = v
+        n += 1
+    return n
+
+
+@numba.njit(cache=True)
+def segment_clearance_kernel(a, bs, free, D, x0, y1, z0, h, dz, nz, ny, nx, step, out):
+    """For each segment a -> bs[m] [m]: the least ``D`` over the voxels met at samples every
+    ``step`` [m] (a voxel that is not free or outside counts 0); the end points themselves are
+    not sampled (the start / goal may sit in a partly blocked voxel)."""
+    for m in range(bs.shape[0]):
+        dx = bs[m, 0] - a[0]
+        dy = bs[m, 1] - a[1]
+        dzz = bs[m, 2] - a[2]
+        L = math.sqrt(dx * dx + dy * dy + dzz * dzz)
+        ns = max(1, int(math.ceil(L / step)))
+        best = np.inf
+        for s in range(1, ns):
+            t = s / ns
+            x = a[0] + t * dx
+            y = a[1] + t * dy
+            z = a[2] + t * dzz
+            j = int(math.floor((x - x0) / h))
+            i = int(math.floor((y1 - y) / h))
+            k = int(math.floor((z - z0) / dz))
+            d = 0.0
+            if 0 <= k < nz and 0 <= i < ny and 0 <= j < nx and free[k, i, j] != 0:
+                d = D[k, i, j]
+            if d < best:
+                best = d
+        out[m] = best
+
+
+@numba.njit(cache=True)
+def reseed_kernel(free, weight, U, parent, nz, ny, nx, steps, cand, blocked_from):
+    """For each flat index in ``cand`` (free voxels): lower ``U`` / set ``parent`` from the best
+    free 26-neighbour not flagged in ``blocked_from`` (``U[n] + edge cost``).  Returns the
+    candidates with a finite value (the seeds of the incremental wave)."""
+    nyx = ny * nx
+    out = np.empty(cand.size, dtype=np.int64)
+    m = 0
+    for t in range(cand.size):
+        v = cand[t]
+        if free[v] == 0:
+            continue
+        k = v // nyx
+        r = v - k * nyx
+        i = r // nx
+        j = r - i * nx
+        for o in range(27):
+            if o == 13:
+                continue
+            kk = k + o // 9 - 1
+            ii = i + (o // 3) % 3 - 1
+            jj = j + o % 3 - 1
+            if kk < 0 or kk >= nz or ii < 0 or ii >= ny or jj < 0 or jj >= nx:
+                continue
+            u = (kk * ny + ii) * nx + jj
+            if free[u] == 0 or blocked_from[u] != 0 or not np.isfinite(U[u]):
+                continue
+            if not _move_ok(free, k, i, j, o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1, ny, nx):
+                continue
+            oi = o if o < 13 else o - 1
+            c = U[u] + steps[oi] * 0.5 * (weight[v] + weight[u])
+            if c < U[v]:
+                U[v] = c
+                parent[v] = oi                    # offset from v to u
+        if np.isfinite(U[v]):
+            out[m] = v
+            m += 1
+    return out[:m]
+
+
+@numba.njit(cache=True)
+def neighbours_kernel(idx, nz, ny, nx, out):
+    """``out[u] = 1`` for every voxel in ``idx`` and its 26 neighbours."""
+    nyx = ny * nx
+    for t in range(idx.size):
+        v = idx[t]
+        k = v // nyx
+        r = v - k * nyx
+        i = r // nx
+        j = r - i * nx
+        for o in range(27):
+            kk = k + o // 9 - 1
+            ii = i + (o // 3) % 3 - 1
+            jj = j + o % 3 - 1
+            if 0 <= kk < nz and 0 <= ii < ny and 0 <= jj < nx:
+                out[(kk * ny + ii) * nx + jj] = 1

@@ -67,7 +67,7 @@ def airspeed_kernel(rho, prm):
     """Flown airspeed [m/s] at density ``rho``: min(max(V_opt, k V_stall), V_max)."""
     a = rho * prm.parasite_area_m2 / (2.0 * prm.weight_n)
     b = 2.0 * prm.weight_n / (rho * prm.span_m * prm.span_m * math.pi * prm.oswald)
-    v_opt = (b / a) ** 0.25
+    v_opt = math.sqrt(math.sqrt(b / a))
     v_stall = math.sqrt(2.0 * prm.weight_n / (rho * prm.wing_area_m2 * prm.max_lift_coefficient))
     return min(max(v_opt, prm.min_airspeed_factor * v_stall), prm.max_airspeed_mps)
 
@@ -108,9 +108,11 @@ def piece_energy_kernel(length, sx, sy, sz, z0, z1, u, v, w, prm, out):
     g = ground_speed_kernel(sx, sy, sz, u, v, w, va)
     out[5] = va
     out[1] = max(prm.weight_n * (z1 - z0), 0.0)             # eq. 3 (climb only)
-    v0 = airspeed_kernel(r0, prm)
-    v1 = airspeed_kernel(r1, prm)
-    out[2] = max(0.5 * prm.mass_kg * (v1 * v1 - v0 * v0), 0.0)
+    out[2] = 0.0
+    if z1 > z0:                                             # the airspeed only grows when climbing
+        v0 = airspeed_kernel(r0, prm)
+        v1 = airspeed_kernel(r1, prm)
+        out[2] = max(0.5 * prm.mass_kg * (v1 * v1 - v0 * v0), 0.0)
     if length == 0.0:
         out[0] = 0.0
         out[3] = out[1] + out[2]

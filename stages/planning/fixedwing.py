@@ -259,10 +259,17 @@ def plan_fixedwing(problem: PlanningProblem, planner: str = "eeastar", *, step_c
                                 f"altitudes of its column (lattice dz {lat.dz_m:.1f} m)", planner, desc)
     prm = fixedwing_params(veh)
     z_lo = sz + lat.dz_m * float(np.min(np.where(lat.k_n > 0, lat.k_lo, 0)))
-    lb = drag_energy_lb_j_per_m(veh, max_wind_mps(problem), max(z_lo, -400.0), max(z_lo, sz, gz) + lat.dz_m * lat.kb)
+    z_hi = max(z_lo, sz, gz) + lat.dz_m * lat.kb
+    lb = drag_energy_lb_j_per_m(veh, max_wind_mps(problem), max(z_lo, -400.0), z_hi)
+    v_lo, v_hi = (float(airspeed_kernel(isa_density_kgpm3(float(z)), prm)) for z in (max(z_lo, -400.0), z_hi))
+    wvec = np.asarray(problem.wind_uvw, float).reshape(-1, 3)
+    gauge = bool(np.all(wvec == wvec[0]) and wvec[0, 2] == 0.0)
     srch = FwSearch(_MODES[planner], int(start_col), 0, int(goal_i), int(goal_j), int(goal_k), float(desc["du_m"]),
                     float(desc["dv_m"]), float(lb), float(veh.weight_n), wind_step_m(problem),
-                    int(max_expansions))
+                    int(max_expansions), (float(desc["e_u"][0]), float(desc["e_u"][1])),
+                    (float(desc["e_v"][0]), float(desc["e_v"][1])), (float(wvec[0, 0]), float(wvec[0, 1])), gauge,
+                    min(v_lo, v_hi) * (1 - 1e-9), max(v_lo, v_hi) * (1 + 1e-9),
+                    float(veh.weight_n * veh.min_drag_to_lift))
     # validity: one wind check per edge when the wind is the same everywhere (exact then)
     vprob = dataclasses.replace(problem, subsegment_m=1e12) if wind_step_m(problem) > 1e11 else problem
     maps, wind, vparams, power = vprob.seg_args

@@ -55,6 +55,46 @@ class FwSearch(NamedTuple):
     weight_n: float          # m g [N] (climb term of the heuristic)
     subsegment_m: float      # wind sampling step along an edge [m]
     max_expansions: int
+    e_u: tuple               # unit vector of the lattice's i axis (x, y)
+    e_v: tuple               # unit vector of the lattice's j axis (x, y)
+    wind_xy: tuple           # the uniform horizontal wind (u, v) [m/s] of the gauge bound
+    use_gauge: bool          # wind uniform and horizontal: use the wind-triangle gauge bound
+    v_lo: float              # lowest / highest flown airspeed on the lattice [m/s]
+    v_hi: float
+    dl_w_n: float            # W (D/L)_opt [N]: drag work per metre of air path, lower bound
+
+
+@numba.njit(cache=True, nogil=True)
+def _air_ratio(a, b2, v):
+    """V / g for a unit track with along-track wind a and cross-wind b^2 (wind triangle)."""
+    d = v * v - b2
+    if d <= 0.0:
+        return np.inf
+    g = a + math.sqrt(d)
+    if g <= 0.0:
+        return np.inf
+    return v / g
+
+
+@numba.njit(cache=True, nogil=True)
+def air_distance_lb(dx, dy, wu, wv, v_lo, v_hi):
+    """Least air distance [m] to cover the horizontal displacement (dx, dy) [m] in the uniform
+    wind (wu, wv) [m/s] at an airspeed anywhere in [v_lo, v_hi]: min over V of V |d| / g_V
+    (the gauge of the union of the per-metre displacement disks, a convex set: the bound obeys
+    the triangle inequality, so the heuristic built on it is consistent)."""
+    dist = math.sqrt(dx * dx + dy * dy)
+    if dist == 0.0:
+        return 0.0
+    ux, uy = dx / dist, dy / dist
+    a = ux * wu + uy * wv
+    b2 = max(wu * wu + wv * wv - a * a, 0.0)
+    best = min(_air_ratio(a, b2, v_lo), _air_ratio(a, b2, v_hi))
+    if a > 0.0:                                   # interior minimum at sqrt(V^2 - b^2) = b^2 / a
+        s = b2 / a
+        vs = math.sqrt(s * s + b2)
+        if v_lo < vs < v_hi:
+            best = min(best, _air_ratio(a, b2, vs))
+    return best * dist
 
 
 @numba.njit(cache=True, nogil=True)
@@ -94,10 +134,17 @@ def edge_energy(x0, y0, z0, x1, y1, z1, sub, maps, wind, prm, out):
 
 @numba.njit(cache=True, nogil=True)
 def _heur(mode, i, j, z, srch, gz):
-    d = _octile(srch.goal_i - i, srch.goal_j - j, srch.du_m, srch.dv_m)
+    di, dj = srch.goal_i - i, srch.goal_j - j
+    d = _octile(di, dj, srch.du_m, srch.dv_m)
     if mode == MODE_DISTANCE:
         return d
-    return srch.drag_lb_j_per_m * d + srch.weight_n * max(gz - z, 0.0)
+    drag = srch.drag_lb_j_per_m * d
+    if srch.use_gauge:
+        dx = (di * srch.du_m * srch.e_u[0] + dj * srch.dv_m * srch.e_v[0])
+        dy = (di * srch.du_m * srch.e_u[1] + dj * srch.dv_m * srch.e_v[1])
+        air = air_distance_lb(dx, dy, srch.wind_xy[0], srch.wind_xy[1], srch.v_lo, srch.v_hi)
+        drag = max(drag, srch.dl_w_n * air * (1.0 - 1e-9))
+    return drag + srch.weight_n * max(gz - z, 0.0)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -14,12 +14,11 @@ from skyroute.stages.vehicle import FixedWingProfile, load_vehicle
 FIXED_WING_PLANNERS = ("eeastar", "astar-fw", "energy-optimal")
 
 
-def check_planner_vehicle(planner: str, vehicle, known: tuple[str, ...] | None = None) -> None:
+def check_planner_vehicle(planner: str, vehicle, known: tuple[str, ...]) -> None:
     """InputError when ``planner`` does not fit the kind of ``vehicle`` (a profile, catalog name
-    or YAML path), naming the planners that do (out of ``known``, default
-    :data:`skyroute.stages.planning.step1.PLANNERS`, imported only then)."""
-    if known is None:
-        from skyroute.stages.planning.step1 import PLANNERS as known
+    or YAML path), naming the planners that do out of ``known`` (the caller's planner list:
+    :data:`skyroute.stages.planning.step1.PLANNERS` or the scenario settings' list; no import
+    here, so the scenario checks do not pull the planners into every stage's code closure)."""
     veh = load_vehicle(vehicle)
     if isinstance(veh, FixedWingProfile):
         if planner not in FIXED_WING_PLANNERS:

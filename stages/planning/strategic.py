@@ -39,7 +39,7 @@ from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cos
 from skyroute.stages.planning.grid_planner import STEP_CELLS, shared_heuristic
 from skyroute.stages.planning.kinds import FIXED_WING_PLANNERS, check_planner_vehicle
 from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz_from_agl
-from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, Step1Result, plan_step1
+from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, PLANNERS, Step1Result, plan_step1
 from skyroute.stages.planning.step3 import (
     Candidate,
     choose,
@@ -106,7 +106,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     wind_map = wind.load() if wind is not None else None
     cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
     veh = load_vehicle(vehicle)
-    check_planner_vehicle(planner, veh)
+    check_planner_vehicle(planner, veh, PLANNERS)
     surf = surface[[v for v in ("terrain", "terrain_min", "surface") if v in surface]].load()
     surface_2d = surf["surface"].values
     clear = clearance["min_altitude_m"].load()

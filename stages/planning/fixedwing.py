@@ -72,7 +72,12 @@ from skyroute.stages.planning.fw_kernels import (
 )
 from skyroute.stages.planning.kinds import FIXED_WING_PLANNERS, check_planner_vehicle
 from skyroute.stages.planning.problem import PlanningProblem
-from skyroute.stages.planning.step3 import Candidate, empty_candidate, wind_sampler
+from skyroute.stages.planning.step3 import (
+    Candidate,
+    empty_candidate,
+    navigation_along,
+    wind_sampler,
+)
 from skyroute.stages.planning.validate import validate_plan
 from skyroute.stages.vehicle import G0, FixedWingProfile, load_vehicle
 
@@ -388,11 +393,16 @@ def _timing(problem: PlanningProblem, pts: np.ndarray) -> tuple[np.ndarray, np.n
 
 def fixedwing_candidate(problem: PlanningProblem, result: FwPlanResult, *, label: str = "",
                         dop_threshold: float | None = None, intruders=(), d_c_m: float = 0.0, dt_c_s: float = 0.0,
-                        battery_reserve_pct: float = 0.0) -> Candidate:
+                        battery_reserve_pct: float = 0.0, sky=None, surface_2d=None, start_time_utc=None,
+                        gnss_sigma_m: float = 3.0) -> Candidate:
     """The written plan of a solved search (module docstring: fillets, loiter, wind-triangle
     timing), its costs and the independent validation (rasters, climb / descent angles, turn
     radius, wind, traffic, battery).  ``f`` / ``C_e``: the energy as still-air level distance
-    [m] (``astar-fw``: ``f`` = the 3-D length)."""
+    [m] (``astar-fw``: ``f`` = the 3-D length).  With ``sky`` (satellite geometry) and
+    ``surface_2d`` (surface heights on the grid, for occlusions) the navigation error along the
+    samples is computed as for the rotorcraft
+    (:func:`~skyroute.stages.planning.step3.navigation_along`) and must stay <= dp_max;
+    without, it is not evaluated (NaN)."""
     t_start = time.perf_counter()
     lab = label or problem.label
     if not result.solved:
@@ -428,9 +438,16 @@ def fixedwing_candidate(problem: PlanningProblem, result: FwPlanResult, *, label
     agl = pts[:, 2] - problem.terrain_m[problem.grid.cell_of(pts[:, 0], pts[:, 1])]
     speed = np.r_[np.linalg.norm(np.diff(pts, axis=0), axis=1) / np.diff(t), np.nan]
     speed[-1] = speed[-2]
-    nan = np.full(len(t), np.nan)
-    cand = Candidate(lab, dop_threshold, t, pts, agl, speed, nan, np.zeros(len(t), int), length, C_r, C_d, equiv, f,
-                     False, float("nan"), e, float(t[n_path - 1]), 0.0, reasons, np.asarray(wp, float),
+    sigma, nvis = np.full(len(t), np.nan), np.zeros(len(t), int)
+    if sky is not None and surface_2d is not None:
+        sigma, nvis = navigation_along(problem, sky, surface_2d, t, pts, start_time_utc, veh, gnss_sigma_m=gnss_sigma_m)
+        if np.nanmax(sigma) > veh.max_position_error_m:
+            k = int(np.nanargmax(sigma))
+            reasons.append(f"navigation error sigma_p reaches {float(sigma[k]):.2f} m > dp_max "
+                           f"{veh.max_position_error_m} m at t = {t[k]:.1f} s ({int(nvis[k])} satellites in view)")
+    max_sigma = float(np.nanmax(sigma)) if np.isfinite(sigma).any() else float("nan")
+    cand = Candidate(lab, dop_threshold, t, pts, agl, speed, sigma, nvis, length, C_r, C_d, equiv, f,
+                     False, max_sigma, e, float(t[n_path - 1]), 0.0, reasons, np.asarray(wp, float),
                      np.diff(t[[0, n_path - 1]]), None, "solved")
     viol = validate_plan(cand, grid=problem.grid, terrain_m=problem.terrain_m, vehicle=veh, floor_m=problem.floor_m,
                          ceiling_m=problem.ceiling_m, clearance_floor_m=problem.clearance_m,
@@ -439,7 +456,7 @@ def fixedwing_candidate(problem: PlanningProblem, result: FwPlanResult, *, label
                          nofly=problem.nofly, wind=wind_sampler(problem), intruders=intruders or (), d_c_m=d_c_m,
                          dt_c_s=dt_c_s, start_xyz=problem.start_xyz, goal_xyz=problem.goal_xyz,
                          battery_reserve_pct=battery_reserve_pct)
-    reasons.extend(f"validation: {m}" for m in viol)
+    reasons.extend(f"validation: {m}" for m in viol if "navigation error" not in m)
     cand.flyable = not reasons
     cand.dp_max_m = float(veh.max_position_error_m)
     cand.compute_time_s = result.compute_s + time.perf_counter() - t_start

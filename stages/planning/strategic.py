@@ -138,7 +138,8 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     if planner in FIXED_WING_PLANNERS:
         return _plan_fixedwing_levels(problems, levels, planner, time_budget_s, step_cells, t0, cost_warnings,
                                       intruders=intruders, d_c_m=d_c_m, dt_c_s=dt_c_s,
-                                      battery_reserve_pct=battery_reserve_pct, sky=sky, occ=occ)
+                                      battery_reserve_pct=battery_reserve_pct, sky=sky, occ=occ,
+                                      surface_2d=surface_2d, start_time_utc=start_time_utc, uere_m=uere_m)
     h2 = None
     if planner == "astar":   # one A* heuristic for all levels: that of the loosest (lowest floors)
         loosest = _loosest(problems)
@@ -206,9 +207,11 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
 
 def _plan_fixedwing_levels(problems: list[PlanningProblem], levels, planner: str, time_budget_s: float,
                            step_cells: int, t0: float, cost_warnings: list[str], *, intruders, d_c_m: float,
-                           dt_c_s: float, battery_reserve_pct: float, sky, occ) -> StrategicPlan:
+                           dt_c_s: float, battery_reserve_pct: float, sky, occ, surface_2d, start_time_utc,
+                           uere_m: float) -> StrategicPlan:
     """The fixed-wing planners (seed 002, :mod:`~skyroute.stages.planning.fixedwing`) on every
-    level: lattice search, written path (fillets + loiter), validation; no STEP II / III."""
+    level: lattice search, written path (fillets + loiter), navigation error (with satellites),
+    validation; no STEP II (deconfliction) and no STEP III smoothing."""
     from skyroute.stages.planning.fixedwing import fixedwing_candidate, plan_fixedwing
 
     plan = StrategicPlan(None, [])
@@ -223,7 +226,8 @@ def _plan_fixedwing_levels(problems: list[PlanningProblem], levels, planner: str
         else:
             r = plan_fixedwing(problem, planner, step_cells=step_cells, time_limit_s=cap)
             cand = fixedwing_candidate(problem, r, dop_threshold=levels[i][0], intruders=intruders, d_c_m=d_c_m,
-                                       dt_c_s=dt_c_s, battery_reserve_pct=battery_reserve_pct)
+                                       dt_c_s=dt_c_s, battery_reserve_pct=battery_reserve_pct, sky=sky,
+                                       surface_2d=surface_2d, start_time_utc=start_time_utc, gnss_sigma_m=uere_m)
             nan = float("nan")
             costs = {"C_l": cand.C_l, "C_r": cand.C_r, "C_d": cand.C_d, "C_e": cand.C_e}
             s1 = Step1Result(r.waypoints, costs, cand.f, r.energy_J if r.solved else nan,
@@ -238,9 +242,9 @@ def _plan_fixedwing_levels(problems: list[PlanningProblem], levels, planner: str
     plan.compute_s = time.perf_counter() - t0
     notes = [f"plan: {s1.label}: STEP I ({planner}) stopped at its wall-clock cap of {cap:g} s"
              for s1 in plan.step1 if s1.info.get("stopped_by") == "time"]
-    if sky is not None:
-        notes.append(f"plan: {planner}: the navigation error (sigma_p) along fixed-wing plans is not evaluated; the GNSS "
-                     "coverage floors are")
+    if sky is None:
+        notes.append(f"plan: {planner}: no satellite geometry: the navigation error (sigma_p) along the fixed-wing plan "
+                     "is not evaluated")
     if occ is not None:
         notes.append(f"plan: {planner}: fixed-wing plans are not deconflicted (no STEP II); the validator refuses a plan "
                      "that enters an intruder's volume")

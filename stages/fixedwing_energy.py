@@ -31,6 +31,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from skyroute.stages import vehicle as _veh
 from skyroute.stages.atmosphere import density_kernel, isa_density_kgpm3
 from skyroute.stages.base import InputError
 from skyroute.stages.vehicle import FixedWingProfile, load_vehicle
@@ -62,21 +63,28 @@ def fixedwing_params(vehicle: FixedWingProfile | str) -> FixedWingParams:
                            float(v.min_airspeed_factor), float(v.max_airspeed_mps))
 
 
+# the drag-polar formulas of :mod:`skyroute.stages.vehicle` (their one home), compiled
+_polar_a = numba.njit(cache=True, nogil=True)(_veh.polar_a)
+_polar_b = numba.njit(cache=True, nogil=True)(_veh.polar_b)
+_carson = numba.njit(cache=True, nogil=True)(_veh.carson_speed)
+_stall = numba.njit(cache=True, nogil=True)(_veh.stall_speed)
+_flown = numba.njit(cache=True, nogil=True)(_veh.flown_airspeed)
+
+
 @numba.njit(cache=True, nogil=True)
 def airspeed_kernel(rho, prm):
     """Flown airspeed [m/s] at density ``rho``: min(max(V_opt, k V_stall), V_max)."""
-    a = rho * prm.parasite_area_m2 / (2.0 * prm.weight_n)
-    b = 2.0 * prm.weight_n / (rho * prm.span_m * prm.span_m * math.pi * prm.oswald)
-    v_opt = math.sqrt(math.sqrt(b / a))
-    v_stall = math.sqrt(2.0 * prm.weight_n / (rho * prm.wing_area_m2 * prm.max_lift_coefficient))
-    return min(max(v_opt, prm.min_airspeed_factor * v_stall), prm.max_airspeed_mps)
+    a = _polar_a(rho, prm.parasite_area_m2, prm.weight_n)
+    b = _polar_b(rho, prm.weight_n, prm.span_m, prm.oswald)
+    return _flown(_carson(a, b), _stall(rho, prm.weight_n, prm.wing_area_m2, prm.max_lift_coefficient),
+                  prm.min_airspeed_factor, prm.max_airspeed_mps)
 
 
 @numba.njit(cache=True, nogil=True)
 def drag_n_kernel(rho, v, prm):
     """Drag D = W (A V^2 + B / V^2) [N] at density ``rho`` and airspeed ``v`` (eq. 4-6)."""
-    a = rho * prm.parasite_area_m2 / (2.0 * prm.weight_n)
-    b = 2.0 * prm.weight_n / (rho * prm.span_m * prm.span_m * math.pi * prm.oswald)
+    a = _polar_a(rho, prm.parasite_area_m2, prm.weight_n)
+    b = _polar_b(rho, prm.weight_n, prm.span_m, prm.oswald)
     return prm.weight_n * (a * v * v + b / (v * v))
 
 

@@ -198,6 +198,34 @@ class VehicleProfile(FrozenModel):
         return self.airframe.total_mass_kg * G0
 
 
+# The drag polar of seed 002 eq. 4-6 and the speeds derived from it: plain arithmetic, the one
+# home of each formula (the profile's properties call them; the compiled kernels of
+# :mod:`skyroute.stages.fixedwing_energy` compile these same functions with numba).
+def polar_a(rho_kgpm3: float, parasite_area_m2: float, weight_n: float) -> float:
+    """A = rho f / (2 W) [s^2/m^2] (seed 002 eq. 5)."""
+    return rho_kgpm3 * parasite_area_m2 / (2.0 * weight_n)
+
+
+def polar_b(rho_kgpm3: float, weight_n: float, span_m: float, oswald: float) -> float:
+    """B = 2 W / (rho b^2 pi e) [m^2/s^2] (seed 002 eq. 6)."""
+    return 2.0 * weight_n / (rho_kgpm3 * span_m * span_m * math.pi * oswald)
+
+
+def carson_speed(a: float, b: float) -> float:
+    """V_opt = (B / A)^(1/4) [m/s], where D/L = A V^2 + B / V^2 is least."""
+    return math.sqrt(math.sqrt(b / a))
+
+
+def stall_speed(rho_kgpm3: float, weight_n: float, wing_area_m2: float, max_lift_coefficient: float) -> float:
+    """V_s = sqrt(2 W / (rho S C_L,max)) [m/s] in level flight."""
+    return math.sqrt(2.0 * weight_n / (rho_kgpm3 * wing_area_m2 * max_lift_coefficient))
+
+
+def flown_airspeed(v_opt: float, v_stall: float, min_factor: float, v_max: float) -> float:
+    """The flown airspeed [m/s]: the Carson speed, at least ``min_factor`` x stall, at most v_max."""
+    return min(max(v_opt, min_factor * v_stall), v_max)
+
+
 class FixedWingProfile(FrozenModel):
     """A fixed-wing aircraft (seed 002 section 3.2): airframe, drag polar and limits.
 
@@ -260,11 +288,11 @@ class FixedWingProfile(FrozenModel):
 
     def polar_a_at(self, rho_kgpm3: float) -> float:
         """A = rho f / (2 W) [s^2/m^2] (seed 002 eq. 5)."""
-        return rho_kgpm3 * self.parasite_area_m2 / (2.0 * self.weight_n)
+        return polar_a(rho_kgpm3, self.parasite_area_m2, self.weight_n)
 
     def polar_b_at(self, rho_kgpm3: float) -> float:
         """B = 2 W / (rho b^2 pi e) [m^2/s^2] (seed 002 eq. 6)."""
-        return 2.0 * self.weight_n / (rho_kgpm3 * self.wing_span_m**2 * math.pi * self.oswald_factor)
+        return polar_b(rho_kgpm3, self.weight_n, self.wing_span_m, self.oswald_factor)
 
     @property
     def A(self) -> float:
@@ -278,7 +306,7 @@ class FixedWingProfile(FrozenModel):
 
     def carson_speed_at(self, rho_kgpm3: float) -> float:
         """V_opt = (B/A)^(1/4) [m/s] at density ``rho_kgpm3`` (seed 002, after eq. 10)."""
-        return (self.polar_b_at(rho_kgpm3) / self.polar_a_at(rho_kgpm3)) ** 0.25
+        return carson_speed(self.polar_a_at(rho_kgpm3), self.polar_b_at(rho_kgpm3))
 
     @property
     def carson_speed_mps(self) -> float:
@@ -292,7 +320,7 @@ class FixedWingProfile(FrozenModel):
 
     def stall_speed_at(self, rho_kgpm3: float) -> float:
         """V_s = sqrt(2 W / (rho S C_L,max)) [m/s] in level flight."""
-        return math.sqrt(2.0 * self.weight_n / (rho_kgpm3 * self.wing_area_m2 * self.max_lift_coefficient))
+        return stall_speed(rho_kgpm3, self.weight_n, self.wing_area_m2, self.max_lift_coefficient)
 
     @property
     def stall_speed_mps(self) -> float:
@@ -301,8 +329,8 @@ class FixedWingProfile(FrozenModel):
 
     def airspeed_at(self, rho_kgpm3: float) -> float:
         """The flown airspeed [m/s]: ``min(max(V_opt, k V_s), max_airspeed_mps)``."""
-        v = max(self.carson_speed_at(rho_kgpm3), self.min_airspeed_factor * self.stall_speed_at(rho_kgpm3))
-        return min(v, self.max_airspeed_mps)
+        return flown_airspeed(self.carson_speed_at(rho_kgpm3), self.stall_speed_at(rho_kgpm3),
+                              self.min_airspeed_factor, self.max_airspeed_mps)
 
     def turn_radius_at(self, airspeed_mps: float) -> float:
         """Minimum turn radius V^2 / (g tan(max bank)) [m] in still air."""

@@ -256,8 +256,9 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
 def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, cache_dir, scheduler, quiet) -> None:
     """Strategic plan of SCENARIO (seed 000 III): for every GNSS coverage level D_j, STEP I
     (BIT* or A*), STEP II (deconfliction against known traffic) and STEP III (min-snap, navigation
-    error, eq. 15 costs); writes plan.geojson, waypoints.csv, candidates.csv and figures of the
-    flyable candidate with minimum f (or candidates.csv with every reason when none is flyable,
+    error, eq. 15 costs); writes plan.geojson, waypoints.csv, candidates.csv, figures and the
+    pilot exports (plan.kml, plan.plan for QGroundControl, plan.gpkg, intent.json: ASTM F3548)
+    of the flyable candidate with minimum f (or candidates.csv with every reason when none is flyable,
     exit code 3)."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.errors import InputError
@@ -300,7 +301,11 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
                           progress=not quiet and sys.stderr.isatty())
     files = write_plan_outputs(result, out_dir)
     plan = plan_section(result["plan"])
-    write_folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan})
+    from skyroute.pipeline.outputs import relative_files
+    from skyroute.pipeline.plan_exports import exports_section
+
+    exports = exports_section(result, relative_files(out_dir, list(files.values())), out_dir)
+    write_folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan, "exports": exports})
     for f in files.values():
         click.echo(str(f))
     if plan["status"] == "flyable":
@@ -410,6 +415,8 @@ _PLUGINS = {
     "skyroute.pipeline.cli_occlusion": "visibility_height_command",
     "skyroute.pipeline.cli_fly": "fly_command",
     "skyroute.pipeline.cli_navsim": "navsim_command",
+    "skyroute.pipeline.cli_regress": "regress_command",
+    "skyroute.pipeline.cli_compare": "compare_command",
 }
 
 

@@ -31,15 +31,19 @@ def write_fly_folder(fr, out_dir: Path, command: str = "fly") -> dict:
               help="Replanning timeout t_rep [s] (default: tactical.t_rep_s, 5 s).")
 @click.option("--tick", "tick_s", type=float, default=None, help="Simulation and output step [s] (default 0.1 s).")
 @click.option("--seed", type=int, default=None, help="Seed of the RRTs and the intruder report noise.")
+@click.option("--tactical", "method", type=click.Choice(["levels", "octant"]), default=None,
+              help="How intruder conflicts are resolved: levels 1-3 (seed 001) or the octant manoeuvre with "
+                   "dense-traffic zones (seed 004) (default: tactical.method, levels).")
 @click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
-def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, cache_dir, scheduler, quiet) -> None:
+def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, cache_dir, scheduler, quiet) -> None:
     """Fly the strategic plan of SCENARIO (default helsinki-tactical) in simulated time through
     its events (seed 001 section 3.2): at each event the rest of the plan is checked; when it
-    is compromised, levels 1-3 replan (or the vehicle lands at the nearest reachable landing
-    site). Writes tactical.csv, flown.geojson, flown.csv, intruders.geojson, figures and
+    is compromised, levels 1-3 replan (with --tactical octant an intruder conflict is resolved
+    by the seed 004 octant manoeuvre instead), or the vehicle lands at the nearest reachable
+    landing site. Writes tactical.csv, flown.geojson, flown.csv, intruders.geojson, figures and
     summary.json. Exit code 3 when the flight ends neither at the goal nor on a landing site."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.errors import InputError
@@ -53,10 +57,10 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, cache_dir
     if not sc.events:
         raise InputError(f"scenario {sc.name!r} has no events to fly through: add an `events:` list to it or "
                          "give --events FILE")
-    fly_params(sc, t_rep_s, tick_s, seed)      # bad --t-rep / --tick: exit 2 before any work
+    fly_params(sc, t_rep_s, tick_s, seed, method)      # bad --t-rep / --tick: exit 2 before any work
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fly")
     fr = fly_scenario(sc, cache=Cache(cache_dir), scheduler=scheduler, progress=not quiet and sys.stderr.isatty(),
-                      t_rep_s=t_rep_s, tick_s=tick_s, seed=seed)
+                      t_rep_s=t_rep_s, tick_s=tick_s, seed=seed, method=method)
     section = write_fly_folder(fr, out_dir)
     from skyroute.stages.tactical.outputs import fly_summary_line
 

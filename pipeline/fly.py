@@ -9,6 +9,7 @@ unchanged stages are reused); the replay itself is
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -32,15 +33,25 @@ class FlyResult:
     map_updates: list      # RunResult of each map update
 
 
-def _world(result: RunResult):
+def _world(result: RunResult, sc: Scenario | None = None, radius_m: float | None = None):
+    """The replay's maps from a run's stages.  With ``radius_m`` (the safety bubble's r_j of
+    the plan's level, ``constraints.clearance: sboa``) the clearance maps are the clearance
+    stage's for r_j, as the plan stage used them, instead of the cached ones for r_p."""
     from skyroute.stages.tactical.replay import World
 
     def get(name):
         return result.datasets[name].load() if name in result.datasets else None
 
     surf = result["surface"]
+    clearance = get("clearance")
+    if radius_m is not None and sc is not None:
+        from skyroute.pipeline.stages_builtin import _clearance_settings, clearance_stage
+
+        clearance = clearance_stage(surf, result["environment"],
+                                    settings=_clearance_settings(sc).model_copy(update={"radius_m": float(radius_m)}))
+        clearance = clearance.load()
     return World(surface=surf[[v for v in ("terrain", "terrain_min", "surface") if v in surf]].load(),
-                 environment=get("environment"), clearance=get("clearance"), wind=get("wind"),
+                 environment=get("environment"), clearance=clearance, wind=get("wind"),
                  coverage=get("coverage"), satellites=get("satellites"))
 
 
@@ -89,7 +100,8 @@ def _radius_of(sc: Scenario, ident: str) -> float:
     return 2.0
 
 
-def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None):
+def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
+               method: str | None = None):
     from skyroute.stages.tactical.replay import FlyParams
 
     t = sc.tactical
@@ -100,13 +112,16 @@ def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None 
                      intruder_noise_m=t.intruder_noise_m, report_latency_s=t.report_latency_s,
                      min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
                      dop_kind=sc.gnss.dop_kind, uere_m=sc.gnss.uere_m,
-                     battery_reserve_pct=sc.constraints.battery_reserve_pct, step_cells=sc.planner.step_cells)
+                     battery_reserve_pct=sc.constraints.battery_reserve_pct, step_cells=sc.planner.step_cells,
+                     method=t.method if method is None else method, periphery_m=t.periphery_m,
+                     zone_period_s=t.zone_period_s)
 
 
 def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "threads", progress: bool = False,
                  t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
-                 result: RunResult | None = None) -> FlyResult:
-    """Plan (cached) and fly ``sc`` through its events.  Raises InputError (exit 2) for bad
+                 result: RunResult | None = None, method: str | None = None) -> FlyResult:
+    """Plan (cached) and fly ``sc`` through its events.  ``method``: tactical method
+    (``levels`` or ``octant``; default ``tactical.method``).  Raises InputError (exit 2) for bad
     parameters or events after the mission, PlanningError when there is no strategic plan."""
     from skyroute.stages.base import PlanningError
     from skyroute.stages.planning.strategic import plan_from_dataset, trajectory_from_dataset
@@ -114,7 +129,7 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     from skyroute.stages.traffic import intruders_for
     from skyroute.stages.vehicle import load_vehicle
 
-    params = fly_params(sc, t_rep_s, tick_s, seed)   # bad values fail here, before any work
+    params = fly_params(sc, t_rep_s, tick_s, seed, method)   # bad values fail here, before any work
     if load_vehicle(sc.vehicle).kind == "fixed-wing":
         raise InputError(f"the tactical replay (skyroute fly) flies rotorcraft; vehicle {sc.vehicle!r} is fixed-wing "
                          "(seed 002's local planner is not implemented yet): plan it with `skyroute plan`")
@@ -129,6 +144,14 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     if tr is None:
         raise PlanningError("the cached plan has no trajectory phases: re-run with `--force plan`")
     traj, t0 = tr
+    radius = None
+    if sc.constraints.clearance == "sboa":       # the safety bubble of the plan's level (seed 003)
+        radius = float(chosen.clearance_radius_m)
+        if not math.isfinite(radius):
+            raise PlanningError("the cached plan has no safety-bubble radius: re-run with `--force plan`")
+        params = dataclasses.replace(params, bubble_k=float(sc.constraints.sboa_k),
+                                     surface_uncertainty_m=float(sc.navsim.surface_uncertainty_m),
+                                     clearance_radius_m=radius)
     problems = check_event_times(sc, float(t0 + traj.duration_s))
     if problems:
         raise InputError("; ".join(problems))
@@ -140,11 +163,11 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     def world_at(t_s: float):
         res = run_scenario(scenario_at(sc, t_s), cache=cache, targets=targets, scheduler=scheduler, progress=False)
         updates.append(res)
-        return _world(res)
+        return _world(res, sc, radius)
 
     strategic = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else []
     goal = chosen.xyz_m[-1]
-    log = replay(traj, t0, goal_xyz=goal, world=_world(result), world_at=world_at, events=events,
+    log = replay(traj, t0, goal_xyz=goal, world=_world(result, sc, radius), world_at=world_at, events=events,
                  strategic_intruders=strategic, vehicle=load_vehicle(sc.vehicle), params=params,
                  start_time_utc=sc.mission.start_time_utc.isoformat(), dop_threshold=chosen.dop_threshold,
                  scenario=sc.name, crs_wkt=str(surface["surface"].rio.crs),

@@ -54,7 +54,9 @@ def plot_surface(result: RunResult, path: Path) -> Path:
 
 
 def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
-    """plan.geojson, waypoints.csv, candidates.csv and figures of the cached plan stage.
+    """plan.geojson, waypoints.csv, candidates.csv, figures and the pilot exports
+    (:mod:`skyroute.pipeline.plan_exports`: plan.kml, plan.plan, plan.gpkg, intent.json) of
+    the cached plan stage.
 
     The plan was validated independently (``stages.planning.validate``) when it was made;
     the chosen trajectory is validated again here and nothing is written if it fails."""
@@ -78,10 +80,15 @@ def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
         if problems:
             raise PlanningError("refusing to write a plan that fails validation: " + "; ".join(problems))
     cost = result["environment"]["risk_cost"].values if "environment" in result.datasets else None
-    return write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
-                      ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
-                      terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
-                      cost_label="ground risk cost (normalised, 0-1) [-]")
+    files = write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
+                       ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
+                       terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
+                       cost_label="ground risk cost (normalised, 0-1) [-]")
+    if chosen is not None:
+        from skyroute.pipeline.plan_exports import write_pilot_exports
+
+        files.update(write_pilot_exports(result, Path(out_dir)))
+    return files
 
 
 def revalidate(result: RunResult, chosen) -> list[str]:
@@ -311,18 +318,24 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         produce("figures/surface.png", "surface", lambda p: plot_surface(result, p))
     sections: dict[str, Any] = {}
     if "plan" in result.datasets:
+        from skyroute.pipeline.plan_exports import export_key
+
+        plan_key = f"{keys['plan']}+{export_key(result)}"   # the pilot exports also read data.ground
         old = [f for f in prev_files if f.startswith("plan/")]
-        if prev_keys.get("plan/") == keys["plan"] and old and all((out_dir / f).is_file() for f in old):
+        if prev_keys.get("plan/") == plan_key and old and all((out_dir / f).is_file() for f in old):
             plan_files = old
         else:
             written = write_plan_outputs(result, out_dir / "plan")
             plan_files = [Path(p).relative_to(out_dir).as_posix() for p in written.values()]
-        output_keys["plan/"] = keys["plan"]
+        output_keys["plan/"] = plan_key
         files.extend(plan_files)
         # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
         from dask.local import get_sync
 
         sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
+        from skyroute.pipeline.plan_exports import exports_section
+
+        sections["exports"] = exports_section(result, [f for f in plan_files if f.startswith("plan/")], out_dir)
     if extra is not None:
         files.extend(extra["files"])
         sections["fly"] = extra["section"]

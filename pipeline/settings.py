@@ -165,6 +165,34 @@ class Obstacle(FrozenModel):
         return _check_polygon(v, "x_m, y_m")
 
 
+class GroundReference(FrozenModel):
+    """Where the surface model's 0 m lies, for absolute heights (operational intents in WGS 84
+    ellipsoidal metres, KML, QGroundControl home altitude): surface heights + ``height_m`` [m]
+    are heights in ``vertical_datum`` ('EGM96 geoid', 'EGM2008 geoid' or 'WGS 84 ellipsoid').
+    Required when the ground is flat local ground (OSM-only cities: the height of the ground
+    there) or in a datum skyroute cannot convert (e.g. NAP: the EGM96 height of NAP 0 m)."""
+
+    height_m: float
+    vertical_datum: str
+
+    @field_validator("vertical_datum")
+    @classmethod
+    def _known(cls, v: str) -> str:
+        from skyroute.stages.geoid import datum_kind
+
+        if datum_kind(v) not in ("EGM96", "EGM2008", "ellipsoid"):
+            raise ValueError(f"vertical datum {v!r} not understood: use 'EGM96 geoid', 'EGM2008 geoid' or "
+                             "'WGS 84 ellipsoid'")
+        return v
+
+    @field_validator("height_m")
+    @classmethod
+    def _finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError("height_m must be a finite number [m]")
+        return v
+
+
 class DataSources(FrozenModel):
     buildings: BuildingsSource | None = None
     terrain: TerrainSource | None = None
@@ -178,6 +206,7 @@ class DataSources(FrozenModel):
     wind: GriddedWind | None = None
     almanacs: tuple[Path, ...] = ()
     obstacles: tuple[Obstacle, ...] = ()
+    ground: GroundReference | None = None
 
 
 class MissionPoint(FrozenModel):
@@ -371,7 +400,10 @@ class TacticalSettings(FrozenModel):
     event and when the ownship knows it ``report_latency_s`` [s], iteration budgets of the level-2
     and level-3 RRTs, the level-1 velocity scale factors tried in order, and the time margin
     ``time_margin_s`` [s] of the replanning occupancy maps (the tracks are fresh during the
-    flight; the strategic maps use ``traffic.time_margin_s``)."""
+    flight; the strategic maps use ``traffic.time_margin_s``).  ``method``: how an intruder
+    conflict is resolved, ``levels`` (levels 1-3, seed 001) or ``octant`` (seed 004: dense-traffic
+    zones predicted ``zone_period_s`` [s] ahead and the octant manoeuvre once the intruder is
+    within ``periphery_m`` [m]; other conflicts still go through levels 1-3)."""
 
     t_rep_s: PositiveFloat = 5.0
     tick_s: PositiveFloat = 0.1
@@ -382,6 +414,9 @@ class TacticalSettings(FrozenModel):
     level3_iterations: Annotated[int, Field(ge=1)] = 5000
     time_scaling_factors: tuple[Annotated[float, Field(gt=0, lt=1)], ...] = (0.8, 0.65, 0.5, 0.35, 0.25)
     time_margin_s: NonNegFloat = 1.0
+    method: Literal["levels", "octant"] = "levels"
+    periphery_m: PositiveFloat = 60.0
+    zone_period_s: PositiveFloat = 10.0
 
     @field_validator("time_scaling_factors")
     @classmethod

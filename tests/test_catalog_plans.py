@@ -150,8 +150,8 @@ TACTICAL = [n for n in CATALOG if load_scenario(n).events]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", TACTICAL)
-def test_tactical_scenarios_fly_safely(name, cache, tmp_path):
+@pytest.mark.parametrize(("name", "method"), [(n, "levels") for n in TACTICAL] + [("helsinki-tactical", "octant")])
+def test_tactical_scenarios_fly_safely(name, method, cache, tmp_path):
     """``skyroute fly`` on every shipped scenario with events (issue 11), checked from its
     written files only: the distance at equal times between the flown trajectory and every
     intruder's truth track (both linear between their samples) is at least r_p + r_i + d_c at
@@ -168,9 +168,11 @@ def test_tactical_scenarios_fly_safely(name, cache, tmp_path):
     sc = load_scenario(name)
     veh = load_vehicle(sc.vehicle)
     out = tmp_path / "fly"
-    res = CliRunner().invoke(main, ["fly", name, "--out", str(out), "--cache-dir", str(cache.root), "-q"])
+    res = CliRunner().invoke(main, ["fly", name, "--out", str(out), "--cache-dir", str(cache.root), "-q",
+                                    "--tactical", method])
     assert res.exit_code == 0, res.output
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["fly"]["tactical_method"] == method
     assert summary["command"] == "fly" and all((out / f).is_file() for f in summary["files"])
     rows = list(csv.DictReader((out / "flown.csv").open()))
     t = np.array([float(r["t_s"]) for r in rows])
@@ -205,6 +207,13 @@ def test_tactical_scenarios_fly_safely(name, cache, tmp_path):
         assert summary["fly"]["outcome"] == "landed"
         land = [r for r in rows if r["part"] == "landing"]
         assert land and [r["level"] for r in tac] == ["landing"]
+    elif method == "octant":
+        # seed 004: the intruder conflicts by the octant manoeuvre, the police zone by levels 1-3
+        assert summary["fly"]["outcome"] == "goal"
+        chosen = [r["level"] for r in tac if r["chosen"] == "true"]
+        assert "octant" in chosen and {"octant"} <= set(chosen) <= {"octant", "1", "2", "3"}
+        assert "octant" in {r["part"] for r in rows}
+        assert summary["fly"]["dense_zones"]
     else:
         assert summary["fly"]["outcome"] == "goal"
         assert {r["level"] for r in tac if r["chosen"] == "true"} >= ({"1", "2"} if name == "helsinki-tactical" else {"2"})
@@ -276,3 +285,57 @@ def test_navsim_on_the_default_plan(cache, tmp_path):
     assert m.sizes["time"] >= 8 and "coverage_floor" in m
     gif = out / doc["navsim"]["morphing"]["files"][1]
     assert Image.open(gif).n_frames == m.sizes["time"]
+
+
+def _surface_distance_m(p: np.ndarray, x0: float, y1: float, cell_m: float, surface: np.ndarray,
+                        window_m: float) -> np.ndarray:
+    """Brute force (no skyroute code): distance [m] of each point to the union of the surface
+    prisms (closed cells) within ``window_m`` of it horizontally, capped at ``window_m``."""
+    ny, nx = surface.shape
+    out = np.full(len(p), float(window_m))
+    w = int(math.ceil(window_m / cell_m)) + 1
+    for n, (x, y, z) in enumerate(p):
+        c, r = int((x - x0) // cell_m), int((y1 - y) // cell_m)
+        r0, r1, c0, c1 = max(r - w, 0), min(r + w + 1, ny), max(c - w, 0), min(c + w + 1, nx)
+        cx = x0 + (np.arange(c0, c1) + 0.5) * cell_m
+        cy = y1 - (np.arange(r0, r1) + 0.5) * cell_m
+        dx = np.maximum(np.abs(x - cx) - cell_m / 2, 0)[None, :]
+        dy = np.maximum(np.abs(y - cy) - cell_m / 2, 0)[:, None]
+        dz = np.maximum(z - surface[r0:r1, c0:c1], 0)
+        out[n] = min(out[n], float(np.sqrt(dx**2 + dy**2 + dz**2).min()))
+    return out
+
+
+@pytest.mark.slow
+def test_fly_with_the_safety_bubble_keeps_r_j_from_the_surface(cache, tmp_path):
+    """``constraints.clearance: sboa`` in ``skyroute fly`` (issue 12 item 3): helsinki-contingency
+    with the safety bubble flies (and lands) on the clearance maps of the plan level's r_j, every
+    STEP III re-checks the bubble, and the written flight keeps r_j from the surface prisms
+    (brute force over the cells around each flown sample, from flown.csv only)."""
+    import csv
+    import json
+
+    from skyroute.pipeline.cli_fly import write_fly_folder
+    from skyroute.pipeline.fly import fly_scenario
+
+    raw = _raw("helsinki-contingency")
+    raw["constraints"]["clearance"] = "sboa"
+    sc = parse_scenario(raw, "x.yaml", scenario_paths()["helsinki-contingency"].parent)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fr = fly_scenario(sc, cache=cache)
+    out = tmp_path / "fly"
+    sec = write_fly_folder(fr, out)
+    doc = json.loads((out / "summary.json").read_text())
+    assert doc["fly"]["clearance"] == "sboa" and sec["outcome"] in ("goal", "landed"), sec["reason"]
+    r_j = doc["fly"]["safety_bubble"]["clearance_radius_m"]
+    veh = load_vehicle(sc.vehicle)
+    assert r_j > veh.r_p_m and doc["fly"]["safety_bubble"]["k"] == 3.0
+    rows = list(csv.DictReader((out / "flown.csv").open()))
+    p = np.array([[float(r["x_m"]), float(r["y_m"]), float(r["z_m"])] for r in rows])
+    surf = fr.result["surface"]["surface"]
+    x, y = surf["x"].values, surf["y"].values
+    cell = float(abs(x[1] - x[0]))
+    d = _surface_distance_m(p, float(x[0] - cell / 2), float(y[0] + cell / 2), cell,
+                            np.asarray(surf.values, float), window_m=r_j + 2 * cell)
+    assert d.min() >= r_j - 1e-6, (float(d.min()), r_j)

@@ -41,6 +41,11 @@ def test_plan_summary_line_and_json(planned):
     s = json.loads((out / "summary.json").read_text())
     assert s["schema_version"] == 1 and s["command"] == "plan" and isinstance(s["warnings"], list)
     assert sorted(s["files"]) == sorted(p.name for p in out.iterdir())
+    # pilot exports: helsinki-medical is on flat local ground without data.ground: no absolute
+    # heights, so no plan.kml / intent.json, and a note (not a warning) naming the setting
+    assert s["exports"]["files"] == ["plan.gpkg", "plan.plan"]
+    assert len(s["exports"]["notes"]) == 1 and "data.ground" in s["exports"]["notes"][0]
+    assert not any("exports" in w for w in s["warnings"])
     p = s["plan"]
     row = next(r for r in csv.DictReader((out / "candidates.csv").open()) if r["chosen"] == "true")
     assert p["status"] == "flyable" and p["reasons"] == [] and p["label"] == row["label"]

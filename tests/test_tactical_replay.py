@@ -302,3 +302,42 @@ def test_report_latency_noise_and_track_updates(sky, strategic):
     b = _fly(sky, strategic, ev, intruder_noise_m=1.0, seed=3)
     assert np.array_equal(a.flown()[1], b.flown()[1])
     assert _brute_separation(a) >= -2.0 * 3 * 1.0   # the truth is within 3 sigma of the reports at most
+
+
+# ------------------------------------------------------------------ octant method (seed 004)
+
+
+def test_head_on_intruder_with_the_octant_method(sky, strategic):
+    """``method="octant"``: the head-on conflict is resolved by the octant manoeuvre (forward
+    hemisphere preferred), flown as part ``octant``, continuous, valid for the independent
+    validator and separated (brute force 0.05 s); a pair of known intruders flying together far
+    from the route makes a dense zone, which the flight never enters while it is active."""
+    t_at_700 = float(np.interp(X0 + 700, strategic.xyz_m[:, 0], strategic.t_s))
+    it = Intruder("head-on", np.array([t_at_700 - 30, t_at_700 + 30]),
+                  np.array([[700 + 240, 300, 40], [700 - 240, 300, 40.0]]) + [X0, Y0, 0], 2.0)
+    pair = [Intruder(f"pair-{k}", np.array([0.0, 200.0]), np.array([[850 + 10 * k, 560, 40], [850 + 10 * k, 540, 40.0]])
+                     + [X0, Y0, 0], 2.0) for k in range(2)]
+    events = [TacticalEvent(1.0, "intruder", f"intruder {p.id}", intruder=p) for p in pair]
+    events.append(TacticalEvent(10.0, "intruder", "intruder head-on", intruder=it))
+    log = _fly(sky, strategic, events, method="octant")
+    assert log.method == "octant"
+    chosen = [a for a in log.attempts if a.chosen]
+    assert [a.level for a in chosen] == ["octant"], [(a.level, a.reasons) for a in log.attempts]
+    assert "escape octant" in chosen[0].reasons or "escape pocket" in chosen[0].reasons
+    assert "octant" in [p.part for p in log.parts]
+    assert _brute_separation(log) >= 0.0
+    assert _continuous(log) < 1e-3
+    viol = validate_plan(_stitched_candidate(log), grid=grid(), terrain_m=np.zeros(grid().shape), vehicle=VEH,
+                         floor_m=world(sky).clearance["min_altitude_m"].values, ceiling_m=np.full(grid().shape, 80.0),
+                         wind=np.zeros(3))
+    assert viol == []
+    # the pair: predicted 10 s ahead both in one zone far from the route -> a dense zone
+    assert log.dense_zones and any(z["dense"] for z in log.dense_zones)
+    t, p = log.flown()
+    for z in log.dense_zones:
+        for x0, x1, y0, y1 in z["boxes_m"]:
+            assert x0 <= X0 + 855 <= x1 and y0 <= Y0 + 555 <= y1          # the pair's box
+            act = (t >= z["t_s"]) & (t <= z["t_s"] + 10.0)
+            r = VEH.r_p_m
+            inside = (p[act, 0] > x0 - r) & (p[act, 0] < x1 + r) & (p[act, 1] > y0 - r) & (p[act, 1] < y1 + r)
+            assert not inside.any()

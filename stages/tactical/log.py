@@ -14,7 +14,7 @@ import numpy as np
 
 __all__ = ["FlightLog", "FlownPart", "IntruderTrack", "LevelAttempt", "NoFlyZone", "PART_NAMES"]
 
-PART_NAMES = ("strategic", "L1", "L2", "L3", "landing")
+PART_NAMES = ("strategic", "L1", "L2", "L3", "octant", "landing")
 
 
 @dataclass
@@ -127,6 +127,8 @@ class FlightLog:
     seed: int = 0
     own_radius_m: float = 0.0
     margin_m: float = 0.0
+    # safety bubble (constraints.clearance: sboa): {"k", "surface_uncertainty_m", "clearance_radius_m"}
+    bubble: dict | None = None
     compile_s: float = 0.0       # [s] kernel compilation and the take-off maps' line-of-sight heights
     warnings: list[str] = field(default_factory=list)
     grid: object | None = None
@@ -135,6 +137,8 @@ class FlightLog:
     coverage_floor_m: np.ndarray | None = None
     landing_xy: np.ndarray | None = None
     energy_Wh: float | None = None
+    method: str = "levels"                  # tactical method: levels (1-3) or octant (seed 004)
+    dense_zones: list = field(default_factory=list)   # octant method: dense zone definitions (dicts)
 
     def flown(self) -> tuple[np.ndarray, np.ndarray]:
         """The whole flown trajectory ``(t_s (m,), xyz_m (m, 3))``, shared part boundaries once."""

@@ -1,11 +1,11 @@
 """Outputs of a tactical replay (``skyroute fly``), written from a :class:`~.log.FlightLog` only.
 
 * ``tactical.csv``: one row per level attempted per replanning (seed 001 Tables 3, 5):
-  :data:`TACTICAL_COLUMNS`.  ``level`` is ``1``, ``2``, ``3`` or ``landing``; infinite values
+  :data:`TACTICAL_COLUMNS`.  ``level`` is ``1``, ``2``, ``3``, ``octant`` or ``landing``; infinite values
   are written ``inf``, undefined ones ``nan``; exactly one ``chosen=true`` per replanning
   (:func:`write_flight` raises :class:`~skyroute.stages.base.InputError` otherwise).
 * ``flown.geojson``: RFC 7946 FeatureCollection of the ownship only, one ``LineString`` per
-  flown part (``part`` = strategic / L1 / L2 / L3 / landing) of ``[lon, lat, z]`` (WGS 84,
+  flown part (``part`` = strategic / L1 / L2 / L3 / octant / landing) of ``[lon, lat, z]`` (WGS 84,
   ``z`` [m] in the surface's vertical datum, NOT ellipsoidal: the properties say so), with
   ``t_s`` and ``times_utc`` (ISO 8601 UTC) per vertex.
 * ``intruders.geojson``: one ``LineString`` per intruder (truth track: ``id``, ``kind``,
@@ -44,10 +44,10 @@ __all__ = ["write_flight", "flight_section", "fly_summary_line", "flown_samples"
 TACTICAL_COLUMNS = ("replanning", "event", "t_event_s", "t_coll_s", "level", "flyable", "C_l_m", "C_e_m", "f_m",
                     "max_sigma_p_m", "compute_s", "update_s", "added_flight_time_s", "chosen", "reasons")
 FLOWN_COLUMNS = ("t_utc", "t_s", "part", "x_m", "y_m", "z_m", "lon", "lat", "speed_mps")
-LEVELS = ("1", "2", "3", "landing")
+LEVELS = ("1", "2", "3", "octant", "landing")
 SEPARATION_STEP_S = 0.05
 PART_COLOURS = {"strategic": "tab:blue", "L1": "tab:green", "L2": "tab:orange", "L3": "tab:purple",
-                "landing": "tab:red"}
+                "octant": "tab:cyan", "landing": "tab:red"}
 
 
 # ------------------------------------------------------------------ checks and samples
@@ -57,7 +57,7 @@ def _level(v) -> str:
     s = str(v).strip()
     s = {"L1": "1", "L2": "2", "L3": "3", "1.0": "1", "2.0": "2", "3.0": "3"}.get(s, s)
     if s not in LEVELS:
-        raise InputError(f"level {v!r} of a tactical attempt is not one of 1, 2, 3 or 'landing'")
+        raise InputError(f"level {v!r} of a tactical attempt is not one of 1, 2, 3, 'octant' or 'landing'")
     return s
 
 
@@ -317,7 +317,8 @@ def flight_section(log: FlightLog) -> dict[str, Any]:
     time, horizontal and 3-D length), ``min_separation`` (:func:`min_separations`, brute force
     every ``separation_step_s``), ``nofly`` (:func:`nofly_time_inside`), ``flight_time_s``,
     ``length_m``, ``energy_Wh`` (None when the log has none), ``compile_s`` and the replay's
-    settings (``t_rep_s``, ``tick_s``, ``seed``, ``dop_threshold``)."""
+    settings (``t_rep_s``, ``tick_s``, ``seed``, ``dop_threshold``), ``tactical_method`` (levels or
+    octant) and ``dense_zones`` (octant method: the zone definitions, :mod:`.octant_replan`)."""
     _check(log)
     t, p = log.flown()
     by: dict[int, list] = {}
@@ -355,7 +356,10 @@ def flight_section(log: FlightLog) -> dict[str, Any]:
             "energy_Wh": _num(energy) if energy is not None else None, "compile_s": _num(log.compile_s),
             "t_rep_s": _num(log.t_rep_s), "tick_s": _num(log.tick_s), "seed": int(log.seed),
             "dop_threshold": _num(log.dop_threshold) if log.dop_threshold is not None else None,
-            "warnings": list(log.warnings)}
+            "clearance": "sboa" if getattr(log, "bubble", None) else "fixed",
+            "safety_bubble": {k: _num(v) for k, v in log.bubble.items()} if getattr(log, "bubble", None) else None,
+            "warnings": list(log.warnings), "tactical_method": str(getattr(log, "method", "levels")),
+            "dense_zones": list(getattr(log, "dense_zones", []))}
 
 
 def fly_summary_line(sec: dict[str, Any]) -> str:

@@ -79,8 +79,9 @@ from skyroute.stages.tactical.timeline import Segment, Timeline, chain_of, line_
 from skyroute.stages.traffic import Intruder, build_occupancy
 from skyroute.stages.vehicle import VehicleProfile
 
-__all__ = ["FlyParams", "TacticalEvent", "World", "encounter_geometry", "replay"]
+__all__ = ["TACTICAL_METHODS", "FlyParams", "TacticalEvent", "World", "encounter_geometry", "replay"]
 
+TACTICAL_METHODS = ("levels", "octant")
 FRONTAL_DEG = 135.0        # encounter angle above which the geometry is frontal (level 1 refused)
 STATIC_INTRUDER_MPS = 0.5  # an intruder slower than this is treated as static (level 1 refused)
 
@@ -97,7 +98,17 @@ class FlyParams:
     ``level2_iterations`` / ``level3_iterations``: RRT iteration counts; ``intruder_noise_m``
     [m]: 1-sigma noise of reported intruder positions; ``report_latency_s`` [s]: delay before an
     intruder event is known; ``occupancy_slice_s`` [s]: time slice of the replanning
-    occupancy maps; ``max_landing_sites``: sites tried for a contingency landing."""
+    occupancy maps; ``max_landing_sites``: sites tried for a contingency landing;
+    ``method``: ``levels`` (levels 1-3) or ``octant`` (seed 004: zone partitioning and the
+    octant manoeuvre for intruder conflicts, :mod:`.octant_replan`); ``periphery_m`` [m]: the
+    octant method's sensing periphery P_r; ``zone_period_s`` [s]: its zone prediction period
+    T_p.
+
+    Safety bubble (``constraints.clearance: sboa``, seed 003; default off): ``bubble_k`` k
+    makes every STEP III of the replay re-check its samples at max(r_p, k sigma_p(t) +
+    ``surface_uncertainty_m``) from the surface (as the strategic plan does), and
+    ``clearance_radius_m`` r_j [m] (the radius the world's clearance maps were built for) is
+    also the height of the landing approach points above a site."""
 
     t_rep_s: float = 5.0
     tick_s: float = 0.1
@@ -118,12 +129,30 @@ class FlyParams:
     occupancy_slice_s: float = 1.0
     max_landing_sites: int = 5
     step_cells: int = 8
+    bubble_k: float | None = None
+    surface_uncertainty_m: float = 0.0
+    clearance_radius_m: float | None = None
+    method: str = "levels"
+    periphery_m: float = 60.0
+    zone_period_s: float = 10.0
 
     def __post_init__(self):
+        if self.method not in TACTICAL_METHODS:
+            raise InputError(f"tactical method {self.method!r}: use one of {', '.join(TACTICAL_METHODS)}")
+        if not (self.periphery_m > 0 and self.zone_period_s > 0):
+            raise InputError("periphery_m [m] and zone_period_s [s] must be > 0")
         if not (self.t_rep_s > 0 and self.tick_s > 0 and self.occupancy_slice_s > 0):
             raise InputError("t_rep_s, tick_s and occupancy_slice_s must be > 0 [s]")
         if not all(0 < s < 1 for s in self.time_scaling_factors):
             raise InputError(f"time_scaling_factors {self.time_scaling_factors} must be in (0, 1)")
+        if self.bubble_k is not None and not (self.bubble_k > 0 and self.surface_uncertainty_m >= 0):
+            raise InputError(f"safety bubble k {self.bubble_k} must be > 0 and the surface uncertainty "
+                             f"{self.surface_uncertainty_m} m >= 0")
+
+    @property
+    def bubble(self) -> tuple[float, float] | None:
+        """``(k, surface_uncertainty_m)`` of the safety bubble, or None (fixed r_p)."""
+        return None if self.bubble_k is None else (float(self.bubble_k), float(self.surface_uncertainty_m))
 
 
 @dataclass(frozen=True)
@@ -250,6 +279,10 @@ class _Replay:
         self.warnings: list[str] = []
         self._zone_masks: dict[str, np.ndarray] = {}
         self._grid_obj = None
+        self.zone_tracker = None              # the octant method's zone partitioning (octant_replan)
+        self.dense_zones: list[NoFlyZone] = []
+        self.dense_zone_log: list[dict] = []
+        self.zone_ids: tuple[str, ...] | None = None   # intruders of the last zone determination
 
     def _known_at(self, ev: TacticalEvent) -> float:
         lat = self.p.report_latency_s if ev.kind in ("intruder", "intruder_update") else 0.0
@@ -383,6 +416,10 @@ class _Replay:
                 continue
             t0 = time.perf_counter()
             self.apply(ev, t_e)
+            if p.method == "octant" and ev.kind in ("intruder", "intruder_update"):
+                from skyroute.stages.tactical.octant_replan import update_zones
+
+                update_zones(self, t_e)
             update_s = time.perf_counter() - t0
             t_s, pts = self.tl.samples(t_e, p.tick_s)
             prob = self.problem(self.tl.sample(t_e), self.goal, zones_from_s=math.inf)   # zones: checked in time
@@ -401,7 +438,12 @@ class _Replay:
                     return
                 continue
             t_eff = self._effective_time(t_e + p.t_rep_s)
-            best = self.replan(k, ev, t_e, t_eff, t_coll, update_s, cause, detail)
+            if p.method == "octant" and hasattr(detail, "own_velocity_mps"):
+                from skyroute.stages.tactical.octant_replan import octant_replan
+
+                best = octant_replan(self, k, ev, t_e, t_eff, t_v, t_coll, update_s, cause, detail)
+            else:
+                best = self.replan(k, ev, t_e, t_eff, t_coll, update_s, cause, detail)
             if best is None:
                 why = f"no level found a valid plan ({cause})"
                 ok = self.land(k, ev, t_e, t_eff, t_coll, update_s, why)
@@ -509,7 +551,8 @@ class _Replay:
         cand = step3(problem, s2, sky, self.world.surface["surface"].values, start_time_utc=self.start_time_utc,
                      label=label, gnss_sigma_m=self.p.uere_m, battery_reserve_pct=max(reserve, 0.0),
                      v_start_mps=v0, sample_dt_s=min(0.5, self.p.tick_s * 5), los_cache=self.world.los_cache,
-                     stop_at=stop_at)
+                     stop_at=stop_at,
+                     bubble=None if self.p.bubble is None else (*self.p.bubble, float(self.veh.r_p_m)))
         if cand.t_s.size:
             c = first_conflict(cand.t_s, cand.xyz_m, *self.tracks()) if self.known.intruders() else None
             if c is not None:
@@ -742,9 +785,10 @@ class _Replay:
         return False
 
     def _landing_targets(self, pb) -> list[tuple[str, np.ndarray]]:
-        """Approach points r_p above the landing sites nearest to ``pb`` (one cell per site:
-        the site cell nearest to the site's centre whose clearance floor allows it; the
-        surface there is the ground of a field or the roof of a flat-roof site)."""
+        """Approach points r_p (with the safety bubble: r_j) above the landing sites nearest
+        to ``pb`` (one cell per site: the site cell nearest to the site's centre whose
+        clearance floor allows it; the surface there is the ground of a field or the roof of
+        a flat-roof site)."""
         env = self.world.environment
         if env is None or "site_x" not in env.coords:
             return []
@@ -752,7 +796,7 @@ class _Replay:
         site = np.asarray(env["landing_site"].values, bool)
         top = np.asarray(self.world.surface["surface"].values, float)     # the ground or the flat roof
         floor = np.asarray(self.world.clearance["min_altitude_m"].values, float)
-        r_p = self.veh.r_p_m
+        r_p = max(self.veh.r_p_m, self.p.clearance_radius_m or 0.0)
         zone = self._zone_mask(0.0)
         ok = site & np.isfinite(floor) & (floor <= top + r_p + 1e-9)
         if zone is not None:
@@ -869,7 +913,12 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
     log.dop_threshold = dop_threshold
     log.t_rep_s, log.tick_s, log.seed = params.t_rep_s, params.tick_s, params.seed
     log.own_radius_m, log.margin_m = vehicle.r_p_m, params.d_c_m
+    if params.bubble is not None:
+        log.bubble = {"k": params.bubble[0], "surface_uncertainty_m": params.bubble[1],
+                      "clearance_radius_m": params.clearance_radius_m}
     log.compile_s = compile_s
+    log.method = params.method
+    log.dense_zones = list(r.dense_zone_log)
     log.warnings = r.warnings
     log.grid = grid
     last = r.world          # the maps at the end of the flight (new obstacles, GNSS outages included)

@@ -1,0 +1,54 @@
+"""``skyroute compare``: STEP I planners side by side on the same maps
+(:mod:`skyroute.pipeline.compare`)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from skyroute.pipeline.cli import SCHEDULER_HELP
+
+
+@click.command("compare")
+@click.argument("scenario", required=False, default=None)
+@click.option("--planners", default=None,
+              help="Comma-separated planner names (default: every planner skyroute has).")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default: ./skyroute-out/SCENARIO/compare).")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
+@click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
+@click.option("-q", "--quiet", is_flag=True, help="No progress lines.")
+def compare_command(scenario, planners, out_dir, cache_dir, scheduler, quiet) -> None:
+    """Plan SCENARIO with each planner on the same (cached) maps: compare.csv (f and its
+    terms, length, energy, minimum and mean exact clearance from the surface, max sigma_p,
+    compute time, flyable, or why not) and compare.png (every path, top view and profiles).
+    Planners that do not apply to the scenario are listed with the reason."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.cli import write_folder_summary
+    from skyroute.pipeline.compare import compare_planners, json_safe, write_compare
+    from skyroute.pipeline.outputs import ensure_writable_dir
+    from skyroute.pipeline.settings import DEFAULT_SCENARIO, PLANNERS, load_scenario
+
+    sc = load_scenario(scenario or DEFAULT_SCENARIO)
+    names = [p.strip() for p in planners.split(",") if p.strip()] if planners else list(PLANNERS)
+    out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "compare")
+    echo = None if quiet or not sys.stderr.isatty() else (lambda m: click.echo(m, err=True))
+    rows, maps = compare_planners(sc, names, cache=Cache(cache_dir), scheduler=scheduler, echo=echo)
+    files = write_compare(rows, maps, out_dir, title=f"{sc.name}: planners compared")
+    section = {"planners": [json_safe(r.values) for r in rows]}
+    write_folder_summary(out_dir, "compare", maps, [str(p) for p in files.values()], {"compare": section})
+    for r in rows:
+        v = r.values
+        if r.xyz_m is not None:
+            click.echo(f"{r.planner:>10}: f {v['f_m']:.1f} m, length {v['length_m']:.1f} m, energy "
+                       f"{v['energy_Wh']:.2f} Wh, min clearance {v['min_clearance_m']:.2f} m, "
+                       f"compute {v['compute_s']:.2f} s")
+        else:
+            click.echo(f"{r.planner:>10}: {v.get('reason', 'no plan')}")
+    click.echo(f"compare: {len(rows)} planners -> {out_dir}")
+    if not any(r.flyable for r in rows):
+        click.echo("no flyable plan: no planner found one (compare.csv lists why)", err=True)
+        raise SystemExit(3)

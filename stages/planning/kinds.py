@@ -30,4 +30,10 @@ def check_planner_vehicle(planner: str, vehicle, known: tuple[str, ...]) -> None
                          f"use one of {', '.join(rotor)}")
 
 
-__all__ = ["FIXED_WING_PLANNERS", "check_planner_vehicle"]
+def planners_for(vehicle, known: tuple[str, ...]) -> list[str]:
+    """The planners of ``known`` that fit the kind of ``vehicle``, in order."""
+    fixed = isinstance(load_vehicle(vehicle), FixedWingProfile)
+    return [p for p in known if (p in FIXED_WING_PLANNERS) == fixed]
+
+
+__all__ = ["FIXED_WING_PLANNERS", "check_planner_vehicle", "planners_for"]

@@ -307,3 +307,11 @@ def test_scenario_eeastar_within_half_a_percent_of_astar(tmp_path):
         e[p] = plan.chosen.energy_J
     assert e["energy-optimal"] <= min(e["eeastar"], e["astar-fw"]) * (1 + 1e-12)
     assert e["eeastar"] <= 1.005 * e["astar-fw"]
+
+
+def test_fly_refuses_a_fixed_wing_scenario():
+    from skyroute.pipeline.fly import fly_scenario
+    from skyroute.pipeline.settings import load_scenario
+
+    with pytest.raises(InputError, match="skyroute fly.*fixed-wing"):
+        fly_scenario(load_scenario("san-gabriel-fixedwing"))

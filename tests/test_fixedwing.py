@@ -145,7 +145,8 @@ def test_segment_energy_hand_computed():
 # ------------------------------------------------------------------ planners
 
 
-def _terrain_problem(wind=(3.0, 1.0, 0.0), start=(300.0, 900.0), goal=(2700.0, 1000.0), vehicle="skywalker-x8"):
+def _terrain_problem(wind=(3.0, 1.0, 0.0), start=(300.0, 900.0), goal=(2700.0, 1000.0), vehicle="skywalker-x8",
+                     power_profile=False):
     """A 3 x 2 km valley at 30 m: a ridge across the route with a saddle near y = 1700 m."""
     g = Grid.from_bounds("EPSG:32611", 0, 0, 3000, 2000, 30)
     x = g.x0 + (np.arange(g.nx) + 0.5) * g.resolution_m
@@ -157,6 +158,10 @@ def _terrain_problem(wind=(3.0, 1.0, 0.0), start=(300.0, 900.0), goal=(2700.0, 1
     ds = xr.Dataset({"terrain": da, "surface": da})
     r0, c0 = g.index_of(*start)
     r1, c1 = g.index_of(*goal)
+    if power_profile:                    # a wind that grows with height above ground (power law)
+        from skyroute.stages.wind import wind_on_grid
+
+        wind = wind_on_grid(wind, g, [0, 10, 50, 100, 200, 300], terrain=da, profile="power", horizontal_step_m=300)
     return build_problem(ds, t + 15.0, None, 0, 0, wind, vehicle, (1, 0, 0, 0), (*start, t[r0, c0] + 100),
                          (*goal, t[r1, c1] + 100), 30.0, 300.0)
 
@@ -269,6 +274,19 @@ def test_five_missions_table2_relations():
         assert e["energy-optimal"] <= e["astar-fw"] * (1 + 1e-12)
         better_or_equal += e["eeastar"] <= e["astar-fw"] * (1 + 1e-12)
     assert better_or_equal >= 3
+
+
+def test_wind_varying_with_height():
+    """A power-law wind profile (non-uniform: sub-segment sampling, isotropic heuristic): the
+    optimum is still a lower bound and every reported energy is that of its path."""
+    pr = _terrain_problem(wind=(6.0, 300.0), power_profile=True)
+    assert np.ptp(np.asarray(pr.wind_uvw)[..., 0]) > 1.0
+    res = {p: plan_fixedwing(pr, p, corridor_m=500.0) for p in ("astar-fw", "eeastar", "energy-optimal")}
+    e = {p: r.energy_J for p, r in res.items()}
+    assert e["energy-optimal"] <= min(e["eeastar"], e["astar-fw"]) * (1 + 1e-12)
+    for r in res.values():
+        assert r.energy_J == pytest.approx(path_energy(pr, r.waypoints)["energy_J"], rel=1e-12)
+    assert fixedwing_candidate(pr, res["eeastar"]).flyable
 
 
 def test_lattice_rejects_a_step_too_short_for_the_turns():

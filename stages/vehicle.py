@@ -332,6 +332,12 @@ class FixedWingProfile(FrozenModel):
         return flown_airspeed(self.carson_speed_at(rho_kgpm3), self.stall_speed_at(rho_kgpm3),
                               self.min_airspeed_factor, self.max_airspeed_mps)
 
+    @property
+    def cruise_speed_mps(self) -> float:
+        """The flown airspeed in ISA sea-level air [m/s] (the cruise speed a ground station
+        takes; the planners use :meth:`airspeed_at` the local density)."""
+        return self.airspeed_at(RHO_SL)
+
     def turn_radius_at(self, airspeed_mps: float) -> float:
         """Minimum turn radius V^2 / (g tan(max bank)) [m] in still air."""
         return airspeed_mps**2 / (G0 * math.tan(math.radians(self.max_bank_deg)))

@@ -330,3 +330,13 @@ def test_fly_refuses_a_fixed_wing_scenario():
 
     with pytest.raises(InputError, match="skyroute fly.*fixed-wing"):
         fly_scenario(load_scenario("san-gabriel-fixedwing"))
+
+
+def test_qgc_plan_of_a_fixed_wing_ends_on_a_loiter():
+    from skyroute.stages.exports import qgc_plan
+
+    doc = qgc_plan([7.0, 7.01], [43.0, 43.01], [100.0, 120.0], 50.0, cruise_speed_mps=11.2, fixed_wing=True)
+    m = doc["mission"]
+    assert m["vehicleType"] == 1 and m["items"][-1]["command"] == 17 and m["items"][-1]["params"][6] == 120.0
+    assert qgc_plan([7.0, 7.01], [43.0, 43.01], [100.0, 120.0], 50.0, cruise_speed_mps=5.0)["mission"]["items"][-1][
+        "command"] == 21

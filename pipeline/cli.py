@@ -244,7 +244,8 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
               help="Output folder (default: ./skyroute-out/SCENARIO/plan).")
 @click.option("--weights", default=None, metavar="W_L,W_R,W_D,W_E",
               help="Cost weights of eq. 11: length, risk, landing, energy (overrides planner.weights).")
-@click.option("--planner", "planner_name", default=None, help="STEP I planner: astar, bitstar or potential (overrides planner.name).")
+@click.option("--planner", "planner_name", default=None, help="STEP I planner: astar, bitstar or potential; fixed-wing: eeastar, astar-fw or energy-optimal "
+              "(overrides planner.name).")
 @click.option("--seed", type=int, default=None, help="Random seed of BIT* and the RRT (overrides planner.seed).")
 @click.option("--time-budget", "time_budget_s", type=float, default=None,
               help="BIT* time per coverage level [s] (overrides planner.time_budget_s).")
@@ -287,11 +288,14 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
     if time_budget_s is not None:
         upd["time_budget_s"] = time_budget_s
     if upd:
-        from skyroute.pipeline.settings import PlannerSettings, parse_planner
+        from skyroute.pipeline.settings import PLANNERS, PlannerSettings, parse_planner
 
         planner = parse_planner({**sc.planner.model_dump(), **upd})
         assert isinstance(planner, PlannerSettings)
         sc = sc.model_copy(update={"planner": planner})
+        from skyroute.stages.planning.kinds import check_planner_vehicle
+
+        check_planner_vehicle(planner.name, sc.vehicle, PLANNERS)   # InputError naming the planners that fit
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "plan")
     result = run_scenario(sc, cache=Cache(cache_dir), targets=["plan"], scheduler=scheduler,
                           progress=not quiet and sys.stderr.isatty())

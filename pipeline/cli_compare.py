@@ -14,7 +14,7 @@ from skyroute.pipeline.cli import SCHEDULER_HELP
 @click.command("compare")
 @click.argument("scenario", required=False, default=None)
 @click.option("--planners", default=None,
-              help="Comma-separated planner names (default: every planner skyroute has).")
+              help="Comma-separated planner names (default: every planner that fits the vehicle).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/compare).")
 @click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
@@ -31,9 +31,11 @@ def compare_command(scenario, planners, out_dir, cache_dir, scheduler, quiet) ->
     from skyroute.pipeline.compare import compare_planners, json_safe, write_compare
     from skyroute.pipeline.outputs import ensure_writable_dir
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, PLANNERS, load_scenario
+    from skyroute.stages.planning.kinds import planners_for
 
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
-    names = [p.strip() for p in planners.split(",") if p.strip()] if planners else list(PLANNERS)
+    names = ([p.strip() for p in planners.split(",") if p.strip()] if planners
+             else planners_for(sc.vehicle, PLANNERS))   # default: every planner that fits the vehicle
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "compare")
     echo = None if quiet or not sys.stderr.isatty() else (lambda m: click.echo(m, err=True))
     rows, maps = compare_planners(sc, names, cache=Cache(cache_dir), scheduler=scheduler, echo=echo)

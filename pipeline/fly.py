@@ -130,6 +130,9 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     from skyroute.stages.vehicle import load_vehicle
 
     params = fly_params(sc, t_rep_s, tick_s, seed, method)   # bad values fail here, before any work
+    if load_vehicle(sc.vehicle).kind == "fixed-wing":
+        raise InputError(f"the tactical replay (skyroute fly) flies rotorcraft; vehicle {sc.vehicle!r} is fixed-wing "
+                         "(seed 002's local planner is not implemented yet): plan it with `skyroute plan`")
     cache = cache or Cache()
     if result is None:
         result = run_scenario(sc, cache=cache, targets=["plan"], scheduler=scheduler, progress=progress)

@@ -114,11 +114,16 @@ def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | Non
         plan = result["plan"].load()
         chosen, _ = plan_from_dataset(plan)
         tr = trajectory_from_dataset(plan)
-        if chosen is None or tr is None:
+        if chosen is None:
             raise PlanningError(f"no strategic plan to simulate: {plan.attrs.get('reason', '')}")
-        traj, t0 = tr
-        t = t0 + np.arange(0.0, traj.duration_s + 1e-9, dt)
-        xyz = traj.sample(t - t0)
+        if tr is not None:
+            traj, t0 = tr
+            t = t0 + np.arange(0.0, traj.duration_s + 1e-9, dt)
+            xyz = traj.sample(t - t0)
+        else:   # a fixed-wing plan: its samples (lines and arcs sampled densely), linearly interpolated
+            ts, ps = np.asarray(chosen.t_s, float), np.asarray(chosen.xyz_m, float)
+            t = np.arange(ts[0], ts[-1] + 1e-9, dt)
+            xyz = np.column_stack([np.interp(t, ts, ps[:, k]) for k in range(3)])
         source = "plan"
         dop_threshold = chosen.dop_threshold
     else:

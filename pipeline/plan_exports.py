@@ -154,7 +154,8 @@ def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:
         parse_intent(intent)   # F3548 schema and limits
         files["intent.json"] = write_json(out / "intent.json", intent)
     files["plan.plan"] = write_json(out / "plan.plan", qgc_plan(wlon, wlat, wp[:, 2] - home_z, home_amsl,
-                                                                cruise_speed_mps=veh.cruise_speed_mps))
+                                                                cruise_speed_mps=veh.cruise_speed_mps,
+                                                                fixed_wing=veh.kind == "fixed-wing"))
     buildings = None
     if "surface" in result.datasets and sc.grid.nx * sc.grid.ny <= MAP_LAYER_MAX_CELLS:
         from skyroute.stages.exports import building_footprints

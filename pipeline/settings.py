@@ -316,13 +316,14 @@ class TrafficSettings(FrozenModel):
     time_margin_s: NonNegFloat = 5.0
 
 
-PLANNERS = ("astar", "bitstar", "potential")
+PLANNERS = ("astar", "bitstar", "potential", "eeastar", "astar-fw", "energy-optimal")
 
 
 class PlannerSettings(FrozenModel):
     """STEP I planner (``astar``: deterministic 3-D lattice A* + refinement, the default; or
     ``bitstar``: OMPL BIT*, reproducible with its seed and an iteration budget derived from
-    ``time_budget_s``), eq. 11 weights (w_l, w_r, w_d, w_e) >= 0 and
+    ``time_budget_s``; for fixed-wing vehicles ``eeastar``, ``astar-fw`` or ``energy-optimal``,
+    seed 002, :mod:`skyroute.stages.planning.fixedwing`), eq. 11 weights (w_l, w_r, w_d, w_e) >= 0 and
     not all zero, BIT* time per coverage level [s], random seed, energy re-plan tries N_t."""
 
     name: str = "astar"
@@ -847,6 +848,7 @@ def _semantic_problems(sc: Scenario) -> list[str]:
         problems.append(f"vehicle: unknown vehicle {sc.vehicle!r}; known vehicles: {', '.join(known_vehicles())}")
     else:
         problems.extend(_vehicle_altitude_problems(sc))
+        problems.extend(planner_vehicle_problems(sc))
     try:
         grid = sc.grid
     except Exception as exc:  # CRSError / InputError
@@ -884,6 +886,20 @@ def _vehicle_max_altitude_m(sc: Scenario) -> float | None:
         return float(load_vehicle(sc.vehicle).max_altitude_m)
     except Exception:  # an unreadable vehicle is reported by its own check
         return None
+
+
+def planner_vehicle_problems(sc: Scenario) -> list[str]:
+    """``planner.name`` must fit the vehicle's kind (rotorcraft / fixed-wing planners)."""
+    from skyroute.stages.base import InputError
+    from skyroute.stages.planning.kinds import check_planner_vehicle
+
+    try:
+        check_planner_vehicle(sc.planner.name, sc.vehicle, PLANNERS)
+    except InputError as exc:
+        return [f"planner.name: {exc}"]
+    except Exception:  # an unreadable vehicle is reported by its own check
+        return []
+    return []
 
 
 def _vehicle_altitude_problems(sc: Scenario) -> list[str]:

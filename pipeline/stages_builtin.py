@@ -492,9 +492,9 @@ def sboa_levels(s: PlanSboaSettings, surface: xr.Dataset, environment: xr.Datase
     dataset of the clearance stage recomputed for ``r_j`` (:func:`~skyroute.stages.sboa.level_radius_m`)
     and ``bubble = (k, surface_uncertainty_m)`` for the STEP III re-check."""
     from skyroute.stages.sboa import level_radius_m
-    from skyroute.stages.vehicle import VehicleProfile
+    from skyroute.stages.vehicle import vehicle_from_dict
 
-    veh = VehicleProfile.model_validate(s.vehicle_profile)
+    veh = vehicle_from_dict(s.vehicle_profile)
     by_level = {}
     if coverage is not None:
         for d in coverage["threshold"].values:
@@ -523,5 +523,8 @@ register(Stage("plan", plan_stage, _plan_settings, inputs=("surface", "environme
                              "skyroute.stages.planning.bitstar", "skyroute.stages.planning.deconflict",
                              "skyroute.stages.planning.step3", "skyroute.stages.planning.validate",
                              "skyroute.stages.energy", "skyroute.stages.smoothing", "skyroute.stages.navigation",
-                             "skyroute.stages.vehicle", "skyroute.stages.sboa", "skyroute.stages.clearance"),
+                             "skyroute.stages.vehicle", "skyroute.stages.sboa", "skyroute.stages.clearance",
+                             "skyroute.stages.planning.kinds", "skyroute.stages.planning.fixedwing",
+                             "skyroute.stages.planning.fw_kernels", "skyroute.stages.fixedwing_energy",
+                             "skyroute.stages.atmosphere"),
                description="strategic plan: STEP I-III per DOP level and the chosen trajectory"))

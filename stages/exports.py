@@ -39,7 +39,8 @@ KML_NS = "http://www.opengis.net/kml/2.2"
 GX_NS = "http://www.google.com/kml/ext/2.2"
 QGC_FRAME_GLOBAL_RELATIVE_ALT = 3
 MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LAND, MAV_CMD_NAV_TAKEOFF = 16, 21, 22
-MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR = 12, 2
+MAV_CMD_NAV_LOITER_UNLIM = 17
+MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR, MAV_TYPE_FIXED_WING = 12, 2, 1
 
 
 def _check(lon, lat, *more) -> tuple[np.ndarray, ...]:
@@ -106,22 +107,28 @@ def _item(seq: int, command: int, lat: float, lon: float, alt: float) -> dict:
 
 
 def qgc_plan(lon_deg, lat_deg, rel_alt_m, home_amsl_m: float, *, cruise_speed_mps: float,
-             hover_speed_mps: float = 5.0) -> dict:
+             hover_speed_mps: float = 5.0, fixed_wing: bool = False) -> dict:
     """QGroundControl Plan document (see the module docstring): waypoints ``lon_deg, lat_deg``
     [deg] at ``rel_alt_m`` [m] above home (home = the ground under the first waypoint, at
-    ``home_amsl_m`` [m] above mean sea level); take-off at the first, landing at the last."""
+    ``home_amsl_m`` [m] above mean sea level); take-off at the first, landing at the last
+    (``fixed_wing``: vehicle type fixed wing, and an unlimited loiter at the last waypoint
+    instead of the landing: a fixed-wing aircraft cannot land on a waypoint)."""
     lon, lat, rel = _check(lon_deg, lat_deg, rel_alt_m)
     if not (math.isfinite(home_amsl_m) and cruise_speed_mps > 0 and hover_speed_mps > 0):
         raise InputError("home_amsl_m must be finite, the speeds > 0 [m/s]")
     items = [_item(1, MAV_CMD_NAV_TAKEOFF, lat[0], lon[0], float(rel[0]))]
     for i in range(lon.size):
         items.append(_item(len(items) + 1, MAV_CMD_NAV_WAYPOINT, lat[i], lon[i], float(rel[i])))
-    items.append(_item(len(items) + 1, MAV_CMD_NAV_LAND, lat[-1], lon[-1], 0.0))
+    if fixed_wing:
+        items.append(_item(len(items) + 1, MAV_CMD_NAV_LOITER_UNLIM, lat[-1], lon[-1], float(rel[-1])))
+    else:
+        items.append(_item(len(items) + 1, MAV_CMD_NAV_LAND, lat[-1], lon[-1], 0.0))
     return {"fileType": "Plan", "groundStation": "QGroundControl", "version": 1,
             "geoFence": {"circles": [], "polygons": [], "version": 2},
             "rallyPoints": {"points": [], "version": 2},
             "mission": {"cruiseSpeed": float(cruise_speed_mps), "hoverSpeed": float(hover_speed_mps),
-                        "firmwareType": MAV_AUTOPILOT_PX4, "vehicleType": MAV_TYPE_QUADROTOR,
+                        "firmwareType": MAV_AUTOPILOT_PX4,
+                        "vehicleType": MAV_TYPE_FIXED_WING if fixed_wing else MAV_TYPE_QUADROTOR,
                         "globalPlanAltitudeMode": 1, "version": 2, "items": items,
                         "plannedHomePosition": [round(float(lat[0]), 9), round(float(lon[0]), 9),
                                                 round(float(home_amsl_m), 3)]}}

@@ -16,6 +16,13 @@ Hard kinematic limits (tolerance 0 in STEP III and in the validator): ``max_airs
 ``max_flight_path_angle_deg``, ``max_climb_rate_mps`` / ``max_descent_rate_mps`` (vertical
 speed [m/s], both positive) and ``max_acceleration_mps2`` (norm of the 3-D acceleration
 [m/s^2]).  They are required: a profile without them does not load.
+
+Fixed-wing aircraft (seed 002, Aiello et al.) are :class:`FixedWingProfile` (``kind: fixed-wing``
+in the YAML): airframe, drag polar and limits; the drag polar ``D/L = A V^2 + B / V^2`` (seed 002
+eq. 4-6), the Carson speed, stall speed and minimum turn radius are its properties.  The profile
+is a discriminated union on ``kind`` (``multirotor``, the default, so older YAML still loads:
+:class:`VehicleProfile`; ``fixed-wing``: :class:`FixedWingProfile`); :func:`load_vehicle`
+returns the right type and every stage reads a vehicle through it.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ Pos = Annotated[float, Field(gt=0)]
 NonNeg = Annotated[float, Field(ge=0)]
 
 G0 = 9.80665  # standard gravity [m/s^2]
+RHO_SL = 1.225  # ISA sea-level air density [kg/m^3]
 
 
 class ImuSpec(FrozenModel):
@@ -190,6 +198,185 @@ class VehicleProfile(FrozenModel):
         return self.airframe.total_mass_kg * G0
 
 
+# The drag polar of seed 002 eq. 4-6 and the speeds derived from it: plain arithmetic, the one
+# home of each formula (the profile's properties call them; the compiled kernels of
+# :mod:`skyroute.stages.fixedwing_energy` compile these same functions with numba).
+def polar_a(rho_kgpm3: float, parasite_area_m2: float, weight_n: float) -> float:
+    """A = rho f / (2 W) [s^2/m^2] (seed 002 eq. 5)."""
+    return rho_kgpm3 * parasite_area_m2 / (2.0 * weight_n)
+
+
+def polar_b(rho_kgpm3: float, weight_n: float, span_m: float, oswald: float) -> float:
+    """B = 2 W / (rho b^2 pi e) [m^2/s^2] (seed 002 eq. 6)."""
+    return 2.0 * weight_n / (rho_kgpm3 * span_m * span_m * math.pi * oswald)
+
+
+def carson_speed(a: float, b: float) -> float:
+    """V_opt = (B / A)^(1/4) [m/s], where D/L = A V^2 + B / V^2 is least."""
+    return math.sqrt(math.sqrt(b / a))
+
+
+def stall_speed(rho_kgpm3: float, weight_n: float, wing_area_m2: float, max_lift_coefficient: float) -> float:
+    """V_s = sqrt(2 W / (rho S C_L,max)) [m/s] in level flight."""
+    return math.sqrt(2.0 * weight_n / (rho_kgpm3 * wing_area_m2 * max_lift_coefficient))
+
+
+def flown_airspeed(v_opt: float, v_stall: float, min_factor: float, v_max: float) -> float:
+    """The flown airspeed [m/s]: the Carson speed, at least ``min_factor`` x stall, at most v_max."""
+    return min(max(v_opt, min_factor * v_stall), v_max)
+
+
+class FixedWingProfile(FrozenModel):
+    """A fixed-wing aircraft (seed 002 section 3.2): airframe, drag polar and limits.
+
+    Drag polar (seed 002 eq. 4-6, parabolic): ``D/L = A V^2 + B / V^2`` with
+    ``A = rho f / (2 W)``, ``B = 2 W / (rho b^2 pi e)``, ``f = C_D0 S`` the parasite area [m^2],
+    ``W = m g`` [N], ``b`` the span [m], ``e`` Oswald's efficiency.  ``A B = f / (b^2 pi e)``
+    does not depend on the density, so ``(D/L)_opt = 2 sqrt(AB)`` is a constant of the
+    airframe and the Carson speed ``V_opt = (B/A)^(1/4)`` scales as ``rho^(-1/2)``.
+    The flown airspeed is :meth:`airspeed_mps` (the Carson speed, at least
+    ``min_airspeed_factor`` x the stall speed, at most ``max_airspeed_mps``).
+    Properties at sea level (ISA) take ``rho`` [kg/m^3] where it matters (``*_at`` methods).
+    """
+
+    name: str
+    kind: Literal["fixed-wing"]
+    description: str = ""
+    references: tuple[str, ...] = ()
+    mass_kg: Pos                                       # m (take-off)
+    wing_area_m2: Pos                                  # S
+    wing_span_m: Pos                                   # b
+    zero_lift_drag_coefficient: Pos                    # C_D0
+    oswald_factor: Annotated[float, Field(gt=0, le=1)]  # e
+    max_lift_coefficient: Pos                          # C_L,max (stall)
+    min_airspeed_factor: Annotated[float, Field(ge=1)] = 1.2   # flown airspeed >= factor x stall
+    max_airspeed_mps: Pos
+    max_wind_mps: Pos
+    max_bank_deg: Annotated[float, Field(gt=0, lt=90)]         # sigma of seed 002 eq. 11
+    max_climb_angle_deg: Annotated[float, Field(gt=0, lt=90)]
+    max_descent_angle_deg: Annotated[float, Field(gt=0, lt=90)]
+    battery_capacity_mah: Pos
+    battery_voltage_v: Pos
+    max_position_error_m: Pos                          # dp_max (navigation error bound)
+    safety_distance_m: NonNeg
+    safety_factor: Annotated[float, Field(ge=1)] = 1.0
+    min_altitude_m: float = 0.0                        # AGL limits [m]
+    max_altitude_m: float
+    imu: ImuSpec
+
+    @model_validator(mode="after")
+    def _check(self) -> FixedWingProfile:
+        if self.max_altitude_m <= self.min_altitude_m:
+            raise ValueError("max_altitude_m must exceed min_altitude_m")
+        return self
+
+    # ---------------------------------------------------------------- airframe
+    @property
+    def weight_n(self) -> float:
+        """W = m g [N]."""
+        return self.mass_kg * G0
+
+    @property
+    def parasite_area_m2(self) -> float:
+        """f = C_D0 S [m^2] (seed 002 eq. 5)."""
+        return self.zero_lift_drag_coefficient * self.wing_area_m2
+
+    @property
+    def aspect_ratio(self) -> float:
+        """b^2 / S [-]."""
+        return self.wing_span_m**2 / self.wing_area_m2
+
+    def polar_a_at(self, rho_kgpm3: float) -> float:
+        """A = rho f / (2 W) [s^2/m^2] (seed 002 eq. 5)."""
+        return polar_a(rho_kgpm3, self.parasite_area_m2, self.weight_n)
+
+    def polar_b_at(self, rho_kgpm3: float) -> float:
+        """B = 2 W / (rho b^2 pi e) [m^2/s^2] (seed 002 eq. 6)."""
+        return polar_b(rho_kgpm3, self.weight_n, self.wing_span_m, self.oswald_factor)
+
+    @property
+    def A(self) -> float:
+        """A at the ISA sea-level density [s^2/m^2]."""
+        return self.polar_a_at(RHO_SL)
+
+    @property
+    def B(self) -> float:
+        """B at the ISA sea-level density [m^2/s^2]."""
+        return self.polar_b_at(RHO_SL)
+
+    def carson_speed_at(self, rho_kgpm3: float) -> float:
+        """V_opt = (B/A)^(1/4) [m/s] at density ``rho_kgpm3`` (seed 002, after eq. 10)."""
+        return carson_speed(self.polar_a_at(rho_kgpm3), self.polar_b_at(rho_kgpm3))
+
+    @property
+    def carson_speed_mps(self) -> float:
+        """V_opt at the ISA sea-level density [m/s]."""
+        return self.carson_speed_at(RHO_SL)
+
+    @property
+    def min_drag_to_lift(self) -> float:
+        """(D/L)_opt = 2 sqrt(AB) [-], independent of the density."""
+        return 2.0 * math.sqrt(self.A * self.B)
+
+    def stall_speed_at(self, rho_kgpm3: float) -> float:
+        """V_s = sqrt(2 W / (rho S C_L,max)) [m/s] in level flight."""
+        return stall_speed(rho_kgpm3, self.weight_n, self.wing_area_m2, self.max_lift_coefficient)
+
+    @property
+    def stall_speed_mps(self) -> float:
+        """V_s at the ISA sea-level density [m/s]."""
+        return self.stall_speed_at(RHO_SL)
+
+    def airspeed_at(self, rho_kgpm3: float) -> float:
+        """The flown airspeed [m/s]: ``min(max(V_opt, k V_s), max_airspeed_mps)``."""
+        return flown_airspeed(self.carson_speed_at(rho_kgpm3), self.stall_speed_at(rho_kgpm3),
+                              self.min_airspeed_factor, self.max_airspeed_mps)
+
+    @property
+    def cruise_speed_mps(self) -> float:
+        """The flown airspeed in ISA sea-level air [m/s] (the cruise speed a ground station
+        takes; the planners use :meth:`airspeed_at` the local density)."""
+        return self.airspeed_at(RHO_SL)
+
+    def turn_radius_at(self, airspeed_mps: float) -> float:
+        """Minimum turn radius V^2 / (g tan(max bank)) [m] in still air."""
+        return airspeed_mps**2 / (G0 * math.tan(math.radians(self.max_bank_deg)))
+
+    @property
+    def min_turn_radius_m(self) -> float:
+        """Minimum still-air turn radius at the sea-level flown airspeed [m]."""
+        return self.turn_radius_at(self.airspeed_at(RHO_SL))
+
+    # ---------------------------------------------------------------- limits read by every stage
+    @property
+    def max_flight_path_angle_deg(self) -> float:
+        """The larger of the climb and descent angle limits [deg]."""
+        return max(self.max_climb_angle_deg, self.max_descent_angle_deg)
+
+    @property
+    def r_p_m(self) -> float:
+        """Collision-sphere radius r_p = d_m + K_m dp_max [m] (seed 000 eq. 13)."""
+        return self.safety_distance_m + self.safety_factor * self.max_position_error_m
+
+    @property
+    def battery_energy_j(self) -> float:
+        """Battery energy [J] = capacity [mAh] * 3.6 [C/mAh] * voltage [V]."""
+        return self.battery_capacity_mah * 3.6 * self.battery_voltage_v
+
+
+AnyVehicle = VehicleProfile | FixedWingProfile
+VEHICLE_KINDS = {"multirotor": VehicleProfile, "fixed-wing": FixedWingProfile}
+
+
+def vehicle_from_dict(raw: dict) -> AnyVehicle:
+    """The profile of a mapping by its ``kind`` (default ``multirotor``); pydantic's
+    ValidationError for invalid content, ValueError for an unknown kind."""
+    kind = raw.get("kind", "multirotor")
+    if kind not in VEHICLE_KINDS:
+        raise ValueError(f"kind: unknown vehicle kind {kind!r}; known kinds: {', '.join(VEHICLE_KINDS)}")
+    return VEHICLE_KINDS[kind].model_validate(raw)
+
+
 def _catalog_dir():
     return files("skyroute.catalogs").joinpath("vehicles")
 
@@ -200,14 +387,15 @@ def known_vehicles() -> list[str]:
     return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".yaml"))
 
 
-def load_vehicle(name_or_path: str | Path | VehicleProfile) -> VehicleProfile:
-    """A :class:`VehicleProfile` by catalog name (``"dji-m300-rtk"``) or YAML file path.
+def load_vehicle(name_or_path: str | Path | AnyVehicle) -> AnyVehicle:
+    """A :class:`VehicleProfile` (multirotor) or :class:`FixedWingProfile` by catalog name
+    (``"dji-m300-rtk"``, ``"skywalker-x8"``) or YAML file path.
 
     Raises :class:`~skyroute.stages.base.UnknownNameError` for an unknown name,
     :class:`~skyroute.stages.base.DataError` for an unreadable file and
     :class:`~skyroute.stages.base.ScenarioError` (every problem listed) for invalid content.
     """
-    if isinstance(name_or_path, VehicleProfile):
+    if isinstance(name_or_path, VehicleProfile | FixedWingProfile):
         return name_or_path
     s = str(name_or_path)
     if isinstance(name_or_path, Path) or s.endswith((".yaml", ".yml")) or "/" in s:
@@ -229,8 +417,11 @@ def load_vehicle(name_or_path: str | Path | VehicleProfile) -> VehicleProfile:
         raise DataError(f"{source}: invalid YAML: {exc}") from exc
     if not isinstance(raw, dict):
         raise DataError(f"{source}: expected a mapping of vehicle fields, got {type(raw).__name__}")
+    if raw.get("kind", "multirotor") not in VEHICLE_KINDS:
+        raise ScenarioError(source, [f"kind: unknown vehicle kind {raw.get('kind')!r}; known kinds: "
+                                     f"{', '.join(VEHICLE_KINDS)}"])
     try:
-        return VehicleProfile.model_validate(raw)
+        return vehicle_from_dict(raw)
     except ValidationError as exc:
         problems = [f"{'.'.join(str(p) for p in e['loc']) or '(root)'}: {e['msg']}" for e in exc.errors()]
         raise ScenarioError(source, problems) from exc

@@ -29,9 +29,27 @@ def cache(tmp_path_factory):
     return Cache(tmp_path_factory.mktemp("catalog-cache"))
 
 
+def _fixed_wing_limits_hold(t, p, veh) -> None:
+    """Fixed-wing: climb / descent angle of every chord, and the bank ``atan(v^2 / (g rho))``
+    that every sample triple (circumradius rho, mean ground speed v) needs."""
+    d = np.diff(p, axis=0)
+    h = np.hypot(d[:, 0], d[:, 1])
+    long = h >= 0.5
+    assert np.all(d[long, 2] <= math.tan(math.radians(veh.max_climb_angle_deg)) * h[long] + 1e-6)
+    assert np.all(-d[long, 2] <= math.tan(math.radians(veh.max_descent_angle_deg)) * h[long] + 1e-6)
+    a, b, c = p[:-2, :2], p[1:-1, :2], p[2:, :2]
+    ab, bc, ca = (np.linalg.norm(u, axis=1) for u in (b - a, c - b, a - c))
+    cross = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
+    rad = np.where(cross > 1e-9, ab * bc * ca / np.maximum(2 * cross, 1e-300), np.inf)
+    v = (ab + bc) / (t[2:] - t[:-2])
+    assert np.all(v * v / (9.80665 * rad) <= math.tan(math.radians(veh.max_bank_deg)) * (1 + 1e-6))
+
+
 def _limits_hold(t, p, veh) -> None:
     """Hard limits on every chord / sample triple of the written samples (tolerance: float
     rounding of the differences only)."""
+    if getattr(veh, "kind", "multirotor") == "fixed-wing":
+        return _fixed_wing_limits_hold(t, p, veh)
     d = np.diff(p, axis=0)
     dt = np.diff(t)
     h = np.hypot(d[:, 0], d[:, 1])

@@ -27,7 +27,7 @@ import numpy as np
 
 from skyroute.stages.energy import PowerParams, eq3_ground_speed, power_kernel
 from skyroute.stages.grid import Grid
-from skyroute.stages.vehicle import VehicleProfile
+from skyroute.stages.vehicle import FixedWingProfile, VehicleProfile
 
 # validity codes (state and motion)
 OK, OUTSIDE, FORBIDDEN, BELOW_FLOOR, ABOVE_CEILING, ANGLE, WIND, GROUND_SPEED, NONFINITE = range(9)
@@ -80,8 +80,16 @@ class VehicleParams(NamedTuple):
     subsegment_m: float           # wind sampling step Delta s_s [m]
 
 
-def vehicle_params(veh: VehicleProfile, subsegment_m: float) -> VehicleParams:
-    """:class:`VehicleParams` of ``veh`` with wind sampled every ``subsegment_m`` [m]."""
+def vehicle_params(veh: VehicleProfile | FixedWingProfile, subsegment_m: float) -> VehicleParams:
+    """:class:`VehicleParams` of ``veh`` with wind sampled every ``subsegment_m`` [m].
+
+    A fixed-wing profile gets the limits its validity checks share with the rotorcraft (the
+    wind speed limit, the larger of its climb / descent angles); its airspeed and ground
+    speed are checked by the fixed-wing planner (wind triangle,
+    :mod:`skyroute.stages.fixedwing_energy`), so eq. 3's limits are left open here."""
+    if isinstance(veh, FixedWingProfile):
+        return VehicleParams(float(veh.airspeed_at(1.225)), 1e9, 0.0, float(veh.max_wind_mps),
+                             math.sin(math.radians(veh.max_flight_path_angle_deg)), float(subsegment_m))
     return VehicleParams(float(veh.cruise_speed_mps), float(veh.max_airspeed_mps), float(veh.min_ground_speed_mps),
                          float(veh.max_wind_mps), math.sin(math.radians(veh.max_flight_path_angle_deg)),
                          float(subsegment_m))

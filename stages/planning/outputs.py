@@ -249,7 +249,11 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
         ax.set_ylim(0.0, 1.1 * top)
     ax.set_xlabel("mission time [s]")
     ax.set_ylabel("sigma_p [m]")
-    ax.legend(fontsize=7)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
+    else:   # no GNSS data, or a fixed-wing plan (its navigation error is not evaluated)
+        ax.text(0.5, 0.5, "navigation error not evaluated for these candidates", ha="center", va="center",
+                transform=ax.transAxes)
     ax.set_title("predicted navigation error along the trajectories")
     fig.tight_layout()
     files["sigma_p.png"] = out / "sigma_p.png"

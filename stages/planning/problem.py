@@ -57,7 +57,7 @@ import numpy as np
 import xarray as xr
 
 from skyroute.stages.base import InputError, PlanningError
-from skyroute.stages.energy import power_params
+from skyroute.stages.energy import RHO0, PowerParams, power_params
 from skyroute.stages.grid import Grid
 from skyroute.stages.planning import heuristic as _heuristic
 from skyroute.stages.planning.heuristic import (
@@ -87,9 +87,12 @@ from skyroute.stages.planning.kernels import (
     vehicle_params,
     wind_at,
 )
-from skyroute.stages.vehicle import VehicleProfile, load_vehicle
+from skyroute.stages.vehicle import FixedWingProfile, VehicleProfile, load_vehicle
 
 COST_NAMES = ("C_l", "C_r", "C_d", "C_e")
+# a fixed-wing problem uses the kernels for validity only (want_cost=False never reads the
+# rotor parameters); its energy is :mod:`skyroute.stages.fixedwing_energy`
+_NO_ROTOR = PowerParams(1.0, RHO0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1)
 
 
 # --------------------------------------------------------------------------- problem
@@ -125,7 +128,7 @@ class PlanningProblem:
     risk_cost: np.ndarray
     landing_cost: np.ndarray
     wind_uvw: np.ndarray
-    vehicle: VehicleProfile
+    vehicle: VehicleProfile | FixedWingProfile
     weights: tuple[float, float, float, float]
     start_xyz: tuple[float, float, float]
     goal_xyz: tuple[float, float, float]
@@ -179,8 +182,9 @@ class PlanningProblem:
         object.__setattr__(self, "goal_xyz", tuple(float(v) for v in self.goal_xyz))
         maps = MapParams(self.terrain_m, self.floor_m, self.ceiling_m, self.risk_cost, self.landing_cost,
                          grid_params(self.grid))
+        power = power_params(veh) if isinstance(veh, VehicleProfile) else _NO_ROTOR
         args = SegmentArgs(maps, WindParams(w4, wz, grid_params(wg)), vehicle_params(veh, float(self.subsegment_m)),
-                           power_params(veh))
+                           power)
         object.__setattr__(self, "_seg_args", args)
 
     # ------------------------------------------------------------------ helpers
@@ -222,6 +226,9 @@ class PlanningProblem:
         return self.state_codes(xyz) == OK
 
     def motion_codes(self, p0, p1, want_cost: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        if want_cost and isinstance(self.vehicle, FixedWingProfile):
+            raise InputError(f"vehicle {self.vehicle.name!r} is fixed-wing: the rotor costs of this problem do not "
+                             "apply; use skyroute.stages.fixedwing_energy / the fixed-wing planners")
         a, b = self._pts(p0, "p0"), self._pts(p1, "p1")
         if a.shape != b.shape:
             raise InputError(f"p0 and p1 must have the same shape, got {a.shape} and {b.shape}")

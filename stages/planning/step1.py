@@ -35,7 +35,9 @@ from skyroute.stages.base import InputError, UnknownNameError
 from skyroute.stages.planning.grid_planner import STEP_CELLS, plan_grid, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 
-PLANNERS = ("bitstar", "astar", "potential")
+PLANNERS = ("bitstar", "astar", "potential", "eeastar", "astar-fw", "energy-optimal")
+# the last three are the fixed-wing planners (seed 002), solved by
+# skyroute.stages.planning.fixedwing (plan_strategic dispatches them; plan_step1 refuses them)
 # BIT* is stopped by an iteration count (reproducible run to run: same scenario + seed, same
 # plan); the count stands for the time budget at this rate, measured on the Helsinki default
 # scenario (2 m grid, real wind): 48-60 k iterations in 5 s on an idle core, 4.6 k/s on a
@@ -166,6 +168,9 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
     Raises UnknownNameError / InputError for a bad planner / budget.
     """
     _check(planner, time_budget_s)
+    if planner in ("eeastar", "astar-fw", "energy-optimal"):
+        raise InputError(f"planner {planner!r} is a fixed-wing planner: call "
+                         "skyroute.stages.planning.fixedwing.plan_fixedwing (plan_strategic does)")
     if int(max_tries) < 1:
         raise InputError(f"max_tries {max_tries} must be >= 1 (N_t)")
     t0 = time.perf_counter()

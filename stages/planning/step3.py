@@ -66,7 +66,8 @@ from skyroute.stages.smoothing import CornerTrajectory, KinematicLimits, corner_
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.wind import wind_in_column
 
-__all__ = ["Candidate", "choose", "explain_no_plan", "flight_power_W", "line_of_sight", "smooth_chain", "step3",
+__all__ = ["Candidate", "choose", "explain_no_plan", "flight_power_W", "line_of_sight", "navigation_along",
+           "smooth_chain", "step3",
            "wind_sampler"]
 
 
@@ -295,6 +296,27 @@ def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc
 # ------------------------------------------------------------------ STEP III
 
 
+def navigation_along(problem, sky: xr.Dataset, surface_2d, t_abs, p, start_time_utc, imu, *,
+                     gnss_sigma_m: float = DEFAULT_UERE_M, gnss_period_s: float = 1.0, warmup_s: float = 60.0,
+                     los_cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(sigma_p_m, n_visible)`` per sample of the flight ``t_abs`` (m,) [s], ``p`` (m, 3) [m]:
+    GNSS in line of sight (:func:`line_of_sight`) and the covariance analysis
+    (:func:`~skyroute.stages.navigation.navigation_error`, ``imu``: a vehicle profile or IMU
+    spec); the filter first runs ``warmup_s`` [s] at the start point (no initial transient);
+    ``start_time_utc`` None: the first sky epoch."""
+    if start_time_utc is None:
+        start_time_utc = pd.Timestamp(sky["time"].values[0])
+    t_abs = np.asarray(t_abs, float)
+    p = np.asarray(p, float)
+    nw = int(math.floor(warmup_s / gnss_period_s + 1e-9)) if warmup_s > 0 else 0
+    t_w = t_abs[0] - gnss_period_s * np.arange(nw, 0, -1)
+    t_all = np.concatenate([t_w, t_abs])
+    p_all = np.concatenate([np.repeat(p[:1], nw, axis=0), p])
+    los, vis = line_of_sight(problem, sky, surface_2d, t_all, p_all, start_time_utc, cache=los_cache)
+    nav = navigation_error(t_all, los, vis, imu=imu, gnss_sigma_m=gnss_sigma_m, dt_s=gnss_period_s)
+    return np.asarray(nav["sigma_p_m"].values, float)[nw:], vis.sum(axis=1)[nw:]
+
+
 def smooth_chain(problem, waypoints, segment_times_s, *, v_start_mps: float = 0.0,
                  stop_at: tuple[int, ...] = ()) -> CornerTrajectory:
     """Item 1 of STEP III alone: the corner trajectory of a timed chain (the legs' ground
@@ -409,17 +431,9 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     if sky is None:
         reasons.append("no satellite geometry (sky) given: the navigation error cannot be verified")
     else:
-        if start_time_utc is None:
-            start_time_utc = pd.Timestamp(sky["time"].values[0])
-        # warm-up: the receiver/filter runs at the start point before take-off
-        nw = int(math.floor(warmup_s / gnss_period_s + 1e-9)) if warmup_s > 0 else 0
-        t_w = t_abs[0] - gnss_period_s * np.arange(nw, 0, -1)
-        t_all = np.concatenate([t_w, t_abs])
-        p_all = np.concatenate([np.repeat(p[:1], nw, axis=0), p])
-        los, vis = line_of_sight(problem, sky, surface_2d, t_all, p_all, start_time_utc, cache=los_cache)
-        nav = navigation_error(t_all, los, vis, imu=veh, gnss_sigma_m=gnss_sigma_m, dt_s=gnss_period_s)
-        sigma = np.asarray(nav["sigma_p_m"].values, float)[nw:]
-        nvis = vis.sum(axis=1)[nw:]
+        sigma, nvis = navigation_along(problem, sky, surface_2d, t_abs, p, start_time_utc, veh,
+                                       gnss_sigma_m=gnss_sigma_m, gnss_period_s=gnss_period_s, warmup_s=warmup_s,
+                                       los_cache=los_cache)
         if np.nanmax(sigma) > veh.max_position_error_m:
             k = int(np.nanargmax(sigma))
             reasons.append(f"navigation error sigma_p reaches {float(sigma[k]):.2f} m > dp_max "

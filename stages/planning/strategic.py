@@ -37,8 +37,9 @@ from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.planning.deconflict import Step2Result, deconflict
 from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
 from skyroute.stages.planning.grid_planner import STEP_CELLS, shared_heuristic
+from skyroute.stages.planning.kinds import FIXED_WING_PLANNERS, check_planner_vehicle
 from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz_from_agl
-from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, Step1Result, plan_step1
+from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, PLANNERS, Step1Result, plan_step1
 from skyroute.stages.planning.step3 import (
     Candidate,
     choose,
@@ -48,7 +49,7 @@ from skyroute.stages.planning.step3 import (
 )
 from skyroute.stages.smoothing import CornerTrajectory
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
-from skyroute.stages.vehicle import VehicleProfile, load_vehicle
+from skyroute.stages.vehicle import FixedWingProfile, VehicleProfile, load_vehicle
 
 
 @dataclass
@@ -71,7 +72,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                    clearance: xr.Dataset, coverage: xr.Dataset | None, satellites: xr.Dataset | None,
                    traffic: xr.Dataset | None, *, start_xy: tuple[float, float], start_agl_m: float,
                    goal_xy: tuple[float, float], goal_agl_m: float, start_time_utc,
-                   vehicle: str | VehicleProfile = "dji-m300-rtk", weights=(1.0, 1.0, 1.0, 1.0),
+                   vehicle: str | VehicleProfile | FixedWingProfile = "dji-m300-rtk", weights=(1.0, 1.0, 1.0, 1.0),
                    planner: str = "astar", time_budget_s: float = 5.0, seed: int = 0, max_tries: int = 3,
                    min_agl_m: float = 0.0, max_agl_m: float = 120.0, dop_kind: str = "PDOP",
                    intruders: list[Intruder] | None = None, d_c_m: float = 0.0, dt_c_s: float = 0.0,
@@ -105,6 +106,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     wind_map = wind.load() if wind is not None else None
     cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
     veh = load_vehicle(vehicle)
+    check_planner_vehicle(planner, veh, PLANNERS)
     surf = surface[[v for v in ("terrain", "terrain_min", "surface") if v in surface]].load()
     surface_2d = surf["surface"].values
     clear = clearance["min_altitude_m"].load()
@@ -133,6 +135,11 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                               min_agl_m, max_agl_m, d, dop_kind=dop_kind, nofly=level_clearance(d)[1],
                               check_endpoints=False)
                 for d, floor_j in levels]
+    if planner in FIXED_WING_PLANNERS:
+        return _plan_fixedwing_levels(problems, levels, planner, time_budget_s, step_cells, t0, cost_warnings,
+                                      intruders=intruders, d_c_m=d_c_m, dt_c_s=dt_c_s,
+                                      battery_reserve_pct=battery_reserve_pct, sky=sky, occ=occ,
+                                      surface_2d=surface_2d, start_time_utc=start_time_utc, uere_m=uere_m)
     h2 = None
     if planner == "astar":   # one A* heuristic for all levels: that of the loosest (lowest floors)
         loosest = _loosest(problems)
@@ -195,6 +202,53 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     plan.chosen = choose(plan.candidates)
     plan.compute_s = time.perf_counter() - t0
     plan.warnings = [*cost_warnings, *_cap_warnings(plan, planner, time_budget_s)]
+    return plan
+
+
+def _plan_fixedwing_levels(problems: list[PlanningProblem], levels, planner: str, time_budget_s: float,
+                           step_cells: int, t0: float, cost_warnings: list[str], *, intruders, d_c_m: float,
+                           dt_c_s: float, battery_reserve_pct: float, sky, occ, surface_2d, start_time_utc,
+                           uere_m: float) -> StrategicPlan:
+    """The fixed-wing planners (seed 002, :mod:`~skyroute.stages.planning.fixedwing`) on every
+    level: lattice search, written path (fillets + loiter), navigation error (with satellites),
+    validation; no STEP II (deconfliction) and no STEP III smoothing."""
+    from skyroute.stages.planning.fixedwing import fixedwing_candidate, plan_fixedwing
+
+    plan = StrategicPlan(None, [])
+    cap = LEVEL_CAP_FACTOR * time_budget_s
+    first_of = _identical_levels(problems)
+    done: dict[int, tuple] = {}
+    for i, problem in enumerate(problems):
+        control.check()
+        j = first_of[i]
+        if j != i:
+            s1, s2, cand = _relabel(done[j], problems[j], problem)
+        else:
+            r = plan_fixedwing(problem, planner, step_cells=step_cells, time_limit_s=cap)
+            cand = fixedwing_candidate(problem, r, dop_threshold=levels[i][0], intruders=intruders, d_c_m=d_c_m,
+                                       dt_c_s=dt_c_s, battery_reserve_pct=battery_reserve_pct, sky=sky,
+                                       surface_2d=surface_2d, start_time_utc=start_time_utc, gnss_sigma_m=uere_m)
+            nan = float("nan")
+            costs = {"C_l": cand.C_l, "C_r": cand.C_r, "C_d": cand.C_d, "C_e": cand.C_e}
+            s1 = Step1Result(r.waypoints, costs, cand.f, r.energy_J if r.solved else nan,
+                             r.time_s if r.solved else nan, r.compute_s, r.status, r.reason, problem.label, planner,
+                             1, problem.weights, {**r.info, "expanded": r.expanded})
+            s2 = None
+            done[i] = (s1, s2, cand)
+        plan.step1.append(s1)
+        plan.step2.append(s2)
+        plan.candidates.append(cand)
+    plan.chosen = choose(plan.candidates)
+    plan.compute_s = time.perf_counter() - t0
+    notes = [f"plan: {s1.label}: STEP I ({planner}) stopped at its wall-clock cap of {cap:g} s"
+             for s1 in plan.step1 if s1.info.get("stopped_by") == "time"]
+    if sky is None:
+        notes.append(f"plan: {planner}: no satellite geometry: the navigation error (sigma_p) along the fixed-wing plan "
+                     "is not evaluated")
+    if occ is not None:
+        notes.append(f"plan: {planner}: fixed-wing plans are not deconflicted (no STEP II); the validator refuses a plan "
+                     "that enters an intruder's volume")
+    plan.warnings = [*cost_warnings, *dict.fromkeys(notes)]
     return plan
 
 

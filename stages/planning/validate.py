@@ -9,6 +9,12 @@ violation as a readable string (an empty list means the plan is valid):
   GNSS coverage floor (``D_j``), any combined floor, AGL minimum / maximum, no-fly cells: the
   altitude of each sample against the cell that contains it (the planners' nearest-cell
   convention; the ``"cell"`` clearance floor is conservative anywhere in the cell);
+* fixed-wing vehicles (:class:`~skyroute.stages.vehicle.FixedWingProfile`): climb and descent
+  angles of every chord against their own limits, the bank a turn needs
+  (:func:`turn_radius_violations`: ``atan(v^2 / (g rho))`` from the circumradius ``rho`` of
+  three consecutive samples and their ground speed ``v``) against ``max_bank_deg``, and the
+  airspeed of every chord >= the stall speed at sea level; the rotorcraft's vertical-rate and
+  acceleration limits do not apply;
 * flight-path angle of every chord between consecutive samples <= ``alpha`` (tolerance
   ``tol_deg``, numerical only); chords with less than :data:`MIN_HORIZONTAL_M` of horizontal
   motion are exempt (a hover or a stop has no defined angle) but obey the vertical rates;
@@ -41,9 +47,9 @@ import numpy as np
 from skyroute.stages.base import InputError
 from skyroute.stages.grid import Grid
 from skyroute.stages.traffic import Intruder, intruders_from_records
-from skyroute.stages.vehicle import VehicleProfile, load_vehicle
+from skyroute.stages.vehicle import G0, FixedWingProfile, VehicleProfile, load_vehicle
 
-__all__ = ["intruder_clearance_m", "surface_clearance_m", "validate_bubble", "validate_plan"]
+__all__ = ["intruder_clearance_m", "surface_clearance_m", "turn_radius_violations", "validate_bubble", "validate_plan"]
 
 _MAX_LISTED = 5  # sample indices quoted per violation
 MIN_HORIZONTAL_M = 2.0  # [m] chords with less horizontal motion are exempt from the angle limit
@@ -128,7 +134,7 @@ def _wind_at(wind, pts: np.ndarray) -> np.ndarray | None:
     return w
 
 
-def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile | str, terrain_min_m=None,
+def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile | FixedWingProfile | str, terrain_min_m=None,
                   clearance_floor_m=None, gnss_floor_m=None, floor_m=None, ceiling_m=None,
                   min_agl_m: float | None = None, max_agl_m: float | None = None,
                   nofly=None, wind: np.ndarray | Callable | None = None,
@@ -209,7 +215,18 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
         if bad.any():
             out.append(f"inside a no-fly zone: {_where(bad, ti, pi)}")
     # flight-path angle and vertical speed of the chords, acceleration of sample triples
-    if t.size > 1:
+    fixed = isinstance(veh, FixedWingProfile)
+    if fixed and t.size > 1:
+        d = np.diff(p, axis=0)
+        h = np.hypot(d[:, 0], d[:, 1])
+        ang = np.degrees(np.arctan2(d[:, 2], h))
+        for name, bad, lim in (("climb", ang > veh.max_climb_angle_deg + tol_deg, veh.max_climb_angle_deg),
+                               ("descent", -ang > veh.max_descent_angle_deg + tol_deg, veh.max_descent_angle_deg)):
+            if bad.any():
+                out.append(f"{name} angle above {lim} deg (up to {float(np.abs(ang[bad]).max()):.2f} deg) on chords "
+                           f"starting at {_where(np.r_[bad, False], t, p)}")
+        out.extend(turn_radius_violations(t, p, veh.max_bank_deg))
+    if not fixed and t.size > 1:
         d = np.diff(p, axis=0)
         h = np.hypot(d[:, 0], d[:, 1])
         fpa = np.degrees(np.arctan2(np.abs(d[:, 2]), h))
@@ -253,6 +270,11 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
             air = np.linalg.norm(v - w[:-1], axis=1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 tol_v = tol_mps + 4.0 * np.finfo(float).eps * float(np.abs(p).max()) / dt
+            if fixed:
+                slow = ~(air >= veh.stall_speed_mps - tol_v)
+                if slow.any():
+                    out.append(f"airspeed below the stall speed {veh.stall_speed_mps:.2f} m/s (down to "
+                               f"{float(np.nanmin(air)):.2f} m/s) on chords starting at {_where(np.r_[slow, False], t, p)}")
             bad = ~(air <= veh.max_airspeed_mps + tol_v)
             if bad.any():
                 out.append(f"airspeed above {veh.max_airspeed_mps} m/s (up to {float(np.nanmax(air)):.2f} m/s) on chords "
@@ -287,6 +309,31 @@ def validate_plan(candidate, *, grid: Grid, terrain_m, vehicle: VehicleProfile |
             out.append(f"navigation error sigma_p {float(np.nanmax(s)):.2f} m exceeds dp_max "
                        f"{veh.max_position_error_m} m")
     return out
+
+
+def turn_radius_violations(t_s, xyz_m, max_bank_deg: float, min_chord_m: float = 0.5, tol: float = 1e-6
+                           ) -> list[str]:
+    """Independent turn check of sampled flight: for each triple of consecutive samples (both
+    chords >= ``min_chord_m`` horizontally) the horizontal circumradius ``rho`` and the mean
+    ground speed ``v`` of the two chords need a bank ``atan(v^2 / (g rho))`` <= ``max_bank_deg``."""
+    t = np.asarray(t_s, float)
+    p = np.asarray(xyz_m, float)[:, :2]
+    if len(p) < 3:
+        return []
+    a, b, c = p[:-2], p[1:-1], p[2:]
+    ab, bc, ca = np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1)
+    cross = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = np.where(cross > 0, ab * bc * ca / (2 * cross), np.inf)
+        v = (ab + bc) / (t[2:] - t[:-2])
+        bank = np.degrees(np.arctan(v * v / (G0 * rho)))
+    use = (ab >= min_chord_m) & (bc >= min_chord_m)
+    bad = use & (bank > max_bank_deg * (1 + tol) + tol)
+    if not bad.any():
+        return []
+    k = int(np.argmax(np.where(bad, bank, -1)))
+    return [f"turn needs a bank of {bank[k]:.1f} deg > {max_bank_deg} deg (radius {rho[k]:.1f} m at "
+            f"{v[k]:.1f} m/s ground speed) at t = {t[k + 1]:.1f} s ({int(bad.sum())} sample(s))"]
 
 
 def surface_clearance_m(xyz_m, *, grid: Grid, surface_m, radius_m) -> np.ndarray:

@@ -53,8 +53,9 @@ def plot_surface(result: RunResult, path: Path) -> Path:
     return path
 
 
-def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
-    """plan.geojson, waypoints.csv, candidates.csv and figures of the cached plan stage.
+def write_plan_outputs(result: RunResult, out_dir: Path, map_page: bool = True) -> dict[str, Path]:
+    """plan.geojson, waypoints.csv, candidates.csv, figures and (``map_page``) the interactive
+    map ``plan.html`` (:mod:`skyroute.pipeline.planmap`) of the cached plan stage.
 
     The plan was validated independently (``stages.planning.validate``) when it was made;
     the chosen trajectory is validated again here and nothing is written if it fails."""
@@ -78,10 +79,15 @@ def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
         if problems:
             raise PlanningError("refusing to write a plan that fails validation: " + "; ".join(problems))
     cost = result["environment"]["risk_cost"].values if "environment" in result.datasets else None
-    return write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
-                      ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
-                      terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
-                      cost_label="ground risk cost (normalised, 0-1) [-]")
+    files = write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
+                       ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
+                       terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
+                       cost_label="ground risk cost (normalised, 0-1) [-]")
+    if map_page:
+        from skyroute.pipeline.planmap import write_plan_map
+
+        files["plan.html"] = write_plan_map(result, Path(out_dir) / "plan.html", chosen, cands)
+    return files
 
 
 def revalidate(result: RunResult, chosen) -> list[str]:

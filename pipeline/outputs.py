@@ -273,11 +273,12 @@ def _copy_store(src: Path, dst: Path) -> None:
 
 
 def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", link: bool = False,
-                      extra: dict[str, Any] | None = None) -> dict[str, Any]:
+                      extra: dict[str, Any] | None = None, also_files: tuple[str, ...] = ()) -> dict[str, Any]:
     """Write copies of the cached zarr datasets (symlinks into the cache with ``link``), GeoTIFFs,
     PNG figures, the plan files and ``summary.json`` (see :func:`write_summary`; with a ``plan``
     section when the plan stage ran; ``extra``: ``{"files": [...], "section": {...}}`` of the
-    flight replay written under ``DIR/fly/``, listed here too).  Copies make the folder self-contained: it survives
+    flight replay written under ``DIR/fly/``, listed here too; ``also_files``: files the caller
+    writes into ``out_dir`` after this, e.g. ``report.html``, listed too).  Copies make the folder self-contained: it survives
     ``skyroute cache clear`` and can be archived or moved.
 
     A GeoTIFF or figure is rewritten only when the stage key it was made from changed (or the
@@ -293,11 +294,12 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
     output_keys: dict[str, str] = {}
     files: list[str] = []
 
-    def produce(rel: str, stage: str, make) -> None:
+    def produce(rel: str, stage: str | tuple[str, ...], make) -> None:
+        key = keys[stage] if isinstance(stage, str) else "+".join(keys[s] for s in stage)
         path = out_dir / rel
-        if not (prev_keys.get(rel) == keys[stage] and path.is_file()):
+        if not (prev_keys.get(rel) == key and path.is_file()):
             make(path)
-        output_keys[rel] = keys[stage]
+        output_keys[rel] = key
         files.append(rel)
 
     for rec in result.records:
@@ -315,6 +317,16 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         produce("surface.tif", "surface",
                 lambda p: result["surface"]["surface"].rio.to_raster(p, compress="deflate"))
         produce("figures/surface.png", "surface", lambda p: plot_surface(result, p))
+    if "surface" in result.datasets and "environment" in result.datasets:
+        from skyroute.pipeline.maps import plot_maps_panel
+
+        drawn = tuple(s for s in ("surface", "environment", "wind", "clearance", "traffic") if s in keys)
+        produce("figures/maps.png", drawn, lambda p: plot_maps_panel(result, p))
+    if "coverage" in result.datasets:
+        from skyroute.pipeline.cli_coverage import plot_coverage
+
+        kind = str(result["coverage"].attrs.get("dop_kind", "DOP"))
+        produce(f"figures/coverage_{kind}.png", "coverage", lambda p: plot_coverage(result["coverage"], p))
     sections: dict[str, Any] = {}
     if "plan" in result.datasets:
         old = [f for f in prev_files if f.startswith("plan/")]
@@ -329,6 +341,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         from dask.local import get_sync
 
         sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
+    files.extend(also_files)
     if extra is not None:
         files.extend(extra["files"])
         sections["fly"] = extra["section"]

@@ -34,6 +34,18 @@ CANDIDATE_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e3
 OSM_ATTRIBUTION = ('&copy; <a href="https://www.openstreetmap.org/copyright">OpenStreetMap</a> contributors')
 
 
+# body[data-overlays-loaded] = "ok/n" raster overlays decoded, body[data-vector-paths] = drawn SVG
+# paths, once the page has loaded (read back by the browser test through --dump-dom)
+_LOADED_PROBE = """<script>
+window.addEventListener("load", function () {
+  var imgs = Array.prototype.slice.call(document.querySelectorAll("img.leaflet-image-layer"));
+  var ok = imgs.filter(function (i) { return i.complete && i.naturalWidth > 0; }).length;
+  document.body.setAttribute("data-overlays-loaded", ok + "/" + imgs.length);
+  document.body.setAttribute("data-vector-paths", document.querySelectorAll("path.leaflet-interactive").length);
+});
+</script>"""
+
+
 @lru_cache(maxsize=1)
 def leaflet_inline() -> str:
     """``<style>`` + ``<script>`` of the vendored Leaflet (CSS images inlined as data: URIs)."""
@@ -73,8 +85,10 @@ def map_html(m) -> str:
     """Add the layer control (expanded) and render ``m`` as one HTML page; refuses a page that
     would load a script or stylesheet from elsewhere."""
     import folium
+    from branca.element import Element
 
     folium.LayerControl(collapsed=False).add_to(m)
+    m.get_root().html.add_child(Element(_LOADED_PROBE), name="loaded_probe")
     html = m.get_root().render()
     bad = re.findall(r"<(?:script|link)\b[^>]*(?:src|href)=\"[^\"]+\"", html)
     if bad:

@@ -91,13 +91,14 @@ def _table(header: list[str], rows: list[list[Any]], chosen: list[bool] | None =
            text_cols: tuple[int, ...] = (), cls: str = "") -> str:
     """An HTML table; cells are escaped; ``chosen`` marks rows (class ``chosen``)."""
     head = "".join(f"<th>{escape(str(h))}</th>" for h in header)
+    head = f"<thead><tr>{head}</tr></thead>" if any(str(h) for h in header) else ""
     body = []
     for i, row in enumerate(rows):
         tr = ' class="chosen"' if chosen and chosen[i] else ""
         cells = "".join(("<td class=\"text\">" if j in text_cols else "<td>") + escape("" if v is None else str(v))
                         + "</td>" for j, v in enumerate(row))
         body.append(f"<tr{tr}>{cells}</tr>")
-    return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
+    return f'<table class="{cls}">{head}<tbody>{"".join(body)}</tbody></table>'
 
 
 def _figure(path: Path, caption: str) -> str:

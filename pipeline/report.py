@@ -18,6 +18,7 @@ from __future__ import annotations
 import base64
 import csv
 import json
+import os
 import re
 from html import escape
 from pathlib import Path
@@ -314,12 +315,12 @@ def _timings_section(doc: dict[str, Any]) -> str:
             + _table(["stage", "source", "seconds", "cache key"], rows, text_cols=(0, 1, 3), cls="timings"))
 
 
-def _map_links(run_dir: Path, folders: dict[str, Path | None]) -> str:
+def _map_links(page_dir: Path, folders: dict[str, Path | None]) -> str:
     links = []
     for sec, name in (("plan", "plan.html"), ("fly", "fly.html")):
         base = folders.get(sec)
         if base is not None and (base / name).is_file():
-            rel = (base / name).relative_to(run_dir).as_posix()
+            rel = Path(os.path.relpath((base / name).resolve(), page_dir.resolve())).as_posix()
             links.append(f'<li><a href="{escape(rel)}">{escape(rel)}</a></li>')
     return ("<p>Interactive map (Leaflet; layers toggle; the basemap needs the network):</p><ul>"
             + "".join(links) + "</ul>") if links else ""
@@ -328,10 +329,13 @@ def _map_links(run_dir: Path, folders: dict[str, Path | None]) -> str:
 # ------------------------------------------------------------------ the page
 
 
-def report_html(run_dir: Path) -> str:
+def report_html(run_dir: Path, page_dir: Path | None = None) -> str:
     """The report page of the folder ``run_dir`` (written by ``skyroute run``, ``plan``, ``fly``,
-    ``navsim``, ``maps`` or ``coverage``: the kind is ``summary.json``'s ``command``)."""
+    ``navsim``, ``maps`` or ``coverage``: the kind is ``summary.json``'s ``command``);
+    ``page_dir``: where the page will be (its links to the map pages are relative to it;
+    default ``run_dir``)."""
     run_dir = Path(run_dir)
+    page_dir = run_dir if page_dir is None else Path(page_dir)
     try:
         doc = json.loads((run_dir / "summary.json").read_text())
     except (OSError, ValueError) as exc:
@@ -349,8 +353,9 @@ def report_html(run_dir: Path) -> str:
     if maps:
         body.append("<h2>Maps</h2>" + "".join(maps))
     plan_figs = _figures(folders, "plan")
-    if plan_figs or _map_links(run_dir, folders):
-        body.append("<h2>Chosen path</h2>" + _map_links(run_dir, folders) + "".join(plan_figs))
+    links = _map_links(page_dir, folders)
+    if plan_figs or links:
+        body.append("<h2>Chosen path</h2>" + links + "".join(plan_figs))
     body.append(_candidates_section(folders["plan"]))
     body.append(_tactical_section(folders["fly"], fly_doc.get("fly")))
     fly_figs = _figures(folders, "fly")
@@ -375,7 +380,7 @@ def build_report(run_dir: Path, out: Path | None = None) -> Path:
     atomically; return the path."""
     run_dir = Path(run_dir)
     out = Path(out) if out is not None else run_dir / REPORT_NAME
-    html = report_html(run_dir)
+    html = report_html(run_dir, out.parent)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp")
     tmp.write_text(html, encoding="utf-8")

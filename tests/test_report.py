@@ -288,3 +288,13 @@ def test_plan_map_in_a_browser(runs, tmp_path):
     assert "leaflet-container" in dom
     assert [c for c in console if not _tile_error(c)] == []
     assert _not_blank(tmp_path / "plan.png") > 10.0
+
+
+def test_report_out_elsewhere_links_back(runs, tmp_path):
+    page = tmp_path / "pages" / "r.html"
+    res = CliRunner().invoke(main, ["report", str(runs / "ok"), "--out", str(page)])
+    assert res.exit_code == 0, res.output
+    links = [u for t, _, u in _parse(page).refs if t == "a"]
+    assert links and all((page.parent / u).resolve().is_file() for u in links)
+    assert (page.parent / links[0]).resolve() == (runs / "ok" / "plan" / "plan.html").resolve()
+    assert "r.html" not in json.loads((runs / "ok" / "summary.json").read_text())["files"]

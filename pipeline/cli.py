@@ -206,6 +206,7 @@ def write_folder_summary(out_dir: Path, command: str, result, files, sections: d
     sc = result.scenario
     return write_summary(out_dir, command, rel, warnings, {
         "scenario": sc.name,
+        "scenario_path": None if sc.source_path is None else str(Path(sc.source_path).resolve()),
         "stages": [{"name": r.name, "key": r.key, "cache_hit": r.cache_hit, "seconds": round(r.seconds, 4)}
                    for r in result.records],
         "seconds": result.seconds, **sections})
@@ -314,17 +315,34 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
 @click.argument("run_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", "out_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="The HTML file to write (default: RUN_DIR/report.html).")
-def report_command(run_dir, out_path) -> None:
+@click.option("--no-maps", "no_maps", is_flag=True,
+              help="Do not draw the scenario's maps into a plan, fly or navsim folder that has none.")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
+def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     """One self-contained HTML page (figures embedded, nothing loaded from the network) of a
     folder written by `skyroute run`, `plan`, `fly` or `navsim`: the scenario, the outcome (or
     why no plan flies), maps, the chosen path, the candidates' costs, tactical events, the
-    navigation Monte Carlo, stage timings and cache hits, data attribution.  A fly folder
-    without its interactive map gets one (fly.html)."""
-    from skyroute.pipeline.report import add_to_summary, build_report, write_fly_map
+    navigation Monte Carlo, stage timings and cache hits, data attribution.  A plan, fly or
+    navsim folder without maps gets them first (RUN_DIR/figures/: surface, risk / landing /
+    wind / no-fly panel, coverage floors per D_j; its scenario's map stages, from the cache);
+    a fly folder without its interactive map gets one (fly.html)."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.report import (
+        add_to_summary,
+        build_report,
+        draw_missing_maps,
+        write_fly_map,
+    )
 
-    write_fly_map(run_dir)
+    added = []
+    if not no_maps:
+        added += draw_missing_maps(run_dir, Cache(cache_dir))
+    fly_map = write_fly_map(run_dir)
+    if fly_map is not None:
+        added.append(fly_map)
     path = build_report(run_dir, out_path)
-    add_to_summary(run_dir, path)
+    add_to_summary(run_dir, [path, *added])
     click.echo(str(path))
 
 

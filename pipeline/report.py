@@ -27,7 +27,8 @@ from typing import Any
 
 from skyroute.pipeline.errors import InputError
 
-__all__ = ["build_report", "report_html", "REPORT_NAME", "FIGURES"]
+__all__ = ["build_report", "report_html", "read_summary", "write_fly_map", "draw_missing_maps", "add_to_summary",
+           "REPORT_NAME", "FIGURES"]
 
 REPORT_NAME = "report.html"
 ATTRIBUTION = Path(__file__).resolve().parents[1] / "catalogs" / "data" / "ATTRIBUTION.md"
@@ -329,6 +330,18 @@ def _map_links(page_dir: Path, folders: dict[str, Path | None]) -> str:
 # ------------------------------------------------------------------ the page
 
 
+def read_summary(run_dir: Path) -> dict[str, Any]:
+    """``run_dir/summary.json``; InputError naming the folder when it is missing or unreadable."""
+    try:
+        doc = json.loads((Path(run_dir) / "summary.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{run_dir} has no readable summary.json ({exc}): give a folder written by skyroute run, "
+                         "plan, fly or navsim") from None
+    if not isinstance(doc, dict):
+        raise InputError(f"{run_dir}/summary.json is not a skyroute summary (not a JSON object)")
+    return doc
+
+
 def report_html(run_dir: Path, page_dir: Path | None = None) -> str:
     """The report page of the folder ``run_dir`` (written by ``skyroute run``, ``plan``, ``fly``,
     ``navsim``, ``maps`` or ``coverage``: the kind is ``summary.json``'s ``command``);
@@ -336,11 +349,7 @@ def report_html(run_dir: Path, page_dir: Path | None = None) -> str:
     default ``run_dir``)."""
     run_dir = Path(run_dir)
     page_dir = run_dir if page_dir is None else Path(page_dir)
-    try:
-        doc = json.loads((run_dir / "summary.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{run_dir} has no readable summary.json ({exc}): give a folder written by skyroute run, "
-                         "plan, fly or navsim") from None
+    doc = read_summary(run_dir)
     command = str(doc.get("command", ""))
     folders = _folders(run_dir, command)
     if command == "run" and (run_dir / "fly" / "summary.json").is_file():
@@ -408,18 +417,62 @@ def write_fly_map(fly_dir: Path) -> Path | None:
     return out
 
 
-def add_to_summary(run_dir: Path, path: Path) -> None:
-    """List ``path`` (when inside ``run_dir``) in ``run_dir/summary.json``'s ``files``."""
-    run_dir, path = Path(run_dir).resolve(), Path(path).resolve()
-    try:
-        rel = path.relative_to(run_dir).as_posix()
-    except ValueError:
-        return
+def add_to_summary(run_dir: Path, paths: list[Path]) -> None:
+    """List ``paths`` (those inside ``run_dir``) in ``run_dir/summary.json``'s ``files``."""
+    run_dir = Path(run_dir).resolve()
+    rel = []
+    for p in paths:
+        try:
+            rel.append(Path(p).resolve().relative_to(run_dir).as_posix())
+        except ValueError:
+            continue
     doc = json.loads((run_dir / "summary.json").read_text())
-    extra = [rel] + (["fly.html"] if (run_dir / "fly.html").is_file() and doc.get("command") == "fly" else [])
-    if all(f in doc.get("files", []) for f in extra):
+    if all(f in doc.get("files", []) for f in rel):
         return
-    doc["files"] = sorted(set(doc.get("files", [])) | set(extra))
+    doc["files"] = sorted(set(doc.get("files", [])) | set(rel))
     tmp = run_dir / ".summary.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1, allow_nan=False))
     tmp.replace(run_dir / "summary.json")
+
+
+MAP_STAGES = ("surface", "environment", "wind", "clearance", "traffic", "coverage")
+
+
+def draw_missing_maps(run_dir: Path, cache) -> list[Path]:
+    """Draw the scenario maps (``figures/surface.png``, ``figures/maps.png``,
+    ``figures/coverage_<KIND>.png``) into a ``plan``, ``fly`` or ``navsim`` folder that has no
+    ``figures/*.png`` yet, from its scenario's map stages (``cache``: a
+    :class:`~skyroute.pipeline.cache.Cache`; stages missing from it are computed).  The scenario
+    is the summary's ``scenario_path`` (else its catalog name); nothing is drawn (empty list)
+    when it cannot be loaded or is no longer the folder's scenario."""
+    from skyroute.pipeline.errors import SkyrouteError
+
+    run_dir = Path(run_dir)
+    doc = read_summary(run_dir)
+    if doc.get("command") not in ("plan", "fly", "navsim") or any((run_dir / "figures").glob("*.png")):
+        return []
+    from skyroute.pipeline.graph import stages_for
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.pipeline.settings import load_scenario
+
+    try:
+        sc = load_scenario(doc.get("scenario_path") or doc.get("scenario", ""))
+    except SkyrouteError:
+        return []
+    if sc.name != doc.get("scenario"):
+        return []
+    targets = [s.name for s in stages_for(sc) if s.name in MAP_STAGES]
+    result = run_scenario(sc, cache=cache, targets=targets, progress=False)
+    from skyroute.pipeline.cli_coverage import plot_coverage
+    from skyroute.pipeline.maps import plot_maps_panel
+    from skyroute.pipeline.outputs import plot_surface
+
+    fig_dir = run_dir / "figures"
+    fig_dir.mkdir(exist_ok=True)
+    out = [plot_surface(result, fig_dir / "surface.png")]
+    if "environment" in result.datasets:
+        out.append(plot_maps_panel(result, fig_dir / "maps.png"))
+    if "coverage" in result.datasets:
+        kind = str(result["coverage"].attrs.get("dop_kind", "DOP"))
+        out.append(plot_coverage(result["coverage"], fig_dir / f"coverage_{kind}.png"))
+    return out

@@ -298,3 +298,23 @@ def test_report_out_elsewhere_links_back(runs, tmp_path):
     assert links and all((page.parent / u).resolve().is_file() for u in links)
     assert (page.parent / links[0]).resolve() == (runs / "ok" / "plan" / "plan.html").resolve()
     assert "r.html" not in json.loads((runs / "ok" / "summary.json").read_text())["files"]
+
+
+def test_report_of_a_plan_folder_draws_its_maps(runs):
+    """A plan folder has 3 figures of its own; `skyroute report` draws the scenario's maps into
+    it (figures/, from the cache) and lists them in summary.json."""
+    out = runs / "plan"
+    r = CliRunner()
+    res = r.invoke(main, ["plan", str(runs / "small.yaml"), "--out", str(out), "--cache-dir", str(runs / "c"), "-q"])
+    assert res.exit_code == 0, res.output
+    assert not (out / "figures").exists()
+    res = r.invoke(main, ["report", str(out), "--cache-dir", str(runs / "c")])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((out / "summary.json").read_text())
+    assert doc["scenario_path"] == str((runs / "small.yaml").resolve())
+    drawn = {"figures/surface.png", "figures/maps.png", "figures/coverage_PDOP.png", "report.html"}
+    assert drawn <= set(doc["files"]) and all((out / f).is_file() for f in doc["files"])
+    text = (out / "report.html").read_text()
+    assert text.count('<img src="data:image/png;base64,') == 6
+    cand = _parse(out / "report.html").tables["candidates"]
+    assert [c[0] for c in cand[1:]] == ["D=3", "D=4"]

@@ -95,6 +95,7 @@ def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, pa
         ax.set_ylabel("y [m]")
         ax.ticklabel_format(useOffset=False, style="plain")
         ax.tick_params(labelsize=7)
+        ax.locator_params(axis="x", nbins=4)   # 7-digit UTM eastings on a narrow panel
         add_map_furniture(ax)
     datum = "\n".join(textwrap.wrap(str(floor.attrs.get("vertical_datum", "")), 36)[:2])
     fig.colorbar(im, ax=axes[0].tolist(), label="coverage floor [m]" + (f"\n{datum}" if datum else ""),

@@ -330,7 +330,9 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
     sections: dict[str, Any] = {}
     if "plan" in result.datasets:
         old = [f for f in prev_files if f.startswith("plan/")]
-        if prev_keys.get("plan/") == keys["plan"] and old and all((out_dir / f).is_file() for f in old):
+        # (a folder written before plan.html existed gets its plan files rewritten once)
+        if (prev_keys.get("plan/") == keys["plan"] and old and all((out_dir / f).is_file() for f in old)
+                and "plan/plan.html" in old):
             plan_files = old
         else:
             written = write_plan_outputs(result, out_dir / "plan")

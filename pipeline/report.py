@@ -251,7 +251,7 @@ def _tactical_section(fly_dir: Path | None, fly: dict[str, Any] | None) -> str:
     by: dict[str, dict[str, dict[str, str]]] = {}
     for r in rows:
         by.setdefault(r["replanning"], {})[r["level"]] = r
-    t3, t5, ch = [], [], []
+    t3, t5 = [], []
     for rep, levels in by.items():
         first = next(iter(levels.values()))
         chosen = next((lv for lv, r in levels.items() if r["chosen"] == "true"), "")
@@ -260,7 +260,6 @@ def _tactical_section(fly_dir: Path | None, fly: dict[str, Any] | None) -> str:
                           if lv in levels else "-" for lv in LEVELS] + [chosen])
         t5.append(head[:2] + [levels[lv]["compute_s"] if lv in levels else "-" for lv in LEVELS]
                   + [first["update_s"], levels[chosen]["added_flight_time_s"] if chosen else ""])
-        ch.append(False)
     out.append("<h3>Replanning levels (Table 3 layout)</h3><p>Per replanning, each level's cost f = w_l C_l + "
                "w_e C_e [m] when flyable; the chosen level has the minimum f.</p>"
                + _table(["replanning", "event", "t_event [s]", "t_coll [s]", "level 1", "level 2", "level 3", "landing",
@@ -357,7 +356,6 @@ def report_html(run_dir: Path, page_dir: Path | None = None) -> str:
     else:
         fly_doc = doc
     body = [_scenario_section(doc), _outcome_section(doc)]
-    n_img = 0
     maps = _figures(folders, "maps")
     if maps:
         body.append("<h2>Maps</h2>" + "".join(maps))

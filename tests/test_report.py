@@ -265,16 +265,17 @@ needs_chromium = pytest.mark.skipif(shutil.which("chromium") is None,
 
 
 @needs_chromium
-def test_report_in_a_browser(runs, tmp_path):
-    out = runs / "ok"
+@pytest.mark.parametrize("folder, min_images", [("ok", 5), ("bad", 3)])
+def test_report_in_a_browser(runs, tmp_path, folder, min_images):
+    out = runs / folder
     dom, console = _chromium((out / "report.html").as_uri(), tmp_path / "report.png")
     m = re.search(r'<body data-images="(\d+)" data-images-loaded="(\d+)/(\d+)"', dom)
     assert m, "the page's load probe did not run"
     n, ok, total = (int(g) for g in m.groups())
-    assert total >= 5 and ok == total == n
+    assert total >= min_images and ok == total == n
     assert [c for c in console if not _tile_error(c)] == []
     assert _not_blank(tmp_path / "report.png") > 10.0   # grey levels 0-255
-    shutil.copy(tmp_path / "report.png", runs / "report-screenshot.png")
+    shutil.copy(tmp_path / "report.png", runs / f"report-screenshot-{folder}.png")
 
 
 @needs_chromium

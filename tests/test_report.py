@@ -319,3 +319,40 @@ def test_report_of_a_plan_folder_draws_its_maps(runs):
     assert text.count('<img src="data:image/png;base64,') == 6
     cand = _parse(out / "report.html").tables["candidates"]
     assert [c[0] for c in cand[1:]] == ["D=3", "D=4"]
+
+
+def test_raster_overlay_puts_each_cell_where_it_is():
+    """The lon/lat overlay of plan.html: every pixel painted for one marked cell has its centre
+    (transformed back by pyproj, independently) inside that cell; the cell's own centre falls
+    on a painted pixel."""
+    from PIL import Image
+    from pyproj import Transformer
+
+    from skyroute.pipeline.planmap import raster_overlay
+    from skyroute.stages.grid import Grid
+
+    g = Grid.from_bounds("EPSG:32635", 385400.0, 6671400.0, 386000.0, 6672200.0, 10.0)   # 60 x 80 cells
+    vals = np.zeros((g.ny, g.nx))
+    row, col = 23, 41
+    vals[row, col] = 1.0
+
+    def rgba(v):
+        out = np.zeros((*np.shape(v), 4), dtype=np.uint8)
+        out[np.asarray(v) > 0] = (255, 0, 0, 255)
+        return out
+
+    uri, ((s, w), (n, e)) = raster_overlay(vals, g, rgba, max_cells=400)
+    img = np.asarray(Image.open(io.BytesIO(base64.b64decode(uri.split(",", 1)[1]))))
+    ny, nx = img.shape[:2]
+    jj, ii = np.nonzero(img[..., 3])
+    assert jj.size > 0
+    lon = w + (ii + 0.5) * (e - w) / nx
+    lat = n - (jj + 0.5) * (n - s) / ny
+    x, y = Transformer.from_crs(4326, 32635, always_xy=True).transform(lon, lat)
+    xmin, ymax = g.bounds[0], g.bounds[3]
+    assert np.all((x >= xmin + col * 10.0) & (x < xmin + (col + 1) * 10.0))
+    assert np.all((y <= ymax - row * 10.0) & (y > ymax - (row + 1) * 10.0))
+    cx, cy = xmin + (col + 0.5) * 10.0, ymax - (row + 0.5) * 10.0
+    clon, clat = Transformer.from_crs(32635, 4326, always_xy=True).transform(cx, cy)
+    pi, pj = int((clon - w) / (e - w) * nx), int((n - clat) / (n - s) * ny)
+    assert img[pj, pi, 3] == 255

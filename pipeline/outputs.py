@@ -82,12 +82,19 @@ def write_plan_outputs(result: RunResult, out_dir: Path, map_page: bool = True) 
     files = write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
                        ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
                        terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
-                       cost_label="ground risk cost (normalised, 0-1) [-]")
+                       cost_label="ground risk cost (normalised, 0-1) [-]", bubble=_bubble_params(result.scenario))
     if map_page:
         from skyroute.pipeline.planmap import write_plan_map
 
         files["plan.html"] = write_plan_map(result, Path(out_dir) / "plan.html", chosen, cands)
     return files
+
+
+def _bubble_params(sc) -> tuple[float, float, float]:
+    """(k, surface uncertainty [m], r_p [m]) of the scenario's safety bubble (seed 003)."""
+    from skyroute.stages.vehicle import load_vehicle
+
+    return (float(sc.constraints.sboa_k), float(sc.navsim.surface_uncertainty_m), float(load_vehicle(sc.vehicle).r_p_m))
 
 
 def revalidate(result: RunResult, chosen) -> list[str]:

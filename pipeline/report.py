@@ -43,6 +43,7 @@ FIGURES: tuple[tuple[str, str, str], ...] = (
     ("plan", "top_view.png", "Chosen path, top view, over the ground risk cost and the admissible floor"),
     ("plan", "profile.png", "Chosen path, vertical view, over the surface and the admissible (coverage) floor"),
     ("plan", "sigma_p.png", "Predicted navigation error sigma_p along the candidates (dp_max dashed)"),
+    ("plan", "bubble.png", "Safety bubble max(r_p, k sigma_p + surface uncertainty) along the chosen trajectory"),
     ("fly", "fly_top.png", "Flown trajectory, top view, with the intruders and no-fly zones (seed 001 Fig. 9)"),
     ("fly", "fly_profile.png", "Flown trajectory, vertical view"),
     ("fly", "fly_speed.png", "Ground speed along the flight"),

@@ -316,7 +316,8 @@ def test_report_of_a_plan_folder_draws_its_maps(runs):
     drawn = {"figures/surface.png", "figures/maps.png", "figures/coverage_PDOP.png", "report.html"}
     assert drawn <= set(doc["files"]) and all((out / f).is_file() for f in doc["files"])
     text = (out / "report.html").read_text()
-    assert text.count('<img src="data:image/png;base64,') == 6
+    assert text.count('<img src="data:image/png;base64,') == 7   # 3 maps + top, profile, sigma_p, bubble
+    assert 'alt="bubble.png"' in text
     cand = _parse(out / "report.html").tables["candidates"]
     assert [c[0] for c in cand[1:]] == ["D=3", "D=4"]
 

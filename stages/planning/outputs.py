@@ -14,7 +14,8 @@
 * ``candidates.csv``: one row per candidate D_j (seed 000 Tables II-III): ``label,
   dop_threshold, C_l_m, C_r_m, C_d_m, C_e_m, f_m, flyable, max_sigma_p_m, energy_Wh,
   flight_time_s, compute_time_s, chosen, reasons``.
-* ``top_view.png``, ``profile.png``, ``sigma_p.png`` (matplotlib Agg).
+* ``top_view.png``, ``profile.png``, ``sigma_p.png`` and, given the bubble parameters,
+  ``bubble.png`` (matplotlib Agg).
 """
 
 from __future__ import annotations

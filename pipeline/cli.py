@@ -126,14 +126,17 @@ def scenarios_command() -> None:
 @click.option("--force", multiple=True, help="Recompute these stages even if cached.")
 @click.option("--link", is_flag=True, help="Link DIR/datasets/*.zarr into the cache instead of copying them "
               "(saves space; the links break when the cache is cleared).")
+@click.option("--no-report", "no_report", is_flag=True, help="Do not write DIR/report.html.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
-def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force, link, quiet) -> None:
+def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force, link, no_report, quiet) -> None:
     """Run every stage that applies to SCENARIO (a catalog name or a YAML path; default
-    helsinki-medical) and write datasets, GeoTIFFs, figures and summary.json to --out.
+    helsinki-medical) and write datasets, GeoTIFFs, figures, summary.json, the interactive map
+    plan/plan.html and the one-page report.html (see `skyroute report`) to --out.
     Prints the chosen plan's summary line; exit code 3 (after writing every output) when no
     candidate is flyable."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.outputs import ensure_writable_dir, plan_summary_line, write_run_outputs
+    from skyroute.pipeline.report import REPORT_NAME, build_report
     from skyroute.pipeline.runner import run_scenario
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
 
@@ -144,7 +147,10 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
     fly = None
     if getattr(sc, "events", ()) and "plan" in result.datasets:
         fly = _run_fly(sc, result, out_dir, scheduler, quiet)
-    summary = write_run_outputs(result, out_dir, link=link, extra=fly)
+    summary = write_run_outputs(result, out_dir, link=link, extra=fly,
+                                also_files=() if no_report else (REPORT_NAME,))
+    if not no_report:
+        build_report(out_dir)
     _report_warnings(summary["warnings"])
     plan = summary.get("plan")
     if not quiet:
@@ -200,6 +206,7 @@ def write_folder_summary(out_dir: Path, command: str, result, files, sections: d
     sc = result.scenario
     return write_summary(out_dir, command, rel, warnings, {
         "scenario": sc.name,
+        "scenario_path": None if sc.source_path is None else str(Path(sc.source_path).resolve()),
         "stages": [{"name": r.name, "key": r.key, "cache_hit": r.cache_hit, "seconds": round(r.seconds, 4)}
                    for r in result.records],
         "seconds": result.seconds, **sections})
@@ -311,6 +318,41 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
     if plan["status"] == "flyable":
         click.echo(plan_summary_line(plan))
     _exit_if_no_plan(plan)
+
+
+@main.command("report")
+@click.argument("run_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--out", "out_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="The HTML file to write (default: RUN_DIR/report.html).")
+@click.option("--no-maps", "no_maps", is_flag=True,
+              help="Do not draw the scenario's maps into a plan, fly or navsim folder that has none.")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
+def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
+    """One self-contained HTML page (figures embedded, nothing loaded from the network) of a
+    folder written by `skyroute run`, `plan`, `fly` or `navsim`: the scenario, the outcome (or
+    why no plan flies), maps, the chosen path, the candidates' costs, tactical events, the
+    navigation Monte Carlo, stage timings and cache hits, data attribution.  A plan, fly or
+    navsim folder without maps gets them first (RUN_DIR/figures/: surface, risk / landing /
+    wind / no-fly panel, coverage floors per D_j; its scenario's map stages, from the cache);
+    a fly folder without its interactive map gets one (fly.html)."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.report import (
+        add_to_summary,
+        build_report,
+        draw_missing_maps,
+        write_fly_map,
+    )
+
+    added = []
+    if not no_maps:
+        added += draw_missing_maps(run_dir, Cache(cache_dir))
+    fly_map = write_fly_map(run_dir)
+    if fly_map is not None:
+        added.append(fly_map)
+    path = build_report(run_dir, out_path)
+    add_to_summary(run_dir, [path, *added])
+    click.echo(str(path))
 
 
 @main.command("coverage")

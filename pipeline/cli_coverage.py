@@ -14,7 +14,7 @@ import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
 
 from skyroute.pipeline.errors import InputError
-from skyroute.stages.figures import add_map_furniture, image_extent
+from skyroute.stages.figures import add_map_furniture, grow_until_unclipped, image_extent
 
 
 def _threshold_label(value: float) -> str:
@@ -59,6 +59,15 @@ def write_coverage_outputs(ds: xr.Dataset, out_dir: Path) -> list[Path]:
     return paths
 
 
+def plot_coverage(ds: xr.Dataset, path: Path) -> Path:
+    """``path``: the PNG of the coverage floors of ``ds`` (one panel per threshold D_j, unflyable
+    cells grey), as ``skyroute coverage`` draws it."""
+    ds = ds.compute()
+    floor = ds["coverage_floor"].astype(np.float32)
+    unfly = ds["unflyable"] if "unflyable" in ds else xr.zeros_like(floor, dtype=bool)
+    return _figure(floor, unfly, str(ds.attrs.get("dop_kind", "DOP")), _window_text(ds), Path(path))
+
+
 def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, path: Path) -> Path:
     import matplotlib
 
@@ -86,11 +95,13 @@ def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, pa
         ax.set_ylabel("y [m]")
         ax.ticklabel_format(useOffset=False, style="plain")
         ax.tick_params(labelsize=7)
+        ax.locator_params(axis="x", nbins=4)   # 7-digit UTM eastings on a narrow panel
         add_map_furniture(ax)
     datum = "\n".join(textwrap.wrap(str(floor.attrs.get("vertical_datum", "")), 36)[:2])
     fig.colorbar(im, ax=axes[0].tolist(), label="coverage floor [m]" + (f"\n{datum}" if datum else ""),
                  shrink=0.85)
     fig.suptitle(f"GNSS coverage maps, {kind}; {window}; grey = unflyable")
+    grow_until_unclipped(fig)   # a long suptitle over few narrow panels
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -44,8 +44,9 @@ def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50
         vmax = max(float(w["speed"].max()), 1e-3)
         q = ax.quiver(X[sl], Y[sl], w["u"].values[sl], w["v"].values[sl], w["speed"].values[sl], cmap="plasma",
                       angles="xy", scale_units="xy", scale=vmax / (0.9 * spacing_m), width=0.006)
-        ax.quiverkey(q, 0.8, 1.03, 10, "10 m/s", labelpos="E")
-        ax.set_title(f"wind at {float(w['z']):g} m AGL ({result['wind'].attrs.get('profile', '')})")
+        ax.quiverkey(q, 0.75, 1.025, 10, "10 m/s", labelpos="E")
+        ax.set_title(f"wind at {float(w['z']):g} m AGL ({result['wind'].attrs.get('profile', '')})",
+                     pad=16)   # above the 10 m/s key
     ax.set_xlim(ext[0], ext[1])
     ax.set_ylim(ext[2], ext[3])
     ax.set_aspect("equal")
@@ -93,6 +94,7 @@ def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50
             a.plot(x, y, mk, ms=9, mec="k")
         a.ticklabel_format(useOffset=False, style="plain")
         a.tick_params(labelsize=7)
+        a.locator_params(axis="x", nbins=4)   # 7-digit UTM eastings on a narrow panel
         add_map_furniture(a)
     fig.suptitle(f"{sc.name}: environment maps ({sc.grid.crs.name}, {sc.grid.resolution_m:g} m cells)")
     fig.tight_layout()

@@ -53,10 +53,11 @@ def plot_surface(result: RunResult, path: Path) -> Path:
     return path
 
 
-def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
-    """plan.geojson, waypoints.csv, candidates.csv, figures and the pilot exports
-    (:mod:`skyroute.pipeline.plan_exports`: plan.kml, plan.plan, plan.gpkg, intent.json) of
-    the cached plan stage.
+def write_plan_outputs(result: RunResult, out_dir: Path, map_page: bool = True) -> dict[str, Path]:
+    """plan.geojson, waypoints.csv, candidates.csv, figures, the pilot exports
+    (:mod:`skyroute.pipeline.plan_exports`: plan.kml, plan.plan, plan.gpkg, intent.json) and
+    (``map_page``) the interactive map ``plan.html`` (:mod:`skyroute.pipeline.planmap`) of the
+    cached plan stage.
 
     The plan was validated independently (``stages.planning.validate``) when it was made;
     the chosen trajectory is validated again here and nothing is written if it fails."""
@@ -83,12 +84,23 @@ def write_plan_outputs(result: RunResult, out_dir: Path) -> dict[str, Path]:
     files = write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
                        ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
                        terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
-                       cost_label="ground risk cost (normalised, 0-1) [-]")
+                       cost_label="ground risk cost (normalised, 0-1) [-]", bubble=_bubble_params(result.scenario))
     if chosen is not None:
         from skyroute.pipeline.plan_exports import write_pilot_exports
 
         files.update(write_pilot_exports(result, Path(out_dir)))
+    if map_page:
+        from skyroute.pipeline.planmap import write_plan_map
+
+        files["plan.html"] = write_plan_map(result, Path(out_dir) / "plan.html", chosen, cands)
     return files
+
+
+def _bubble_params(sc) -> tuple[float, float, float]:
+    """(k, surface uncertainty [m], r_p [m]) of the scenario's safety bubble (seed 003)."""
+    from skyroute.stages.vehicle import load_vehicle
+
+    return (float(sc.constraints.sboa_k), float(sc.navsim.surface_uncertainty_m), float(load_vehicle(sc.vehicle).r_p_m))
 
 
 def revalidate(result: RunResult, chosen) -> list[str]:
@@ -274,11 +286,12 @@ def _copy_store(src: Path, dst: Path) -> None:
 
 
 def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", link: bool = False,
-                      extra: dict[str, Any] | None = None) -> dict[str, Any]:
+                      extra: dict[str, Any] | None = None, also_files: tuple[str, ...] = ()) -> dict[str, Any]:
     """Write copies of the cached zarr datasets (symlinks into the cache with ``link``), GeoTIFFs,
     PNG figures, the plan files and ``summary.json`` (see :func:`write_summary`; with a ``plan``
     section when the plan stage ran; ``extra``: ``{"files": [...], "section": {...}}`` of the
-    flight replay written under ``DIR/fly/``, listed here too).  Copies make the folder self-contained: it survives
+    flight replay written under ``DIR/fly/``, listed here too; ``also_files``: files the caller
+    writes into ``out_dir`` after this, e.g. ``report.html``, listed too).  Copies make the folder self-contained: it survives
     ``skyroute cache clear`` and can be archived or moved.
 
     A GeoTIFF or figure is rewritten only when the stage key it was made from changed (or the
@@ -294,11 +307,12 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
     output_keys: dict[str, str] = {}
     files: list[str] = []
 
-    def produce(rel: str, stage: str, make) -> None:
+    def produce(rel: str, stage: str | tuple[str, ...], make) -> None:
+        key = keys[stage] if isinstance(stage, str) else "+".join(keys[s] for s in stage)
         path = out_dir / rel
-        if not (prev_keys.get(rel) == keys[stage] and path.is_file()):
+        if not (prev_keys.get(rel) == key and path.is_file()):
             make(path)
-        output_keys[rel] = keys[stage]
+        output_keys[rel] = key
         files.append(rel)
 
     for rec in result.records:
@@ -316,13 +330,25 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         produce("surface.tif", "surface",
                 lambda p: result["surface"]["surface"].rio.to_raster(p, compress="deflate"))
         produce("figures/surface.png", "surface", lambda p: plot_surface(result, p))
+    if "surface" in result.datasets and "environment" in result.datasets:
+        from skyroute.pipeline.maps import plot_maps_panel
+
+        drawn = tuple(s for s in ("surface", "environment", "wind", "clearance", "traffic") if s in keys)
+        produce("figures/maps.png", drawn, lambda p: plot_maps_panel(result, p))
+    if "coverage" in result.datasets:
+        from skyroute.pipeline.cli_coverage import plot_coverage
+
+        kind = str(result["coverage"].attrs.get("dop_kind", "DOP"))
+        produce(f"figures/coverage_{kind}.png", "coverage", lambda p: plot_coverage(result["coverage"], p))
     sections: dict[str, Any] = {}
     if "plan" in result.datasets:
         from skyroute.pipeline.plan_exports import export_key
 
         plan_key = f"{keys['plan']}+{export_key(result)}"   # the pilot exports also read data.ground
         old = [f for f in prev_files if f.startswith("plan/")]
-        if prev_keys.get("plan/") == plan_key and old and all((out_dir / f).is_file() for f in old):
+        # (a folder written before plan.html existed gets its plan files rewritten once)
+        if (prev_keys.get("plan/") == plan_key and old and all((out_dir / f).is_file() for f in old)
+                and "plan/plan.html" in old):
             plan_files = old
         else:
             written = write_plan_outputs(result, out_dir / "plan")
@@ -336,6 +362,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         from skyroute.pipeline.plan_exports import exports_section
 
         sections["exports"] = exports_section(result, [f for f in plan_files if f.startswith("plan/")], out_dir)
+    files.extend(also_files)
     if extra is not None:
         files.extend(extra["files"])
         sections["fly"] = extra["section"]

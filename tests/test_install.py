@@ -54,6 +54,8 @@ def test_built_wheel_installs_and_runs(tmp_path):
     assert "skyroute/pipeline/cli.py" in names and "skyroute/stages/surface.py" in names
     assert "skyroute/catalogs/scenarios/helsinki-medical.yaml" in names
     assert "skyroute/catalogs/data/helsinki_center.osm.pbf" in names
+    for f in ("leaflet.js", "leaflet.css", "LICENSE", "images/layers.png"):   # plan.html inlines them
+        assert f"skyroute/pipeline/vendor/leaflet/{f}" in names, f
     assert not any(n.startswith(("pipeline/", "stages/")) for n in names)
     # every source file of the three folders is in the wheel (sub-packages included)
     for folder in ("pipeline", "stages", "catalogs"):

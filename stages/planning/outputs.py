@@ -14,7 +14,8 @@
 * ``candidates.csv``: one row per candidate D_j (seed 000 Tables II-III): ``label,
   dop_threshold, C_l_m, C_r_m, C_d_m, C_e_m, f_m, flyable, max_sigma_p_m, energy_Wh,
   flight_time_s, compute_time_s, chosen, reasons``.
-* ``top_view.png``, ``profile.png``, ``sigma_p.png`` (matplotlib Agg).
+* ``top_view.png``, ``profile.png``, ``sigma_p.png`` and, given the bubble parameters,
+  ``bubble.png`` (matplotlib Agg).
 """
 
 from __future__ import annotations
@@ -122,7 +123,7 @@ def _fmt(v, nd=3) -> str:
 def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or_crs, out_dir, start_time_utc,
                vertical_datum: str, *, surface_m=None, terrain_m=None, floor_m=None, cost_m=None,
                cost_label: str = "cost [-]",
-               figures: bool = True) -> dict[str, Path]:
+               figures: bool = True, bubble: tuple[float, float, float] | None = None) -> dict[str, Path]:
     """Write ``plan.geojson``, ``waypoints.csv``, ``candidates.csv`` and the figures to ``out_dir``.
 
     ``candidate``: the chosen one (:func:`~skyroute.stages.planning.step3.choose`) or None (no
@@ -130,7 +131,10 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
     scenario :class:`~skyroute.stages.grid.Grid` (needed for the map figures) or a CRS.
     ``start_time_utc``: UTC of mission time 0.  Optional (ny, nx) rasters for the figures:
     ``surface_m`` / ``terrain_m`` (profile), ``floor_m`` (lowest admissible altitude, e.g. the
-    coverage floor), ``cost_m`` (dimensionless cost map for the top view).  Returns the paths.
+    coverage floor), ``cost_m`` (dimensionless cost map for the top view).  ``bubble``: (k,
+    surface uncertainty [m], r_p [m]) for ``bubble.png``, the safety bubble
+    ``max(r_p, k sigma_p + surface uncertainty)`` along the chosen trajectory (seed 003).
+    Returns the paths.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -166,6 +170,8 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
     if figures:
         files.update(_figures(candidate, candidates, grid, out, vertical_datum, surface_m, terrain_m, floor_m,
                               cost_m, cost_label))
+        if bubble is not None:
+            files["bubble.png"] = _bubble_figure(candidate, *bubble, out / "bubble.png")
     return files
 
 
@@ -260,3 +266,37 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
     fig.savefig(files["sigma_p.png"])
     plt.close(fig)
     return files
+
+
+def _bubble_figure(cand: Candidate, k: float, surface_uncertainty_m: float, r_p_m: float, path: Path) -> Path:
+    """The safety bubble along ``cand``: r_phi = k sigma_p + surface uncertainty
+    (:func:`~skyroute.stages.navsim.bubble_radius_m`), the collision sphere r_p and the
+    level's clearance radius r_j (``constraints.clearance: sboa``) [m] against mission time [s]."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from skyroute.stages.navsim import bubble_radius_m
+
+    t = np.asarray(cand.t_s, float)
+    r_phi = bubble_radius_m(np.asarray(cand.sigma_p_m, float), k, surface_uncertainty_m)
+    fig, ax = plt.subplots(figsize=(9, 3.5), dpi=100)
+    ax.plot(t, r_phi, "k-", lw=1.5, label=f"r_phi = {k:g} sigma_p + {surface_uncertainty_m:g} m")
+    ax.plot(t, np.maximum(r_phi, r_p_m), color="tab:red", lw=2.5, alpha=0.5,
+            label="safety bubble max(r_p, r_phi)")
+    ax.axhline(r_p_m, color="tab:blue", ls="--", lw=1, label=f"collision sphere r_p = {r_p_m:.2f} m")
+    r_j = float(getattr(cand, "clearance_radius_m", math.nan))
+    if math.isfinite(r_j):
+        ax.axhline(r_j, color="tab:green", ls=":", lw=1.5, label=f"level clearance r_j = {r_j:.2f} m")
+    finite = r_phi[np.isfinite(r_phi)]
+    top = max([r_p_m, r_j if math.isfinite(r_j) else 0.0] + ([float(finite.max())] if finite.size else []))
+    ax.set_ylim(0.0, 1.25 * top)
+    ax.set_xlabel("mission time [s]")
+    ax.set_ylabel("radius [m]")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(f"safety bubble along the chosen trajectory {cand.label}")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -415,7 +415,7 @@ def _raster_change(item: str, a: tuple, b: tuple) -> list[Change]:
     if n == 0:
         return []
     return [Change("maps", item, None, None, diff, unit,
-                   f"{n} of {int(np.size(va))} cells differ, max |B - A| = {diff:.6g}{' ' + unit if unit else ''}")]
+                   f"{n} of {int(np.size(va))} cells differ")]
 
 
 # ------------------------------------------------------------------ driver
@@ -470,6 +470,15 @@ def _fmt(v: Any) -> str:
     return s if len(s) <= 40 else s[:37] + "..."
 
 
+def _delta_text(c: Change) -> str:
+    if c.delta is None:
+        return ""
+    unit = f" {c.unit}" if c.unit else ""
+    if c.section == "maps":                    # the largest absolute difference of the raster
+        return f"max {c.delta:.6g}{unit}"
+    return f"{c.delta:+.6g}{unit}"
+
+
 def format_diff(res: DiffResult) -> str:
     """The readable table ``skyroute diff`` prints: one block per section with changes
     (item, A, B, B - A with its unit, note), then the notes."""
@@ -482,9 +491,7 @@ def format_diff(res: DiffResult) -> str:
             continue
         lines.append("")
         lines.append(f"[{section}] {len(rows)} change{'s' if len(rows) != 1 else ''}")
-        cells = [(c.item, _fmt(c.a), _fmt(c.b),
-                  "" if c.delta is None or section == "maps" else f"{c.delta:+.6g}{' ' + c.unit if c.unit else ''}",
-                  c.note) for c in rows]
+        cells = [(c.item, _fmt(c.a), _fmt(c.b), _delta_text(c), c.note) for c in rows]
         w = [max(len(r[i]) for r in [("item", "A", "B", "B - A", ""), *cells]) for i in range(4)]
         lines.append(f"  {'item':<{w[0]}}  {'A':<{w[1]}}  {'B':<{w[2]}}  {'B - A':<{w[3]}}  note")
         for r in cells:

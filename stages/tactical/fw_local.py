@@ -73,7 +73,7 @@ from skyroute.stages.vehicle import G0, FixedWingProfile, load_vehicle
 
 __all__ = ["LocalPlannerParams", "StaticObstacle", "LocalAgent", "LocalTrack", "LocalResult", "cylinder_polygon",
            "prism_distance_m", "simulate_local", "separation_threshold_m", "fly_fixedwing_fleet",
-           "brute_force_min_separation"]
+           "brute_force_min_separation", "obstacle_clearance_m", "local_flight_log"]
 
 MODES = ("strategic", "climb", "right")
 
@@ -149,7 +149,8 @@ class LocalResult:
     """One simulated flight per agent (index = agent): ``t_s`` (m,) [s], ``xyz_m`` (m, 3) [m],
     ``heading_rad``, ``speed_mps`` (horizontal ground speed), ``mode`` (m,) str (one of
     :data:`MODES`); ``arrived_s`` [s] (inf when it did not arrive), ``planned_end_s`` [s],
-    ``delay_s``, ``energy_J`` / ``planned_energy_J`` (seed 002), ``manoeuvres``: dicts
+    ``delay_s`` / ``added_energy_J`` (vs the undisturbed flight, :func:`simulate_local`),
+    ``energy_J`` / ``planned_energy_J`` (seed 002, flown / planned samples), ``manoeuvres``: dicts
     (agent, kind climb/right, threat id, t_start_s, t_end_s, t_cpa_s, d_cpa_m, feasible);
     ``warnings``; ``params``; ``radius_m`` per agent (r_p); ``compute_s`` [s]."""
 
@@ -168,15 +169,23 @@ class LocalResult:
     manoeuvres: list[dict] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     compute_s: float = 0.0
+    baseline_arrived_s: np.ndarray | None = None
+    baseline_energy_J: np.ndarray | None = None
 
     @property
     def delay_s(self) -> np.ndarray:
-        """Arrival minus planned arrival [s] per agent."""
-        return self.arrived_s - self.planned_end_s
+        """Arrival minus the undisturbed flight's arrival [s] per agent."""
+        return self.arrived_s - self.baseline_arrived_s
 
     @property
     def added_energy_J(self) -> np.ndarray:
-        return self.energy_J - self.planned_energy_J
+        """Energy minus the undisturbed flight's energy [J] per agent (seed 002 model)."""
+        return self.energy_J - self.baseline_energy_J
+
+    @property
+    def delay_vs_plan_s(self) -> np.ndarray:
+        """Arrival minus the plan's arrival [s] (includes the path-following error)."""
+        return self.arrived_s - self.planned_end_s
 
 
 def separation_threshold_m(r_i_m: float, r_j_m: float, d_c_m: float) -> float:
@@ -294,12 +303,16 @@ def _zero_wind(xyz):
 
 def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticObstacle] = (),
                    intruders: Sequence[LocalTrack] = (), params: LocalPlannerParams = LocalPlannerParams(),
-                   wind_at: Callable | None = None, floor_at: Callable | None = None) -> LocalResult:
+                   wind_at: Callable | None = None, floor_at: Callable | None = None,
+                   baseline: bool = True) -> LocalResult:
     """Fly ``agents`` together with seed 002's local planner (module docstring).
 
     ``wind_at(xyz (m, 3)) -> (m, 3)`` [m/s] (default still air); ``floor_at(x (m,), y (m,))
     -> (m,)`` the lowest admissible altitude [m] (terrain guard; default none).  Every agent
-    starts at its first planned sample and time with the heading of its first chord."""
+    starts at its first planned sample and time with the heading of its first chord.  With
+    ``baseline`` each agent also flies alone without obstacles and intruders (the undisturbed
+    flight: ``baseline_arrived_s``, ``baseline_energy_J``), the reference of ``delay_s`` and
+    ``added_energy_J`` (so that they measure the manoeuvres, not the path following)."""
     t_wall = time.perf_counter()
     wind_at = wind_at or _zero_wind
     dt = float(params.tick_s)
@@ -431,7 +444,9 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
                     if np.any(dxy <= buf):
                         need = o.z_top_m + radius[i] + params.d_c_m - pos[i, 2]
                         dxy_now = float(_poly_dist_xy(np.asarray(o.polygon_xy, float), pos[i:i + 1, :2])[0])
-                        ok = need <= max(dxy_now - radius[i], 0.0) * math.tan(gam_u[i]) * (1 - 1e-3)
+                        v_gh0 = math.hypot(V * math.cos(psi[i]) + winds[i, 0], V * math.sin(psi[i]) + winds[i, 1])
+                        grad = (1 - 1e-3) * math.tan(gam_u[i]) * min(V * math.cos(gam_u[i]), v_gh0) / v_gh0
+                        ok = need <= max(dxy_now - radius[i], 0.0) * grad
                         m = {"agent": agents[i].id, "kind": "climb", "threat": o.id, "t_start_s": t,
                              "t_end_s": math.inf, "t_cpa_s": math.nan, "d_cpa_m": dxy_now, "distance_m": d,
                              "feasible": bool(ok), "climb_m": float(need)}
@@ -440,7 +455,8 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
                         if not ok:
                             warnings.append(f"{agents[i].id}: obstacle {o.id} sensed {dxy_now:.0f} m away needs a climb "
                                             f"of {need:.0f} m, more than the climb angle "
-                                            f"{veh[i].max_climb_angle_deg:g} deg allows: raise obstacle_range_m")
+                                            f"{veh[i].max_climb_angle_deg:g} deg allows over the ground "
+                                            f"(gradient {grad:.3f}): raise obstacle_range_m")
                 if o.id in engaged_obs[i]:
                     z_cmd = max(z_cmd, z_over[o.id] + radius[i] + params.d_c_m)
                     mode = "climb" if mode == "strategic" else mode
@@ -500,8 +516,15 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
         planned_energy[i] = _energy(np.asarray(agents[i].plan_xyz_m, float), wind_at, veh[i])
         if not math.isfinite(arrived[i]):
             warnings.append(f"{agents[i].id}: did not reach the end of its plan by t = {t_stop:.0f} s")
-    return LocalResult([a.id for a in agents], res_t, res_p, res_psi, res_v, res_m, arrived, t_end_plan, energy,
-                       planned_energy, radius, params, manoeuvres, warnings, time.perf_counter() - t_wall)
+    out = LocalResult([a.id for a in agents], res_t, res_p, res_psi, res_v, res_m, arrived, t_end_plan, energy,
+                      planned_energy, radius, params, manoeuvres, warnings)
+    out.baseline_arrived_s, out.baseline_energy_J = arrived.copy(), energy.copy()
+    if baseline and (n > 1 or obstacles or intruders):
+        for i in range(n):
+            b = simulate_local([agents[i]], params=params, wind_at=wind_at, floor_at=floor_at, baseline=False)
+            out.baseline_arrived_s[i], out.baseline_energy_J[i] = b.arrived_s[0], b.energy_J[0]
+    out.compute_s = time.perf_counter() - t_wall
+    return out
 
 
 def brute_force_min_separation(result: LocalResult, tracks: Sequence[LocalTrack] = (), step_s: float = 0.05
@@ -569,3 +592,85 @@ def fly_fixedwing_fleet(problems: Sequence, *, planner: str = "eeastar", start_t
 
     sim = simulate_local(agents, obstacles=obstacles, params=params, wind_at=wind_sampler(pr0), floor_at=floor_at)
     return sim, cands
+
+
+def obstacle_clearance_m(result: LocalResult, obstacles: Sequence[StaticObstacle], agent: int = 0,
+                         step_s: float = 0.05) -> dict[str, float]:
+    """Minimum 3-D distance [m] of ``agent``'s flown trajectory (linear between samples, every
+    ``step_s`` [s]) to each obstacle's prism while it exists, by brute force."""
+    t, x = result.t_s[agent], result.xyz_m[agent]
+    out = {}
+    for o in obstacles:
+        tq = np.arange(max(t[0], o.t_s), t[-1] + 1e-12, step_s)
+        if tq.size == 0:
+            out[o.id] = math.inf
+            continue
+        p = np.column_stack([np.interp(tq, t, x[:, k]) for k in range(3)])
+        out[o.id] = float(prism_distance_m(o, p).min())
+    return out
+
+
+def local_flight_log(result: LocalResult, agent: int, *, scenario: str, crs_wkt: str, vertical_datum: str,
+                     start_time_utc: str, planned_t_s, planned_xyz_m, obstacles: Sequence[StaticObstacle] = (),
+                     tracks: Sequence = (), events: Sequence[dict] = (), seed: int = 0):
+    """The :class:`~skyroute.stages.tactical.log.FlightLog` of one agent of a local-planner
+    simulation (``skyroute fly`` outputs): flown parts per mode (``strategic`` / ``climb`` /
+    ``right``), one ``tactical.csv`` row per manoeuvre (level ``climb`` or ``right``),
+    ``tracks`` (:class:`~skyroute.stages.tactical.log.IntruderTrack`, the truth of the
+    intruders), ``events`` (dicts as in the replay; their ``outcome`` is filled from the
+    manoeuvres) and the ``local`` summary (ranges, threshold, delay, added energy, obstacle
+    clearance)."""
+    from skyroute.stages.tactical.log import FlightLog, FlownPart, LevelAttempt
+
+    t, x, v, mode = result.t_s[agent], result.xyz_m[agent], result.speed_mps[agent], result.mode[agent]
+    log = FlightLog(scenario, crs_wkt, vertical_datum, start_time_utc, np.asarray(planned_t_s, float),
+                    np.asarray(planned_xyz_m, float))
+    k0 = 0
+    for k in range(1, len(t) + 1):
+        if k == len(t) or mode[k] != mode[k0]:
+            hi = min(k + 1, len(t))          # parts share their boundary sample
+            if hi - k0 >= 2:
+                log.parts.append(FlownPart(str(mode[k0]), t[k0:hi], x[k0:hi], v[k0:hi]))
+            k0 = k
+    ident = result.ids[agent]
+    mine = [m for m in result.manoeuvres if m["agent"] == ident]
+    for r, m in enumerate(mine):
+        reason = "" if m["feasible"] else "sensed too late for the climb angle"
+        t_coll = m["t_cpa_s"] - m["t_start_s"] if m["kind"] == "right" else math.nan
+        log.attempts.append(LevelAttempt(r, f"{m['kind']} {m['threat']}", float(m["t_start_s"]), float(t_coll),
+                                         m["kind"], bool(m["feasible"]), math.nan, math.nan, math.nan, math.nan, 0.0,
+                                         0.0, math.nan, True, reason))
+    evs = []
+    for e in events:
+        e = dict(e)
+        hit = [m for m in mine if m["threat"] == e.get("id")]
+        e["t_known_s"] = float(hit[0]["t_start_s"]) if hit else math.inf
+        e["outcome"] = ("climbed over" if hit[0]["kind"] == "climb" else "turned right") if hit else "not a threat"
+        evs.append(e)
+    log.events = evs
+    log.intruders = list(tracks)
+    log.own_radius_m, log.margin_m = float(result.radius_m[agent]), float(result.params.d_c_m)
+    log.tick_s, log.seed, log.method = result.params.tick_s, seed, "local"
+    arrived = math.isfinite(result.arrived_s[agent])
+    log.outcome = "goal" if arrived else "failed"
+    log.reason = "" if arrived else f"did not reach the end of the plan by t = {t[-1]:.0f} s"
+    log.energy_Wh = float(result.energy_J[agent]) / 3600.0
+    log.warnings = [w for w in result.warnings if w.startswith(f"{ident}:")]
+    p = result.params
+    clear = obstacle_clearance_m(result, obstacles, agent)
+    log.local = {"obstacle_range_m": p.obstacle_range_m, "uav_range_m": p.uav_range_m, "d_c_m": p.d_c_m,
+                 "avoid_offset_m": p.avoid_offset_m, "alert_factor": p.alert_factor, "horizon_s": p.horizon_s,
+                 "r_p_m": float(result.radius_m[agent]),
+                 "separation_threshold": "S = r_i + r_j + d_c",
+                 "planned_end_s": float(result.planned_end_s[agent]), "arrived_s": float(result.arrived_s[agent]),
+                 "undisturbed_arrived_s": float(result.baseline_arrived_s[agent]),
+                 "delay_s": float(result.delay_s[agent]), "delay_vs_plan_s": float(result.delay_vs_plan_s[agent]),
+                 "energy_Wh": float(result.energy_J[agent]) / 3600.0,
+                 "planned_energy_Wh": float(result.planned_energy_J[agent]) / 3600.0,
+                 "undisturbed_energy_Wh": float(result.baseline_energy_J[agent]) / 3600.0,
+                 "added_energy_Wh": float(result.added_energy_J[agent]) / 3600.0,
+                 "manoeuvres": [{k: (float(v) if isinstance(v, float) else v) for k, v in m.items()} for m in mine],
+                 "obstacle_clearance_m": clear, "obstacles": [
+                     {"id": o.id, "z_top_m": float(o.z_top_m), "t_s": float(o.t_s),
+                      "polygon_xy": np.asarray(o.polygon_xy, float).round(3).tolist()} for o in obstacles]}
+    return log

@@ -82,7 +82,12 @@ def fly_fixedwing(sc: Scenario, *, cache: Cache | None = None, scheduler: str = 
     from skyroute.stages.base import PlanningError
     from skyroute.stages.planning.step3 import wind_sampler
     from skyroute.stages.planning.strategic import plan_from_dataset
-    from skyroute.stages.tactical.fw_local import LocalAgent, LocalTrack, local_flight_log, simulate_local
+    from skyroute.stages.tactical.fw_local import (
+        LocalAgent,
+        LocalTrack,
+        local_flight_log,
+        simulate_local,
+    )
     from skyroute.stages.tactical.log import IntruderTrack
     from skyroute.stages.tactical.replay import _truth_update
     from skyroute.stages.traffic import intruders_for

@@ -21,7 +21,8 @@ from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.runner import run_scenario
 from skyroute.pipeline.settings import Scenario, check_event_times
 
-__all__ = ["LOCAL_EVENT_KINDS", "fly_fixedwing", "local_params", "local_problem", "obstacles_of"]
+__all__ = ["LOCAL_EVENT_KINDS", "crossing_routes", "fleet_problems", "fly_fixedwing", "local_params", "local_problem",
+           "obstacles_of"]
 
 LOCAL_EVENT_KINDS = ("intruder", "intruder_update", "obstacle")
 
@@ -152,3 +153,47 @@ def fly_fixedwing(sc: Scenario, *, cache: Cache | None = None, scheduler: str = 
     log.surface_m = np.asarray(surface["surface"].values, float)
     log.compile_s = 0.0
     return FlyResult(result, log, [])
+
+
+def fleet_problems(sc: Scenario, routes, *, cache: Cache | None = None, alt_agl_m: float = 150.0,
+                   alt_m: float | None = None) -> list:
+    """One :class:`~skyroute.stages.planning.problem.PlanningProblem` per route ``((x0, y0),
+    (x1, y1))`` [m, map CRS] on the maps of ``sc`` (surface, clearance, wind; cached stages),
+    start and goal ``alt_agl_m`` [m] above the ground, or at the altitude ``alt_m`` [m, surface
+    datum] when given: the input of
+    :func:`~skyroute.stages.tactical.fw_local.fly_fixedwing_fleet`."""
+    import warnings
+
+    from skyroute.stages.planning.problem import build_problem
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = run_scenario(sc, cache=cache or Cache(), targets=["surface", "clearance", "wind"])
+    s, c = res["surface"].load(), res["clearance"].load()
+    wind = res["wind"].load() if "wind" in res.datasets else (0.0, 0.0, 0.0)
+    out = []
+    for k, (a, b) in enumerate(routes):
+        out.append(build_problem(s, c["min_altitude_m"], None, None, None, wind, sc.vehicle, (1, 0, 0, 0),
+                                 _point(s, a, alt_agl_m, alt_m), _point(s, b, alt_agl_m, alt_m),
+                                 sc.constraints.min_altitude_agl_m, sc.constraints.max_altitude_agl_m,
+                                 nofly=c["nofly"], label=f"uav-{k + 1}"))
+    return out
+
+
+def _point(s, xy, alt_agl_m: float, alt_m: float | None):
+    from skyroute.stages.planning.problem import xyz_from_agl
+
+    if alt_m is None:
+        return xyz_from_agl(s, float(xy[0]), float(xy[1]), alt_agl_m)
+    return np.array([float(xy[0]), float(xy[1]), float(alt_m)])
+
+
+def crossing_routes(center_xy, half_length_m: float, headings_deg) -> list:
+    """Routes ``((x0, y0), (x1, y1))`` [m] through ``center_xy`` with the given headings [deg,
+    counter-clockwise from east], each ``2 half_length_m`` long (all cross at the centre)."""
+    out = []
+    for h in headings_deg:
+        e = np.array([math.cos(math.radians(h)), math.sin(math.radians(h))])
+        c = np.asarray(center_xy, float)
+        out.append((tuple(c - half_length_m * e), tuple(c + half_length_m * e)))
+    return out

@@ -227,9 +227,10 @@ def path_energy(problem: PlanningProblem, waypoints) -> dict[str, float]:
     maps, wind = problem.seg_args[0], problem.seg_args[1]
     tot = np.zeros(5)
     out = np.empty(5)
+    step = wind_step_m(problem)          # once: it scans the whole wind map
     for a, b in zip(w[:-1], w[1:], strict=True):
         edge_energy(float(a[0]), float(a[1]), float(a[2]), float(b[0]), float(b[1]), float(b[2]),
-                    wind_step_m(problem), maps, wind, prm, out)
+                    step, maps, wind, prm, out)
         tot += out
     length = float(np.linalg.norm(np.diff(w, axis=0), axis=1).sum()) if len(w) > 1 else 0.0
     return {"energy_J": float(tot[0]), "time_s": float(tot[1]), "drag_J": float(tot[2]),

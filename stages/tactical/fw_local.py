@@ -9,8 +9,8 @@ tick ``dt``: the turn rate ``omega`` [rad/s] and the vertical rate ``h_dot`` [m/
 airspeed is the vehicle's flown airspeed at the local density
 (:meth:`~skyroute.stages.vehicle.FixedWingProfile.airspeed_at`, the seed's constant Carson
 speed), ``V_h = sqrt(V^2 - h_dot^2)`` is its horizontal part and the ground velocity is
-``V_h (cos psi, sin psi) + (u, v)`` with the horizontal wind ``(u, v)`` taken at the start
-of the tick (the vertical wind is ignored).  One tick is integrated exactly (a horizontal
+``V_h (cos psi, sin psi) + (u, v)`` with the horizontal wind ``(u, v)`` sampled at the
+aircraft every :data:`SLOW_EVERY` ticks (the vertical wind is ignored).  One tick is integrated exactly (a horizontal
 air-frame arc of radius ``V_h / omega`` plus the wind drift).  Limits (the same tolerance-free
 checks as the validator, :func:`~skyroute.stages.planning.validate.turn_radius_violations`):
 
@@ -48,7 +48,7 @@ planner and by the terrain guard.
   aircraft of a pair see each other and both turn right; intruders keep their track.
 * *terrain guard* (beyond the seed): the altitude command is at least the floor raster
   (clearance floor, minimum AGL) along the ground course over ``terrain_lookahead_m``, less
-  what a climb at 0.9 x the limit gains on the way.
+  what a climb at 0.9 x the limit gains on the way (checked every :data:`SLOW_EVERY` ticks).
 
 A UAV that reaches the end of its chain (remaining length below one tick of flight, or within
 ``goal_tol_m`` of the end) has arrived and leaves the airspace.  Energy: seed 002
@@ -76,6 +76,7 @@ __all__ = ["LocalPlannerParams", "StaticObstacle", "LocalAgent", "LocalTrack", "
            "brute_force_min_separation", "obstacle_clearance_m", "local_flight_log"]
 
 MODES = ("strategic", "climb", "right")
+SLOW_EVERY = 5     # ticks between wind samples and terrain-guard checks
 
 
 @dataclass(frozen=True)
@@ -245,13 +246,14 @@ class _Chain:
         return self.p[i] + f * (self.p[i + 1] - self.p[i])
 
     def tangent(self, s: float) -> np.ndarray:
-        i = int(np.clip(np.searchsorted(self.s, s, side="right") - 1, 0, len(self.s) - 2))
+        i = min(max(int(np.searchsorted(self.s, s, side="right")) - 1, 0), len(self.s) - 2)
         d = self.p[i + 1, :2] - self.p[i, :2]
         return d / np.linalg.norm(d)
 
     def project(self, xy: np.ndarray, s0: float, window_m: float) -> float:
-        i0 = int(np.clip(np.searchsorted(self.s, s0, side="right") - 1, 0, len(self.s) - 2))
-        i1 = int(np.clip(np.searchsorted(self.s, s0 + window_m, side="right"), i0 + 1, len(self.s) - 1))
+        last = len(self.s) - 1
+        i0 = min(max(int(np.searchsorted(self.s, s0, side="right")) - 1, 0), last - 1)
+        i1 = min(max(int(np.searchsorted(self.s, s0 + window_m, side="right")), i0 + 1), last)
         a, b = self.p[i0:i1, :2], self.p[i0 + 1:i1 + 1, :2]
         ab = b - a
         tt = np.clip(np.einsum("kj,kj->k", xy - a, ab) / np.einsum("kj,kj->k", ab, ab), 0.0, 1.0)
@@ -355,6 +357,8 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
     manoeuvres: list[dict] = []
     warnings: list[str] = []
     z_over = {o.id: float(o.z_top_m) for o in obstacles}
+    guard: dict[int, float] = {}
+    winds = np.zeros((n, 3))
     t_first = float(np.min(t0))
     t = t_first
     k_step = 0
@@ -367,8 +371,8 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
                 active[i] = True
         if not active.any() and np.all(np.isfinite(arrived)):
             break
-        winds = wind_at(pos) if n else np.zeros((0, 3))
-        winds = np.asarray(winds, float).reshape(n, 3)
+        if k_step % SLOW_EVERY == 1:             # wind and terrain guard: every SLOW_EVERY ticks
+            winds = np.asarray(wind_at(pos), float).reshape(n, 3)
         # ground velocities now (for the CPA of the others)
         for i in range(n):
             if active[i]:
@@ -471,11 +475,14 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
             om = max(-om_max, min(om_max, _wrap(psi_d - psi[i]) / 1.0))
             # ---- terrain guard along the ground course
             if floor_at is not None and params.terrain_lookahead_m > 0:
-                e = np.array([math.cos(chi), math.sin(chi)])
-                dd = np.arange(0.0, params.terrain_lookahead_m + 1e-9, 30.0)
-                fl = np.asarray(floor_at(pos[i, 0] + dd * e[0], pos[i, 1] + dd * e[1]), float)
-                fl = np.where(np.isfinite(fl), fl, -np.inf)
-                z_cmd = max(z_cmd, float(np.max(fl - dd * 0.9 * math.tan(gam_u[i]))))
+                if k_step % SLOW_EVERY == 1 or i not in guard:
+                    e = np.array([math.cos(chi), math.sin(chi)])
+                    dd = np.arange(0.0, params.terrain_lookahead_m + 1e-9, 30.0)
+                    fl = np.asarray(floor_at(pos[i, 0] + dd * e[0], pos[i, 1] + dd * e[1]), float)
+                    fl = np.where(np.isfinite(fl), fl, -np.inf)
+                    # held until the next check: the floor ahead counted 30 m closer than it is
+                    guard[i] = float(np.max(fl - np.maximum(dd - 30.0, 0.0) * 0.9 * math.tan(gam_u[i])))
+                z_cmd = max(z_cmd, guard[i])
             v_gh = math.hypot(V_h_nom * math.cos(psi[i]) + w[0], V_h_nom * math.sin(psi[i]) + w[1])
             h_up = (1 - 1e-3) * math.tan(gam_u[i]) * min(V * math.cos(gam_u[i]), v_gh)
             h_dn = (1 - 1e-3) * math.tan(gam_d[i]) * min(V * math.cos(gam_d[i]), v_gh)

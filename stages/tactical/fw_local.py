@@ -564,14 +564,17 @@ def brute_force_min_separation(result: LocalResult, tracks: Sequence[LocalTrack]
 def fly_fixedwing_fleet(problems: Sequence, *, planner: str = "eeastar", start_times_s: Sequence[float] | None = None,
                         ids: Sequence[str] | None = None, params: LocalPlannerParams = LocalPlannerParams(),
                         obstacles: Sequence[StaticObstacle] = (), step_cells: int = 4,
-                        corridor_m: float | None = None) -> tuple[LocalResult, list]:
+                        corridor_m: float | None = None, meet_at_xy=None) -> tuple[LocalResult, list]:
     """Seed 002 section 4.4: each UAV of ``problems``
     (:class:`~skyroute.stages.planning.problem.PlanningProblem`, one per UAV, same maps) plans
     its own path with ``planner`` (:func:`~skyroute.stages.planning.fixedwing.plan_fixedwing`,
     written plan :func:`~skyroute.stages.planning.fixedwing.fixedwing_candidate`), then all
     fly together with the local planner (:func:`simulate_local`: the wind and floor of the
-    first problem).  Returns the simulation and the candidates.  InputError when a UAV has no
-    flyable plan."""
+    first problem).  ``start_times_s`` [s]: take-off of each UAV (default 0); with
+    ``meet_at_xy`` (x, y) [m] instead, the take-offs are chosen so that every plan passes its
+    point closest to ``meet_at_xy`` at the same time (the latest take-off is 0): a worst case
+    for crossing routes.  Returns the simulation and the candidates.  InputError when a UAV
+    has no flyable plan."""
     from skyroute.stages.planning.fixedwing import fixedwing_candidate, plan_fixedwing
     from skyroute.stages.planning.step3 import wind_sampler
 
@@ -581,12 +584,17 @@ def fly_fixedwing_fleet(problems: Sequence, *, planner: str = "eeastar", start_t
     if len(ids) != n or len(starts) != n:
         raise InputError(f"{n} problems need {n} ids and start times, got {len(ids)} and {len(starts)}")
     agents, cands = [], []
-    for pr, ident, t0 in zip(problems, ids, starts, strict=True):
+    for pr, ident in zip(problems, ids, strict=True):
         res = plan_fixedwing(pr, planner, step_cells=step_cells, corridor_m=corridor_m)
         cand = fixedwing_candidate(pr, res, label=ident)
         if not res.solved or not cand.flyable:
             raise InputError(f"UAV {ident}: no flyable {planner} plan ({res.reason or '; '.join(cand.reasons)})")
         cands.append(cand)
+    if meet_at_xy is not None:
+        t_meet = [float(c.t_s[int(np.argmin(np.linalg.norm(np.asarray(c.xyz_m)[:, :2] - np.asarray(meet_at_xy, float),
+                                                             axis=1)))]) for c in cands]
+        starts = [max(t_meet) - tm for tm in t_meet]
+    for cand, pr, ident, t0 in zip(cands, problems, ids, starts, strict=True):
         agents.append(LocalAgent(ident, np.asarray(cand.t_s, float) + float(t0), np.asarray(cand.xyz_m, float),
                                  pr.vehicle))
     pr0 = problems[0]

@@ -324,12 +324,17 @@ def test_scenario_eeastar_within_half_a_percent_of_astar(tmp_path):
     assert e["eeastar"] <= 1.005 * e["astar-fw"]
 
 
-def test_fly_refuses_a_fixed_wing_scenario():
-    from skyroute.pipeline.fly import fly_scenario
+def test_fly_refuses_rotorcraft_methods_for_a_fixed_wing_scenario():
+    """A fixed-wing vehicle flies the local planner (tests/test_fw_local.py); levels and octant
+    are refused before any work, naming the method that fits."""
+    from skyroute.pipeline.fly import fly_scenario, tactical_method
     from skyroute.pipeline.settings import load_scenario
 
-    with pytest.raises(InputError, match="skyroute fly.*fixed-wing"):
-        fly_scenario(load_scenario("san-gabriel-fixedwing"))
+    sc = load_scenario("san-gabriel-fixedwing")
+    assert tactical_method(sc) == "local"
+    for m in ("levels", "octant"):
+        with pytest.raises(InputError, match="fixed-wing: use --tactical local"):
+            fly_scenario(sc, method=m)
 
 
 def test_qgc_plan_of_a_fixed_wing_ends_on_a_loiter():

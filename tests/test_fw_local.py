@@ -198,3 +198,24 @@ def test_three_x8_crossing_over_san_gabriel(tmp_path):
         _check_limits(sim.t_s[i], sim.xyz_m[i])
     assert np.all(np.isfinite(sim.delay_s)) and np.all(np.isfinite(sim.added_energy_J))
     assert np.all(sim.added_energy_J > 0)
+
+
+def test_fly_cli_refusals(tmp_path):
+    """`skyroute fly`: a rotorcraft cannot fly `--tactical local`, a fixed-wing cannot fly
+    levels; map events are refused by the local planner (all before any planning)."""
+    from click.testing import CliRunner
+
+    from skyroute.pipeline.cli import main
+
+    def fly(*args):
+        return CliRunner().invoke(main, ["fly", *args, "--out", str(tmp_path / "out"), "--cache-dir",
+                                         str(tmp_path / "cache"), "-q"])
+
+    r = fly("helsinki-tactical", "--tactical", "local")
+    assert r.exit_code == 2 and "rotorcraft: use --tactical levels" in r.output
+    r = fly("san-gabriel-fixedwing-local", "--tactical", "levels")
+    assert r.exit_code == 2 and "use --tactical local" in r.output
+    ev = tmp_path / "ev.yaml"
+    ev.write_text("events:\n  - {kind: wind, t_s: 10, uniform_wind: {speed_mps: 8, direction_deg: 0}}\n")
+    r = fly("san-gabriel-fixedwing-local", "--events", str(ev))
+    assert r.exit_code == 2 and "reacts to intruder, intruder_update, obstacle events" in r.output

@@ -402,6 +402,12 @@ def _event_legend(log: FlightLog) -> list[str]:
     return out
 
 
+def _local_obstacles(log: FlightLog) -> list[dict]:
+    """The unknown static obstacles of a local-planner flight (fixed-wing), else []."""
+    loc = getattr(log, "local", None)
+    return list(loc.get("obstacles", [])) if loc else []
+
+
 def _window(z) -> str:
     """Active window of a no-fly zone as text, e.g. ``t 75-300 s`` or ``from t 75 s``."""
     if not math.isfinite(z.end_s):
@@ -519,6 +525,10 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
         ax.add_patch(Polygon(np.asarray(z.polygon_xy, float)[:, :2], closed=True, facecolor="red", alpha=0.25,
                              edgecolor="red", lw=1.2, hatch="//", zorder=4,
                              label=f"no-fly {z.id}: {z.z_min_m:.0f}-{z.z_max_m:.0f} m, {_window(z)}"))
+    for o in _local_obstacles(log):
+        ax.add_patch(Polygon(np.asarray(o["polygon_xy"], float), closed=True, facecolor="black", alpha=0.6,
+                             edgecolor="black", lw=1.0, zorder=4,
+                             label=f"unknown obstacle {o['id']}: top {o['z_top_m']:.0f} m, from {o['t_s']:g} s"))
     if planned.shape[0]:
         ax.plot(planned[:, 0], planned[:, 1], "k--", lw=1.2, label="planned (strategic)", zorder=4)
     part_lines(ax, lambda q: np.asarray(q.xyz_m)[:, 0], lambda q: np.asarray(q.xyz_m)[:, 1])
@@ -613,6 +623,12 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
         if inside.any():
             ax.fill_between(dist, z.z_min_m, z.z_max_m, where=inside, color="red", alpha=0.2, hatch="//",
                             label=f"no-fly {z.id} over the path, {_window(z)}")
+    for o in _local_obstacles(log):
+        inside = _inside(p[:, :2], np.asarray(o["polygon_xy"], float))
+        if inside.any():
+            lo = base if (grid is not None and base is not None) else float(np.nanmin(p[:, 2])) - 50.0
+            ax.fill_between(dist, lo, o["z_top_m"], where=inside, color="black", alpha=0.6,
+                            label=f"unknown obstacle {o['id']} under the path")
     if planned.shape[0] >= 2:
         ax.plot(_dist_along(planned), planned[:, 2], "k--", lw=1.2, label="planned (strategic), its own distance")
     idx = _part_index(log)

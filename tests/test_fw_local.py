@@ -142,7 +142,7 @@ def test_head_on_pair_both_turn_right():
 
 
 def test_crossing_pair_both_turn_right_and_keep_separation():
-    r = _pair((1200, -1200), (1200, 1200), baseline=True)
+    r = _pair((1200, -1200), (1200, 1200))
     S = 2 * X8.r_p_m + r.params.d_c_m
     assert {(m["agent"], m["kind"]) for m in r.manoeuvres} == {("a", "right"), ("b", "right")}
     assert _min_pair_distance(r.t_s[0], r.xyz_m[0], r.t_s[1], r.xyz_m[1]) >= S
@@ -157,7 +157,8 @@ def test_crossing_pair_both_turn_right_and_keep_separation():
 
 
 def test_determinism():
-    a, b = _pair((2400, 0), (0, 0)), _pair((2400, 0), (0, 0))
+    a, b = _pair((2400, 0), (0, 0), uav_range_m=300), _pair((2400, 0), (0, 0), uav_range_m=300)
+    assert a.manoeuvres
     for i in (0, 1):
         assert np.array_equal(a.t_s[i], b.t_s[i]) and np.array_equal(a.xyz_m[i], b.xyz_m[i])
     assert a.manoeuvres == b.manoeuvres
@@ -219,3 +220,23 @@ def test_fly_cli_refusals(tmp_path):
     ev.write_text("events:\n  - {kind: wind, t_s: 10, uniform_wind: {speed_mps: 8, direction_deg: 0}}\n")
     r = fly("san-gabriel-fixedwing-local", "--events", str(ev))
     assert r.exit_code == 2 and "reacts to intruder, intruder_update, obstacle events" in r.output
+
+
+@pytest.mark.parametrize("wind", [(5.0, 0.0), (-3.0, 4.0)])
+def test_climb_over_in_wind_keeps_r_p_and_the_limits_over_the_ground(wind):
+    """In a wind the vertical rate is bounded with the ground speed too: the flight-path angle
+    over the ground and the bank the ground track needs stay within the limits (tolerance 0),
+    and the climb over the obstacle still keeps r_p (feasible at detection)."""
+    t, p = _line((0, 0), (1800, 0))
+    ring = cylinder_polygon((900, 0), 10)
+    mast = StaticObstacle("mast", ring, 340.0)
+
+    def wind_at(xyz):
+        return np.tile([wind[0], wind[1], 0.0], (np.atleast_2d(xyz).shape[0], 1))
+
+    r = simulate_local([LocalAgent("own", t, p)], obstacles=[mast], wind_at=wind_at, baseline=False)
+    assert r.manoeuvres[0]["feasible"]
+    _, q = _resample(r.t_s[0], r.xyz_m[0])
+    assert min(_prism_distance(Polygon(ring), 340.0, qq) for qq in q) >= X8.r_p_m
+    _check_limits(r.t_s[0], r.xyz_m[0])
+    assert math.isfinite(r.arrived_s[0])

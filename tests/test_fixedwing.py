@@ -345,3 +345,30 @@ def test_qgc_plan_of_a_fixed_wing_ends_on_a_loiter():
     assert m["vehicleType"] == 1 and m["items"][-1]["command"] == 17 and m["items"][-1]["params"][6] == 120.0
     assert qgc_plan([7.0, 7.01], [43.0, 43.01], [100.0, 120.0], 50.0, cruise_speed_mps=5.0)["mission"]["items"][-1][
         "command"] == 21
+
+
+def test_bitstar_dubins_is_a_flyable_curve():
+    """BIT* on OMPL's Dubins-airplane space (continuous comparison): its samples pass the
+    problem's state check, turn no tighter than its radius and climb / descend within the
+    limits (finite differences, tolerance 0); reproducible with a seed and an iteration count."""
+    from skyroute.stages.planning.bitstar_dubins import plan_bitstar_dubins
+
+    pr = _terrain_problem(wind=(0.0, 0.0, 0.0))
+    r = plan_bitstar_dubins(pr, 60.0, seed=3, max_iterations=300)
+    assert r["solved"]
+    x = r["xyz_m"]
+    assert pr.state_valid(x).all()
+    assert np.allclose(x[0], pr.start_xyz) and np.allclose(x[-1], pr.goal_xyz, atol=1e-6)
+    d = np.diff(x, axis=0)
+    ang = np.degrees(np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])))
+    veh = load_vehicle("skywalker-x8")
+    assert ang.max() <= veh.max_climb_angle_deg and -ang.min() <= veh.max_descent_angle_deg
+    a, b, c = x[:-2, :2], x[1:-1, :2], x[2:, :2]
+    ab, bc, ca = (np.linalg.norm(q, axis=1) for q in (b - a, c - b, a - c))
+    cross = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
+    rho = np.where(cross > 1e-9, ab * bc * ca / np.maximum(2 * cross, 1e-300), np.inf)
+    assert rho.min() >= r["turn_radius_m"] * (1 - 1e-9)
+    assert r["energy_J"] == pytest.approx(path_energy(pr, x)["energy_J"], rel=1e-12)
+    # never shorter than the straight line; reproducible
+    assert r["length_m"] >= math.dist(pr.goal_xyz, pr.start_xyz)
+    assert np.array_equal(plan_bitstar_dubins(pr, 60.0, seed=3, max_iterations=300)["xyz_m"], x)

@@ -316,13 +316,15 @@ class TrafficSettings(FrozenModel):
     time_margin_s: NonNegFloat = 5.0
 
 
-PLANNERS = ("astar", "bitstar", "potential", "eeastar", "astar-fw", "energy-optimal")
+PLANNERS = ("astar", "bitstar", "potential", "eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
 
 
 class PlannerSettings(FrozenModel):
     """STEP I planner (``astar``: deterministic 3-D lattice A* + refinement, the default; or
     ``bitstar``: OMPL BIT*, reproducible with its seed and an iteration budget derived from
-    ``time_budget_s``; for fixed-wing vehicles ``eeastar``, ``astar-fw`` or ``energy-optimal``,
+    ``time_budget_s``; for fixed-wing vehicles ``eeastar``, ``astar-fw``, ``energy-optimal`` or
+    ``bitstar-dubins`` (BIT* on OMPL's Dubins-airplane space, shortest curve, iterations from
+    ``time_budget_s``),
     seed 002, :mod:`skyroute.stages.planning.fixedwing`), eq. 11 weights (w_l, w_r, w_d, w_e) >= 0 and
     not all zero, BIT* time per coverage level [s], random seed, energy re-plan tries N_t."""
 

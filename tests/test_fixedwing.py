@@ -372,3 +372,21 @@ def test_bitstar_dubins_is_a_flyable_curve():
     # never shorter than the straight line; reproducible
     assert r["length_m"] >= math.dist(pr.goal_xyz, pr.start_xyz)
     assert np.array_equal(plan_bitstar_dubins(pr, 60.0, seed=3, max_iterations=300)["xyz_m"], x)
+
+
+def test_bitstar_dubins_written_plan_is_flyable():
+    """`--planner bitstar-dubins`: the curve is written as it is (no fillets) with the loiter,
+    validated like the lattice plans; f is its length (the shortest-curve objective)."""
+    from skyroute.stages.planning.fixedwing import dubins_result
+
+    check_planner_vehicle("bitstar-dubins", "skywalker-x8", PLANNERS)
+    with pytest.raises(InputError, match="fixed-wing"):
+        check_planner_vehicle("bitstar-dubins", "dji-m300-rtk", PLANNERS)
+    pr = _terrain_problem()
+    r = dubins_result(pr, 3.0, seed=1)
+    assert r.solved and r.info["continuous"] and r.info["iterations"] == 300
+    cand = fixedwing_candidate(pr, r)
+    assert cand.flyable, cand.reasons
+    assert cand.f == pytest.approx(r.length_m, rel=1e-12)
+    n = len(r.waypoints)
+    assert np.array_equal(cand.xyz_m[:n], r.waypoints)

@@ -240,3 +240,27 @@ def test_climb_over_in_wind_keeps_r_p_and_the_limits_over_the_ground(wind):
     assert min(_prism_distance(Polygon(ring), 340.0, qq) for qq in q) >= X8.r_p_m
     _check_limits(r.t_s[0], r.xyz_m[0])
     assert math.isfinite(r.arrived_s[0])
+
+
+@pytest.mark.parametrize(("start", "velocity", "side"), [((1200, 1200), (0, -18), "left"),
+                                                          ((1200, -1200), (0, 18), "right"),
+                                                          ((2400, 0), (-18, 0), "right")])
+def test_non_cooperative_intruder(start, velocity, side):
+    """An intruder keeps its track (it does not apply the rules of the air): head-on and from
+    the right the aircraft turns right, from the left it passes behind it (turns left); the
+    separation r_p + r_i + d_c is kept (brute force), while flying blind would lose it."""
+    from skyroute.stages.tactical.fw_local import LocalTrack
+
+    t, p = _line((0, 0), (2400, 0))
+    t_meet = float(np.interp(1200, p[:, 0], t))
+    v = np.array([*velocity, 0.0])
+    p0 = np.array([1200.0, 0.0, 300.0]) - v * t_meet
+    tr = LocalTrack("intruder", np.array([0.0, 300.0]), np.vstack([p0, p0 + 300 * v]), 1.5)
+    S = X8.r_p_m + 1.5 + LocalPlannerParams().d_c_m
+    r = simulate_local([LocalAgent("own", t, p)], intruders=[tr], baseline=False)
+    assert [m["kind"] for m in r.manoeuvres] == [side]
+    assert _min_pair_distance(r.t_s[0], r.xyz_m[0], tr.t_s, tr.xyz_m) >= S
+    _check_limits(r.t_s[0], r.xyz_m[0])
+    blind = simulate_local([LocalAgent("own", t, p)], intruders=[tr], baseline=False,
+                           params=LocalPlannerParams(uav_range_m=1e-6))
+    assert _min_pair_distance(blind.t_s[0], blind.xyz_m[0], tr.t_s, tr.xyz_m) < S

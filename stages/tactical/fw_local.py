@@ -45,7 +45,11 @@ planner and by the terrain guard.
   ``S = r_i + r_j + d_c``.  Then (rules of the air) the aircraft turns **right**: its carrot
   becomes an intermediate waypoint ``avoid_offset_m`` to the right of the chain, generated
   again every tick until that UAV is no longer sensed; then it rejoins.  In a fleet both
-  aircraft of a pair see each other and both turn right; intruders keep their track.
+  aircraft of a pair see each other and both turn right.  Intruders are non-cooperative (they
+  keep their track, so the rule cannot be relied on): the aircraft turns right unless a
+  45 deg turn to the left predicts a miss distance larger by more than 1 m (e.g. an
+  intruder crossing from the left: pass behind it), then it turns **left** the same way
+  (beyond the seed).
 * *terrain guard* (beyond the seed): the altitude command is at least the floor raster
   (clearance floor, minimum AGL) along the ground course over ``terrain_lookahead_m``, less
   what a climb at 0.9 x the limit gains on the way (checked every :data:`SLOW_EVERY` ticks).
@@ -75,7 +79,7 @@ __all__ = ["LocalPlannerParams", "StaticObstacle", "LocalAgent", "LocalTrack", "
            "prism_distance_m", "simulate_local", "separation_threshold_m", "fly_fixedwing_fleet",
            "brute_force_min_separation", "obstacle_clearance_m", "local_flight_log"]
 
-MODES = ("strategic", "climb", "right")
+MODES = ("strategic", "climb", "right", "left")
 SLOW_EVERY = 5     # ticks between wind samples and terrain-guard checks
 
 
@@ -287,6 +291,17 @@ def _cpa(dp: np.ndarray, dv: np.ndarray) -> tuple[float, float]:
     return tc, float(np.linalg.norm(dp + dv * max(tc, 0.0)))
 
 
+def _side_for_track(dp: np.ndarray, v_other: np.ndarray, v_own: np.ndarray) -> str:
+    """Side of the avoidance for a non-cooperative UAV (it keeps its track): ``right`` (rules
+    of the air) unless turning 45 deg left gives a miss distance larger by more than 1 m."""
+    out = {}
+    for side, a in (("right", -math.pi / 4), ("left", math.pi / 4)):
+        c, sn = math.cos(a), math.sin(a)
+        vo = np.array([c * v_own[0] - sn * v_own[1], sn * v_own[0] + c * v_own[1], v_own[2]])
+        out[side] = _cpa(dp, v_other - vo)[1]
+    return "left" if out["left"] > out["right"] + 1.0 else "right"
+
+
 def _energy(xyz: np.ndarray, wind_at, vehicle) -> float:
     x = np.asarray(xyz, float)
     if len(x) < 2:
@@ -421,14 +436,17 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
                     S = separation_threshold_m(radius[i], rj, params.d_c_m)
                     tc, dcpa = _cpa(pj - pos[i], vj - vel[i])
                     if (0.0 < tc <= params.horizon_s and dcpa < params.alert_factor * S) or dist < params.alert_factor * S:
-                        m = {"agent": agents[i].id, "kind": "right", "threat": key, "t_start_s": t, "t_end_s": math.inf,
+                        side = "right" if j >= 0 else _side_for_track(pj - pos[i], vj, vel[i])
+                        m = {"agent": agents[i].id, "kind": side, "threat": key, "t_start_s": t, "t_end_s": math.inf,
                              "t_cpa_s": t + tc, "d_cpa_m": dcpa, "distance_m": dist, "feasible": True}
                         engaged_uav[i][key] = m
                         manoeuvres.append(m)
             if engaged_uav[i]:
                 tg = ch.tangent(min(s[i] + L, ch.length))
-                carrot = carrot + params.avoid_offset_m * np.array([tg[1], -tg[0], 0.0])
-                mode = "right"
+                left = all(m["kind"] == "left" for m in engaged_uav[i].values())
+                sgn = -1.0 if left else 1.0
+                carrot = carrot + sgn * params.avoid_offset_m * np.array([tg[1], -tg[0], 0.0])
+                mode = "left" if left else "right"
             # ---- altitude command
             z_cmd = float(ch.at(s[i] + V * 2.0)[2])
             for o in obstacles:
@@ -630,7 +648,8 @@ def local_flight_log(result: LocalResult, agent: int, *, scenario: str, crs_wkt:
                      tracks: Sequence = (), events: Sequence[dict] = (), seed: int = 0):
     """The :class:`~skyroute.stages.tactical.log.FlightLog` of one agent of a local-planner
     simulation (``skyroute fly`` outputs): flown parts per mode (``strategic`` / ``climb`` /
-    ``right``), one ``tactical.csv`` row per manoeuvre (level ``climb`` or ``right``),
+    ``right`` / ``left``), one ``tactical.csv`` row per manoeuvre (level ``climb``, ``right``
+    or ``left``),
     ``tracks`` (:class:`~skyroute.stages.tactical.log.IntruderTrack`, the truth of the
     intruders), ``events`` (dicts as in the replay; their ``outcome`` is filled from the
     manoeuvres) and the ``local`` summary (ranges, threshold, delay, added energy, obstacle
@@ -660,7 +679,8 @@ def local_flight_log(result: LocalResult, agent: int, *, scenario: str, crs_wkt:
         e = dict(e)
         hit = [m for m in mine if m["threat"] == e.get("id")]
         e["t_known_s"] = float(hit[0]["t_start_s"]) if hit else math.inf
-        e["outcome"] = ("climbed over" if hit[0]["kind"] == "climb" else "turned right") if hit else "not a threat"
+        e["outcome"] = ("climbed over" if hit[0]["kind"] == "climb" else f"turned {hit[0]['kind']}") if hit \
+            else "not a threat"
         evs.append(e)
     log.events = evs
     log.intruders = list(tracks)

@@ -40,14 +40,14 @@ planner and by the terrain guard.
   detection distance ``d``; an obstacle sensed too late is named in the warnings.
 * *other UAVs* (the other aircraft of a fleet, and intruder tracks): sensed within
   ``uav_range_m``; a sensed UAV is on a collision course when the closest point of approach
-  of the two straight-line extrapolations (current ground velocities) is ahead within
+  of the two straight-line extrapolations (current 3-D ground velocities) is ahead within
   ``horizon_s`` and closer than ``alert_factor * S``, with the separation threshold
   ``S = r_i + r_j + d_c``.  Then (rules of the air) the aircraft turns **right**: its carrot
   becomes an intermediate waypoint ``avoid_offset_m`` to the right of the chain, generated
   again every tick until that UAV is no longer sensed; then it rejoins.  In a fleet both
   aircraft of a pair see each other and both turn right.  Intruders are non-cooperative (they
-  keep their track, so the rule cannot be relied on): the aircraft turns right unless a
-  45 deg turn to the left predicts a miss distance larger by more than 1 m (e.g. an
+  keep their track, so the rule cannot be relied on): the aircraft turns right head-on and
+  unless a 45 deg turn to the left predicts a miss distance larger by more than 1 m (e.g. an
   intruder crossing from the left: pass behind it), then it turns **left** the same way
   (beyond the seed).
 * *terrain guard* (beyond the seed): the altitude command is at least the floor raster
@@ -293,7 +293,12 @@ def _cpa(dp: np.ndarray, dv: np.ndarray) -> tuple[float, float]:
 
 def _side_for_track(dp: np.ndarray, v_other: np.ndarray, v_own: np.ndarray) -> str:
     """Side of the avoidance for a non-cooperative UAV (it keeps its track): ``right`` (rules
-    of the air) unless turning 45 deg left gives a miss distance larger by more than 1 m."""
+    of the air) head-on (horizontal velocities more than 135 deg apart) and whenever turning
+    45 deg left does not give a miss distance larger by more than 1 m."""
+    vo, vt = np.asarray(v_own, float)[:2], np.asarray(v_other, float)[:2]
+    no, nt = float(np.linalg.norm(vo)), float(np.linalg.norm(vt))
+    if no > 0 and nt > 0 and float(vo @ vt) / (no * nt) < math.cos(math.radians(135.0)):
+        return "right"
     out = {}
     for side, a in (("right", -math.pi / 4), ("left", math.pi / 4)):
         c, sn = math.cos(a), math.sin(a)
@@ -373,6 +378,7 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
     warnings: list[str] = []
     z_over = {o.id: float(o.z_top_m) for o in obstacles}
     guard: dict[int, float] = {}
+    hdot_prev = np.zeros(n)                      # vertical rate of the last tick (CPA extrapolation)
     winds = np.zeros((n, 3))
     t_first = float(np.min(t0))
     t = t_first
@@ -392,7 +398,7 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
         for i in range(n):
             if active[i]:
                 V = airspeed(i, pos[i, 2])
-                vel[i] = [V * math.cos(psi[i]) + winds[i, 0], V * math.sin(psi[i]) + winds[i, 1], 0.0]
+                vel[i] = [V * math.cos(psi[i]) + winds[i, 0], V * math.sin(psi[i]) + winds[i, 1], hdot_prev[i]]
         others = []                              # (key, position, velocity, radius, agent index or -1)
         for j in range(n):
             if active[j]:
@@ -519,6 +525,7 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
                 dx = Vh / om * (math.sin(psi[i] + om * dt) - math.sin(psi[i]))
                 dy = -Vh / om * (math.cos(psi[i] + om * dt) - math.cos(psi[i]))
             new_pos[i] = pos[i] + np.array([dx + w[0] * dt, dy + w[1] * dt, hdot * dt])
+            hdot_prev[i] = hdot
             new_psi[i] = psi[i] + om * dt
         pos, psi = new_pos, new_psi
         t = t_first + k_step * dt

@@ -13,6 +13,11 @@ saved by EEA* against A* [J and %] and the gap of both to the optimum [%]; the s
 where EEA* is better / equal / worse (equal: within 1e-9 relative); mean and std of the saving;
 the search time per plan [s] (kernels warm: an untimed warm-up plan first), and that of the
 missions of 9-11 km (target < 5 s for eeastar and astar-fw).
+
+``--bitstar-dubins N`` adds a continuous comparison: BIT* on OMPL's Dubins-airplane space
+(:mod:`skyroute.stages.planning.bitstar_dubins`, shortest curve, N iterations, 120 s cap) per
+mission: its length and seed-002 energy against ``astar-fw``'s and the optimum's, and whether
+its samples pass the problem's state check.
 """
 
 from __future__ import annotations
@@ -70,6 +75,8 @@ def main() -> None:
     ap.add_argument("--missions", type=int, default=None)
     ap.add_argument("--seed", type=int, default=2)
     ap.add_argument("--cache", default=None, help="stage cache folder (default: SKYROUTE_CACHE_DIR / the default)")
+    ap.add_argument("--bitstar-dubins", type=int, default=0, metavar="N",
+                    help="also run BIT* on the Dubins-airplane space for N iterations per mission (0: no)")
     a = ap.parse_args()
     n = a.missions or (5 if a.quick else 30)
     sc, surface, clearance, wind = maps(a.cache)
@@ -79,7 +86,7 @@ def main() -> None:
     warm = problem_for(sc, surface, clearance, wind, *ms[0])
     for p in PLANNERS:                                    # untimed warm-up (numba cache load)
         plan_fixedwing(warm, p, step_cells=sc.planner.step_cells)
-    rows = []
+    rows, dub = [], []
     print(f"{'sim':>3} {'D km':>5} {'E A* J':>9} {'E EEA* J':>9} {'E opt J':>9} {'saved J':>8} {'saved %':>8} "
           f"{'gap EEA* %':>10} {'gap A* %':>9} {'t A* s':>7} {'t EEA* s':>8} {'t opt s':>7}")
     for i, (s, g) in enumerate(ms, 1):
@@ -97,9 +104,23 @@ def main() -> None:
         gap_a = 100 * (e["astar-fw"] / e["energy-optimal"] - 1)
         rows.append((d, e["astar-fw"], e["eeastar"], e["energy-optimal"], saved, pct, gap_e, gap_a,
                      t["astar-fw"], t["eeastar"], t["energy-optimal"]))
+        if a.bitstar_dubins > 0:
+            from skyroute.stages.planning.bitstar_dubins import plan_bitstar_dubins
+
+            bd = plan_bitstar_dubins(pr, 120.0, seed=a.seed, max_iterations=a.bitstar_dubins)
+            la = plan_fixedwing(pr, "astar-fw", step_cells=sc.planner.step_cells).length_m
+            valid = bool(pr.state_valid(bd["xyz_m"]).all()) if bd["solved"] else False
+            dub.append((i, bd["length_m"], la, bd["energy_J"], e["energy-optimal"], valid, bd["compute_s"],
+                        bd["iterations"]))
         print(f"{i:>3} {d:5.1f} {e['astar-fw']:9.0f} {e['eeastar']:9.0f} {e['energy-optimal']:9.0f} {saved:8.1f} "
               f"{pct:8.2f} {gap_e:10.3f} {gap_a:9.3f} {t['astar-fw']:7.2f} {t['eeastar']:8.2f} "
               f"{t['energy-optimal']:7.2f}")
+    if dub:
+        print("\nBIT* on the Dubins-airplane space (shortest curve) vs the lattice:")
+        print(f"{'sim':>3} {'L BIT*D m':>10} {'L A* m':>8} {'E BIT*D J':>10} {'E opt J':>9} {'valid':>5} {'t s':>6} "
+              f"{'iter':>5}")
+        for r in dub:
+            print(f"{r[0]:>3} {r[1]:10.0f} {r[2]:8.0f} {r[3]:10.0f} {r[4]:9.0f} {str(r[5]):>5} {r[6]:6.1f} {r[7]:>5}")
     m = np.array(rows, float)
     ok = np.all(np.isfinite(m[:, 1:4]), axis=1)
     m = m[ok]

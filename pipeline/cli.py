@@ -251,7 +251,8 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
               help="Output folder (default: ./skyroute-out/SCENARIO/plan).")
 @click.option("--weights", default=None, metavar="W_L,W_R,W_D,W_E",
               help="Cost weights of eq. 11: length, risk, landing, energy (overrides planner.weights).")
-@click.option("--planner", "planner_name", default=None, help="STEP I planner: astar, bitstar or potential; fixed-wing: eeastar, astar-fw or energy-optimal "
+@click.option("--planner", "planner_name", default=None, help="STEP I planner: astar, bitstar or potential; fixed-wing: eeastar, astar-fw, energy-optimal or "
+              "bitstar-dubins "
               "(overrides planner.name).")
 @click.option("--seed", type=int, default=None, help="Random seed of BIT* and the RRT (overrides planner.seed).")
 @click.option("--time-budget", "time_budget_s", type=float, default=None,

@@ -35,9 +35,10 @@ def write_fly_folder(fr, out_dir: Path, command: str = "fly") -> dict:
               help="Replanning timeout t_rep [s] (default: tactical.t_rep_s, 5 s).")
 @click.option("--tick", "tick_s", type=float, default=None, help="Simulation and output step [s] (default 0.1 s).")
 @click.option("--seed", type=int, default=None, help="Seed of the RRTs and the intruder report noise.")
-@click.option("--tactical", "method", type=click.Choice(["levels", "octant"]), default=None,
-              help="How intruder conflicts are resolved: levels 1-3 (seed 001) or the octant manoeuvre with "
-                   "dense-traffic zones (seed 004) (default: tactical.method, levels).")
+@click.option("--tactical", "method", type=click.Choice(["levels", "octant", "local"]), default=None,
+              help="How conflicts are resolved: levels 1-3 (seed 001) or the octant manoeuvre with dense-traffic "
+                   "zones (seed 004) for rotorcraft; local (seed 002: climb over obstacles, turn right for UAVs) "
+                   "for fixed-wing (default: tactical.method; levels, or local for a fixed-wing vehicle).")
 @click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
@@ -61,7 +62,10 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, c
     if not sc.events:
         raise InputError(f"scenario {sc.name!r} has no events to fly through: add an `events:` list to it or "
                          "give --events FILE")
-    fly_params(sc, t_rep_s, tick_s, seed, method)      # bad --t-rep / --tick: exit 2 before any work
+    from skyroute.pipeline.fly import tactical_method
+
+    if tactical_method(sc, method) != "local":
+        fly_params(sc, t_rep_s, tick_s, seed, method)  # bad --t-rep / --tick: exit 2 before any work
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fly")
     fr = fly_scenario(sc, cache=Cache(cache_dir), scheduler=scheduler, progress=not quiet and sys.stderr.isatty(),
                       t_rep_s=t_rep_s, tick_s=tick_s, seed=seed, method=method)

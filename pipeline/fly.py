@@ -21,7 +21,7 @@ from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.runner import RunResult, run_scenario
 from skyroute.pipeline.settings import Scenario, check_event_times, scenario_at
 
-__all__ = ["FlyResult", "fly_scenario", "tactical_events"]
+__all__ = ["FlyResult", "fly_scenario", "tactical_events", "tactical_method"]
 
 MAP_STAGES = ("surface", "environment", "clearance", "wind", "coverage", "satellites")
 
@@ -117,11 +117,33 @@ def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None 
                      zone_period_s=t.zone_period_s)
 
 
+def tactical_method(sc: Scenario, method: str | None = None) -> str:
+    """The tactical method for ``sc``: ``method`` if given, else ``tactical.method``; fixed-wing
+    vehicles fly ``local`` (seed 002's local planner; their default when ``tactical.method``
+    is not set), rotorcraft ``levels`` or ``octant``.  InputError when the method does not fit
+    the vehicle kind."""
+    from skyroute.stages.vehicle import load_vehicle
+
+    fixed = load_vehicle(sc.vehicle).kind == "fixed-wing"
+    if method is None:
+        method = sc.tactical.method
+        if fixed and "method" not in sc.tactical.model_fields_set:
+            method = "local"
+    if fixed and method != "local":
+        raise InputError(f"tactical method {method!r} flies rotorcraft; vehicle {sc.vehicle!r} is fixed-wing: use "
+                         "--tactical local (seed 002's local planner: climb over obstacles, turn right for UAVs)")
+    if not fixed and method == "local":
+        raise InputError(f"tactical method 'local' (seed 002) flies fixed-wing aircraft; vehicle {sc.vehicle!r} is a "
+                         "rotorcraft: use --tactical levels or --tactical octant")
+    return method
+
+
 def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "threads", progress: bool = False,
                  t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
                  result: RunResult | None = None, method: str | None = None) -> FlyResult:
     """Plan (cached) and fly ``sc`` through its events.  ``method``: tactical method
-    (``levels`` or ``octant``; default ``tactical.method``).  Raises InputError (exit 2) for bad
+    (``levels`` or ``octant`` for rotorcraft, ``local`` for fixed-wing: :func:`tactical_method`;
+    ``local`` is :func:`skyroute.pipeline.fly_fw.fly_fixedwing`).  Raises InputError (exit 2) for bad
     parameters or events after the mission, PlanningError when there is no strategic plan."""
     from skyroute.stages.base import PlanningError
     from skyroute.stages.planning.strategic import plan_from_dataset, trajectory_from_dataset
@@ -129,10 +151,13 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     from skyroute.stages.traffic import intruders_for
     from skyroute.stages.vehicle import load_vehicle
 
+    method = tactical_method(sc, method)
+    if method == "local":
+        from skyroute.pipeline.fly_fw import fly_fixedwing
+
+        return fly_fixedwing(sc, cache=cache, scheduler=scheduler, progress=progress, tick_s=tick_s, seed=seed,
+                             result=result)
     params = fly_params(sc, t_rep_s, tick_s, seed, method)   # bad values fail here, before any work
-    if load_vehicle(sc.vehicle).kind == "fixed-wing":
-        raise InputError(f"the tactical replay (skyroute fly) flies rotorcraft; vehicle {sc.vehicle!r} is fixed-wing "
-                         "(seed 002's local planner is not implemented yet): plan it with `skyroute plan`")
     cache = cache or Cache()
     if result is None:
         result = run_scenario(sc, cache=cache, targets=["plan"], scheduler=scheduler, progress=progress)

@@ -316,13 +316,15 @@ class TrafficSettings(FrozenModel):
     time_margin_s: NonNegFloat = 5.0
 
 
-PLANNERS = ("astar", "bitstar", "potential", "eeastar", "astar-fw", "energy-optimal")
+PLANNERS = ("astar", "bitstar", "potential", "eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
 
 
 class PlannerSettings(FrozenModel):
     """STEP I planner (``astar``: deterministic 3-D lattice A* + refinement, the default; or
     ``bitstar``: OMPL BIT*, reproducible with its seed and an iteration budget derived from
-    ``time_budget_s``; for fixed-wing vehicles ``eeastar``, ``astar-fw`` or ``energy-optimal``,
+    ``time_budget_s``; for fixed-wing vehicles ``eeastar``, ``astar-fw``, ``energy-optimal`` or
+    ``bitstar-dubins`` (BIT* on OMPL's Dubins-airplane space, shortest curve, iterations from
+    ``time_budget_s``),
     seed 002, :mod:`skyroute.stages.planning.fixedwing`), eq. 11 weights (w_l, w_r, w_d, w_e) >= 0 and
     not all zero, BIT* time per coverage level [s], random seed, energy re-plan tries N_t."""
 
@@ -403,7 +405,12 @@ class TacticalSettings(FrozenModel):
     flight; the strategic maps use ``traffic.time_margin_s``).  ``method``: how an intruder
     conflict is resolved, ``levels`` (levels 1-3, seed 001) or ``octant`` (seed 004: dense-traffic
     zones predicted ``zone_period_s`` [s] ahead and the octant manoeuvre once the intruder is
-    within ``periphery_m`` [m]; other conflicts still go through levels 1-3)."""
+    within ``periphery_m`` [m]; other conflicts still go through levels 1-3) -- rotorcraft; or
+    ``local`` (fixed-wing vehicles, their default: seed 002's local planner,
+    :mod:`skyroute.stages.tactical.fw_local`: unknown obstacles sensed within
+    ``obstacle_range_m`` [m] are climbed over, another UAV on a collision course within
+    ``uav_range_m`` [m] makes the aircraft turn right through a waypoint ``avoid_offset_m`` [m]
+    to the right of its path; separation ``r_i + r_j + traffic.margin_m``)."""
 
     t_rep_s: PositiveFloat = 5.0
     tick_s: PositiveFloat = 0.1
@@ -414,9 +421,12 @@ class TacticalSettings(FrozenModel):
     level3_iterations: Annotated[int, Field(ge=1)] = 5000
     time_scaling_factors: tuple[Annotated[float, Field(gt=0, lt=1)], ...] = (0.8, 0.65, 0.5, 0.35, 0.25)
     time_margin_s: NonNegFloat = 1.0
-    method: Literal["levels", "octant"] = "levels"
+    method: Literal["levels", "octant", "local"] = "levels"
     periphery_m: PositiveFloat = 60.0
     zone_period_s: PositiveFloat = 10.0
+    obstacle_range_m: PositiveFloat = 500.0
+    uav_range_m: PositiveFloat = 400.0
+    avoid_offset_m: PositiveFloat = 150.0
 
     @field_validator("time_scaling_factors")
     @classmethod

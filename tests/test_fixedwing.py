@@ -324,12 +324,17 @@ def test_scenario_eeastar_within_half_a_percent_of_astar(tmp_path):
     assert e["eeastar"] <= 1.005 * e["astar-fw"]
 
 
-def test_fly_refuses_a_fixed_wing_scenario():
-    from skyroute.pipeline.fly import fly_scenario
+def test_fly_refuses_rotorcraft_methods_for_a_fixed_wing_scenario():
+    """A fixed-wing vehicle flies the local planner (tests/test_fw_local.py); levels and octant
+    are refused before any work, naming the method that fits."""
+    from skyroute.pipeline.fly import fly_scenario, tactical_method
     from skyroute.pipeline.settings import load_scenario
 
-    with pytest.raises(InputError, match="skyroute fly.*fixed-wing"):
-        fly_scenario(load_scenario("san-gabriel-fixedwing"))
+    sc = load_scenario("san-gabriel-fixedwing")
+    assert tactical_method(sc) == "local"
+    for m in ("levels", "octant"):
+        with pytest.raises(InputError, match="fixed-wing: use --tactical local"):
+            fly_scenario(sc, method=m)
 
 
 def test_qgc_plan_of_a_fixed_wing_ends_on_a_loiter():
@@ -340,3 +345,48 @@ def test_qgc_plan_of_a_fixed_wing_ends_on_a_loiter():
     assert m["vehicleType"] == 1 and m["items"][-1]["command"] == 17 and m["items"][-1]["params"][6] == 120.0
     assert qgc_plan([7.0, 7.01], [43.0, 43.01], [100.0, 120.0], 50.0, cruise_speed_mps=5.0)["mission"]["items"][-1][
         "command"] == 21
+
+
+def test_bitstar_dubins_is_a_flyable_curve():
+    """BIT* on OMPL's Dubins-airplane space (continuous comparison): its samples pass the
+    problem's state check, turn no tighter than its radius and climb / descend within the
+    limits (finite differences, tolerance 0); reproducible with a seed and an iteration count."""
+    from skyroute.stages.planning.bitstar_dubins import plan_bitstar_dubins
+
+    pr = _terrain_problem(wind=(0.0, 0.0, 0.0))
+    r = plan_bitstar_dubins(pr, 60.0, seed=3, max_iterations=300)
+    assert r["solved"]
+    x = r["xyz_m"]
+    assert pr.state_valid(x).all()
+    assert np.allclose(x[0], pr.start_xyz) and np.allclose(x[-1], pr.goal_xyz, atol=1e-6)
+    d = np.diff(x, axis=0)
+    ang = np.degrees(np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])))
+    veh = load_vehicle("skywalker-x8")
+    assert ang.max() <= veh.max_climb_angle_deg and -ang.min() <= veh.max_descent_angle_deg
+    a, b, c = x[:-2, :2], x[1:-1, :2], x[2:, :2]
+    ab, bc, ca = (np.linalg.norm(q, axis=1) for q in (b - a, c - b, a - c))
+    cross = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
+    rho = np.where(cross > 1e-9, ab * bc * ca / np.maximum(2 * cross, 1e-300), np.inf)
+    assert rho.min() >= r["turn_radius_m"] * (1 - 1e-9)
+    assert r["energy_J"] == pytest.approx(path_energy(pr, x)["energy_J"], rel=1e-12)
+    # never shorter than the straight line; reproducible
+    assert r["length_m"] >= math.dist(pr.goal_xyz, pr.start_xyz)
+    assert np.array_equal(plan_bitstar_dubins(pr, 60.0, seed=3, max_iterations=300)["xyz_m"], x)
+
+
+def test_bitstar_dubins_written_plan_is_flyable():
+    """`--planner bitstar-dubins`: the curve is written as it is (no fillets) with the loiter,
+    validated like the lattice plans; f is its length (the shortest-curve objective)."""
+    from skyroute.stages.planning.fixedwing import dubins_result
+
+    check_planner_vehicle("bitstar-dubins", "skywalker-x8", PLANNERS)
+    with pytest.raises(InputError, match="fixed-wing"):
+        check_planner_vehicle("bitstar-dubins", "dji-m300-rtk", PLANNERS)
+    pr = _terrain_problem()
+    r = dubins_result(pr, 3.0, seed=1)
+    assert r.solved and r.info["continuous"] and r.info["iterations"] == 300
+    cand = fixedwing_candidate(pr, r)
+    assert cand.flyable, cand.reasons
+    assert cand.f == pytest.approx(r.length_m, rel=1e-12)
+    n = len(r.waypoints)
+    assert np.array_equal(cand.xyz_m[:n], r.waypoints)

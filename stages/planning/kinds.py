@@ -11,7 +11,7 @@ from __future__ import annotations
 from skyroute.stages.base import InputError
 from skyroute.stages.vehicle import FixedWingProfile, load_vehicle
 
-FIXED_WING_PLANNERS = ("eeastar", "astar-fw", "energy-optimal")
+FIXED_WING_PLANNERS = ("eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
 
 
 def check_planner_vehicle(planner: str, vehicle, known: tuple[str, ...]) -> None:

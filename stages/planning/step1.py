@@ -35,7 +35,7 @@ from skyroute.stages.base import InputError, UnknownNameError
 from skyroute.stages.planning.grid_planner import STEP_CELLS, plan_grid, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 
-PLANNERS = ("bitstar", "astar", "potential", "eeastar", "astar-fw", "energy-optimal")
+PLANNERS = ("bitstar", "astar", "potential", "eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
 # the last three are the fixed-wing planners (seed 002), solved by
 # skyroute.stages.planning.fixedwing (plan_strategic dispatches them; plan_step1 refuses them)
 # BIT* is stopped by an iteration count (reproducible run to run: same scenario + seed, same

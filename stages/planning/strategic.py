@@ -137,7 +137,7 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                 for d, floor_j in levels]
     if planner in FIXED_WING_PLANNERS:
         return _plan_fixedwing_levels(problems, levels, planner, time_budget_s, step_cells, t0, cost_warnings,
-                                      intruders=intruders, d_c_m=d_c_m, dt_c_s=dt_c_s,
+                                      seed=seed, intruders=intruders, d_c_m=d_c_m, dt_c_s=dt_c_s,
                                       battery_reserve_pct=battery_reserve_pct, sky=sky, occ=occ,
                                       surface_2d=surface_2d, start_time_utc=start_time_utc, uere_m=uere_m)
     h2 = None
@@ -206,13 +206,20 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
 
 
 def _plan_fixedwing_levels(problems: list[PlanningProblem], levels, planner: str, time_budget_s: float,
-                           step_cells: int, t0: float, cost_warnings: list[str], *, intruders, d_c_m: float,
+                           step_cells: int, t0: float, cost_warnings: list[str], *, seed: int = 0, intruders,
+                           d_c_m: float,
                            dt_c_s: float, battery_reserve_pct: float, sky, occ, surface_2d, start_time_utc,
                            uere_m: float) -> StrategicPlan:
     """The fixed-wing planners (seed 002, :mod:`~skyroute.stages.planning.fixedwing`) on every
     level: lattice search, written path (fillets + loiter), navigation error (with satellites),
-    validation; no STEP II (deconfliction) and no STEP III smoothing."""
-    from skyroute.stages.planning.fixedwing import fixedwing_candidate, plan_fixedwing
+    validation; no STEP II (deconfliction) and no STEP III smoothing.  ``bitstar-dubins``: BIT*
+    on the Dubins-airplane space (:mod:`~skyroute.stages.planning.bitstar_dubins`, its
+    iterations ``DUBINS_ITERATIONS_PER_S x time_budget_s``), written as its sampled curve."""
+    from skyroute.stages.planning.fixedwing import (
+        dubins_result,
+        fixedwing_candidate,
+        plan_fixedwing,
+    )
 
     plan = StrategicPlan(None, [])
     cap = LEVEL_CAP_FACTOR * time_budget_s
@@ -224,7 +231,10 @@ def _plan_fixedwing_levels(problems: list[PlanningProblem], levels, planner: str
         if j != i:
             s1, s2, cand = _relabel(done[j], problems[j], problem)
         else:
-            r = plan_fixedwing(problem, planner, step_cells=step_cells, time_limit_s=cap)
+            if planner == "bitstar-dubins":
+                r = dubins_result(problem, time_budget_s, seed, cap)
+            else:
+                r = plan_fixedwing(problem, planner, step_cells=step_cells, time_limit_s=cap)
             cand = fixedwing_candidate(problem, r, dop_threshold=levels[i][0], intruders=intruders, d_c_m=d_c_m,
                                        dt_c_s=dt_c_s, battery_reserve_pct=battery_reserve_pct, sky=sky,
                                        surface_2d=surface_2d, start_time_utc=start_time_utc, gnss_sigma_m=uere_m)

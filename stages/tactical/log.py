@@ -14,7 +14,7 @@ import numpy as np
 
 __all__ = ["FlightLog", "FlownPart", "IntruderTrack", "LevelAttempt", "NoFlyZone", "PART_NAMES"]
 
-PART_NAMES = ("strategic", "L1", "L2", "L3", "octant", "landing")
+PART_NAMES = ("strategic", "L1", "L2", "L3", "octant", "landing", "climb", "right", "left")
 
 
 @dataclass
@@ -137,8 +137,9 @@ class FlightLog:
     coverage_floor_m: np.ndarray | None = None
     landing_xy: np.ndarray | None = None
     energy_Wh: float | None = None
-    method: str = "levels"                  # tactical method: levels (1-3) or octant (seed 004)
+    method: str = "levels"                  # tactical method: levels (1-3), octant (seed 004) or local (seed 002)
     dense_zones: list = field(default_factory=list)   # octant method: dense zone definitions (dicts)
+    local: dict | None = None     # local method (fixed-wing, seed 002): ranges, delay, added energy, clearance
 
     def flown(self) -> tuple[np.ndarray, np.ndarray]:
         """The whole flown trajectory ``(t_s (m,), xyz_m (m, 3))``, shared part boundaries once."""

@@ -1,11 +1,12 @@
 """Outputs of a tactical replay (``skyroute fly``), written from a :class:`~.log.FlightLog` only.
 
 * ``tactical.csv``: one row per level attempted per replanning (seed 001 Tables 3, 5):
-  :data:`TACTICAL_COLUMNS`.  ``level`` is ``1``, ``2``, ``3``, ``octant`` or ``landing``; infinite values
+  :data:`TACTICAL_COLUMNS`.  ``level`` is ``1``, ``2``, ``3``, ``octant``, ``landing`` or (fixed-wing local planner, one row per
+  manoeuvre) ``climb`` / ``right`` / ``left``; infinite values
   are written ``inf``, undefined ones ``nan``; exactly one ``chosen=true`` per replanning
   (:func:`write_flight` raises :class:`~skyroute.stages.base.InputError` otherwise).
 * ``flown.geojson``: RFC 7946 FeatureCollection of the ownship only, one ``LineString`` per
-  flown part (``part`` = strategic / L1 / L2 / L3 / octant / landing) of ``[lon, lat, z]`` (WGS 84,
+  flown part (``part`` = strategic / L1 / L2 / L3 / octant / landing; fixed-wing: climb / right / left) of ``[lon, lat, z]`` (WGS 84,
   ``z`` [m] in the surface's vertical datum, NOT ellipsoidal: the properties say so), with
   ``t_s`` and ``times_utc`` (ISO 8601 UTC) per vertex.
 * ``intruders.geojson``: one ``LineString`` per intruder (truth track: ``id``, ``kind``,
@@ -44,10 +45,11 @@ __all__ = ["write_flight", "flight_section", "fly_summary_line", "flown_samples"
 TACTICAL_COLUMNS = ("replanning", "event", "t_event_s", "t_coll_s", "level", "flyable", "C_l_m", "C_e_m", "f_m",
                     "max_sigma_p_m", "compute_s", "update_s", "added_flight_time_s", "chosen", "reasons")
 FLOWN_COLUMNS = ("t_utc", "t_s", "part", "x_m", "y_m", "z_m", "lon", "lat", "speed_mps")
-LEVELS = ("1", "2", "3", "octant", "landing")
+LEVELS = ("1", "2", "3", "octant", "landing", "climb", "right", "left")
 SEPARATION_STEP_S = 0.05
 PART_COLOURS = {"strategic": "tab:blue", "L1": "tab:green", "L2": "tab:orange", "L3": "tab:purple",
-                "octant": "tab:cyan", "landing": "tab:red"}
+                "octant": "tab:cyan", "landing": "tab:red", "climb": "tab:brown", "right": "tab:olive",
+                "left": "tab:pink"}
 
 
 # ------------------------------------------------------------------ checks and samples
@@ -57,7 +59,7 @@ def _level(v) -> str:
     s = str(v).strip()
     s = {"L1": "1", "L2": "2", "L3": "3", "1.0": "1", "2.0": "2", "3.0": "3"}.get(s, s)
     if s not in LEVELS:
-        raise InputError(f"level {v!r} of a tactical attempt is not one of 1, 2, 3, 'octant' or 'landing'")
+        raise InputError(f"level {v!r} of a tactical attempt is not one of 1, 2, 3, 'octant', 'landing', 'climb', 'right' or 'left'")
     return s
 
 
@@ -359,7 +361,20 @@ def flight_section(log: FlightLog) -> dict[str, Any]:
             "clearance": "sboa" if getattr(log, "bubble", None) else "fixed",
             "safety_bubble": {k: _num(v) for k, v in log.bubble.items()} if getattr(log, "bubble", None) else None,
             "warnings": list(log.warnings), "tactical_method": str(getattr(log, "method", "levels")),
-            "dense_zones": list(getattr(log, "dense_zones", []))}
+            "dense_zones": list(getattr(log, "dense_zones", [])),
+            "local_planner": _json_safe(log.local) if getattr(log, "local", None) else None}
+
+
+def _json_safe(v):
+    if isinstance(v, dict):
+        return {str(k): _json_safe(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, float | np.floating):
+        return _num(v)
+    if isinstance(v, np.integer | np.bool_):
+        return v.item()
+    return v
 
 
 def fly_summary_line(sec: dict[str, Any]) -> str:
@@ -386,6 +401,12 @@ def _event_legend(log: FlightLog) -> list[str]:
         what = e.get("label") or e.get("kind", "event")
         out.append(f"E{i + 1}: t = {float(e.get('t_s', math.nan)):.1f} s, {what} -> {e.get('outcome', '?')}")
     return out
+
+
+def _local_obstacles(log: FlightLog) -> list[dict]:
+    """The unknown static obstacles of a local-planner flight (fixed-wing), else []."""
+    loc = getattr(log, "local", None)
+    return list(loc.get("obstacles", [])) if loc else []
 
 
 def _window(z) -> str:
@@ -505,6 +526,10 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
         ax.add_patch(Polygon(np.asarray(z.polygon_xy, float)[:, :2], closed=True, facecolor="red", alpha=0.25,
                              edgecolor="red", lw=1.2, hatch="//", zorder=4,
                              label=f"no-fly {z.id}: {z.z_min_m:.0f}-{z.z_max_m:.0f} m, {_window(z)}"))
+    for o in _local_obstacles(log):
+        ax.add_patch(Polygon(np.asarray(o["polygon_xy"], float), closed=True, facecolor="black", alpha=0.6,
+                             edgecolor="black", lw=1.0, zorder=4,
+                             label=f"unknown obstacle {o['id']}: top {o['z_top_m']:.0f} m, from {o['t_s']:g} s"))
     if planned.shape[0]:
         ax.plot(planned[:, 0], planned[:, 1], "k--", lw=1.2, label="planned (strategic)", zorder=4)
     part_lines(ax, lambda q: np.asarray(q.xyz_m)[:, 0], lambda q: np.asarray(q.xyz_m)[:, 1])
@@ -599,6 +624,12 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
         if inside.any():
             ax.fill_between(dist, z.z_min_m, z.z_max_m, where=inside, color="red", alpha=0.2, hatch="//",
                             label=f"no-fly {z.id} over the path, {_window(z)}")
+    for o in _local_obstacles(log):
+        inside = _inside(p[:, :2], np.asarray(o["polygon_xy"], float))
+        if inside.any():
+            lo = base if (grid is not None and base is not None) else float(np.nanmin(p[:, 2])) - 50.0
+            ax.fill_between(dist, lo, o["z_top_m"], where=inside, color="black", alpha=0.6,
+                            label=f"unknown obstacle {o['id']} under the path")
     if planned.shape[0] >= 2:
         ax.plot(_dist_along(planned), planned[:, 2], "k--", lw=1.2, label="planned (strategic), its own distance")
     idx = _part_index(log)

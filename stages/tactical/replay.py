@@ -81,7 +81,7 @@ from skyroute.stages.vehicle import VehicleProfile
 
 __all__ = ["TACTICAL_METHODS", "FlyParams", "TacticalEvent", "World", "encounter_geometry", "replay"]
 
-TACTICAL_METHODS = ("levels", "octant")
+TACTICAL_METHODS = ("levels", "octant")   # rotorcraft; fixed-wing: local (pipeline/fly_fw.py)
 FRONTAL_DEG = 135.0        # encounter angle above which the geometry is frontal (level 1 refused)
 STATIC_INTRUDER_MPS = 0.5  # an intruder slower than this is treated as static (level 1 refused)
 

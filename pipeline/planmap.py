@@ -248,8 +248,8 @@ def fly_map_html(title: str, flown: dict[str, Any], intruders: dict[str, Any] | 
     lon = [p[0] for p in pts] or [0.0]
     lat = [p[1] for p in pts] or [0.0]
     m = new_map((min(lon), min(lat), max(lon), max(lat)), title)
-    tab = {"tab:blue": "#1f77b4", "tab:green": "#2ca02c", "tab:orange": "#ff7f0e", "tab:purple": "#9467bd",
-           "tab:red": "#d62728"}
+    from matplotlib.colors import to_hex
+
     if plan is not None:
         grp = folium.FeatureGroup(name="strategic plan", show=True)
         for f in plan["features"]:
@@ -283,7 +283,7 @@ def fly_map_html(title: str, flown: dict[str, Any], intruders: dict[str, Any] | 
     for f in flown["features"]:
         part = str(f["properties"].get("part", ""))
         ll = np.array([[q[1], q[0]] for q in _coords(f["geometry"])])
-        colour = tab.get(PART_COLOURS.get(part, ""), "#000000")
+        colour = to_hex(PART_COLOURS.get(part, "black"))
         if len(ll) >= 2:
             _line(grp, ll, colour, 5, f"flown: {part}")
     grp.add_to(m)

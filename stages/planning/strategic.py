@@ -69,7 +69,7 @@ class StrategicPlan:
 
 def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Dataset | None,
                    clearance: xr.Dataset, coverage: xr.Dataset | None, satellites: xr.Dataset | None,
-                   traffic: xr.Dataset | None, *, start_xy: tuple[float, float], start_agl_m: float,
+                   traffic: xr.Dataset | TrafficOccupancy | None, *, start_xy: tuple[float, float], start_agl_m: float,
                    goal_xy: tuple[float, float], goal_agl_m: float, start_time_utc,
                    vehicle: str | VehicleProfile = "dji-m300-rtk", weights=(1.0, 1.0, 1.0, 1.0),
                    planner: str = "astar", time_budget_s: float = 5.0, seed: int = 0, max_tries: int = 3,
@@ -96,6 +96,9 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     (:mod:`skyroute.stages.planning.degenerate`).
     ``battery_reserve_pct`` [%]: energy kept in the battery (STEP I and III use the rest).
 
+    ``traffic``: the traffic stage's dataset or a :class:`~skyroute.stages.traffic.TrafficOccupancy`
+    (e.g. one holding other operators' intent volumes as prisms: ``skyroute fleet``).
+
     Safety bubble (seed 003, :mod:`skyroute.stages.sboa`; both default to off):
     ``clearance_by_level`` maps a DOP threshold D_j to the clearance dataset of its radius r_j
     (used instead of ``clearance`` for that level; its ``radius_m`` attribute is recorded in the
@@ -112,7 +115,8 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     risk = environment["risk_cost"].load() if environment is not None else None
     land = environment["landing_cost"].load() if environment is not None else None
     sky = satellites.load() if satellites is not None else None
-    occ = TrafficOccupancy.from_dataset(traffic.load()) if traffic is not None else None
+    occ = (traffic if isinstance(traffic, TrafficOccupancy) or traffic is None
+           else TrafficOccupancy.from_dataset(traffic.load()))
     start = xyz_from_agl(surf, *start_xy, start_agl_m)
     goal = xyz_from_agl(surf, *goal_xy, goal_agl_m)
     levels: list[tuple[float | None, xr.DataArray | None]]

@@ -413,6 +413,7 @@ _PLUGINS = {
     "skyroute.pipeline.cli_navsim": "navsim_command",
     "skyroute.pipeline.cli_regress": "regress_command",
     "skyroute.pipeline.cli_compare": "compare_command",
+    "skyroute.pipeline.cli_fleet": "fleet_command",
 }
 
 

@@ -16,7 +16,7 @@ from click.testing import CliRunner
 from pyproj import Transformer
 
 from skyroute.pipeline.cli import main
-from skyroute.pipeline.settings import load_scenario
+from skyroute.pipeline.settings import GroundReference, load_scenario
 from skyroute.stages.vehicle import load_vehicle
 
 GROUND = ["--ground-m", "10"]
@@ -208,11 +208,34 @@ def test_priority_preemption_and_determinism(small, cache_dir):
 
 
 def test_distributed_gives_the_sequential_result(small, cache_dir):
+    """The speculative driver on a dask.distributed cluster (in-process workers here, to keep
+    the test short; `--scheduler distributed` uses worker processes the same way) decides as
+    the sequential run of the CLI."""
+    from distributed import Client
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.fleet import (
+        FleetOptions,
+        default_level,
+        fleet_maps,
+        load_fleet,
+        run_fleet,
+    )
+
     tmp, f = small
-    _fleet(["--fleet", str(f), "--out", str(tmp / "d"), "--scheduler", "distributed", "--workers", "2"], cache_dir)
-    assert _decisions(tmp / "a") == _decisions(tmp / "d")
-    spec = json.loads((tmp / "d" / "summary.json").read_text())["fleet"]["speculative"]
-    assert spec["speculative_used"] + spec["speculative_replanned"] >= 1
+    sc = load_scenario("helsinki-medical")
+    sc = sc.model_copy(update={"data": sc.data.model_copy(
+        update={"ground": GroundReference(height_m=10.0, vertical_datum="EGM96 geoid")})})
+    root = Cache(cache_dir).root
+    maps = fleet_maps(sc, root)
+    tasks = load_fleet(f, sc, sc.gnss.dop_thresholds)
+    with Client(processes=False, n_workers=2, threads_per_worker=1, dashboard_address=None) as client:
+        res = run_fleet(sc, tasks, cache_dir=root, options=FleetOptions(seed=0), default_dop=default_level(maps),
+                        client=client)
+    rows = {r["mission"]: r for r in _rows(tmp / "a")}
+    assert [(o.task.id, o.status, o.delay_s) for o in res.outcomes] == \
+        [(m, rows[m]["status"], float(rows[m]["delay_s"] or 0)) for m in rows]
+    assert res.speculative["speculative_used"] + res.speculative["speculative_replanned"] >= 1
 
 
 @pytest.mark.parametrize("missions, lines", [

@@ -20,7 +20,8 @@ and re-planned right after it (``preempted-replanned``, or ``rejected`` when tha
 
 Determinism: STEP I (A*) is deterministic and STEP II's RRT is seeded from the fleet seed,
 the mission id and the departure; a planning attempt sees only the accepted volumes in its
-corridor (start-goal box grown by ``corridor_m``, departure to departure + ``horizon_s``), and
+corridor (start-goal box grown by ``corridor_m``, departure to 3 x the direct flight time +
+120 s later), and
 its result depends only on those.  The parallel driver (dask.distributed) plans the next
 missions speculatively against the accepted set of the moment and commits in order; a
 speculative plan whose corridor saw a different set of accepted volumes than the one at its
@@ -109,7 +110,9 @@ class FleetOptions:
     """Fleet settings: ``delay_step_s`` / ``max_delay_s`` [s]; ``seed`` (STEP II); ``k_sigma``
     and ``time_buffer_s`` [s], ``max_volume_s`` [s], ``max_dz_m`` [m] of the intent volumes;
     ``sigma_est_m`` [m]: the navigation error assumed to grow the obstacles before a plan
-    exists; ``corridor_m`` [m], ``horizon_s`` [s]: the space-time corridor of an attempt;
+    exists; ``corridor_m`` [m], ``horizon_s`` [s]: the space-time corridor of an attempt (start-goal box
+    grown by ``corridor_m``; from the departure to 3 x the direct flight time + 120 s, at most
+    ``horizon_s``);
     ``preempt``: allow priority preemption."""
 
     delay_step_s: float = 60.0
@@ -120,7 +123,7 @@ class FleetOptions:
     max_volume_s: float = 10.0
     max_dz_m: float = 5.0
     sigma_est_m: float = 1.5
-    corridor_m: float = 400.0
+    corridor_m: float = 250.0
     horizon_s: float = 900.0
     preempt: bool = True
     time_budget_s: float = 5.0
@@ -394,7 +397,8 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
                               max_tries=p.max_tries, step_cells=p.step_cells,
                               min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
                               dop_kind=sc.gnss.dop_kind, d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s,
-                              uere_m=sc.gnss.uere_m, workers=1, battery_reserve_pct=sc.constraints.battery_reserve_pct)
+                              uere_m=sc.gnss.uere_m, workers=1, battery_reserve_pct=sc.constraints.battery_reserve_pct,
+                              heuristic_cache=maps.setdefault("_heuristics", {}))
     except SkyrouteError as exc:
         return Attempt(task.id, departure_s, False, f"planner: {exc}", compute_s=time.perf_counter() - t_start,
                        seen=seen)
@@ -499,7 +503,7 @@ class _State:
         (x0, y0), (x1, y1) = task.start_xy, task.goal_xy
         c = opt.corridor_m
         bx = (min(x0, x1) - c, min(y0, y1) - c, max(x0, x1) + c, max(y0, y1) + c)
-        ta, tb = departure_s - opt.time_buffer_s - opt.max_volume_s, departure_s + opt.horizon_s
+        ta, tb = departure_s - opt.time_buffer_s - opt.max_volume_s, departure_s + _horizon_s(task, opt)
         seen, obst = [], []
         for m in sorted(self.accepted):
             if min_priority is not None and self.priority[m] < min_priority:
@@ -510,6 +514,15 @@ class _State:
                 seen.append((m, self.version[m]))
                 obst.extend((m, v) for v in vs)
         return tuple(seen), obst
+
+
+def _horizon_s(task: FleetTask, opt: FleetOptions) -> float:
+    """Time span [s] of an attempt's corridor after its departure: 3 x the direct distance at
+    the vehicle's cruise speed + 120 s, at most ``opt.horizon_s``."""
+    from skyroute.stages.vehicle import load_vehicle
+
+    d = math.dist(task.start_xy, task.goal_xy)
+    return min(opt.horizon_s, 120.0 + 3.0 * d / load_vehicle(task.vehicle).cruise_speed_mps)
 
 
 def _box_overlap(a, b) -> bool:

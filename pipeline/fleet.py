@@ -47,8 +47,9 @@ from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.model import FrozenModel
 from skyroute.pipeline.settings import MissionPoint, Scenario
 
-__all__ = ["FLEET_COLUMNS", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult", "MissionOutcome",
-           "draw_missions", "fleet_maps", "load_fleet", "run_fleet", "write_fleet"]
+__all__ = ["FLEET_COLUMNS", "Attempt", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult", "FleetTask",
+           "MissionOutcome", "default_level", "draw_missions", "fleet_maps", "independent_conflicts", "load_fleet",
+           "min_separation_m", "plan_attempt", "plot_fleet", "run_fleet", "still_valid", "write_fleet"]
 
 FLEET_COLUMNS = ("mission", "operator", "priority", "status", "departure_utc", "earliest_s", "delay_s", "dop_level",
                  "energy_Wh", "length_m", "flight_time_s", "compute_s", "attempts", "volumes", "preempted_by",
@@ -299,9 +300,13 @@ def fleet_maps(sc: Scenario, cache_dir: Path | str | None, scheduler: str = "thr
     return maps
 
 
-def _warm(sc: Scenario, cache_dir) -> None:
-    """Load the maps into this process (a dask worker) and compile the kernels: plan nothing."""
+def _warm(sc: Scenario, cache_dir, task: FleetTask | None = None, level: float | None = None,
+          opt: FleetOptions | None = None) -> None:
+    """Load the maps into this process (a dask worker) and, given a ``task``, plan it once
+    without traffic (loads the compiled kernels; the result is dropped)."""
     fleet_maps(sc, cache_dir, scheduler="synchronous")
+    if task is not None:
+        plan_attempt(sc, cache_dir, task, task.earliest_s, level, [], opt or FleetOptions())
 
 
 def default_level(maps: dict) -> float | None:
@@ -342,6 +347,9 @@ class Attempt:
     flight_time_s: float = math.nan
     compute_s: float = 0.0
     seen: tuple = ()
+    step2_status: str = ""
+    chain: tuple | None = None        # STEP II chain (waypoints (k, 3) [m], times [s] mission time)
+    trajectory: tuple | None = None   # (CornerTrajectory, t0 [s] mission time)
 
 
 def _seed(base: int, mission: str, departure_s: float) -> int:
@@ -436,9 +444,38 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
                             ts, te))
     tau = np.append(np.arange(0.0, traj.duration_s, 0.05), traj.duration_s)
     xyz = traj.sample(tau)
+    s2 = plan.step2[0]
     return Attempt(task.id, departure_s, True, "", vols, obst, doc, xyz, departure_s + t0 + tau,
                    c.energy_J / 3600.0, float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()),
-                   float(c.flight_time_s), time.perf_counter() - t_start, seen)
+                   float(c.flight_time_s), time.perf_counter() - t_start, seen,
+                   s2.status if s2 is not None else "", None if s2 is None else (s2.waypoints, s2.times_s),
+                   (traj, t0))
+
+
+def still_valid(a: Attempt, added: Sequence[tuple[str, Any]], task: FleetTask, sc: Scenario,
+                opt: FleetOptions) -> bool:
+    """Would planning again with the extra obstacles ``added`` give the same attempt ``a``?
+    Yes when STEP II left the STEP I chain unchanged (no RRT: no random draw depends on the
+    traffic) and neither that chain's timed legs (STEP II's test) nor the retimed trajectory's
+    chords (STEP III's re-check, the same chords) meet the new prisms: conflicts are an OR over
+    the prisms, so every traffic test of the attempt answers as before."""
+    from skyroute.stages.planning.deconflict import chain_conflicts
+    from skyroute.stages.planning.step3 import _retimed_conflicts
+    from skyroute.stages.traffic import build_occupancy, volume_prisms
+    from skyroute.stages.vehicle import load_vehicle
+
+    if not a.ok or a.step2_status != "unchanged" or a.chain is None or a.trajectory is None:
+        return False
+    if not added:
+        return True
+    r_veh = load_vehicle(task.vehicle).safety_distance_m + 0.5 * sc.traffic.margin_m
+    gh, gz, gt = _grow(opt, r_veh)
+    prisms = volume_prisms([v for _, v in added], grow_m=gh, grow_z_m=gz, grow_t_s=gt).shifted(-a.departure_s)
+    occ = build_occupancy([], max(float(prisms.band[:, 3].max()), 1.0) + 1.0, 1, 0.0, 0.0).with_volumes(prisms)
+    if chain_conflicts(occ, *a.chain).any():
+        return False
+    traj, t0 = a.trajectory
+    return not _retimed_conflicts(occ, traj, t0, 1.0)[2].any()   # step3's default check_spacing_m
 
 
 # ---------------------------------------------------------------------------------- the fleet
@@ -535,13 +572,14 @@ class _Planner:
     def __init__(self, sc, cache_dir, opt, level_of, client=None):
         self.sc, self.cache_dir, self.opt, self.level_of, self.client = sc, cache_dir, opt, level_of, client
         self.spec: dict[str, Any] = {}           # mission id -> (departure, seen, future)
-        self.stats = {"speculative_used": 0, "speculative_replanned": 0, "attempts": 0}
+        self.stats = {"speculative_used": 0, "speculative_still_valid": 0, "speculative_replanned": 0, "attempts": 0}
 
-    def submit(self, task, dep, seen, obst):
+    def submit(self, task, dep, seen, obst, urgent: bool = True):
         args = (self.sc, self.cache_dir, task, dep, self.level_of(task), obst, self.opt, seen)
         if self.client is None:
             return plan_attempt(*args)
-        return self.client.submit(plan_attempt, *args, pure=False)
+        # the attempt the driver waits for first, then the speculative ones in mission order
+        return self.client.submit(plan_attempt, *args, pure=False, priority=10**9 if urgent else -task.index)
 
     def run(self, task, dep, seen, obst) -> Attempt:
         self.stats["attempts"] += 1
@@ -551,23 +589,29 @@ class _Planner:
             if sdep == dep and sseen == seen:
                 self.stats["speculative_used"] += 1
                 return fut.result()
+            if sdep == dep and set(sseen) <= set(seen):     # only new accepted missions in the corridor
+                a = fut.result()
+                new = {m for m, _ in set(seen) - set(sseen)}
+                if still_valid(a, [(m, v) for m, v in obst if m in new], task, self.sc, self.opt):
+                    self.stats["speculative_used"] += 1
+                    self.stats["speculative_still_valid"] += 1
+                    a.seen = seen
+                    return a
             self.stats["speculative_replanned"] += 1
             fut.cancel()
         out = self.submit(task, dep, seen, obst)
         return out if self.client is None else out.result()
 
     def speculate(self, tasks: Sequence[FleetTask], state: _State, depth: int) -> None:
-        """Keep ``depth`` upcoming first attempts in flight against the current accepted set."""
+        """Keep ``depth`` upcoming first attempts in flight, each against the accepted set of the
+        moment it was submitted (a running task cannot be stopped: it is never cancelled)."""
         if self.client is None:
             return
         for t in tasks[:depth]:
-            seen, obst = state.corridor(t, t.earliest_s, self.opt)
-            s = self.spec.get(t.id)
-            if s is not None and s[1] == seen:
+            if t.id in self.spec:      # in flight: checked (still_valid) or re-planned when committed
                 continue
-            if s is not None:
-                s[2].cancel()
-            self.spec[t.id] = (t.earliest_s, seen, self.submit(t, t.earliest_s, seen, obst))
+            seen, obst = state.corridor(t, t.earliest_s, self.opt)
+            self.spec[t.id] = (t.earliest_s, seen, self.submit(t, t.earliest_s, seen, obst, urgent=False))
 
 
 def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, options: FleetOptions | None = None,
@@ -577,8 +621,9 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
     dask.distributed Client for the speculative parallel driver (``depth`` missions in flight)."""
     opt = options or FleetOptions()
     t_setup = time.perf_counter()
-    if client is not None:   # every worker loads the maps once (from the cache) before the clock starts
-        client.run(_warm, sc, cache_dir)
+    if client is not None and tasks:   # every worker loads the maps and kernels before the clock starts
+        first = min(tasks, key=lambda t: (t.earliest_s, -t.priority, t.id))
+        client.run(_warm, sc, cache_dir, first, default_dop if first.dop_level is None else first.dop_level, opt)
     setup_s = time.perf_counter() - t_setup
     t_start = time.perf_counter()
 

@@ -67,7 +67,8 @@ def main() -> None:
               f"{sec['mean_delay_s'] or 0:.1f} s; conflicts (independent check) {sec['conflicts_independent_check']}; "
               f"min separation {sec['min_separation_m']} m; {sec['planning_attempts']} plans = "
               f"{sec['throughput_plans_per_min']:.1f} plans/min ({sec['missions_per_min']:.1f} missions/min)"
-              + (f"; speculative {res.speculative}" if res.speculative.get("speculative_used") is not None else ""))
+              + f"; mean planning time per mission {sum(o.compute_s for o in res.outcomes) / n:.2f} s"
+              + (f"; speculative {res.speculative}" if res.speculative.get("worker_setup_s") else ""))
         return sec
 
     with tempfile.TemporaryDirectory() as tmp:

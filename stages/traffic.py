@@ -21,6 +21,15 @@ capsules of every slice; queries are exact distance tests (numba):
 
 :meth:`TrafficOccupancy.to_dataset` stores the capsules as an xarray Dataset (dim
 ``capsule``) that caches in zarr; :meth:`TrafficOccupancy.from_dataset` rebuilds the index.
+
+Polygon 4-D volumes (the operational intents of other operators, :class:`VolumePrisms`):
+besides capsules an occupancy may hold convex prisms, each a convex polygon (x, y) [m], an
+altitude band [m] in the surface datum and a time window [s] (closed: touching counts).  They
+are not sliced: a segment flown linearly in time is clipped exactly against each prism's
+half-spaces (Cyrus-Beck, with time as a fourth coordinate), so the test is exact for the
+prisms as given.  :func:`volume_prisms` makes them from polygon volumes, grown by the
+caller's own buffers (horizontal [m], vertical [m], time [s]) so that acceptance stays
+conservative; a non-convex outline is replaced by its convex hull (it contains it).
 """
 
 from __future__ import annotations
@@ -274,6 +283,8 @@ def _piece_hits(pa, pb, k, cap, rad, slice_start, start, entries, ox, oy, b, nbx
 def _segments_kernel(p0, t0, p1, t1, tm0, dt, nsl, cap, rad, slice_start, start, entries,
                      ox, oy, b, nbx, nby, out):
     for n in range(p0.shape[0]):
+        if out[n]:
+            continue
         ka = min(max(int(math.floor((t0[n] - tm0) / dt)), 0), nsl - 1)
         kb = min(max(int(math.floor((t1[n] - tm0) / dt)), 0), nsl - 1)
         dur = t1[n] - t0[n]
@@ -314,10 +325,16 @@ class TrafficOccupancy:
     d_c_m: float
     dt_c_s: float
     bucket_m: float | None = None
+    volumes: VolumePrisms | None = None
     _index: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self):
         self._build_index()
+
+    @property
+    def empty(self) -> bool:
+        """No capsule and no prism: nothing to conflict with."""
+        return self.caps.shape[0] == 0 and (self.volumes is None or self.volumes.n == 0)
 
     @property
     def dt_s(self) -> float:
@@ -408,11 +425,19 @@ class TrafficOccupancy:
         self._slice_of(tb)
         ix = self._index
         out = np.zeros(n, dtype=np.bool_)
+        if self.volumes is not None and self.volumes.n:
+            self.volumes.segment_hits(a, ta, c, tb, out)
         _segments_kernel(np.ascontiguousarray(a), np.ascontiguousarray(ta), np.ascontiguousarray(c),
                          np.ascontiguousarray(tb), self.t0_s, self.dt_s, self.n_slices, self.caps,
                          self.radius_m, self.slice_start, ix["start"], ix["entries"], ix["ox"], ix["oy"],
                          ix["b"], ix["nbx"], ix["nby"], out)
         return bool(out[0]) if single else out
+
+    def with_volumes(self, volumes: VolumePrisms | None) -> TrafficOccupancy:
+        """A copy of these maps that also holds the prisms ``volumes``."""
+        return TrafficOccupancy(self.caps, self.radius_m, self.slice_index, self.intruder_index, self.intruder_ids,
+                                self.t0_s, self.t_total_s, self.n_slices, self.d_c_m, self.dt_c_s, self.bucket_m,
+                                volumes)
 
     def occupancy_slice(self, grid: Grid, k: int, z_m: float) -> xr.DataArray:
         """Dense view of slice ``k`` on ``grid`` at altitude ``z_m`` [m]: True where the cell
@@ -501,3 +526,160 @@ def build_occupancy(intruders: Iterable[Intruder | Mapping], t_total_s: float, n
                             cat(sl, (0,), np.int64), cat(ii, (0,), np.int64), tuple(i.id for i in intr),
                             float(t0_s), float(t_total_s), int(n_slices), float(d_c_m), float(dt_c_s),
                             None if bucket_m is None else float(bucket_m))
+
+
+# ------------------------------------------------------------------ polygon 4-D volumes (prisms)
+
+
+@numba.njit(cache=True)
+def _prism_kernel(p0, t0, p1, t1, hp, hp_start, band, tlo_sorted, order, max_dur, bbox, out):
+    """out[n] |= segment n (p0 at t0 -> p1 at t1, linear in time) meets a prism (closed)."""
+    m = order.size
+    for n in range(p0.shape[0]):
+        if out[n]:
+            continue
+        ta, tb = t0[n], t1[n]
+        # prisms with t_lo <= tb and t_hi >= ta: t_lo in [ta - max_dur, tb]
+        lo = np.searchsorted(tlo_sorted, ta - max_dur, side="left")
+        hi = np.searchsorted(tlo_sorted, tb, side="right")
+        xmin, xmax = min(p0[n, 0], p1[n, 0]), max(p0[n, 0], p1[n, 0])
+        ymin, ymax = min(p0[n, 1], p1[n, 1]), max(p0[n, 1], p1[n, 1])
+        dx, dy, dz = p1[n, 0] - p0[n, 0], p1[n, 1] - p0[n, 1], p1[n, 2] - p0[n, 2]
+        dt = tb - ta
+        for q in range(lo, min(hi, m)):
+            j = order[q]
+            if band[j, 3] < ta or band[j, 2] > tb:
+                continue
+            if bbox[j, 0] > xmax or bbox[j, 2] < xmin or bbox[j, 1] > ymax or bbox[j, 3] < ymin:
+                continue
+            s0, s1 = 0.0, 1.0
+            # each constraint: a + b s <= 0
+            ok = True
+            for k in range(4 + hp_start[j + 1] - hp_start[j]):
+                if k == 0:
+                    a, b = band[j, 0] - p0[n, 2], -dz          # z >= z_lo
+                elif k == 1:
+                    a, b = p0[n, 2] - band[j, 1], dz           # z <= z_hi
+                elif k == 2:
+                    a, b = band[j, 2] - ta, -dt                # t >= t_lo
+                elif k == 3:
+                    a, b = ta - band[j, 3], dt                 # t <= t_hi
+                else:
+                    h = hp_start[j] + k - 4                    # nx x + ny y <= d
+                    a = hp[h, 0] * p0[n, 0] + hp[h, 1] * p0[n, 1] - hp[h, 2]
+                    b = hp[h, 0] * dx + hp[h, 1] * dy
+                if b == 0.0:
+                    if a > 0.0:
+                        ok = False
+                        break
+                elif b > 0.0:
+                    s1 = min(s1, -a / b)
+                else:
+                    s0 = max(s0, -a / b)
+                if s0 > s1:
+                    ok = False
+                    break
+            if ok:
+                out[n] = True
+                break
+
+
+@dataclass
+class VolumePrisms:
+    """Convex prisms (see the module docstring): ``halfplanes`` (H, 3) rows (nx, ny, d) of the
+    constraints ``nx x + ny y <= d`` [m], those of prism i at ``hp_start[i]:hp_start[i+1]``;
+    ``band`` (m, 4): z_lo, z_hi [m] (surface datum), t_lo, t_hi [s] (mission time);
+    ``owner`` (m,): who reserved each prism (e.g. an intent id)."""
+
+    halfplanes: np.ndarray
+    hp_start: np.ndarray
+    band: np.ndarray
+    owner: tuple = ()
+    _aux: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self):
+        self.halfplanes = np.ascontiguousarray(np.asarray(self.halfplanes, float).reshape(-1, 3))
+        self.hp_start = np.ascontiguousarray(np.asarray(self.hp_start, np.int64))
+        self.band = np.ascontiguousarray(np.asarray(self.band, float).reshape(-1, 4))
+        m = self.band.shape[0]
+        if self.hp_start.size != m + 1:
+            raise InputError("VolumePrisms: hp_start must have one entry per prism plus one")
+        order = np.argsort(self.band[:, 2], kind="stable")
+        bbox = self._aux.get("bbox_in")     # vertex boxes (xmin, ymin, xmax, ymax) [m] from volume_prisms
+        if bbox is None:
+            bbox = np.tile([-np.inf, -np.inf, np.inf, np.inf], (m, 1))
+        self._aux = {"order": order.astype(np.int64), "tlo": np.ascontiguousarray(self.band[order, 2]),
+                     "max_dur": float(np.max(self.band[:, 3] - self.band[:, 2])) if m else 0.0,
+                     "bbox": np.ascontiguousarray(np.asarray(bbox, float).reshape(m, 4))}
+
+    @property
+    def n(self) -> int:
+        return int(self.band.shape[0])
+
+    def shifted(self, dt_s: float) -> VolumePrisms:
+        """The same prisms with their times shifted by ``dt_s`` [s] (another mission clock)."""
+        band = self.band.copy()
+        band[:, 2:] += dt_s
+        out = VolumePrisms.__new__(VolumePrisms)
+        out.halfplanes, out.hp_start, out.band, out.owner = self.halfplanes, self.hp_start, band, self.owner
+        out._aux = {**self._aux, "tlo": self._aux["tlo"] + dt_s}
+        return out
+
+    def segment_hits(self, p0: np.ndarray, t0: np.ndarray, p1: np.ndarray, t1: np.ndarray, out: np.ndarray) -> None:
+        """``out[n] |= `` segment n (``p0[n]`` at ``t0[n]`` -> ``p1[n]`` at ``t1[n]``) meets a prism."""
+        if not self.n:
+            return
+        a = self._aux
+        _prism_kernel(np.ascontiguousarray(p0, float), np.ascontiguousarray(t0, float),
+                      np.ascontiguousarray(p1, float), np.ascontiguousarray(t1, float), self.halfplanes,
+                      self.hp_start, self.band, a["tlo"], a["order"], a["max_dur"], a["bbox"], out)
+
+
+def volume_prisms(volumes: Iterable, *, grow_m: float = 0.0, grow_z_m: float = 0.0, grow_t_s: float = 0.0,
+                  z_offset_m: Iterable[tuple[float, float]] | None = None, owners: Iterable | None = None,
+                  quad_segs: int = 4) -> VolumePrisms:
+    """:class:`VolumePrisms` of polygon volumes (objects with ``polygon`` (shapely, map CRS [m]),
+    ``alt_lower_m``, ``alt_upper_m``, ``t_start_s``, ``t_end_s``, e.g.
+    :class:`~skyroute.stages.fleet.Volume4`).  The outline's convex hull is grown by ``grow_m``
+    [m] (circumscribed: the polygon's vertices at ``grow_m / cos(pi / (4 quad_segs))``, so the
+    Minkowski sum with the disk of radius ``grow_m`` is inside), the band by ``grow_z_m`` [m]
+    and the window by ``grow_t_s`` [s] on both sides.  ``z_offset_m``: per volume (lo, hi)
+    [m] subtracted from (alt_lower_m, alt_upper_m) to reach the surface datum (e.g. the
+    largest and smallest geoid-to-ellipsoid offset under the outline, which keeps the band
+    conservative)."""
+    import shapely
+
+    if not (grow_m >= 0 and grow_z_m >= 0 and grow_t_s >= 0):
+        raise InputError("volume_prisms: grow_m, grow_z_m and grow_t_s must be >= 0")
+    vols = list(volumes)
+    offs = list(z_offset_m) if z_offset_m is not None else [(0.0, 0.0)] * len(vols)
+    own = tuple(owners) if owners is not None else tuple(range(len(vols)))
+    if len(offs) != len(vols) or len(own) != len(vols):
+        raise InputError("volume_prisms: z_offset_m and owners need one entry per volume")
+    hps, starts, band, boxes = [], [0], [], []
+    r = grow_m / math.cos(math.pi / (4 * quad_segs)) if grow_m > 0 else 0.0
+    for v, (olo, ohi) in zip(vols, offs, strict=True):
+        hull = v.polygon.convex_hull
+        if r > 0:
+            hull = hull.buffer(r, quad_segs=quad_segs).convex_hull
+        ring = np.asarray(shapely.get_coordinates(hull.exterior))[:-1]
+        x, y = ring[:, 0], ring[:, 1]
+        if float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) < 0:   # make it counter-clockwise
+            ring = ring[::-1]
+        e = np.roll(ring, -1, axis=0) - ring
+        nrm = np.column_stack([e[:, 1], -e[:, 0]])             # outward normal of a ccw ring
+        L = np.linalg.norm(nrm, axis=1)
+        keep = L > 1e-12
+        nrm = nrm[keep] / L[keep, None]
+        d = np.einsum("ij,ij->i", nrm, ring[keep])
+        hps.append(np.column_stack([nrm, d]))
+        starts.append(starts[-1] + int(keep.sum()))
+        band.append((v.alt_lower_m - olo - grow_z_m, v.alt_upper_m - ohi + grow_z_m,
+                     v.t_start_s - grow_t_s, v.t_end_s + grow_t_s))
+        boxes.append((*ring.min(axis=0), *ring.max(axis=0)))
+    out = VolumePrisms.__new__(VolumePrisms)
+    out.halfplanes = np.concatenate(hps) if hps else np.zeros((0, 3))
+    out.hp_start, out.band, out.owner = np.asarray(starts, np.int64), np.asarray(band, float).reshape(-1, 4), own
+    out._aux = {"bbox_in": np.asarray(boxes, float).reshape(-1, 4)}
+    VolumePrisms.__post_init__(out)
+    return out

@@ -116,17 +116,22 @@ def chain_timing(problem, waypoints, t0_s: float = 0.0) -> tuple[np.ndarray, np.
 def leg_conflicts(occ: TrafficOccupancy | None, p0, t0, p1, t1) -> np.ndarray:
     """Traffic conflict flags (n,) of legs p0[i] -> p1[i] (n, 3) [m] flown linearly in time from
     t0[i] to t1[i] [s] (:meth:`~skyroute.stages.traffic.TrafficOccupancy.segment_conflicts`),
-    restricted to the maps' horizon (pieces beyond it are free); all False without traffic."""
+    restricted to the maps' horizon (pieces beyond it are free; polygon prisms,
+    ``occ.volumes``, are tested over the whole leg); all False without traffic."""
     p0 = np.atleast_2d(np.asarray(p0, float))
     p1 = np.atleast_2d(np.asarray(p1, float))
     t0 = np.broadcast_to(np.asarray(t0, float), (p0.shape[0],))
     t1 = np.broadcast_to(np.asarray(t1, float), (p0.shape[0],))
-    if occ is None or occ.caps.shape[0] == 0:
-        return np.zeros(p0.shape[0], bool)
+    out = np.zeros(p0.shape[0], bool)
+    if occ is None or occ.empty:
+        return out
+    if occ.volumes is not None and occ.volumes.n:     # prisms: their own time windows, no horizon
+        occ.volumes.segment_hits(p0, np.ascontiguousarray(t0), p1, np.ascontiguousarray(t1), out)
+    if occ.caps.shape[0] == 0:
+        return out
     lo, hi = occ.t0_s, occ.t0_s + occ.t_total_s
     a, b = np.maximum(t0, lo), np.minimum(t1, hi)
-    live = a <= b
-    out = np.zeros(p0.shape[0], bool)
+    live = (a <= b) & ~out
     if not live.any():
         return out
     dur = t1 - t0

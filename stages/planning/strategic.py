@@ -70,7 +70,7 @@ class StrategicPlan:
 
 def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Dataset | None,
                    clearance: xr.Dataset, coverage: xr.Dataset | None, satellites: xr.Dataset | None,
-                   traffic: xr.Dataset | None, *, start_xy: tuple[float, float], start_agl_m: float,
+                   traffic: xr.Dataset | TrafficOccupancy | None, *, start_xy: tuple[float, float], start_agl_m: float,
                    goal_xy: tuple[float, float], goal_agl_m: float, start_time_utc,
                    vehicle: str | VehicleProfile | FixedWingProfile = "dji-m300-rtk", weights=(1.0, 1.0, 1.0, 1.0),
                    planner: str = "astar", time_budget_s: float = 5.0, seed: int = 0, max_tries: int = 3,
@@ -79,7 +79,8 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                    uere_m: float = 3.0, workers: int | None = None, step_cells: int = STEP_CELLS,
                    max_iterations: int | None = None, battery_reserve_pct: float = 0.0,
                    clearance_by_level: Mapping[float, xr.Dataset] | None = None,
-                   bubble: tuple[float, float] | None = None) -> StrategicPlan:
+                   bubble: tuple[float, float] | None = None,
+                   heuristic_cache: dict | None = None) -> StrategicPlan:
     """Plan the mission for every coverage level of ``coverage`` (one level without GNSS data).
 
     Levels with identical floor and coverage arrays are solved once.  With ``planner="astar"``
@@ -97,11 +98,19 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     (:mod:`skyroute.stages.planning.degenerate`).
     ``battery_reserve_pct`` [%]: energy kept in the battery (STEP I and III use the rest).
 
+    ``traffic``: the traffic stage's dataset or a :class:`~skyroute.stages.traffic.TrafficOccupancy`
+    (e.g. one holding other operators' intent volumes as prisms: ``skyroute fleet``).
+
     Safety bubble (seed 003, :mod:`skyroute.stages.sboa`; both default to off):
     ``clearance_by_level`` maps a DOP threshold D_j to the clearance dataset of its radius r_j
     (used instead of ``clearance`` for that level; its ``radius_m`` attribute is recorded in the
     candidate); ``bubble = (k, surface_uncertainty_m)`` makes STEP III re-check every sample at
-    ``max(r_p, k sigma_p(t) + surface_uncertainty_m)`` [m] from the surface."""
+    ``max(r_p, k sigma_p(t) + surface_uncertainty_m)`` [m] from the surface.
+
+    ``heuristic_cache``: a dict kept by a caller that plans many missions on the SAME maps
+    (``skyroute fleet``): the A* heuristic table, which depends on the goal, the start altitude
+    (the lattice's levels), the levels, the vehicle, the weights and the lattice step only
+    (given the maps), is reused for a goal seen before (same result, less time)."""
     t0 = time.perf_counter()
     wind_map = wind.load() if wind is not None else None
     cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
@@ -114,7 +123,8 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     risk = environment["risk_cost"].load() if environment is not None else None
     land = environment["landing_cost"].load() if environment is not None else None
     sky = satellites.load() if satellites is not None else None
-    occ = TrafficOccupancy.from_dataset(traffic.load()) if traffic is not None else None
+    occ = (traffic if isinstance(traffic, TrafficOccupancy) or traffic is None
+           else TrafficOccupancy.from_dataset(traffic.load()))
     start = xyz_from_agl(surf, *start_xy, start_agl_m)
     goal = xyz_from_agl(surf, *goal_xy, goal_agl_m)
     levels: list[tuple[float | None, xr.DataArray | None]]
@@ -144,7 +154,13 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     if planner == "astar":   # one A* heuristic for all levels: that of the loosest (lowest floors)
         loosest = _loosest(problems)
         if loosest is not None and not loosest.endpoint_problem():
-            h2 = shared_heuristic(loosest, step_cells)
+            hkey = (tuple(np.round(goal, 6)), round(float(start[2]), 6), loosest.dop_threshold, veh.name, tuple(weights), step_cells,
+                    min_agl_m, max_agl_m, dop_kind, battery_reserve_pct)
+            h2 = None if heuristic_cache is None else heuristic_cache.get(hkey)
+            if h2 is None:
+                h2 = shared_heuristic(loosest, step_cells)
+                if heuristic_cache is not None:
+                    heuristic_cache[hkey] = h2
 
     ticker = _Progress(planner)
 

@@ -1,0 +1,117 @@
+"""``skyroute fleet``: first-come-first-served strategic deconfliction of many missions."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from skyroute.pipeline.cli import SCHEDULER_HELP
+
+
+@click.command("fleet")
+@click.argument("scenario", required=False, default=None)
+@click.option("--fleet", "fleet_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Fleet file (YAML 'missions: [...]' or CSV): id, operator, start, goal, departure, priority, "
+                   "vehicle, dop_level.")
+@click.option("--missions", type=click.IntRange(min=1), default=None,
+              help="Draw N missions between the scenario's landing sites instead of --fleet.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the draw and of STEP II.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder (default: ./skyroute-out/SCENARIO/fleet).")
+@click.option("--window-min", type=click.FloatRange(min=0.0, min_open=True), default=120.0, show_default=True,
+              help="Departures of drawn missions uniform over this window [min].")
+@click.option("--max-delay-min", type=click.FloatRange(min=0.0), default=10.0, show_default=True,
+              help="Longest departure delay before a mission is rejected [min].")
+@click.option("--delay-step-s", type=click.FloatRange(min=1.0), default=60.0, show_default=True,
+              help="Departure delay step [s].")
+@click.option("--ground-m", type=float, default=None,
+              help="Height of the scenario's flat local ground above the EGM96 geoid [m] (sets data.ground when the "
+                   "scenario has none; intents need absolute heights).")
+@click.option("--no-preempt", is_flag=True, help="Priorities do not preempt accepted missions.")
+@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
+@click.option("--scheduler", default="threads", show_default=True,
+              help=SCHEDULER_HELP + "; with distributed / tcp:// the missions are planned speculatively in parallel")
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers of --scheduler distributed.")
+@click.option("-q", "--quiet", is_flag=True, help="No per-mission lines.")
+def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max_delay_min, delay_step_s, ground_m,
+                  no_preempt, cache_dir, scheduler, workers, quiet) -> None:
+    """Plan many operators' missions in SCENARIO first-come-first-served (issue 15): each at one
+    DOP level, every accepted mission's ASTM F3548 intent volumes as traffic in STEP II; a
+    mission whose volumes would intersect an accepted one is delayed (--delay-step-s up to
+    --max-delay-min) or rejected, and may preempt lower-priority missions (re-planned). Writes
+    fleet.csv, intents/<mission>.json, fleet.geojson, tracks.csv, fleet.png and summary.json."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.cli import write_folder_summary
+    from skyroute.pipeline.errors import InputError
+    from skyroute.pipeline.fleet import (
+        FleetFileError,
+        FleetOptions,
+        default_level,
+        draw_missions,
+        fleet_maps,
+        load_fleet,
+        run_fleet,
+        write_fleet,
+    )
+    from skyroute.pipeline.graph import scheduler_context
+    from skyroute.pipeline.outputs import ensure_writable_dir
+    from skyroute.pipeline.settings import DEFAULT_SCENARIO, GroundReference, load_scenario
+
+    if (fleet_file is None) == (missions is None):
+        raise InputError("give either --fleet FILE or --missions N (with --seed S)")
+    sc = load_scenario(scenario or DEFAULT_SCENARIO)
+    if ground_m is not None:
+        sc = sc.model_copy(update={"data": sc.data.model_copy(
+            update={"ground": GroundReference(height_m=ground_m, vertical_datum="EGM96 geoid")})})
+    tasks = None
+    if fleet_file is not None:
+        try:
+            tasks = load_fleet(fleet_file, sc, sc.gnss.dop_thresholds)
+        except FleetFileError as exc:
+            for p in exc.problems:
+                click.echo(f"error: {p}", err=True)
+            sys.exit(2)
+    out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fleet")
+    cache = Cache(cache_dir)
+    maps = fleet_maps(sc, cache.root)
+    if tasks is None:
+        tasks = draw_missions(sc, maps, missions, seed, window_min * 60.0)
+    level = default_level(maps)
+    opt = FleetOptions(delay_step_s=delay_step_s, max_delay_s=max_delay_min * 60.0, seed=seed, preempt=not no_preempt)
+    warnings = []
+    gnss_min = sc.gnss.window_min
+    last = max(t.earliest_s for t in tasks) / 60.0 + max_delay_min
+    if last > gnss_min:
+        warnings.append(f"fleet: departures reach {last:.0f} min after the scenario start but the GNSS maps cover "
+                        f"gnss.window_min = {gnss_min:g} min: later missions use the last epoch (coverage floors are "
+                        "the worst case over the window)")
+    echo = None if quiet else (lambda s: click.echo(s, err=True))
+    if scheduler in ("threads", "synchronous", "sync"):
+        res = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, echo=echo)
+    else:
+        with scheduler_context(scheduler, workers) as client:
+            if client is None:
+                raise InputError(f"--scheduler {scheduler}: the fleet runs sequentially (threads) or on "
+                                 "dask.distributed (distributed, tcp://HOST:PORT)")
+            res = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, client=client, echo=echo)
+    res.warnings.extend(warnings)
+    files, section = write_fleet(res, sc, maps, out_dir)
+    section.update({"default_dop_level": level, "scheduler": scheduler,
+                    "source": str(fleet_file) if fleet_file else f"--missions {missions} --seed {seed}",
+                    "window_min": window_min, "max_delay_min": max_delay_min, "delay_step_s": delay_step_s})
+    for w in warnings:
+        click.echo(f"warning: {w}", err=True)
+    doc = write_folder_summary(out_dir, "fleet", maps["_result"], [str(f) for f in files], {"fleet": section})
+    if warnings:
+        import json
+
+        doc["warnings"] = [*doc["warnings"], *warnings]
+        (out_dir / "summary.json").write_text(json.dumps(doc, indent=1, allow_nan=False))
+    c = section["counts"]
+    click.echo(f"fleet: {section['missions']} missions: {c['accepted']} accepted, {c['delayed']} delayed, "
+               f"{c['preempted-replanned']} preempted-replanned, {c['rejected']} rejected; mean delay "
+               f"{section['mean_delay_s'] or 0:.0f} s; {section['throughput_plans_per_min']} plans/min; "
+               f"conflicts (independent check) {section['conflicts_independent_check']} -> {out_dir}")

@@ -1,0 +1,887 @@
+"""``skyroute fleet``: first-come-first-served strategic deconfliction of many operators' missions.
+
+The maps (surface, environment, clearance, wind, coverage, satellites) come from the cached
+stages of the scenario once.  The missions (a fleet file, :func:`load_fleet`, or drawn by
+:func:`draw_missions`) are taken in order of earliest departure (then higher priority, then
+id).  Each is planned at ONE DOP level (its ``dop_level``; default the scenario's strictest
+flyable level) by the strategic planner (STEP I-III), with the intent volumes of every accepted
+mission in its space-time corridor as traffic in STEP II and III
+(:func:`~skyroute.stages.traffic.volume_prisms`: the accepted volumes, altitudes brought to
+the surface datum conservatively, grown by the new mission's own horizontal, vertical and time
+buffers).  The plan becomes ASTM F3548 intent volumes
+(:func:`~skyroute.stages.intents.plan_volumes`, vehicle radius ``safety_distance_m + d_c / 2``
+so that two disjoint intents keep ``2 r + d_c`` apart) and is accepted only if they intersect
+no accepted volume (:class:`~skyroute.stages.fleet.VolumeIndex`: area > 1e-4 m^2 with altitude
+and time overlap).  Otherwise its departure is delayed by ``delay_step_s`` up to
+``max_delay_s``, else it is rejected with the reason.  A mission that conflicts may preempt
+lower-priority accepted missions: it is planned against the volumes of equal or higher
+priority only; if accepted, the lower-priority missions its volumes intersect are withdrawn
+and re-planned right after it (``preempted-replanned``, or ``rejected`` when that fails).
+
+Determinism: STEP I (A*) is deterministic and STEP II's RRT is seeded from the fleet seed,
+the mission id and the departure; a planning attempt sees only the accepted volumes in its
+corridor (start-goal box grown by ``corridor_m``, departure to 3 x the direct flight time +
+120 s later), and
+its result depends only on those.  The parallel driver (dask.distributed) plans the next
+missions speculatively against the accepted set of the moment and commits in order; a
+speculative plan whose corridor saw a different set of accepted volumes than the one at its
+commit is re-planned, so the result equals the sequential one.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import math
+import time
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError, field_validator
+
+from skyroute.pipeline.errors import InputError
+from skyroute.pipeline.model import FrozenModel
+from skyroute.pipeline.settings import MissionPoint, Scenario
+
+__all__ = ["FLEET_COLUMNS", "Attempt", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult", "FleetTask",
+           "MissionOutcome", "default_level", "draw_missions", "fleet_maps", "independent_conflicts", "load_fleet",
+           "min_separation_m", "plan_attempt", "plot_fleet", "run_fleet", "still_valid", "write_fleet"]
+
+FLEET_COLUMNS = ("mission", "operator", "priority", "status", "departure_utc", "earliest_s", "delay_s", "dop_level",
+                 "energy_Wh", "length_m", "flight_time_s", "compute_s", "attempts", "volumes", "preempted_by",
+                 "reason")
+MAP_STAGES = ("surface", "environment", "clearance", "wind", "satellites", "coverage")
+
+
+class FleetFileError(InputError):
+    """A fleet file with problems: ``problems`` lists each (one ``error:`` line each)."""
+
+    def __init__(self, source: str, problems: list[str]):
+        self.problems = [f"{source}: {p}" for p in problems]
+        super().__init__("\n".join(self.problems))
+
+
+class FleetMission(FrozenModel):
+    """One mission of a fleet file: ``departure`` is the earliest departure, seconds after the
+    scenario's mission start or a UTC time; ``priority``: higher wins (F3548); ``vehicle``
+    (default the scenario's); ``dop_level``: the DOP threshold D_j to plan at (default: the
+    scenario's strictest flyable level)."""
+
+    id: str
+    operator: str = "operator"
+    start: MissionPoint
+    goal: MissionPoint
+    departure: float | dt.datetime = 0.0
+    priority: int = 0
+    vehicle: str | None = None
+    dop_level: float | None = None
+
+    @field_validator("id")
+    @classmethod
+    def _id(cls, v: str) -> str:
+        if not v or "/" in v or v.strip() != v:
+            raise ValueError(f"mission id {v!r} must be non-empty, without '/' or surrounding spaces")
+        return v
+
+
+@dataclass(frozen=True)
+class FleetTask:
+    """A mission resolved on the scenario's map: x/y [m], earliest departure [s after the
+    scenario start], DOP level."""
+
+    index: int
+    id: str
+    operator: str
+    start_xy: tuple[float, float]
+    start_agl_m: float
+    goal_xy: tuple[float, float]
+    goal_agl_m: float
+    earliest_s: float
+    priority: int
+    vehicle: str
+    dop_level: float | None
+
+
+@dataclass(frozen=True)
+class FleetOptions:
+    """Fleet settings: ``delay_step_s`` / ``max_delay_s`` [s]; ``seed`` (STEP II); ``k_sigma``
+    and ``time_buffer_s`` [s], ``max_volume_s`` [s], ``max_dz_m`` [m] of the intent volumes;
+    ``sigma_est_m`` [m]: the navigation error assumed to grow the obstacles before a plan
+    exists; ``corridor_m`` [m], ``horizon_s`` [s]: the space-time corridor of an attempt (start-goal box
+    grown by ``corridor_m``; from the departure to 3 x the direct flight time + 120 s, at most
+    ``horizon_s``);
+    ``preempt``: allow priority preemption."""
+
+    delay_step_s: float = 60.0
+    max_delay_s: float = 600.0
+    seed: int = 0
+    k_sigma: float = 3.0
+    time_buffer_s: float = 5.0
+    max_volume_s: float = 10.0
+    max_dz_m: float = 5.0
+    sigma_est_m: float = 1.5
+    corridor_m: float = 250.0
+    horizon_s: float = 900.0
+    preempt: bool = True
+    time_budget_s: float = 5.0
+
+
+# ---------------------------------------------------------------------------------- fleet input
+def _csv_records(path: Path) -> list[dict]:
+    out = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            rec: dict[str, Any] = {}
+            pts: dict[str, dict] = {"start": {}, "goal": {}}
+            for k, v in row.items():
+                if k is None or v is None or str(v).strip() == "":
+                    continue
+                k, v = k.strip(), str(v).strip()
+                head, _, tail = k.partition("_")
+                if head in pts and tail:
+                    pts[head][tail] = v
+                else:
+                    rec[k] = v
+            rec.update({k: p for k, p in pts.items() if p})
+            out.append(rec)
+    return out
+
+
+def _departure_s(dep, t0: dt.datetime) -> float:
+    if isinstance(dep, dt.datetime):
+        d = dep if dep.tzinfo is not None else dep.replace(tzinfo=dt.UTC)
+        return (d - t0).total_seconds()
+    return float(dep)
+
+
+def load_fleet(path: Path | str, sc: Scenario, levels: Sequence[float] = ()) -> list[FleetTask]:
+    """The missions of a fleet file (YAML ``missions: [...]`` or CSV with columns id, operator,
+    start_x / start_y or start_lon / start_lat, start_alt_agl_m, goal_..., departure, priority,
+    vehicle, dop_level) as :class:`FleetTask` s.  Every problem is collected and raised at once
+    (:class:`FleetFileError`): schema, duplicate ids, points outside the map, departures before
+    the scenario start, unknown vehicles, DOP levels not among the scenario's ``levels``."""
+    import yaml
+
+    from skyroute.stages.vehicle import load_vehicle
+
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise FleetFileError(src, ["no such file; give a YAML or CSV fleet file"])
+    try:
+        if path.suffix.lower() == ".csv":
+            records = _csv_records(path)
+        else:
+            doc = yaml.safe_load(path.read_text())
+            if not isinstance(doc, dict) or not isinstance(doc.get("missions"), list):
+                raise FleetFileError(src, ["the YAML needs a top-level list 'missions: [...]'"])
+            records = doc["missions"]
+    except (yaml.YAMLError, csv.Error, UnicodeDecodeError) as exc:
+        raise FleetFileError(src, [f"cannot be read: {exc}".replace("\n", " ")]) from None
+    if not records:
+        raise FleetFileError(src, ["no mission in the file"])
+    problems: list[str] = []
+    missions: list[tuple[int, FleetMission]] = []
+    for i, rec in enumerate(records):
+        name = rec.get("id", f"#{i + 1}") if isinstance(rec, dict) else f"#{i + 1}"
+        try:
+            missions.append((i, FleetMission.model_validate(rec)))
+        except ValidationError as exc:
+            for e in exc.errors():
+                loc = ".".join(str(x) for x in e["loc"])
+                problems.append(f"mission {name}: {loc + ': ' if loc else ''}{e['msg']}")
+    seen: dict[str, int] = {}
+    g = sc.grid
+    xmin, ymin, xmax, ymax = g.bounds
+    t0 = sc.mission.start_time_utc
+    tasks = []
+    for i, m in missions:
+        if m.id in seen:
+            problems.append(f"mission {m.id}: id already used by mission #{seen[m.id] + 1}")
+        seen.setdefault(m.id, i)
+        xy = {}
+        for which in ("start", "goal"):
+            x, y = sc.point_xy(getattr(m, which))
+            if not (xmin <= x <= xmax and ymin <= y <= ymax):
+                problems.append(f"mission {m.id}: {which} ({x:.1f}, {y:.1f}) is outside the scenario's map "
+                                f"[{xmin:.1f}, {xmax:.1f}] x [{ymin:.1f}, {ymax:.1f}]")
+            xy[which] = (float(x), float(y))
+        dep = _departure_s(m.departure, t0)
+        if not math.isfinite(dep) or dep < 0:
+            problems.append(f"mission {m.id}: departure {m.departure} is before the scenario start {t0.isoformat()}")
+        veh = m.vehicle or sc.vehicle
+        try:
+            load_vehicle(veh)
+        except Exception as exc:   # noqa: BLE001 - the loader's own message says what is known
+            problems.append(f"mission {m.id}: vehicle: {exc}")
+        if m.dop_level is not None and levels and not any(abs(m.dop_level - d) < 1e-9 for d in levels):
+            problems.append(f"mission {m.id}: dop_level {m.dop_level:g} is not one of the scenario's levels "
+                            f"{', '.join(f'{d:g}' for d in levels)}")
+        tasks.append(FleetTask(i, m.id, m.operator, xy["start"], m.start.alt_agl_m, xy["goal"], m.goal.alt_agl_m,
+                               dep, m.priority, veh, m.dop_level))
+    if problems:
+        raise FleetFileError(src, problems)
+    return tasks
+
+
+def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, *, alt_agl_m: float | None = None,
+                  min_km: float = 0.2, max_km: float = 1.5, operators: int = 5,
+                  priority_share: float = 0.1) -> list[FleetTask]:
+    """``n`` missions between the landing sites of the environment stage (``site_x`` /
+    ``site_y``; OSM helipads, hospitals' pads, parks, ... as :mod:`skyroute.stages.landing`
+    finds them) whose cell is not no-fly and whose clearance floor lies below ``alt_agl_m``
+    (default the scenario's start altitude) above the ground: start and goal drawn uniformly
+    among the pairs ``min_km``-``max_km`` apart, departure uniform in ``[0, window_s]`` [s],
+    operator ``op-1..op-<operators>``, priority 1 with probability ``priority_share`` (else 0),
+    the scenario's vehicle and the default DOP level.  ``np.random.default_rng(seed)``."""
+    env, surf, clear = maps["environment"], maps["surface"], maps["clearance"]
+    if "site_x" not in env.coords or env.sizes.get("site", len(env["site_x"])) < 2:
+        raise InputError(f"scenario {sc.name} has fewer than 2 landing sites to draw missions between; give a "
+                         "fleet file (--fleet) instead")
+    alt = float(sc.mission.start.alt_agl_m if alt_agl_m is None else alt_agl_m)
+    g = sc.grid
+    sx, sy = np.asarray(env["site_x"].values, float), np.asarray(env["site_y"].values, float)
+    r, c = g.cell_of(sx, sy)
+    terr = np.asarray(surf["terrain"].values)[r, c]
+    floor = np.asarray(clear["min_altitude_m"].values)[r, c]
+    ok = np.isfinite(floor) & (floor <= terr + alt)
+    if "nofly" in clear:
+        ok &= ~np.asarray(clear["nofly"].values, bool)[r, c]
+    idx = np.flatnonzero(ok)
+    d = np.hypot(sx[idx, None] - sx[None, idx], sy[idx, None] - sy[None, idx])
+    ii, jj = np.nonzero((d >= min_km * 1e3) & (d <= max_km * 1e3))
+    if ii.size == 0:
+        raise InputError(f"no pair of usable landing sites of {sc.name} lies {min_km}-{max_km} km apart; give a "
+                         "fleet file (--fleet) instead")
+    rng = np.random.default_rng(seed)
+    pick = rng.integers(0, ii.size, n)
+    dep = np.sort(rng.uniform(0.0, window_s, n))
+    ops = rng.integers(1, operators + 1, n)
+    pri = (rng.random(n) < priority_share).astype(int)
+    out = []
+    for k in range(n):
+        a, b = idx[ii[pick[k]]], idx[jj[pick[k]]]
+        out.append(FleetTask(k, f"m{k + 1:04d}", f"op-{ops[k]}", (float(sx[a]), float(sy[a])), alt,
+                             (float(sx[b]), float(sy[b])), alt, round(float(dep[k]), 1), int(pri[k]), sc.vehicle,
+                             None))
+    return out
+
+
+# ---------------------------------------------------------------------------------- the maps
+_MAPS: dict[str, dict] = {}
+
+
+def fleet_maps(sc: Scenario, cache_dir: Path | str | None, scheduler: str = "threads") -> dict:
+    """The scenario's map datasets (loaded in memory) and the plan stage's dataset, from the
+    cache (computed once when absent); memoised per process (each dask worker loads them once)."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.graph import stages_for
+    from skyroute.pipeline.model import stable_hash
+    from skyroute.pipeline.runner import run_scenario
+
+    key = stable_hash("fleet-maps-1", sc.model_dump(mode="json"), str(cache_dir))
+    if key in _MAPS:
+        return _MAPS[key]
+    names = [s.name for s in stages_for(sc) if s.name in (*MAP_STAGES, "plan")]
+    res = run_scenario(sc, cache=Cache(cache_dir), targets=names, scheduler=scheduler)
+    maps: dict[str, Any] = {k: res[k].load() for k in names if k in res.datasets}
+    maps["_result"] = res
+    from skyroute.pipeline.plan_exports import scenario_height_reference
+
+    ref = scenario_height_reference(sc, str(maps["surface"]["surface"].attrs.get("vertical_datum", "")))
+    ref.ellipsoidal_m(0.0, 0.0, 0.0)   # the geoid grid is on disk
+    maps["_ref"] = ref
+    _MAPS.clear()
+    _MAPS[key] = maps
+    return maps
+
+
+def _warm(sc: Scenario, cache_dir, task: FleetTask | None = None, level: float | None = None,
+          opt: FleetOptions | None = None) -> None:
+    """Load the maps into this process (a dask worker) and, given a ``task``, plan it once
+    without traffic (loads the compiled kernels; the result is dropped)."""
+    fleet_maps(sc, cache_dir, scheduler="synchronous")
+    if task is not None:
+        plan_attempt(sc, cache_dir, task, task.earliest_s, level, [], opt or FleetOptions())
+
+
+def default_level(maps: dict) -> float | None:
+    """The scenario's strictest flyable DOP level: the lowest threshold whose candidate of the
+    scenario's own plan is flyable (None without coverage maps; the loosest level when none is)."""
+    if "coverage" not in maps:
+        return None
+    levels = sorted(float(d) for d in maps["coverage"]["threshold"].values)
+    plan = maps.get("plan")
+    if plan is not None:
+        ok = [float(d) for d, f in zip(plan["dop_threshold"].values, plan["flyable"].values, strict=True)
+              if bool(f) and np.isfinite(d)]
+        if ok:
+            return min(ok)
+    return levels[-1]
+
+
+# ---------------------------------------------------------------------------------- one attempt
+@dataclass
+class Attempt:
+    """One planning attempt of a mission at a departure: ``ok`` when a flyable plan came out
+    (not yet checked against the accepted volumes); its intent ``volumes`` (W84, fleet time
+    [s]), ``obstacles`` (the same in the surface datum, conservative band) and ``doc`` (the
+    F3548 OperationalIntentDetails dict); ``xyz_m`` / ``t_s``: the trajectory sampled every
+    0.05 s (map CRS, surface datum; fleet time)."""
+
+    mission: str
+    departure_s: float
+    ok: bool
+    reason: str = ""
+    volumes: list = field(default_factory=list)
+    obstacles: list = field(default_factory=list)
+    doc: dict | None = None
+    xyz_m: np.ndarray | None = None
+    t_s: np.ndarray | None = None
+    energy_Wh: float = math.nan
+    length_m: float = math.nan
+    flight_time_s: float = math.nan
+    compute_s: float = 0.0
+    seen: tuple = ()
+    step2_status: str = ""
+    chain: tuple | None = None        # STEP II chain (waypoints (k, 3) [m], times [s] mission time)
+    trajectory: tuple | None = None   # (CornerTrajectory, t0 [s] mission time)
+
+
+def _seed(base: int, mission: str, departure_s: float) -> int:
+    return zlib.crc32(f"{base}/{mission}/{departure_s:.3f}".encode()) & 0x7FFFFFFF
+
+
+def _grow(opt: FleetOptions, vehicle_radius_m: float) -> tuple[float, float, float]:
+    """(horizontal [m], vertical [m], time [s]) growth of the accepted volumes for a new plan:
+    its own buffer (k sigma + vehicle radius + rounding margins), x 1.5 horizontally for the
+    hull of an arc chunk (sagitta <= half the buffer), plus a chunk's climb vertically and a
+    chunk's duration + time buffer in time (a volume spans its whole chunk)."""
+    r = opt.k_sigma * opt.sigma_est_m + vehicle_radius_m + 0.2
+    return 1.5 * r / math.cos(math.pi / 16), r + opt.max_dz_m, opt.time_buffer_s + opt.max_volume_s + 0.5
+
+
+def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, level: float | None,
+                 obstacles: Sequence[tuple[str, Any]], opt: FleetOptions, seen: tuple = ()) -> Attempt:
+    """Plan ``task`` departing ``departure_s`` [s after the scenario start] at DOP ``level``
+    with ``obstacles`` ((owner, Volume4 in the surface datum, fleet time)) as STEP II / III
+    traffic; the intent volumes of the plan (see the module docstring)."""
+    import pandas as pd
+
+    from skyroute.stages.base import SkyrouteError
+    from skyroute.stages.fleet import Volume4
+    from skyroute.stages.intents import intent_details, plan_volumes
+    from skyroute.stages.planning.strategic import plan_strategic
+    from skyroute.stages.traffic import build_occupancy, volume_prisms
+    from skyroute.stages.vehicle import load_vehicle
+
+    t_start = time.perf_counter()
+    maps = fleet_maps(sc, cache_dir, scheduler="synchronous")
+    ref = maps["_ref"]
+    veh = load_vehicle(task.vehicle)
+    r_veh = veh.safety_distance_m + 0.5 * sc.traffic.margin_m
+    gh, gz, gt = _grow(opt, r_veh)
+    occ = None
+    if obstacles:
+        prisms = volume_prisms([v for _, v in obstacles], grow_m=gh, grow_z_m=gz, grow_t_s=gt,
+                               owners=[o for o, _ in obstacles]).shifted(-departure_s)
+        horizon = max(float(prisms.band[:, 3].max()), 1.0) + 1.0
+        occ = build_occupancy([], horizon, 1, 0.0, 0.0).with_volumes(prisms)
+    cov = maps.get("coverage")
+    if cov is not None and level is not None:
+        cov = cov.sel(threshold=[level])
+    t0_utc = pd.Timestamp(sc.mission.start_time_utc) + pd.Timedelta(seconds=departure_s)
+    p = sc.planner
+    try:
+        plan = plan_strategic(maps["surface"], maps.get("environment"), maps.get("wind"), maps["clearance"], cov,
+                              maps.get("satellites"), occ, start_xy=task.start_xy, start_agl_m=task.start_agl_m,
+                              goal_xy=task.goal_xy, goal_agl_m=task.goal_agl_m, start_time_utc=t0_utc,
+                              vehicle=task.vehicle, weights=p.weights, planner="astar",
+                              time_budget_s=opt.time_budget_s, seed=_seed(opt.seed, task.id, departure_s),
+                              max_tries=p.max_tries, step_cells=p.step_cells,
+                              min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
+                              dop_kind=sc.gnss.dop_kind, d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s,
+                              uere_m=sc.gnss.uere_m, workers=1, battery_reserve_pct=sc.constraints.battery_reserve_pct,
+                              heuristic_cache=maps.setdefault("_heuristics", {}))
+    except SkyrouteError as exc:
+        return Attempt(task.id, departure_s, False, f"planner: {exc}", compute_s=time.perf_counter() - t_start,
+                       seen=seen)
+    c = plan.chosen
+    if c is None:
+        return Attempt(task.id, departure_s, False, plan.reason or "no flyable plan",
+                       compute_s=time.perf_counter() - t_start, seen=seen)
+    traj, t0 = c.trajectory, float(c.t_s[0])
+    crs = maps["surface"]["surface"].rio.crs
+    from pyproj import Transformer
+
+    to_ll = Transformer.from_crs(crs, 4326, always_xy=True)
+
+    def h_w84(q: np.ndarray) -> np.ndarray:
+        lon, lat = to_ll.transform(q[:, 0], q[:, 1])
+        return ref.ellipsoidal_m(np.asarray(lon), np.asarray(lat), q[:, 2])
+
+    try:
+        iv = plan_volumes(traj, t0, c.t_s, c.sigma_p_m, h_w84, vehicle_radius_m=r_veh, k_sigma=opt.k_sigma,
+                          time_buffer_s=opt.time_buffer_s, max_volume_s=opt.max_volume_s, max_dz_m=opt.max_dz_m)
+    except SkyrouteError as exc:
+        return Attempt(task.id, departure_s, False, f"intent: {exc}", compute_s=time.perf_counter() - t_start,
+                       seen=seen)
+    doc = intent_details(iv, crs, t0_utc.isoformat(), priority=task.priority)
+    vols, obst = [], []
+    import shapely
+
+    for v in iv:
+        poly = shapely.Polygon(v.outline_xy_m)
+        lon, lat = to_ll.transform(v.outline_xy_m[:, 0], v.outline_xy_m[:, 1])
+        off = ref.ellipsoidal_m(np.asarray(lon), np.asarray(lat), np.zeros(len(lon)))   # W84 of the datum's 0 m
+        ts, te = v.t_start_s + departure_s, v.t_end_s + departure_s
+        vols.append(Volume4(poly, v.alt_lower_m, v.alt_upper_m, ts, te))
+        obst.append(Volume4(poly, v.alt_lower_m - float(np.max(off)) - 0.01, v.alt_upper_m - float(np.min(off)) + 0.01,
+                            ts, te))
+    tau = np.append(np.arange(0.0, traj.duration_s, 0.05), traj.duration_s)
+    xyz = traj.sample(tau)
+    s2 = plan.step2[0]
+    return Attempt(task.id, departure_s, True, "", vols, obst, doc, xyz, departure_s + t0 + tau,
+                   c.energy_J / 3600.0, float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()),
+                   float(c.flight_time_s), time.perf_counter() - t_start, seen,
+                   s2.status if s2 is not None else "", None if s2 is None else (s2.waypoints, s2.times_s),
+                   (traj, t0))
+
+
+def still_valid(a: Attempt, added: Sequence[tuple[str, Any]], task: FleetTask, sc: Scenario,
+                opt: FleetOptions) -> bool:
+    """Would planning again with the extra obstacles ``added`` give the same attempt ``a``?
+    Yes when STEP II left the STEP I chain unchanged (no RRT: no random draw depends on the
+    traffic) and neither that chain's timed legs (STEP II's test) nor the retimed trajectory's
+    chords (STEP III's re-check, the same chords) meet the new prisms: conflicts are an OR over
+    the prisms, so every traffic test of the attempt answers as before."""
+    from skyroute.stages.planning.deconflict import chain_conflicts
+    from skyroute.stages.planning.step3 import _retimed_conflicts
+    from skyroute.stages.traffic import build_occupancy, volume_prisms
+    from skyroute.stages.vehicle import load_vehicle
+
+    if not a.ok or a.step2_status != "unchanged" or a.chain is None or a.trajectory is None:
+        return False
+    if not added:
+        return True
+    r_veh = load_vehicle(task.vehicle).safety_distance_m + 0.5 * sc.traffic.margin_m
+    gh, gz, gt = _grow(opt, r_veh)
+    prisms = volume_prisms([v for _, v in added], grow_m=gh, grow_z_m=gz, grow_t_s=gt).shifted(-a.departure_s)
+    occ = build_occupancy([], max(float(prisms.band[:, 3].max()), 1.0) + 1.0, 1, 0.0, 0.0).with_volumes(prisms)
+    if chain_conflicts(occ, *a.chain).any():
+        return False
+    traj, t0 = a.trajectory
+    return not _retimed_conflicts(occ, traj, t0, 1.0)[2].any()   # step3's default check_spacing_m
+
+
+# ---------------------------------------------------------------------------------- the fleet
+@dataclass
+class MissionOutcome:
+    """The fleet decision of one mission (a row of fleet.csv)."""
+
+    task: FleetTask
+    status: str = "pending"
+    attempt: Attempt | None = None
+    delay_s: float = 0.0
+    attempts: int = 0
+    compute_s: float = 0.0
+    reason: str = ""
+    preempted_by: str = ""
+    level: float | None = None
+
+
+@dataclass
+class FleetResult:
+    outcomes: list[MissionOutcome]
+    seconds: float
+    speculative: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    def counts(self) -> dict[str, int]:
+        out = {k: 0 for k in ("accepted", "delayed", "rejected", "preempted-replanned")}
+        for o in self.outcomes:
+            out[o.status] = out.get(o.status, 0) + 1
+        return out
+
+
+class _State:
+    """The accepted missions: their obstacles (surface datum), a version per mission (bumped
+    when withdrawn or re-accepted) and the VolumeIndex of their intent volumes (rebuilt on a
+    withdrawal)."""
+
+    def __init__(self):
+        from skyroute.stages.fleet import VolumeIndex
+
+        self.accepted: dict[str, Attempt] = {}
+        self.priority: dict[str, int] = {}
+        self.version: dict[str, int] = {}
+        self.index = VolumeIndex()
+        self._VolumeIndex = VolumeIndex
+
+    def add(self, a: Attempt, priority: int) -> None:
+        self.accepted[a.mission] = a
+        self.priority[a.mission] = priority
+        self.version[a.mission] = self.version.get(a.mission, 0) + 1
+        self.index.add(a.volumes, a.mission)
+
+    def remove(self, mission: str) -> None:
+        self.accepted.pop(mission)
+        self.version[mission] = self.version.get(mission, 0) + 1
+        self.index = self._VolumeIndex()
+        for m, a in self.accepted.items():
+            self.index.add(a.volumes, m)
+
+    def corridor(self, task: FleetTask, departure_s: float, opt: FleetOptions, min_priority: int | None = None):
+        """(seen key, obstacles) of the accepted volumes in the attempt's space-time corridor."""
+        (x0, y0), (x1, y1) = task.start_xy, task.goal_xy
+        c = opt.corridor_m
+        bx = (min(x0, x1) - c, min(y0, y1) - c, max(x0, x1) + c, max(y0, y1) + c)
+        ta, tb = departure_s - opt.time_buffer_s - opt.max_volume_s, departure_s + _horizon_s(task, opt)
+        seen, obst = [], []
+        for m in sorted(self.accepted):
+            if min_priority is not None and self.priority[m] < min_priority:
+                continue
+            vs = [v for v in self.accepted[m].obstacles if v.t_end_s >= ta and v.t_start_s <= tb
+                  and _box_overlap(v.polygon.bounds, bx)]
+            if vs:
+                seen.append((m, self.version[m]))
+                obst.extend((m, v) for v in vs)
+        return tuple(seen), obst
+
+
+def _horizon_s(task: FleetTask, opt: FleetOptions) -> float:
+    """Time span [s] of an attempt's corridor after its departure: 3 x the direct distance at
+    the vehicle's cruise speed + 120 s, at most ``opt.horizon_s``."""
+    from skyroute.stages.vehicle import load_vehicle
+
+    d = math.dist(task.start_xy, task.goal_xy)
+    return min(opt.horizon_s, 120.0 + 3.0 * d / load_vehicle(task.vehicle).cruise_speed_mps)
+
+
+def _box_overlap(a, b) -> bool:
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
+
+
+class _Planner:
+    """Runs attempts: inline (sequential) or on a dask client (speculative)."""
+
+    def __init__(self, sc, cache_dir, opt, level_of, client=None):
+        self.sc, self.cache_dir, self.opt, self.level_of, self.client = sc, cache_dir, opt, level_of, client
+        self.spec: dict[str, Any] = {}           # mission id -> (departure, seen, future)
+        self.stats = {"speculative_used": 0, "speculative_still_valid": 0, "speculative_replanned": 0, "attempts": 0}
+
+    def submit(self, task, dep, seen, obst, urgent: bool = True):
+        args = (self.sc, self.cache_dir, task, dep, self.level_of(task), obst, self.opt, seen)
+        if self.client is None:
+            return plan_attempt(*args)
+        # the attempt the driver waits for first, then the speculative ones in mission order
+        return self.client.submit(plan_attempt, *args, pure=False, priority=10**9 if urgent else -task.index)
+
+    def run(self, task, dep, seen, obst) -> Attempt:
+        self.stats["attempts"] += 1
+        s = self.spec.pop(task.id, None)
+        if s is not None:
+            sdep, sseen, fut = s
+            if sdep == dep and sseen == seen:
+                self.stats["speculative_used"] += 1
+                return fut.result()
+            if sdep == dep and set(sseen) <= set(seen):     # only new accepted missions in the corridor
+                a = fut.result()
+                new = {m for m, _ in set(seen) - set(sseen)}
+                if still_valid(a, [(m, v) for m, v in obst if m in new], task, self.sc, self.opt):
+                    self.stats["speculative_used"] += 1
+                    self.stats["speculative_still_valid"] += 1
+                    a.seen = seen
+                    return a
+            self.stats["speculative_replanned"] += 1
+            fut.cancel()
+        out = self.submit(task, dep, seen, obst)
+        return out if self.client is None else out.result()
+
+    def speculate(self, tasks: Sequence[FleetTask], state: _State, depth: int) -> None:
+        """Keep ``depth`` upcoming first attempts in flight, each against the accepted set of the
+        moment it was submitted (a running task cannot be stopped: it is never cancelled)."""
+        if self.client is None:
+            return
+        for t in tasks[:depth]:
+            if t.id in self.spec:      # in flight: checked (still_valid) or re-planned when committed
+                continue
+            seen, obst = state.corridor(t, t.earliest_s, self.opt)
+            self.spec[t.id] = (t.earliest_s, seen, self.submit(t, t.earliest_s, seen, obst, urgent=False))
+
+
+def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, options: FleetOptions | None = None,
+              default_dop: float | None = None, client=None, depth: int = 4,
+              echo: Callable[[str], None] | None = None) -> FleetResult:
+    """First-come-first-served planning of ``tasks`` (see the module docstring); ``client``: a
+    dask.distributed Client for the speculative parallel driver (``depth`` missions in flight)."""
+    opt = options or FleetOptions()
+    t_setup = time.perf_counter()
+    if client is not None and tasks:   # every worker loads the maps and kernels before the clock starts
+        first = min(tasks, key=lambda t: (t.earliest_s, -t.priority, t.id))
+        client.run(_warm, sc, cache_dir, first, default_dop if first.dop_level is None else first.dop_level, opt)
+    setup_s = time.perf_counter() - t_setup
+    t_start = time.perf_counter()
+
+    def level_of(t: FleetTask):
+        return t.dop_level if t.dop_level is not None else default_dop
+
+    planner = _Planner(sc, cache_dir, opt, level_of, client)
+    state = _State()
+    order = sorted(tasks, key=lambda t: (t.earliest_s, -t.priority, t.id))
+    outcomes = {t.id: MissionOutcome(t, level=level_of(t)) for t in order}
+    queue: list[FleetTask] = list(order)
+    n_done = 0
+
+    def try_at(task: FleetTask, dep: float, min_priority: int | None = None) -> tuple[Attempt, list[str]]:
+        """An attempt and the accepted missions its volumes intersect (of priority >= min_priority)."""
+        seen, obst = state.corridor(task, dep, opt, min_priority)
+        a = planner.run(task, dep, seen, obst)
+        o = outcomes[task.id]
+        o.attempts += 1
+        o.compute_s += a.compute_s
+        if not a.ok:
+            return a, []
+        pairs = state.index.conflicts(a.volumes)
+        who = list(dict.fromkeys(state.index.owner[j] for _, j in pairs))
+        if min_priority is not None:
+            who = [m for m in who if state.priority[m] >= min_priority]
+        return a, who
+
+    while queue:
+        task = queue.pop(0)
+        planner.speculate(queue, state, depth)
+        o = outcomes[task.id]
+        dep = task.earliest_s
+        accepted: Attempt | None = None
+        last_reason = ""
+        a, who = try_at(task, dep)
+        if a.ok and not who:
+            accepted = a
+        else:
+            last_reason = a.reason if not a.ok else f"its volumes intersect accepted {', '.join(who)}"
+            lower = [m for m in state.accepted if state.priority[m] < task.priority]
+            if opt.preempt and lower:
+                b, hi_conf = try_at(task, dep, min_priority=task.priority)
+                if b.ok and not hi_conf:
+                    victims = sorted({state.index.owner[j] for _, j in state.index.conflicts(b.volumes)})
+                    for m in victims:
+                        state.remove(m)
+                        vo = outcomes[m]
+                        vo.status, vo.preempted_by, vo.attempt = "preempted", task.id, None
+                    accepted = b
+                    for m in sorted(victims, key=lambda m: (outcomes[m].task.earliest_s, m), reverse=True):
+                        queue.insert(0, outcomes[m].task)
+            k = 1
+            while accepted is None and k * opt.delay_step_s <= opt.max_delay_s + 1e-9:
+                a, who = try_at(task, dep + k * opt.delay_step_s)
+                if a.ok and not who:
+                    accepted = a
+                else:
+                    last_reason = a.reason if not a.ok else f"its volumes intersect accepted {', '.join(who)}"
+                k += 1
+        if accepted is not None:
+            state.add(accepted, task.priority)
+            o.attempt = accepted
+            o.delay_s = accepted.departure_s - task.earliest_s
+            o.status = ("preempted-replanned" if o.preempted_by else "delayed" if o.delay_s > 0 else "accepted")
+            o.reason = f"preempted by {o.preempted_by}, re-planned" if o.preempted_by else ""
+        else:
+            o.status = "rejected"
+            o.reason = ((f"preempted by {o.preempted_by}; then " if o.preempted_by else "")
+                        + f"no conflict-free plan up to {opt.max_delay_s:g} s of delay: {last_reason}")
+        n_done += 1
+        if echo is not None:
+            echo(f"fleet: {task.id} {o.status} (delay {o.delay_s:g} s, {o.attempts} attempt(s))")
+    for s in planner.spec.values():
+        s[2].cancel()
+    res = FleetResult([outcomes[t.id] for t in order], time.perf_counter() - t_start,
+                      {**planner.stats, "worker_setup_s": round(setup_s, 3)})
+    return res
+
+
+# ---------------------------------------------------------------------------------- independent checks
+def independent_conflicts(docs: dict[str, dict], crs, start_time_utc) -> list[tuple[str, str]]:
+    """Pairs of missions whose intent documents intersect, by plain pairwise shapely code (every
+    pair of volumes of two different intents: altitude overlap, time overlap and intersection
+    area > 1e-4 m^2 in the metric ``crs``), independent of the VolumeIndex that accepted them."""
+    from skyroute.stages.fleet import MIN_AREA_M2, volumes_of_intent
+
+    vols = {m: volumes_of_intent(d, crs, start_time_utc) for m, d in docs.items()}
+    ids = sorted(vols)
+    bad = []
+    for i, a in enumerate(ids):
+        for b in ids[i + 1:]:
+            hit = False
+            for u in vols[a]:
+                for v in vols[b]:
+                    if (u.alt_lower_m < v.alt_upper_m and v.alt_lower_m < u.alt_upper_m and u.t_start_s < v.t_end_s
+                            and v.t_start_s < u.t_end_s and u.polygon.intersection(v.polygon).area > MIN_AREA_M2):
+                        hit = True
+                        break
+                if hit:
+                    break
+            if hit:
+                bad.append((a, b))
+    return bad
+
+
+def min_separation_m(tracks: dict[str, tuple[np.ndarray, np.ndarray]]) -> tuple[float, tuple[str, str] | None]:
+    """Smallest 3-D distance [m] between two tracks at the same time (each track: times [s],
+    positions (n, 3) [m]; the other track linearly interpolated at one track's samples)."""
+    ids = sorted(tracks)
+    best, who = math.inf, None
+    for i, a in enumerate(ids):
+        ta, pa = tracks[a]
+        for b in ids[i + 1:]:
+            tb, pb = tracks[b]
+            m = (ta >= tb[0]) & (ta <= tb[-1])
+            if not m.any():
+                continue
+            q = np.column_stack([np.interp(ta[m], tb, pb[:, k]) for k in range(3)])
+            d = float(np.min(np.linalg.norm(pa[m] - q, axis=1)))
+            if d < best:
+                best, who = d, (a, b)
+    return best, who
+
+
+# ---------------------------------------------------------------------------------- outputs
+def _accepted(res: FleetResult) -> list[MissionOutcome]:
+    return [o for o in res.outcomes if o.attempt is not None and o.status != "rejected"]
+
+
+def write_fleet(res: FleetResult, sc: Scenario, maps: dict, out_dir: Path) -> tuple[list[Path], dict]:
+    """fleet.csv, intents/<mission>.json (accepted, delayed, re-planned), fleet.geojson,
+    tracks.csv (0.05 s), fleet.png; returns (files, summary ``fleet`` section)."""
+    import json
+
+    import pandas as pd
+    from pyproj import Transformer
+
+    from skyroute.stages.intents import parse_intent
+
+    out = Path(out_dir)
+    (out / "intents").mkdir(parents=True, exist_ok=True)
+    for old in (out / "intents").glob("*.json"):
+        old.unlink()
+    t0 = pd.Timestamp(sc.mission.start_time_utc)
+    files: list[Path] = []
+    rows = []
+    for o in res.outcomes:
+        a = o.attempt if o.status != "rejected" else None
+        rows.append({"mission": o.task.id, "operator": o.task.operator, "priority": o.task.priority,
+                     "status": o.status,
+                     "departure_utc": (t0 + pd.Timedelta(seconds=a.departure_s)).isoformat() if a else "",
+                     "earliest_s": round(o.task.earliest_s, 3), "delay_s": round(o.delay_s, 3) if a else "",
+                     "dop_level": "" if o.level is None else o.level,
+                     "energy_Wh": round(a.energy_Wh, 3) if a else "", "length_m": round(a.length_m, 2) if a else "",
+                     "flight_time_s": round(a.flight_time_s, 2) if a else "", "compute_s": round(o.compute_s, 3),
+                     "attempts": o.attempts, "volumes": len(a.volumes) if a else 0, "preempted_by": o.preempted_by,
+                     "reason": o.reason})
+    p = out / "fleet.csv"
+    with open(p, "w", newline="") as f:
+        w = csv.DictWriter(f, FLEET_COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    files.append(p)
+    acc = _accepted(res)
+    docs = {}
+    for o in acc:
+        parse_intent(o.attempt.doc)          # F3548 schema and limits (uas-standards)
+        docs[o.task.id] = o.attempt.doc
+        q = out / "intents" / f"{o.task.id}.json"
+        q.write_text(json.dumps(o.attempt.doc, indent=1))
+        files.append(q)
+    crs = maps["surface"]["surface"].rio.crs
+    datum = str(maps["surface"]["surface"].attrs.get("vertical_datum", ""))
+    to_ll = Transformer.from_crs(crs, 4326, always_xy=True)
+    feats = []
+    with open(out / "tracks.csv", "w") as f:
+        f.write("mission,t_s,x_m,y_m,z_m\n")
+        for o in acc:
+            a = o.attempt
+            np.savetxt(f, np.column_stack([a.t_s, a.xyz_m]), fmt=[o.task.id + ",%.3f", "%.3f", "%.3f", "%.3f"],
+                       delimiter=",")
+            k = np.unique(np.r_[np.arange(0, a.t_s.size, 20), a.t_s.size - 1])
+            lon, lat = to_ll.transform(a.xyz_m[k, 0], a.xyz_m[k, 1])
+            feats.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": [
+                [round(float(x), 7), round(float(y), 7), round(float(z), 2)] for x, y, z in zip(lon, lat, a.xyz_m[k, 2],
+                                                                                             strict=True)]},
+                "properties": {"mission": o.task.id, "operator": o.task.operator, "status": o.status,
+                               "priority": o.task.priority,
+                               "departure_utc": (t0 + pd.Timedelta(seconds=a.departure_s)).isoformat(),
+                               "delay_s": o.delay_s, "z_datum": datum}})
+    files.append(out / "tracks.csv")
+    gj = {"type": "FeatureCollection", "name": f"skyroute fleet {sc.name}",
+          "description": f"accepted trajectories (lon, lat [deg] WGS 84; z [m] in the surface datum of the maps: "
+                         f"{datum}; absolute heights are in intents/*.json, WGS 84 ellipsoidal)",
+          "vertical_datum": datum, "features": feats}
+    (out / "fleet.geojson").write_text(json.dumps(gj))
+    files.append(out / "fleet.geojson")
+    files.append(plot_fleet(res, sc, maps, out / "fleet.png"))
+    conflicts = independent_conflicts(docs, crs, sc.mission.start_time_utc.isoformat())
+    sep, pair = min_separation_m({o.task.id: (o.attempt.t_s, o.attempt.xyz_m) for o in acc})
+    counts = res.counts()
+    delays = [o.delay_s for o in acc]
+    attempts = sum(o.attempts for o in res.outcomes)
+    section = {"missions": len(res.outcomes), "counts": counts, "accepted_total": len(acc),
+               "mean_delay_s": float(np.mean(delays)) if delays else None,
+               "seconds": round(res.seconds, 3), "planning_attempts": attempts,
+               "throughput_plans_per_min": round(attempts / res.seconds * 60.0, 2) if res.seconds > 0 else None,
+               "missions_per_min": round(len(res.outcomes) / res.seconds * 60.0, 2) if res.seconds > 0 else None,
+               "conflicts_independent_check": len(conflicts), "conflicting_pairs": [list(c) for c in conflicts],
+               "min_separation_m": None if not math.isfinite(sep) else round(sep, 3),
+               "min_separation_pair": list(pair) if pair else None,
+               "required_separation_m": None, "preempted": sorted(o.task.id for o in res.outcomes if o.preempted_by),
+               "speculative": res.speculative, "z_datum_geojson": datum,
+               "notes": ["the scenario's own intruders are not fleet traffic: the traffic of each mission is the "
+                         "accepted intents"]}
+    return files, section
+
+
+def plot_fleet(res: FleetResult, sc: Scenario, maps: dict, path: Path) -> Path:
+    """Two panels: the accepted paths over the surface model, and the timeline of every
+    accepted mission's intent volumes (one row per mission)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    acc = _accepted(res)
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 6.2), gridspec_kw={"width_ratios": [1, 1.25]})
+    s = maps["surface"]["surface"]
+    x, y = np.asarray(s["x"].values), np.asarray(s["y"].values)
+    step = max(1, int(max(x.size, y.size) / 800))
+    im = ax.imshow(np.asarray(s.values)[::step, ::step], extent=(x.min(), x.max(), y.min(), y.max()), origin="upper"
+                   if y[0] > y[-1] else "lower", cmap="Greys", interpolation="nearest")
+    fig.colorbar(im, ax=ax, shrink=0.7, label="surface [m]")
+    cmap = plt.get_cmap("tab20")
+    for i, o in enumerate(acc):
+        p = o.attempt.xyz_m
+        ax.plot(p[:, 0], p[:, 1], lw=0.9, color=cmap(i % 20))
+        ax.plot(p[0, 0], p[0, 1], "o", ms=2.5, color=cmap(i % 20))
+    ax.set_title(f"{sc.name}: {len(acc)} accepted paths")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.tick_params(axis="x", labelrotation=30)
+    colors = {"accepted": "tab:green", "delayed": "tab:orange", "preempted-replanned": "tab:purple"}
+    for i, o in enumerate(acc):
+        for v in o.attempt.volumes:
+            bx.plot([v.t_start_s / 60.0, v.t_end_s / 60.0], [i, i], lw=2.5, color=colors.get(o.status, "k"),
+                    solid_capstyle="butt")
+    for k, c in colors.items():
+        bx.plot([], [], color=c, lw=3, label=k)
+    rej = sum(o.status == "rejected" for o in res.outcomes)
+    bx.legend(loc="lower right", fontsize=8, title=f"rejected: {rej}", title_fontsize=8)
+    bx.set_xlabel("time after the scenario start [min]")
+    bx.set_ylabel("accepted mission (order of acceptance)")
+    bx.set_title("intent volumes' time windows")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

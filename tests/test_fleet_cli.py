@@ -1,0 +1,300 @@
+"""`skyroute fleet` on helsinki-medical: every accepted intent checked against every other with
+plain shapely code written here, trajectories checked for r + d_c separation by brute force,
+determinism, the parallel driver's equality with the sequential one, fleet-file errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import shapely
+from click.testing import CliRunner
+from pyproj import Transformer
+
+from skyroute.pipeline.cli import main
+from skyroute.pipeline.settings import GroundReference, load_scenario
+from skyroute.stages.vehicle import load_vehicle
+
+GROUND = ["--ground-m", "10"]
+A = {"x": 385747.35, "y": 6672213.62, "alt_agl_m": 60}
+B = {"x": 385969.55, "y": 6672495.29, "alt_agl_m": 60}
+C = {"x": 385990.82, "y": 6672586.58, "alt_agl_m": 60}
+D = {"x": 385497.54, "y": 6672661.04, "alt_agl_m": 60}
+FLEET = {"missions": [
+    {"id": "low", "operator": "op-a", "start": A, "goal": B, "departure": 0, "priority": 0},
+    {"id": "high", "operator": "op-b", "start": A, "goal": B, "departure": 5, "priority": 1},
+    {"id": "cross", "operator": "op-c", "start": C, "goal": D, "departure": 10},
+    {"id": "back", "operator": "op-a", "start": B, "goal": A, "departure": "2020-01-03T10:00:20Z"},
+]}
+
+
+def _yaml(path: Path, doc: dict) -> Path:
+    import yaml
+
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+@pytest.fixture(scope="module")
+def cache_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("fleet-cache")
+
+
+def _fleet(args, cache_dir):
+    res = CliRunner().invoke(main, ["fleet", "helsinki-medical", *GROUND, "--cache-dir", str(cache_dir), "-q", *args])
+    assert res.exit_code == 0, res.output
+    return res
+
+
+@pytest.fixture(scope="module")
+def drawn(tmp_path_factory, cache_dir):
+    out = tmp_path_factory.mktemp("drawn") / "o"
+    _fleet(["--missions", "20", "--seed", "3", "--window-min", "20", "--out", str(out)], cache_dir)
+    return out
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory, cache_dir):
+    tmp = tmp_path_factory.mktemp("small")
+    f = _yaml(tmp / "fleet.yaml", FLEET)
+    _fleet(["--fleet", str(f), "--out", str(tmp / "a")], cache_dir)
+    return tmp, f
+
+
+def _rows(out: Path) -> list[dict]:
+    with open(out / "fleet.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def _decisions(out: Path) -> list[tuple]:
+    return [tuple(v for k, v in r.items() if k != "compute_s") for r in _rows(out)]
+
+
+# ----------------------------------------------------------------------------- independent checks
+def _volumes(doc: dict, crs) -> list[tuple]:
+    """(polygon [m], alt lo, alt hi [m], t0, t1 [ns]) of an intent, read with plain code."""
+    tr = Transformer.from_crs(4326, crs, always_xy=True)
+    out = []
+    for v in doc["volumes"]:
+        vx = v["volume"]["outline_polygon"]["vertices"]
+        x, y = tr.transform([p["lng"] for p in vx], [p["lat"] for p in vx])
+        out.append((shapely.Polygon(np.column_stack([x, y])), v["volume"]["altitude_lower"]["value"],
+                    v["volume"]["altitude_upper"]["value"], pd.Timestamp(v["time_start"]["value"]).value,
+                    pd.Timestamp(v["time_end"]["value"]).value))
+    return out
+
+
+def _intersect(u, v, min_area_m2=1e-4) -> bool:
+    return (u[1] < v[2] and v[1] < u[2] and u[3] < v[4] and v[3] < u[4]
+            and u[0].intersection(v[0]).area > min_area_m2)
+
+
+def test_tiny_overlap_at_1_cm_precision():
+    """InterUSS's 1 cm precision: 0.5 cm x 1 cm of shared area does not count, 2 cm x 1 cm does;
+    the VolumeIndex used by the fleet agrees with the plain check above."""
+    from skyroute.stages.fleet import Volume4, VolumeIndex
+
+    base = shapely.box(0, 0, 10, 10)
+    for dx, expect in ((0.005, False), (0.02, True)):
+        other = shapely.box(10 - dx, 9.99, 20, 20)       # overlap dx x 0.01 m
+        u, v = (base, 0.0, 10.0, 0, 10), (other, 5.0, 15.0, 5, 15)
+        assert _intersect(u, v) is expect
+        idx = VolumeIndex()
+        idx.add([Volume4(base, 0.0, 10.0, 0.0, 10.0)], "a")
+        assert bool(idx.conflicts([Volume4(other, 5.0, 15.0, 5.0, 15.0)])) is expect
+
+
+def test_drawn_fleet_at_least_half_accepted(drawn):
+    rows = _rows(drawn)
+    assert len(rows) == 20
+    ok = [r for r in rows if r["status"] in ("accepted", "delayed", "preempted-replanned")]
+    assert len(ok) >= 10
+    assert {p.stem for p in (drawn / "intents").glob("*.json")} == {r["mission"] for r in ok}
+    for r in rows:
+        if r["status"] == "delayed":
+            assert float(r["delay_s"]) > 0
+        if r["status"] == "rejected":
+            assert r["reason"]
+    doc = json.loads((drawn / "summary.json").read_text())
+    assert doc["command"] == "fleet" and doc["schema_version"]
+    assert all((drawn / f).is_file() for f in doc["files"])
+    f = doc["fleet"]
+    assert f["conflicts_independent_check"] == 0
+    assert f["counts"]["accepted"] + f["counts"]["delayed"] + f["counts"]["preempted-replanned"] == len(ok)
+    gj = json.loads((drawn / "fleet.geojson").read_text())
+    assert len(gj["features"]) == len(ok) and gj["vertical_datum"]
+
+
+def test_no_two_accepted_intents_intersect(drawn):
+    from implicitdict import ImplicitDict
+    from uas_standards.astm.f3548.v21.api import OperationalIntentDetails
+
+    crs = load_scenario("helsinki-medical").grid.crs
+    vols = {}
+    for p in sorted((drawn / "intents").glob("*.json")):
+        doc = json.loads(p.read_text())
+        ImplicitDict.parse(doc, OperationalIntentDetails)
+        vols[p.stem] = _volumes(doc, crs)
+    ids = sorted(vols)
+    pairs = 0
+    for i, a in enumerate(ids):
+        for b in ids[i + 1:]:
+            for u in vols[a]:
+                for v in vols[b]:
+                    pairs += 1
+                    assert not _intersect(u, v), (a, b)
+    assert pairs > 1000
+
+
+def test_trajectories_keep_separation_and_stay_in_their_intents(drawn):
+    """Brute force at 0.05 s: every pair of tracks flying at the same instant is >= r_p + d_c
+    apart; every track sample lies in a volume outline of its own intent during its window."""
+    sc = load_scenario("helsinki-medical")
+    need = load_vehicle(sc.vehicle).r_p_m + sc.traffic.margin_m
+    tr = pd.read_csv(drawn / "tracks.csv")
+    tracks = {m: g for m, g in tr.groupby("mission")}
+    grid = {}
+    for m, g in tracks.items():
+        t = np.arange(np.ceil(g.t_s.min() / 0.05), np.floor(g.t_s.max() / 0.05) + 1) * 0.05
+        grid[m] = (t, np.column_stack([np.interp(t, g.t_s, g[c]) for c in ("x_m", "y_m", "z_m")]))
+    ids = sorted(grid)
+    checked = 0
+    for i, a in enumerate(ids):
+        for b in ids[i + 1:]:
+            ta, pa = grid[a]
+            tb, pb = grid[b]
+            common, ia, ib = np.intersect1d(np.round(ta / 0.05).astype(int), np.round(tb / 0.05).astype(int),
+                                            return_indices=True)
+            if common.size:
+                checked += 1
+                assert np.linalg.norm(pa[ia] - pb[ib], axis=1).min() >= need, (a, b)
+    assert checked >= 1
+    crs = sc.grid.crs
+    t0 = pd.Timestamp(sc.mission.start_time_utc).value
+    for m, g in tracks.items():
+        vols = _volumes(json.loads((drawn / "intents" / f"{m}.json").read_text()), crs)
+        t_ns = t0 + (g.t_s.to_numpy() * 1e9).astype(np.int64)
+        inside = np.zeros(len(g), bool)
+        for poly, _, _, a, b in vols:
+            w = (t_ns >= a) & (t_ns <= b)
+            inside[w] |= shapely.contains_xy(poly, g.x_m.to_numpy()[w], g.y_m.to_numpy()[w])
+        assert inside.all(), m
+
+
+def test_fleet_png(drawn):
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(drawn / "fleet.png")
+    assert img.shape[1] > 1000 and img.std() > 0.05
+
+
+def test_priority_preemption_and_determinism(small, cache_dir):
+    tmp, f = small
+    rows = {r["mission"]: r for r in _rows(tmp / "a")}
+    assert rows["high"]["status"] == "accepted"
+    assert rows["low"]["status"] in ("preempted-replanned", "rejected")
+    assert rows["low"]["preempted_by"] == "high"
+    if rows["low"]["status"] == "preempted-replanned":
+        assert float(rows["low"]["delay_s"]) > 0
+    assert rows["back"]["earliest_s"] == "20.0"
+    _fleet(["--fleet", str(f), "--out", str(tmp / "b")], cache_dir)
+    assert _decisions(tmp / "a") == _decisions(tmp / "b")
+    for p in (tmp / "a" / "intents").glob("*.json"):
+        assert p.read_text() == (tmp / "b" / "intents" / p.name).read_text()
+
+
+def test_distributed_gives_the_sequential_result(small, cache_dir):
+    """The speculative driver on a dask.distributed cluster (in-process workers here, to keep
+    the test short; `--scheduler distributed` uses worker processes the same way) decides as
+    the sequential run of the CLI."""
+    from distributed import Client
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.fleet import (
+        FleetOptions,
+        default_level,
+        fleet_maps,
+        load_fleet,
+        run_fleet,
+    )
+
+    tmp, f = small
+    sc = load_scenario("helsinki-medical")
+    sc = sc.model_copy(update={"data": sc.data.model_copy(
+        update={"ground": GroundReference(height_m=10.0, vertical_datum="EGM96 geoid")})})
+    root = Cache(cache_dir).root
+    maps = fleet_maps(sc, root)
+    tasks = load_fleet(f, sc, sc.gnss.dop_thresholds)
+    with Client(processes=False, n_workers=2, threads_per_worker=1, dashboard_address=None) as client:
+        res = run_fleet(sc, tasks, cache_dir=root, options=FleetOptions(seed=0), default_dop=default_level(maps),
+                        client=client)
+    rows = {r["mission"]: r for r in _rows(tmp / "a")}
+    assert [(o.task.id, o.status, o.delay_s) for o in res.outcomes] == \
+        [(m, rows[m]["status"], float(rows[m]["delay_s"] or 0)) for m in rows]
+    assert res.speculative["speculative_used"] + res.speculative["speculative_replanned"] >= 1
+
+
+@pytest.mark.parametrize("missions, lines", [
+    ([{"id": "a", "start": A, "departure": 0}], 1),                                   # no goal
+    ([{"id": "a", "start": A, "goal": B}, {"id": "a", "start": A, "goal": {"x": 1.0, "y": 2.0, "alt_agl_m": 5}}], 2),
+])
+def test_bad_fleet_file_exit_2_one_line_per_problem(tmp_path, missions, lines):
+    f = _yaml(tmp_path / "bad.yaml", {"missions": missions})
+    res = CliRunner().invoke(main, ["fleet", "helsinki-medical", "--fleet", str(f), "--out", str(tmp_path / "o"),
+                                    "--cache-dir", str(tmp_path / "c")])
+    assert res.exit_code == 2
+    err = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(err) == lines and all(ln.startswith("error: ") for ln in err), res.output
+    assert not (tmp_path / "c").exists()     # refused before any stage ran
+
+
+def test_csv_fleet_file(tmp_path):
+    from skyroute.pipeline.fleet import load_fleet
+
+    p = tmp_path / "f.csv"
+    p.write_text("id,operator,start_x,start_y,start_alt_agl_m,goal_lon,goal_lat,goal_alt_agl_m,departure,priority\n"
+                 f"m1,op,{A['x']},{A['y']},60,24.9408349,60.1642173,50,2020-01-03T10:01:00Z,2\n")
+    sc = load_scenario("helsinki-medical")
+    (t,) = load_fleet(p, sc, sc.gnss.dop_thresholds)
+    assert t.earliest_s == 60.0 and t.priority == 2 and t.goal_agl_m == 50
+    gx, gy = sc.grid.from_lonlat(24.9408349, 60.1642173)
+    assert abs(t.goal_xy[0] - float(gx)) < 1e-6 and abs(t.goal_xy[1] - float(gy)) < 1e-6
+
+
+def test_volume_prisms_exact_against_sampling():
+    """The STEP II prism test against 2001 samples per segment (grown outline, band, window)."""
+    from skyroute.stages.fleet import Volume4
+    from skyroute.stages.traffic import build_occupancy, volume_prisms
+
+    rng = np.random.default_rng(1)
+    vols = []
+    for _ in range(30):
+        c, z, t = rng.uniform(0, 100, 2), rng.uniform(0, 50), rng.uniform(0, 100)
+        vols.append(Volume4(shapely.Point(c).buffer(rng.uniform(3, 10)), z, z + rng.uniform(2, 10), t,
+                            t + rng.uniform(5, 30)))
+    occ = build_occupancy([], 200.0, 1, 0.0, 0.0).with_volumes(volume_prisms(vols, grow_m=2.0, grow_z_m=1.0,
+                                                                             grow_t_s=2.0))
+    n = 600
+    p0 = np.column_stack([rng.uniform(-10, 110, (n, 2)), rng.uniform(0, 60, n)])
+    p1 = p0 + rng.normal(0, 15, (n, 3))
+    t0 = rng.uniform(0, 120, n)
+    t1 = t0 + rng.uniform(0, 10, n)
+    got = occ.segment_conflicts(p0, t0, p1, t1)
+    grown = [v.polygon.convex_hull.buffer(2.0 / np.cos(np.pi / 16), quad_segs=4).convex_hull for v in vols]
+    s = np.linspace(0, 1, 2001)
+    for i in range(n):
+        q, tt = p0[i] + s[:, None] * (p1[i] - p0[i]), t0[i] + s * (t1[i] - t0[i])
+        hit = False
+        for v, g in zip(vols, grown, strict=True):
+            m = ((q[:, 2] >= v.alt_lower_m - 1) & (q[:, 2] <= v.alt_upper_m + 1) & (tt >= v.t_start_s - 2)
+                 & (tt <= v.t_end_s + 2))
+            if m.any() and shapely.contains_xy(g, q[m, 0], q[m, 1]).any():
+                hit = True
+                break
+        if hit:
+            assert got[i], i
+    assert 5 < got.sum() < n

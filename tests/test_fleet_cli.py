@@ -53,7 +53,7 @@ def _fleet(args, cache_dir):
 @pytest.fixture(scope="module")
 def drawn(tmp_path_factory, cache_dir):
     out = tmp_path_factory.mktemp("drawn") / "o"
-    _fleet(["--missions", "20", "--seed", "3", "--window-min", "20", "--out", str(out)], cache_dir)
+    _fleet(["--missions", "10", "--seed", "3", "--window-min", "10", "--out", str(out)], cache_dir)
     return out
 
 
@@ -110,9 +110,9 @@ def test_tiny_overlap_at_1_cm_precision():
 
 def test_drawn_fleet_at_least_half_accepted(drawn):
     rows = _rows(drawn)
-    assert len(rows) == 20
+    assert len(rows) == 10
     ok = [r for r in rows if r["status"] in ("accepted", "delayed", "preempted-replanned")]
-    assert len(ok) >= 10
+    assert len(ok) >= 5
     assert {p.stem for p in (drawn / "intents").glob("*.json")} == {r["mission"] for r in ok}
     for r in rows:
         if r["status"] == "delayed":

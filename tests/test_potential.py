@@ -218,9 +218,9 @@ def test_plan_end_to_end_keeps_the_exact_clearance_and_beats_astar_on_it():
     dense = np.concatenate([a + t * (b - a) for a, b in zip(wp[:-1], wp[1:], strict=True)])
     d = _prism_distance(dense, surf, g.resolution_m)
     assert d.min() >= R_P - 1e-9
-    s1 = plan_step1(pr, planner="potential")
+    s1 = plan_step1(pr, planner="potential", time_budget_s=30.0)   # wall-clock caps: generous under load
     assert s1.solved and np.allclose(s1.waypoints, wp)
-    a1 = plan_step1(pr, planner="astar")
+    a1 = plan_step1(pr, planner="astar", time_budget_s=30.0)
     da = _prism_distance(np.concatenate([a + t * (b - a) for a, b in zip(a1.waypoints[:-1], a1.waypoints[1:],
                                                                          strict=True)]), surf, g.resolution_m)
     assert d.mean() > da.mean()

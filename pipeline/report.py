@@ -52,6 +52,8 @@ FIGURES: tuple[tuple[str, str, str], ...] = (
     ("navsim", "navsim_pl.png", "Protection levels (solution separation) along the path"),
     ("navsim", "navsim_sats.png", "Satellites in line of sight / received along the path"),
     ("navsim", "morphing_*.gif", "Digital morphing map: the coverage floor per epoch under the vehicle"),
+    ("fleet", "fleet.png", "Fleet: the accepted trajectories over the map and the timeline of their reserved volumes"),
+    ("compare", "compare.png", "Planners compared on the same maps: paths (top view) and vertical profiles"),
 )
 
 PAGE = Template("""<!DOCTYPE html>
@@ -163,6 +165,8 @@ def _folders(run_dir: Path, command: str) -> dict[str, Path | None]:
         "plan": top / "plan" if command == "run" else top if command == "plan" else None,
         "fly": top / "fly" if command == "run" else top if command == "fly" else None,
         "navsim": top if command == "navsim" else None,
+        "fleet": top if command == "fleet" else None,
+        "compare": top if command == "compare" else None,
     }
 
 
@@ -222,6 +226,30 @@ CANDIDATE_HEADER = (("label", "D_j"), ("C_l_m", "C_l [m]"), ("C_r_m", "C_r [m]")
                     ("clearance_radius_m", "r_j [m]"), ("energy_Wh", "energy [Wh]"),
                     ("flight_time_s", "flight time [s]"), ("compute_time_s", "compute [s]"),
                     ("flyable", "flyable"), ("chosen", "chosen"), ("reasons", "reasons"))
+
+
+def _csv_section(folder: Path | None, name: str, title: str, intro: str, max_rows: int = 200) -> str:
+    """A CSV table of ``folder/name`` (at most ``max_rows`` rows, the count stated)."""
+    if folder is None or not (folder / name).is_file():
+        return ""
+    fields, rows = _read_csv(folder / name)
+    more = f" The first {max_rows} of {len(rows)} rows." if len(rows) > max_rows else ""
+    table = _table(fields, [[r[k] for k in fields] for r in rows[:max_rows]], text_cols=(len(fields) - 1,))
+    return f"<h2>{escape(title)}</h2><p>{escape(intro)} From {escape(name)}.{more}</p>" + table
+
+
+def _fleet_section(folder: Path | None, sec: dict[str, Any] | None) -> str:
+    """Counts of a ``skyroute fleet`` folder and its fleet.csv."""
+    if folder is None or sec is None:
+        return ""
+    counts = sec.get("counts") or {}
+    rows = [[k, v] for k, v in counts.items()]
+    for k in ("mean_delay_s", "plans_per_min", "conflicts_independent_check"):
+        if k in sec:
+            rows.append([k, sec[k]])
+    head = "<h2>Fleet (U-space, first come first served)</h2>" + _table(["", ""], rows, text_cols=(0,))
+    return head + _csv_section(folder, "fleet.csv", "Missions", "One row per mission: its status (accepted, delayed, "
+                               "preempted and re-planned, rejected and why), delay, energy, length and compute time.")
 
 
 def _candidates_section(plan_dir: Path | None) -> str:
@@ -344,7 +372,7 @@ def read_summary(run_dir: Path) -> dict[str, Any]:
 
 def report_html(run_dir: Path, page_dir: Path | None = None) -> str:
     """The report page of the folder ``run_dir`` (written by ``skyroute run``, ``plan``, ``fly``,
-    ``navsim``, ``maps`` or ``coverage``: the kind is ``summary.json``'s ``command``);
+    ``navsim``, ``fleet``, ``compare``, ``maps`` or ``coverage``: the kind is ``summary.json``'s ``command``);
     ``page_dir``: where the page will be (its links to the map pages are relative to it;
     default ``run_dir``)."""
     run_dir = Path(run_dir)
@@ -372,7 +400,13 @@ def report_html(run_dir: Path, page_dir: Path | None = None) -> str:
     body.append(_navsim_section(doc.get("navsim")))
     nav_figs = _figures(folders, "navsim")
     body.extend(nav_figs)
-    n_img = len(maps) + len(plan_figs) + len(fly_figs) + len(nav_figs)
+    body.append(_fleet_section(folders["fleet"], doc.get("fleet")))
+    body.append(_csv_section(folders["compare"], "compare.csv", "Planners compared",
+                             "One row per planner on the same maps: f and its terms, length, energy, exact "
+                             "clearance from the surface, max sigma_p, compute time, flyable or why not."))
+    other_figs = _figures(folders, "fleet") + _figures(folders, "compare")
+    body.extend(other_figs)
+    n_img = len(maps) + len(plan_figs) + len(fly_figs) + len(nav_figs) + len(other_figs)
     body.append(_timings_section(doc))
     warnings = list(doc.get("warnings") or [])
     if warnings:

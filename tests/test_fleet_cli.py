@@ -298,3 +298,19 @@ def test_volume_prisms_exact_against_sampling():
         if hit:
             assert got[i], i
     assert 5 < got.sum() < n
+
+
+def test_report_of_a_fleet_folder(drawn, tmp_path):
+    """``skyroute report`` on a fleet folder: one self-contained page with the fleet figure and
+    one table row per mission, statuses as in fleet.csv."""
+    import re
+
+    from skyroute.pipeline.report import build_report
+
+    page = build_report(drawn, tmp_path / "report.html").read_text()
+    assert "data:image/png;base64," in page and not re.search(r'src="(?!data:)', page)
+    rows = _rows(drawn)
+    table = page.split("<h2>Missions</h2>", 1)[1].split("</table>", 1)[0]
+    assert table.count("<tr>") == len(rows) + 1
+    for r in rows:
+        assert f"<td>{r['status']}</td>" in table

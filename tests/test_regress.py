@@ -115,6 +115,12 @@ def test_regress_end_to_end(tmp_path):
         d.append(np.sqrt(dx**2 + dy**2 + np.maximum(pz - s, 0) ** 2).min())
     assert min(d) >= float(row["min_clearance_m"]) - 1e-6
     assert float(row["min_clearance_m"]) >= load_vehicle(sc.vehicle).r_p_m - 1e-6
+    # its report: the compare.csv table and the figure, self-contained
+    from skyroute.pipeline.report import build_report
+
+    page = build_report(tmp_path / "cmp").read_text()
+    assert "<h2>Planners compared</h2>" in page and "data:image/png;base64," in page
+    assert f"<td>{row['f_m']}</td>" in page and f"<td>{row['min_clearance_m']}</td>" in page
     bad = CliRunner().invoke(main, ["compare", "helsinki-medical", "--planners", "astar,warp-drive",
                                     "--out", str(tmp_path / "cmp2"), "--cache-dir", str(cache.root)])
     assert bad.exit_code == 2 and "unknown planner(s) warp-drive" in bad.output

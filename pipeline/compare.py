@@ -68,7 +68,8 @@ def _row(planner: str, result) -> CompareRow:
          "length_m": float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()),
          "energy_Wh": chosen.energy_J / 3600.0, "flight_time_s": chosen.flight_time_s,
          "min_clearance_m": float(d.min()), "mean_clearance_m": float(d.mean()),
-         "max_sigma_p_m": float(np.nanmax(chosen.sigma_p_m)) if np.size(chosen.sigma_p_m) else math.nan,
+         "max_sigma_p_m": (float(np.nanmax(chosen.sigma_p_m)) if np.isfinite(chosen.sigma_p_m).any()
+                           else math.nan),         # NaN: no GNSS data (e.g. no almanac)
          "compute_s": compute_s, "reason": ""}
     return CompareRow(planner, v, xyz)
 

@@ -313,3 +313,17 @@ def test_cropped_bitmap_is_the_same_voxels_as_the_whole_one():
     i0, j0 = round((full.y1_m - crop.y1_m) / full.voxel_m), round((crop.x0_m - full.x0_m) / full.voxel_m)
     sub = full.free[kz][:, i0:i0 + crop.shape[1], j0:j0 + crop.shape[2]]
     np.testing.assert_array_equal(crop.free, sub)
+
+
+@pytest.mark.parametrize("walls", [(True, True, True, True), (False, True, False, True), (False, False, False, False),
+                                   (True, False, False, True)])
+def test_compiled_edt_equals_scipy(walls):
+    """The compiled separable EDT (with the AOI walls) against scipy's distance_transform_edt on
+    the padded array, anisotropic voxels; sparse, dense and empty obstacle sets."""
+    rng = np.random.default_rng(sum(walls))
+    for shape, p in (((7, 19, 23), 0.03), ((4, 31, 9), 0.4), ((5, 6, 8), 0.0), ((1, 12, 12), 0.1)):
+        ob = rng.random(shape) < p
+        vm = P.VoxelMap(0.0, 0.0, 0.0, 2.0, 1.3, 1, ~ob, ob, np.zeros(shape[1:]), np.zeros(shape[1:]))
+        a, b = P._edt(ob, vm, walls), P._edt_scipy(ob, vm, walls)
+        assert a.dtype == np.float32 and a.shape == shape
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-5)

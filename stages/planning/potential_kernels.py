@@ -94,7 +94,7 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
     cap = 1024
     buf = np.empty((nb, cap), dtype=np.int64)
     cnt = np.zeros(nb, dtype=np.int64)
-    state = np.empty(N, dtype=np.uint8)           # 0 inner, 3 other free, 1 blocked, 2 settled
+    state = np.empty(N, dtype=np.uint8)           # 0 inner, 3 other free, 1 blocked, 2 settled; | 4 queued
     _classify_kernel(free, nz, ny, nx, state)
     order = np.argsort(U[seeds])
     sp = 0
@@ -128,6 +128,7 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
                 cap *= 2
             buf[sl, cnt[sl]] = sv
             cnt[sl] += 1
+            state[sv] |= 4
             queued += 1
             sp += 1
         slot = cur % nb
@@ -143,7 +144,7 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
             stv = state[v]
             if stv == 2:
                 continue
-            inner = stv == 0                        # fast path: all 26 neighbours free
+            inner = (stv & 3) == 0                  # fast path: all 26 neighbours free
             state[v] = 2
             settled += 1
             if (settled & 0xFFFF) == 0 and stop[0] != 0:
@@ -175,12 +176,16 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
                         continue
                 oi = o if o < 13 else o - 1      # index into the 26 offsets (centre skipped)
                 c = Uv + steps[oi] * 0.5 * (wv + weight[u])
-                if c < U[u]:
+                Uu = U[u]
+                if c < Uu:
                     U[u] = c
                     parent[u] = 25 - oi          # offset from u back to v (opposite)
                     b = int(math.floor(c / q))
                     if b <= cur:
                         b = cur + 1
+                    elif (su & 4) != 0 and b == int(math.floor(Uu / q)):
+                        continue                 # already queued in that bucket: it reads U[u] when settled
+                    state[u] = su | 4
                     sl = b % nb
                     if cnt[sl] >= cap:
                         buf2 = np.empty((nb, 2 * cap), dtype=np.int64)
@@ -430,3 +435,114 @@ def neighbours_kernel(idx, nz, ny, nx, out):
             jj = j + o % 3 - 1
             if 0 <= kk < nz and 0 <= ii < ny and 0 <= jj < nx:
                 out[(kk * ny + ii) * nx + jj] = 1
+
+
+# --------------------------------------------------------------------------- Euclidean distance transform
+
+
+@numba.njit(cache=True, inline="always")
+def _edt_line(f, n, h2, lo_wall, hi_wall, pos, val, v, z, out):
+    """Exact 1-D squared distance transform (Felzenszwalb-Huttenlocher lower envelope of
+    parabolas): ``out[p] = min_q h2 (p - q)^2 + f[q]`` over the finite ``f[q]`` and, when
+    flagged, obstacle sites (value 0) just outside the line at -1 / n.  ``h2``: squared
+    spacing [m^2]; ``pos`` / ``val`` / ``v`` (n + 2) and ``z`` (n + 3): scratch."""
+    m = 0
+    if lo_wall:
+        pos[m] = -1.0
+        val[m] = 0.0
+        m += 1
+    for q in range(n):
+        if f[q] < np.inf:
+            pos[m] = q
+            val[m] = f[q]
+            m += 1
+    if hi_wall:
+        pos[m] = n
+        val[m] = 0.0
+        m += 1
+    if m == 0:
+        for p in range(n):
+            out[p] = np.inf
+        return
+    k = 0
+    v[0] = 0
+    z[0] = -np.inf
+    z[1] = np.inf
+    for s in range(1, m):
+        a = val[s] + h2 * pos[s] * pos[s]
+        while True:
+            r = v[k]
+            x = (a - (val[r] + h2 * pos[r] * pos[r])) / (2.0 * h2 * (pos[s] - pos[r]))
+            if x <= z[k] and k > 0:
+                k -= 1
+            else:
+                break
+        if x <= z[k]:           # k == 0: the new parabola is lower everywhere
+            v[0] = s
+            z[1] = np.inf
+            continue
+        k += 1
+        v[k] = s
+        z[k] = x
+        z[k + 1] = np.inf
+    k = 0
+    for p in range(n):
+        while z[k + 1] < p:
+            k += 1
+        r = v[k]
+        d = p - pos[r]
+        out[p] = h2 * d * d + val[r]
+
+
+@numba.njit(cache=True, parallel=True)
+def edt_kernel(obstacle, dz, h, north, south, west, east, out):
+    """Exact Euclidean distance [m] from each voxel centre of ``obstacle`` (nz, ny, nx) bool to
+    the nearest obstacle voxel centre (voxel sizes ``dz`` x ``h`` x ``h`` [m]), obstacle walls
+    one voxel beyond the flagged sides (north = row -1, south = row ny, west = column -1, east =
+    column nx); written to ``out`` (nz, ny, nx) float32 (inf when there is no obstacle at all).
+    Separable: squared transforms along x, then y, then z, each line in parallel."""
+    nz, ny, nx = obstacle.shape
+    g = np.empty((nz, ny, nx))
+    h2 = h * h
+    for t in numba.prange(nz * ny):           # along x (rows), walls west / east
+        k = t // ny
+        i = t - k * ny
+        f = np.empty(nx)
+        for j in range(nx):
+            f[j] = 0.0 if obstacle[k, i, j] else np.inf
+        pos = np.empty(nx + 2)
+        val = np.empty(nx + 2)
+        v = np.empty(nx + 2, dtype=np.int64)
+        zz = np.empty(nx + 3)
+        o = np.empty(nx)
+        _edt_line(f, nx, h2, west, east, pos, val, v, zz, o)
+        for j in range(nx):
+            g[k, i, j] = o[j]
+    for t in numba.prange(nz * nx):           # along y (columns), walls north / south
+        k = t // nx
+        j = t - k * nx
+        f = np.empty(ny)
+        for i in range(ny):
+            f[i] = g[k, i, j]
+        pos = np.empty(ny + 2)
+        val = np.empty(ny + 2)
+        v = np.empty(ny + 2, dtype=np.int64)
+        zz = np.empty(ny + 3)
+        o = np.empty(ny)
+        _edt_line(f, ny, h2, north, south, pos, val, v, zz, o)
+        for i in range(ny):
+            g[k, i, j] = o[i]
+    d2 = dz * dz
+    for t in numba.prange(ny):                # along z (levels), no walls
+        f = np.empty(nz)
+        pos = np.empty(nz + 2)
+        val = np.empty(nz + 2)
+        v = np.empty(nz + 2, dtype=np.int64)
+        zz = np.empty(nz + 3)
+        o = np.empty(nz)
+        for j in range(nx):
+            for k in range(nz):
+                f[k] = g[k, t, j]
+            _edt_line(f, nz, d2, False, False, pos, val, v, zz, o)
+            for k in range(nz):
+                out[k, t, j] = math.sqrt(o[k])

@@ -372,7 +372,8 @@ def test_zone_field_incremental_equals_full():
     :meth:`ZoneField.set_zones` gives the clearance, skeleton and potential of a full field
     computed with the zone (brute-force EDT of the new bitmap, fresh wave), the new obstacle
     voxels are exactly those whose footprint meets the box widened by r_p, and the descent
-    path keeps r_p from the box (exact point-box distance of its segments, sampled 0.25 m)."""
+    path keeps r_p from the box (exact point-box distance of its segments, sampled 0.25 m);
+    removing the zone again gives back the zone-free field."""
     from skyroute.stages.planning import potential as P
     from skyroute.stages.tactical.zone_field import ZoneField, zone_cells
     from skyroute.stages.tactical.zones import ZoneBox
@@ -383,6 +384,7 @@ def test_zone_field_incremental_equals_full():
                          tuple(start), tuple(CHAIN[-1]), 0.0, 120.0)
     box = ZoneBox("010", *ZONE_BOX)
     zf = ZoneField.build(prob)
+    pf0 = zf.field
     before = zf.path_from(prob, start)
     assert _box_distance(_dense_samples(before), ZONE_BOX).min() < VEH.r_p_m         # the route runs along the box edge
     assert zf.set_zones([box]) and not zf.set_zones([box])            # recomputed once; not when unchanged
@@ -408,6 +410,13 @@ def test_zone_field_incremental_equals_full():
     after = zf.path_from(prob, start)
     assert _box_distance(_dense_samples(after), ZONE_BOX).min() >= r - 1e-9
     assert np.allclose(after[-1], CHAIN[-1]) and prob.motion_valid(after[:-1], after[1:]).all()
+    # the zone goes away: the update gives back the zone-free full field
+    assert zf.set_zones([]) and zf.incremental_updates == 2
+    np.testing.assert_allclose(zf.field.clearance_m, pf0.clearance_m, atol=1e-5)
+    assert np.array_equal(zf.field.skeleton, pf0.skeleton)
+    fin = np.isfinite(pf0.potential_m)
+    assert np.array_equal(fin, np.isfinite(zf.field.potential_m))
+    np.testing.assert_allclose(zf.field.potential_m[fin], pf0.potential_m[fin], rtol=1e-12, atol=1e-9)
 
 
 def test_dense_zone_across_the_path_reroutes_along_the_potential(sky, strategic):

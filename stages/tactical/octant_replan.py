@@ -6,7 +6,14 @@ set of known intruders flying then has changed, the known intruders' states at t
 when the dense zone definition changes, its zones become temporary obstacles from then to
 ``t + T_p`` (full height, polygon widened by r_p), which every octant manoeuvre must avoid
 (a zone that already holds the vehicle is not one it can avoid and is skipped).  The
-definitions are recorded in ``FlightLog.dense_zones``.
+definitions are recorded in ``FlightLog.dense_zones``.  Seed 004's coupling with the potential
+field (:func:`zone_potential`, ``FlyParams.zone_potential``): at a new definition the dense
+zones become obstacles of a :class:`~skyroute.stages.tactical.zone_field.ZoneField` (computed
+in full the first time a zone meets the plan, then updated incrementally at every change),
+and a plan that enters an active dense zone is replaced by the gradient motion of the updated
+W-potential from where the vehicle turns (part ``potential``), through the same STEP III,
+validator, exact separation and zone checks; each log entry says ``potential`` ("", "full",
+"incremental"), its ``potential_s`` [s] and what happened (``reroute``).
 
 Conflict with one intruder (section III-D).  When the rest of the plan loses separation from
 an intruder, the vehicle keeps its plan until that intruder breaches the periphery

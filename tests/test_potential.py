@@ -327,3 +327,25 @@ def test_compiled_edt_equals_scipy(walls):
         a, b = P._edt(ob, vm, walls), P._edt_scipy(ob, vm, walls)
         assert a.dtype == np.float32 and a.shape == shape
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-5)
+
+
+def test_ridge_kernel_against_numpy_definition():
+    """The skeleton's ridge test against a numpy transcription of its definition: a free voxel
+    with D >= min_d and, along one of the 13 lines, D >= both neighbours and > one of them
+    (neighbours that are blocked or outside count as -1)."""
+    rng = np.random.default_rng(5)
+    for _ in range(12):
+        sh = tuple(int(v) for v in rng.integers(1, 9, 3))
+        free = rng.random(sh) > 0.3
+        D = rng.integers(0, 4, sh).astype(np.float32)
+        pad_d = np.pad(np.where(free, D, -1.0), 1, constant_values=-1.0)
+        nz, ny, nx = sh
+        c = pad_d[1:-1, 1:-1, 1:-1]
+        want = np.zeros(sh, bool)
+        for dk, di, dj in OFFS[:13]:
+            a = pad_d[1 + dk:1 + dk + nz, 1 + di:1 + di + ny, 1 + dj:1 + dj + nx]
+            b = pad_d[1 - dk:1 - dk + nz, 1 - di:1 - di + ny, 1 - dj:1 - dj + nx]
+            want |= (c >= a) & (c >= b) & ((c > a) | (c > b))
+        want &= free & (D >= 1.0)
+        vm = P.VoxelMap(0.0, 0.0, 0.0, 1.0, 1.0, 1, free, ~free, np.zeros(sh[1:]), np.zeros(sh[1:]))
+        assert np.array_equal(P.skeleton(vm, D, 1.0), want)

@@ -17,7 +17,8 @@
     Budget 5 s per planner (the scenarios'; level cap 20 s).
 (b) the potential field on the whole Helsinki AOI at 2 m x 2 m x 2 m, 0-80 m AGL (~527 x 874 x
     37 voxels): bitmap, EDT, skeleton, wave times (wall and this process's CPU); the compiled
-    EDT against scipy's (the previous implementation) in the same run (ratio); then a new
+    EDT against scipy's and the row-wise skeleton against the voxel-wise one (the previous
+    implementations) in the same run (ratios); then a new
     30 m x 30 m obstacle up to 60 m AGL next to the path: :func:`update_potential` time vs
     the full field's (ratio); without ``--quick`` also the full recompute after the change and
     the check that both potentials agree.
@@ -74,6 +75,32 @@ def _prism_clearance(pts, surf, x0, y1, res, reach):
                     best = d2
         out[n] = math.sqrt(best)
     return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _ridge_voxelwise(free, D, nz, ny, nx, min_d, out):
+    """The skeleton's ridge test as it was before (voxel by voxel, the 13 lines innermost):
+    the reference of the before / after ratio."""
+    for k in numba.prange(nz):
+        for i in range(ny):
+            for j in range(nx):
+                out[k, i, j] = 0
+                if free[k, i, j] == 0 or D[k, i, j] < min_d:
+                    continue
+                d = D[k, i, j]
+                for o in range(13):
+                    dk, di, dj = o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1
+                    ka, ia, ja = k + dk, i + di, j + dj
+                    kb, ib, jb = k - dk, i - di, j - dj
+                    da = -1.0
+                    db = -1.0
+                    if 0 <= ka < nz and 0 <= ia < ny and 0 <= ja < nx and free[ka, ia, ja] != 0:
+                        da = D[ka, ia, ja]
+                    if 0 <= kb < nz and 0 <= ib < ny and 0 <= jb < nx and free[kb, ib, jb] != 0:
+                        db = D[kb, ib, jb]
+                    if d >= da and d >= db and (d > da or d > db):
+                        out[k, i, j] = 1
+                        break
 
 
 def _problem(d, s, box_m: float | None):
@@ -207,6 +234,18 @@ def scale(cache: Cache, quick: bool) -> list[str]:
     w_old, c_old = time.perf_counter() - t1, time.process_time() - c1
     rows.append(f"  EDT compiled {w_new:.2f} s wall / {c_new:.2f} s CPU vs scipy {w_old:.2f} s / {c_old:.2f} s: "
                 f"ratio {w_new / w_old:.2f} (wall), max |difference| {float(np.abs(d_new - d_old).max()):.1e} m")
+    # the skeleton: row-wise ridge kernel (now) vs the voxel-by-voxel one (before)
+    nz, ny, nx = vm.shape
+    ref = np.zeros(vm.shape, np.uint8)
+    _ridge_voxelwise(vm.free.view(np.uint8)[:1, :2, :2], d_new[:1, :2, :2], 1, 2, 2, 0.0, ref[:1, :2, :2])   # compile
+    c1, t1 = time.process_time(), time.perf_counter()
+    sk_new = P.skeleton(vm, d_new)
+    w_new, c_new = time.perf_counter() - t1, time.process_time() - c1
+    c1, t1 = time.process_time(), time.perf_counter()
+    _ridge_voxelwise(vm.free.view(np.uint8), d_new, nz, ny, nx, 0.0, ref)
+    w_old, c_old = time.perf_counter() - t1, time.process_time() - c1
+    rows.append(f"  skeleton row-wise {w_new:.2f} s wall / {c_new:.2f} s CPU vs voxel-wise {w_old:.2f} s / {c_old:.2f} s: "
+                f"ratio {w_new / w_old:.2f} (wall), identical: {bool(np.array_equal(sk_new, ref.view(bool)))}")
     t4 = time.perf_counter()
     P.potential_field(vm, gl, [st], vertical_weight=vw, clearance_m=pf.clearance_m, until=st)
     rows.append(f"  the same field with the wave stopped at the start (as plan_potential does; EDT reused): "

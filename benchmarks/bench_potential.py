@@ -11,10 +11,14 @@
     ground up to ``surface``) within 120 m (larger distances print as 120).  Printed: min and
     mean clearance [m], length [m], f (eq. 11, the problem's costs of the chain), STEP I compute
     time [s].  Acceptance: potential min clearance >= r_p and >= A*'s - 0.05 m, its mean larger.
+    Figure ``<out>/potential_<case>.png``: the three smoothed paths over the surface heights
+    (plan view) and their exact clearance along the path, with r_p.
     ``--quick`` plans on the mission's box plus 150 m instead of the whole AOI (all planners).
     Budget 5 s per planner (the scenarios'; level cap 20 s).
 (b) the potential field on the whole Helsinki AOI at 2 m x 2 m x 2 m, 0-80 m AGL (~527 x 874 x
-    37 voxels): bitmap, EDT, skeleton, wave times (wall and this process's CPU); then a new
+    37 voxels): bitmap, EDT, skeleton, wave times (wall and this process's CPU); the compiled
+    EDT against scipy's and the row-wise skeleton against the voxel-wise one (the previous
+    implementations) in the same run (ratios); then a new
     30 m x 30 m obstacle up to 60 m AGL next to the path: :func:`update_potential` time vs
     the full field's (ratio); without ``--quick`` also the full recompute after the change and
     the check that both potentials agree.
@@ -73,6 +77,32 @@ def _prism_clearance(pts, surf, x0, y1, res, reach):
     return out
 
 
+@numba.njit(cache=True, parallel=True)
+def _ridge_voxelwise(free, D, nz, ny, nx, min_d, out):
+    """The skeleton's ridge test as it was before (voxel by voxel, the 13 lines innermost):
+    the reference of the before / after ratio."""
+    for k in numba.prange(nz):
+        for i in range(ny):
+            for j in range(nx):
+                out[k, i, j] = 0
+                if free[k, i, j] == 0 or D[k, i, j] < min_d:
+                    continue
+                d = D[k, i, j]
+                for o in range(13):
+                    dk, di, dj = o // 9 - 1, (o // 3) % 3 - 1, o % 3 - 1
+                    ka, ia, ja = k + dk, i + di, j + dj
+                    kb, ib, jb = k - dk, i - di, j - dj
+                    da = -1.0
+                    db = -1.0
+                    if 0 <= ka < nz and 0 <= ia < ny and 0 <= ja < nx and free[ka, ia, ja] != 0:
+                        da = D[ka, ia, ja]
+                    if 0 <= kb < nz and 0 <= ib < ny and 0 <= jb < nx and free[kb, ib, jb] != 0:
+                        db = D[kb, ib, jb]
+                    if d >= da and d >= db and (d > da or d > db):
+                        out[k, i, j] = 1
+                        break
+
+
 def _problem(d, s, box_m: float | None):
     surf = d["surface"][[v for v in ("terrain", "terrain_min", "surface") if v in d["surface"]]].load()
     clear, nofly = d["clearance"]["min_altitude_m"].load(), d["clearance"]["nofly"].load()
@@ -96,21 +126,74 @@ def _clearance_of(problem, surf, wp):
     g = problem.grid
     d = _prism_clearance(pts, np.ascontiguousarray(surf["surface"].values, dtype=np.float64), g.x0, g.y1,
                          g.resolution_m, REACH_M)
-    return d, float(step.sum()), float(step.max())
+    return d, float(step.sum()), float(step.max()), pts
 
 
-def compare(name: str, cache: Cache, quick: bool) -> list[str]:
+COLOURS = {"potential": "tab:red", "astar": "tab:blue", "bitstar": "tab:green"}
+
+
+def comparison_figure(name: str, surf, problem, paths: dict, out_png: Path) -> None:
+    """Plan view of the smoothed paths over the surface heights, and the exact clearance [m]
+    along each path (distance along the path [m]) with r_p."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from skyroute.stages.figures import add_map_furniture, grow_until_unclipped, image_extent
+
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 5.6), layout="constrained", width_ratios=(1.1, 1))
+    ext = image_extent(surf["surface"])
+    im = ax.imshow(surf["surface"].values, extent=ext, cmap="Greys", origin="upper")
+    fig.colorbar(im, ax=ax, shrink=0.8, label="surface height [m]")
+    allp = np.concatenate([p for p, _ in paths.values()])
+    pad = 80.0
+    for planner, (pts, d) in paths.items():
+        ax.plot(pts[:, 0], pts[:, 1], color=COLOURS[planner], lw=1.6, label=planner)
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        bx.plot(s, d, color=COLOURS[planner], lw=1.2,
+                label=f"{planner}: min {d.min():.1f} m, mean {d.mean():.1f} m")
+    ax.plot(*problem.start_xyz[:2], "k^", ms=8, label="start")
+    ax.plot(*problem.goal_xyz[:2], "k*", ms=10, label="goal")
+    (x0, y0), (x1, y1) = allp[:, :2].min(axis=0) - pad, allp[:, :2].max(axis=0) + pad
+    half = 0.5 * max(x1 - x0, y1 - y0)                # a square window: narrow paths stay readable
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    ax.set_xlim(cx - half, cx + half)
+    ax.set_ylim(cy - half, cy + half)
+    ax.set_aspect("equal")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.xaxis.set_major_locator(plt.MaxNLocator(4))
+    ax.yaxis.set_major_locator(plt.MaxNLocator(5))
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"{name}: STEP I paths smoothed by STEP III")
+    ax.legend(loc="lower right", fontsize=8)
+    add_map_furniture(ax)
+    bx.axhline(problem.vehicle.r_p_m, color="k", ls="--", lw=1, label=f"r_p = {problem.vehicle.r_p_m:g} m")
+    bx.set_xlabel("distance along the path [m]")
+    bx.set_ylabel(f"exact clearance to the surface prisms [m] (capped at {REACH_M:g})")
+    bx.set_title("clearance along the path")
+    bx.set_ylim(0, None)
+    bx.legend(fontsize=8, loc="best")
+    grow_until_unclipped(fig)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+
+
+def compare(name: str, cache: Cache, quick: bool, out_dir: Path | None = None) -> list[str]:
     sc, d, s, _ = case_inputs(name, cache)
     pr, surf = _problem(d, s, 150.0 if quick else None)
     rp = pr.vehicle.r_p_m
-    rows, res = [], {}
+    rows, res, paths = [], {}, {}
     for planner in ("potential", "astar", "bitstar"):
         r = plan_step1(pr, planner=planner, time_budget_s=5.0)
         if not r.solved:
             rows.append(f"  {name:17s} {planner:9s} {r.status}: {r.reason}")
             continue
-        clr, L, gap = _clearance_of(pr, surf, r.waypoints)
+        clr, L, gap, pts = _clearance_of(pr, surf, r.waypoints)
         res[planner] = (clr.min(), clr.mean(), L, r.f)
+        paths[planner] = (pts, clr)
         rows.append(f"  {name:17s} {planner:9s} {clr.min():7.2f} {clr.mean():7.2f} {L:8.1f} {r.f:9.1f} "
                     f"{r.compute_s:7.1f} {len(r.waypoints):4d}")
     if "potential" in res and "astar" in res:
@@ -118,6 +201,10 @@ def compare(name: str, cache: Cache, quick: bool) -> list[str]:
         ok = p[0] >= rp - 1e-9 and p[0] >= a[0] - 0.05 and p[1] > a[1]
         rows.append(f"  {name:17s} acceptance (min >= r_p = {rp:g} m, >= A* min - 0.05 m, mean > A*'s): "
                     f"{'PASS' if ok else 'FAIL'}; length cost {p[2] / a[2] - 1:+.1%}, f {p[3] / a[3] - 1:+.1%}")
+    if out_dir is not None and paths:
+        png = out_dir / f"potential_{name}.png"
+        comparison_figure(name, surf, pr, paths, png)
+        rows.append(f"  figure: {png}")
     return rows
 
 
@@ -138,6 +225,27 @@ def scale(cache: Cache, quick: bool) -> list[str]:
     rows.append(f"  bitmap {vm.shape[2]} x {vm.shape[1]} x {vm.shape[0]} = {vm.free.size / 1e6:.1f} M voxels "
                 f"({vm.free.mean():.0%} free): bitmap {t_bm:.2f} s, EDT {tm['clearance']:.1f} s, skeleton "
                 f"{tm['skeleton']:.1f} s, wave {tm['wave']:.1f} s; total {t_bm + t_full:.1f} s wall, {cpu:.1f} s CPU")
+    # the EDT: compiled (now) vs scipy (before), same process, same bitmap
+    c1, t1 = time.process_time(), time.perf_counter()
+    d_new = P.clearance_map(vm)
+    w_new, c_new = time.perf_counter() - t1, time.process_time() - c1
+    c1, t1 = time.process_time(), time.perf_counter()
+    d_old = P._edt_scipy(vm.obstacle, vm, (True, True, True, True))
+    w_old, c_old = time.perf_counter() - t1, time.process_time() - c1
+    rows.append(f"  EDT compiled {w_new:.2f} s wall / {c_new:.2f} s CPU vs scipy {w_old:.2f} s / {c_old:.2f} s: "
+                f"ratio {w_new / w_old:.2f} (wall), max |difference| {float(np.abs(d_new - d_old).max()):.1e} m")
+    # the skeleton: row-wise ridge kernel (now) vs the voxel-by-voxel one (before)
+    nz, ny, nx = vm.shape
+    ref = np.zeros(vm.shape, np.uint8)
+    _ridge_voxelwise(vm.free.view(np.uint8)[:1, :2, :2], d_new[:1, :2, :2], 1, 2, 2, 0.0, ref[:1, :2, :2])   # compile
+    c1, t1 = time.process_time(), time.perf_counter()
+    sk_new = P.skeleton(vm, d_new)
+    w_new, c_new = time.perf_counter() - t1, time.process_time() - c1
+    c1, t1 = time.process_time(), time.perf_counter()
+    _ridge_voxelwise(vm.free.view(np.uint8), d_new, nz, ny, nx, 0.0, ref)
+    w_old, c_old = time.perf_counter() - t1, time.process_time() - c1
+    rows.append(f"  skeleton row-wise {w_new:.2f} s wall / {c_new:.2f} s CPU vs voxel-wise {w_old:.2f} s / {c_old:.2f} s: "
+                f"ratio {w_new / w_old:.2f} (wall), identical: {bool(np.array_equal(sk_new, ref.view(bool)))}")
     t4 = time.perf_counter()
     P.potential_field(vm, gl, [st], vertical_weight=vw, clearance_m=pf.clearance_m, until=st)
     rows.append(f"  the same field with the wave stopped at the start (as plan_potential does; EDT reused): "
@@ -172,6 +280,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="mission box for (a), no full recompute in (b)")
     ap.add_argument("--cache", default="/tmp/skyroute-bench-cache", help="pipeline cache of the maps")
+    ap.add_argument("--out", default="/tmp/skyroute-bench-potential", help="directory of the comparison figures")
     a = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     cache = Cache(a.cache)
@@ -179,7 +288,7 @@ def main(argv=None) -> None:
     print("(a) STEP I chains smoothed by STEP III's corner trajectory; exact clearance to the surface prisms [m]")
     print(f"  {'case':17s} {'planner':9s} {'min':>7s} {'mean':>7s} {'length':>8s} {'f eq.11':>9s} {'STEP I s':>7s} {'wps':>4s}")
     for name in ("helsinki-medical", "rotterdam-canyon"):
-        for row in compare(name, cache, a.quick):
+        for row in compare(name, cache, a.quick, Path(a.out)):
             print(row, flush=True)
     print("(b) scale: potential field on the whole Helsinki AOI, 2 m voxels, 0-80 m AGL")
     for row in scale(cache, a.quick):

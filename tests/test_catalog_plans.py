@@ -211,7 +211,7 @@ def test_tactical_scenarios_fly_safely(name, method, cache, tmp_path):
         # seed 004: the intruder conflicts by the octant manoeuvre, the police zone by levels 1-3
         assert summary["fly"]["outcome"] == "goal"
         chosen = [r["level"] for r in tac if r["chosen"] == "true"]
-        assert "octant" in chosen and {"octant"} <= set(chosen) <= {"octant", "1", "2", "3"}
+        assert "octant" in chosen and {"octant"} <= set(chosen) <= {"octant", "potential", "1", "2", "3"}
         assert "octant" in {r["part"] for r in rows}
         assert summary["fly"]["dense_zones"]
     else:

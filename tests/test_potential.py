@@ -313,3 +313,39 @@ def test_cropped_bitmap_is_the_same_voxels_as_the_whole_one():
     i0, j0 = round((full.y1_m - crop.y1_m) / full.voxel_m), round((crop.x0_m - full.x0_m) / full.voxel_m)
     sub = full.free[kz][:, i0:i0 + crop.shape[1], j0:j0 + crop.shape[2]]
     np.testing.assert_array_equal(crop.free, sub)
+
+
+@pytest.mark.parametrize("walls", [(True, True, True, True), (False, True, False, True), (False, False, False, False),
+                                   (True, False, False, True)])
+def test_compiled_edt_equals_scipy(walls):
+    """The compiled separable EDT (with the AOI walls) against scipy's distance_transform_edt on
+    the padded array, anisotropic voxels; sparse, dense and empty obstacle sets."""
+    rng = np.random.default_rng(sum(walls))
+    for shape, p in (((7, 19, 23), 0.03), ((4, 31, 9), 0.4), ((5, 6, 8), 0.0), ((1, 12, 12), 0.1)):
+        ob = rng.random(shape) < p
+        vm = P.VoxelMap(0.0, 0.0, 0.0, 2.0, 1.3, 1, ~ob, ob, np.zeros(shape[1:]), np.zeros(shape[1:]))
+        a, b = P._edt(ob, vm, walls), P._edt_scipy(ob, vm, walls)
+        assert a.dtype == np.float32 and a.shape == shape
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-5)
+
+
+def test_ridge_kernel_against_numpy_definition():
+    """The skeleton's ridge test against a numpy transcription of its definition: a free voxel
+    with D >= min_d and, along one of the 13 lines, D >= both neighbours and > one of them
+    (neighbours that are blocked or outside count as -1)."""
+    rng = np.random.default_rng(5)
+    for _ in range(12):
+        sh = tuple(int(v) for v in rng.integers(1, 9, 3))
+        free = rng.random(sh) > 0.3
+        D = rng.integers(0, 4, sh).astype(np.float32)
+        pad_d = np.pad(np.where(free, D, -1.0), 1, constant_values=-1.0)
+        nz, ny, nx = sh
+        c = pad_d[1:-1, 1:-1, 1:-1]
+        want = np.zeros(sh, bool)
+        for dk, di, dj in OFFS[:13]:
+            a = pad_d[1 + dk:1 + dk + nz, 1 + di:1 + di + ny, 1 + dj:1 + dj + nx]
+            b = pad_d[1 - dk:1 - dk + nz, 1 - di:1 - di + ny, 1 - dj:1 - dj + nx]
+            want |= (c >= a) & (c >= b) & ((c > a) | (c > b))
+        want &= free & (D >= 1.0)
+        vm = P.VoxelMap(0.0, 0.0, 0.0, 1.0, 1.0, 1, free, ~free, np.zeros(sh[1:]), np.zeros(sh[1:]))
+        assert np.array_equal(P.skeleton(vm, D, 1.0), want)

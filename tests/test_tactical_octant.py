@@ -154,6 +154,22 @@ def test_super_conflict_4_uavs():
     assert res.kinds.get("octant", 0) > 0 and np.all(res.delay_s >= -0.1) and res.delay_s.max() > 0.5
 
 
+@pytest.mark.parametrize(("n", "coplanar"), [(8, True), (16, False)])
+def test_super_conflict_8_and_16_uavs(n, coplanar):
+    """BlueSky's super conflict with 8 and 16 UAVs (issue 14): all arrive, zero losses of
+    separation by the brute-force pairwise check, delays finite and reported (>= 0)."""
+    R = 100.0
+    ang = 2 * np.pi * np.arange(n) / n
+    S = np.column_stack([R * np.cos(ang), R * np.sin(ang), np.full(n, 50.0)])
+    G = S * [-1, -1, 1]
+    res = fly_fleet(S, G, speed_mps=10.0, radius_m=1.0, margin_m=5.0, periphery_m=60.0, horizon_s=6.0,
+                    dt_s=0.1, t_max_s=4 * R / 10.0 + 60.0, coplanar=coplanar)
+    assert np.all(np.isfinite(res.arrival_s)) and "best" not in res.kinds
+    assert _brute_min_sep(res, 7.0, 7.0) >= -1e-6
+    assert res.delay_s.shape == (n,) and np.all(res.delay_s >= -0.1) and np.all(res.delay_s < 60.0)
+    assert res.delay_s.max() > 0.5 and res.kinds.get("octant", 0) > 0
+
+
 def test_tactical_method_is_checked():
     from click.testing import CliRunner
 

@@ -341,3 +341,119 @@ def test_head_on_intruder_with_the_octant_method(sky, strategic):
             r = VEH.r_p_m
             inside = (p[act, 0] > x0 - r) & (p[act, 0] < x1 + r) & (p[act, 1] > y0 - r) & (p[act, 1] < y1 + r)
             assert not inside.any()
+
+
+# ------------------------------------------------------------------ dense zones -> potential field (seed 004)
+
+ZONE_BOX = (X0 + 250.0, X0 + 500.0, Y0 + 300.0, Y0 + 600.0)   # r = 3: x quarter 2 of 4, y upper half
+
+
+def _hovering_pair(t_end: float = 400.0):
+    """Two known intruders hovering 35 m above the route level at (375..385, 450..460): both in
+    the zone x [250, 500] x y [300, 600] of r = 3 (r = 1, 2 put them in the vehicle's zone)."""
+    return [Intruder(f"pair-{k}", np.array([0.0, t_end]), np.array([[375 + 10 * k, 450 + 10 * k, 75]] * 2, float)
+                     + [X0, Y0, 0], 2.0) for k in range(2)]
+
+
+def _box_distance(p, box):
+    x0, x1, y0, y1 = box
+    dx = np.maximum.reduce([x0 - p[:, 0], p[:, 0] - x1, np.zeros(len(p))])
+    dy = np.maximum.reduce([y0 - p[:, 1], p[:, 1] - y1, np.zeros(len(p))])
+    return np.hypot(dx, dy)
+
+
+def _dense_samples(chain, step_m: float = 0.25):
+    return np.concatenate([a + np.linspace(0, 1, max(2, int(np.linalg.norm(b - a) / step_m) + 1))[:, None] * (b - a)
+                           for a, b in zip(chain[:-1], chain[1:], strict=True)])
+
+
+def test_zone_field_incremental_equals_full():
+    """The dense zone as obstacles of the potential field: updating the zone-free field by
+    :meth:`ZoneField.set_zones` gives the clearance, skeleton and potential of a full field
+    computed with the zone (brute-force EDT of the new bitmap, fresh wave), the new obstacle
+    voxels are exactly those whose footprint meets the box widened by r_p, and the descent
+    path keeps r_p from the box (exact point-box distance of its segments, sampled 0.25 m);
+    removing the zone again gives back the zone-free field."""
+    from skyroute.stages.planning import potential as P
+    from skyroute.stages.tactical.zone_field import ZoneField, zone_cells
+    from skyroute.stages.tactical.zones import ZoneBox
+
+    w = world(None)
+    start = CHAIN[0] + [100.0, 0.0, 0.0]
+    prob = build_problem(w.surface, w.clearance["min_altitude_m"], None, None, None, None, VEH, (1, 0, 0, 1),
+                         tuple(start), tuple(CHAIN[-1]), 0.0, 120.0)
+    box = ZoneBox("010", *ZONE_BOX)
+    zf = ZoneField.build(prob)
+    pf0 = zf.field
+    before = zf.path_from(prob, start)
+    assert _box_distance(_dense_samples(before), ZONE_BOX).min() < VEH.r_p_m         # the route runs along the box edge
+    assert zf.set_zones([box]) and not zf.set_zones([box])            # recomputed once; not when unchanged
+    assert (zf.full_computations, zf.incremental_updates) == (1, 1)
+    full = ZoneField.build(prob, [box])
+    vm = full.field.vmap
+    # the bitmap: voxel footprints meeting the widened box (brute force over the footprints)
+    h, r = vm.voxel_m, VEH.r_p_m
+    xs0 = vm.x0_m + np.arange(vm.shape[2]) * h
+    ys1 = vm.y1_m - np.arange(vm.shape[1]) * h
+    meets = ((xs0[None] <= ZONE_BOX[1] + r) & (xs0[None] + h >= ZONE_BOX[0] - r)
+             & (ys1[:, None] - h <= ZONE_BOX[3] + r) & (ys1[:, None] >= ZONE_BOX[2] - r))
+    assert np.array_equal(~vm.free & zf.base.free, np.broadcast_to(meets[None], vm.shape) & zf.base.free)
+    assert zone_cells([box], prob.grid, r).sum() > 0
+    up = zf.field
+    np.testing.assert_allclose(up.clearance_m, P.clearance_map(vm), atol=1e-5)
+    np.testing.assert_allclose(full.field.clearance_m, up.clearance_m, atol=1e-5)
+    assert np.array_equal(up.skeleton, full.field.skeleton)
+    fin = np.isfinite(full.field.potential_m)
+    assert np.array_equal(fin, np.isfinite(up.potential_m))
+    np.testing.assert_allclose(up.potential_m[fin], full.field.potential_m[fin], rtol=1e-12, atol=1e-9)
+    assert up.timings_s["affected_voxels"] < vm.free.sum()
+    after = zf.path_from(prob, start)
+    assert _box_distance(_dense_samples(after), ZONE_BOX).min() >= r - 1e-9
+    assert np.allclose(after[-1], CHAIN[-1]) and prob.motion_valid(after[:-1], after[1:]).all()
+    # the zone goes away: the update gives back the zone-free full field
+    assert zf.set_zones([]) and zf.incremental_updates == 2
+    np.testing.assert_allclose(zf.field.clearance_m, pf0.clearance_m, atol=1e-5)
+    assert np.array_equal(zf.field.skeleton, pf0.skeleton)
+    fin = np.isfinite(pf0.potential_m)
+    assert np.array_equal(fin, np.isfinite(zf.field.potential_m))
+    np.testing.assert_allclose(zf.field.potential_m[fin], pf0.potential_m[fin], rtol=1e-12, atol=1e-9)
+
+
+def test_dense_zone_across_the_path_reroutes_along_the_potential(sky, strategic):
+    """Octant method: a hovering pair of known intruders makes the zone x [250, 500] x y [300, 600]
+    dense (r = 3); the plan along y = 300 is within r_p of it, so the zones become obstacles
+    of the potential field and the vehicle follows its gradient motion (part ``potential``):
+    the flight keeps r_p from the box while the zone is active (exact point-box distance every
+    0.05 s), stays separated (brute force) and valid for the independent validator.  The
+    potential is computed once per zone change after the first that meets the plan (full),
+    then incrementally (the pair's update that empties the zone), never when unchanged."""
+    pair = _hovering_pair()
+    assert float(np.interp(X0 + 500, strategic.xyz_m[:, 0], strategic.t_s)) < 50.0     # past the zone by T_p
+    events = [TacticalEvent(1.0, "intruder", f"intruder {p.id}", intruder=p) for p in pair]
+    # the same pair re-reported: the definition does not change -> no computation
+    events.append(TacticalEvent(8.0, "intruder_update", "intruder pair-0 again", intruder=pair[0]))
+    # pair-1 leaves far south-east at t = 52 s (after the period T_p = 50 s): the zone empties ->
+    # one incremental update
+    gone = Intruder("pair-1", np.array([0.0, 52.0, 53.0, 400.0]),
+                    np.array([[385, 460, 75], [385, 460, 75], [990, 10, 75], [990, 10, 75]], float) + [X0, Y0, 0], 2.0)
+    events.append(TacticalEvent(52.0, "intruder_update", "intruder pair-1 leaves", intruder=gone))
+    log = _fly(sky, strategic, events, method="octant", zone_period_s=50.0)
+    chosen = [a for a in log.attempts if a.chosen]
+    assert [a.level for a in chosen] == ["potential"], [(a.level, a.reasons) for a in log.attempts]
+    assert "potential" in [p.part for p in log.parts]
+    zl = log.dense_zones
+    assert [z["dense"] != [] for z in zl] == [False, True, False], (zl, log.flown()[0][-1])
+    assert [z["potential"] for z in zl] == ["", "full", "incremental"], zl
+    assert zl[1]["reroute"].startswith("new path") and zl[1]["boxes_m"] == [list(ZONE_BOX)]
+    t, p = log.flown()
+    tt = np.arange(t[0], t[-1], 0.05)
+    own = np.column_stack([np.interp(tt, t, p[:, k]) for k in range(3)])
+    act = (tt >= zl[1]["t_s"]) & (tt <= zl[1]["t_s"] + 50.0)
+    assert _box_distance(own[act], ZONE_BOX).min() >= VEH.r_p_m - 1e-6
+    assert _brute_separation(log) >= 0.0
+    assert _continuous(log) < 1e-3
+    assert np.linalg.norm(p[-1] - CHAIN[-1]) < 1.0
+    viol = validate_plan(_stitched_candidate(log), grid=grid(), terrain_m=np.zeros(grid().shape), vehicle=VEH,
+                         floor_m=world(sky).clearance["min_altitude_m"].values, ceiling_m=np.full(grid().shape, 120.0),
+                         wind=np.zeros(3))
+    assert viol == []

@@ -11,5 +11,8 @@ of the plan, or the vehicle lands at the nearest reachable landing site.
   :func:`~.conflict.min_separation`) and the state-based N-aircraft detector
   (:func:`~.conflict.pairwise_conflicts`, BlueSky's numpy baseline
   :func:`~.conflict.pairwise_conflicts_numpy`);
-* :mod:`.outputs`  -- tactical.csv, flown.geojson / .csv, intruders.geojson and the figures.
+* :mod:`.outputs`  -- tactical.csv, flown.geojson / .csv, intruders.geojson and the figures;
+* :mod:`.zones`, :mod:`.octant`, :mod:`.octant_replan`, :mod:`.zone_field` -- seed 004's octant
+  method: dense traffic zones, octant avoidance, and the dense zones as obstacles of the
+  incrementally updated potential field whose gradient motion re-routes the plan.
 """

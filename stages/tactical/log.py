@@ -14,7 +14,7 @@ import numpy as np
 
 __all__ = ["FlightLog", "FlownPart", "IntruderTrack", "LevelAttempt", "NoFlyZone", "PART_NAMES"]
 
-PART_NAMES = ("strategic", "L1", "L2", "L3", "octant", "landing", "climb", "right", "left")
+PART_NAMES = ("strategic", "L1", "L2", "L3", "octant", "potential", "landing", "climb", "right", "left")
 
 
 @dataclass

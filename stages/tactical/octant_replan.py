@@ -6,7 +6,14 @@ set of known intruders flying then has changed, the known intruders' states at t
 when the dense zone definition changes, its zones become temporary obstacles from then to
 ``t + T_p`` (full height, polygon widened by r_p), which every octant manoeuvre must avoid
 (a zone that already holds the vehicle is not one it can avoid and is skipped).  The
-definitions are recorded in ``FlightLog.dense_zones``.
+definitions are recorded in ``FlightLog.dense_zones``.  Seed 004's coupling with the potential
+field (:func:`zone_potential`, ``FlyParams.zone_potential``): at a new definition the dense
+zones become obstacles of a :class:`~skyroute.stages.tactical.zone_field.ZoneField` (computed
+in full the first time a zone meets the plan, then updated incrementally at every change),
+and a plan that enters an active dense zone is replaced by the gradient motion of the updated
+W-potential from where the vehicle turns (part ``potential``), through the same STEP III,
+validator, exact separation and zone checks; each log entry says ``potential`` ("", "full",
+"incremental"), its ``potential_s`` [s] and what happened (``reroute``).
 
 Conflict with one intruder (section III-D).  When the rest of the plan loses separation from
 an intruder, the vehicle keeps its plan until that intruder breaches the periphery
@@ -48,7 +55,7 @@ from skyroute.stages.tactical.octant import (
 from skyroute.stages.tactical.timeline import Segment
 from skyroute.stages.tactical.zones import ZoneTracker
 
-__all__ = ["intruder_state", "octant_replan", "update_zones"]
+__all__ = ["intruder_state", "octant_replan", "update_zones", "zone_potential"]
 
 ESCAPE_FACTORS = (2.0, 4.0, 6.0)      # escape distances D in units of the separation
 MAX_DIRECTIONS = 6                    # escape directions tried (octants, then pockets)
@@ -85,9 +92,12 @@ def update_zones(rp, t_s: float) -> None:
     T = rp.p.zone_period_s
     rp.dense_zones = [NoFlyZone(f"dense-{b.bits}", b.polygon_xy, -1e9, 1e9, float(t_s), float(t_s) + T)
                       for b in part.boxes]
-    rp.dense_zone_log.append({"t_s": float(t_s), "r": int(part.r), "dense": list(part.dense), "ok": bool(part.ok),
-                              "reason": part.reason, "n_intruders": int(xyz.shape[0]),
-                              "boxes_m": [[b.x_min_m, b.x_max_m, b.y_min_m, b.y_max_m] for b in part.boxes]})
+    entry = {"t_s": float(t_s), "r": int(part.r), "dense": list(part.dense), "ok": bool(part.ok),
+             "reason": part.reason, "n_intruders": int(xyz.shape[0]),
+             "boxes_m": [[b.x_min_m, b.x_max_m, b.y_min_m, b.y_max_m] for b in part.boxes]}
+    rp.dense_zone_log.append(entry)
+    if rp.p.zone_potential:
+        entry.update(zone_potential(rp, t_s, part.boxes))
 
 
 def _point_at(chain: np.ndarray, s_m: float) -> tuple[np.ndarray, int]:
@@ -243,3 +253,85 @@ def _escape(rp, t_eff: float, P_r: float, detail, cause: str) -> dict:
     head = (f"intruder {detail.id!r} breaches P_r = {P:.0f} m at t = {t_eff:.1f} s; occupied octants "
             f"{list(occ)}, vacant {vac}")
     return {"chosen": chosen, "n_ok": n_ok, "tried": tried, "head": head}
+
+
+def zone_potential(rp, t_s: float, boxes) -> dict:
+    """Seed 004's coupling of the zones and the potential field, at a change of the dense zone
+    definition at ``t_s`` (module docstring): the dense zones ``boxes`` become obstacles of the
+    replay's :class:`~skyroute.stages.tactical.zone_field.ZoneField` (computed in full the
+    first time a zone meets the plan, updated incrementally at every later change, never
+    otherwise); when the rest of the plan from the replanning time enters an active dense
+    zone, the new global path is the gradient motion of the updated potential from where the
+    vehicle turns (a braking distance ahead, or after a stop there), accepted only through
+    STEP III, the validator and the exact separation and zone checks (part ``potential``).
+    Returns what to add to the zone definition's log entry: ``potential`` ("", "full",
+    "incremental"), ``potential_s`` [s], ``reroute`` (what happened to the plan)."""
+    from skyroute.stages.base import InputError, PlanningError
+    from skyroute.stages.tactical.replay import _first_in_zone
+    from skyroute.stages.tactical.zone_field import ZoneField
+
+    out = {"potential": "", "potential_s": 0.0, "reroute": ""}
+    t_eff = rp._effective_time(t_s + rp.p.t_rep_s)
+    if t_eff >= rp.tl.t_end_s:
+        out["reroute"] = "the flight ends before a new path could take effect"
+        return out
+    own = rp.tl.sample(t_eff)
+    r_p = rp.veh.r_p_m
+    zones = [z for z in rp.dense_zones if z.end_s > t_eff and _first_in_zone(np.array([t_eff]), own[None], z, r_p) < 0]
+    keep = {z.id for z in zones}
+    boxes = tuple(b for b in boxes if f"dense-{b.bits}" in keep)     # a zone holding the vehicle cannot be avoided
+    t_p, pts = rp.tl.samples(t_eff, rp.p.tick_s)
+    entries = [(float(t_p[kz]), z) for z in zones if (kz := _first_in_zone(t_p, pts, z, r_p)) >= 0]
+    t_hit, hit = min(entries, key=lambda e: e[0]) if entries else (math.inf, None)
+    zf = rp.zone_field
+    t0 = time.perf_counter()
+    try:
+        if zf is None or rp.zone_field_world is not rp.world or not zf.covers(own):
+            if hit is None:
+                out["reroute"] = "the plan meets no dense zone"
+                return out
+            zf = ZoneField.build(rp.problem(own, rp.goal, zones_from_s=math.inf), boxes)
+            rp.zone_field, rp.zone_field_world = zf, rp.world
+            out["potential"] = "full"
+        elif zf.set_zones(boxes):
+            out["potential"] = "incremental"
+    except (PlanningError, InputError) as exc:
+        out["reroute"] = f"no zone potential field: {exc}"
+        return out
+    finally:
+        out["potential_s"] = time.perf_counter() - t0
+    if hit is None:
+        out["reroute"] = "the plan meets no dense zone"
+        return out
+    k = rp.n_replan
+    t1 = time.perf_counter()
+    chain, speeds, _lead, v0 = rp.rest_chain(t_eff)
+    problem = rp.problem(chain[0], rp.goal, zones_from_s=t_eff)
+    budget = rp.budget_J(t_eff, problem)
+
+    def tail(pre, nb, t_b):
+        return zf.path_from(problem, pre[-1])
+
+    cand, why = _direct(rp, chain, speeds, v0, t_eff, tail, problem, budget)
+    if cand is None or not cand.flyable:
+        cand, why = rp._via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, "potential", budget)
+    if cand is not None and cand.flyable:
+        for z in zones:
+            kz = _first_in_zone(cand.t_s, cand.xyz_m, z, r_p)
+            if kz >= 0:
+                cand.flyable = False
+                why = f"inside the dense zone {z.id!r} at t = {cand.t_s[kz]:.1f} s"
+                break
+    if cand is None or not cand.flyable:
+        out["reroute"] = f"kept the plan (it enters {hit.id!r}): no valid potential-field path: {why[:200]}"
+        return out
+    rp.n_replan += 1
+    rp.attempts.append(LevelAttempt(k, f"dense zones at t = {t_s:.1f} s", float(t_s), t_hit - t_s,
+                                    "potential", True, cand.C_l, cand.C_e, cand.f, cand.max_sigma_p_m,
+                                    time.perf_counter() - t1, out["potential_s"],
+                                    float(cand.t_s[-1]) - rp.tl.t_end_s, True,
+                                    f"the plan entered {hit.id!r}; gradient motion of the {out['potential'] or 'unchanged'}"
+                                    " zone potential field"))
+    rp.tl.add(Segment(cand.trajectory, t_eff, "potential", k), t_eff)
+    out["reroute"] = f"new path from t = {t_eff:.1f} s (replanning {k})"
+    return out

@@ -1,12 +1,13 @@
 """Outputs of a tactical replay (``skyroute fly``), written from a :class:`~.log.FlightLog` only.
 
 * ``tactical.csv``: one row per level attempted per replanning (seed 001 Tables 3, 5):
-  :data:`TACTICAL_COLUMNS`.  ``level`` is ``1``, ``2``, ``3``, ``octant``, ``landing`` or (fixed-wing local planner, one row per
-  manoeuvre) ``climb`` / ``right`` / ``left``; infinite values
+  :data:`TACTICAL_COLUMNS`.  ``level`` is ``1``, ``2``, ``3``, ``octant``, ``potential``, ``landing`` or (fixed-wing
+  local planner, one row per manoeuvre) ``climb`` / ``right`` / ``left``; infinite values
   are written ``inf``, undefined ones ``nan``; exactly one ``chosen=true`` per replanning
   (:func:`write_flight` raises :class:`~skyroute.stages.base.InputError` otherwise).
 * ``flown.geojson``: RFC 7946 FeatureCollection of the ownship only, one ``LineString`` per
-  flown part (``part`` = strategic / L1 / L2 / L3 / octant / landing; fixed-wing: climb / right / left) of ``[lon, lat, z]`` (WGS 84,
+  flown part (``part`` = strategic / L1 / L2 / L3 / octant / potential / landing; fixed-wing: climb / right / left)
+  of ``[lon, lat, z]`` (WGS 84,
   ``z`` [m] in the surface's vertical datum, NOT ellipsoidal: the properties say so), with
   ``t_s`` and ``times_utc`` (ISO 8601 UTC) per vertex.
 * ``intruders.geojson``: one ``LineString`` per intruder (truth track: ``id``, ``kind``,
@@ -45,11 +46,11 @@ __all__ = ["write_flight", "flight_section", "fly_summary_line", "flown_samples"
 TACTICAL_COLUMNS = ("replanning", "event", "t_event_s", "t_coll_s", "level", "flyable", "C_l_m", "C_e_m", "f_m",
                     "max_sigma_p_m", "compute_s", "update_s", "added_flight_time_s", "chosen", "reasons")
 FLOWN_COLUMNS = ("t_utc", "t_s", "part", "x_m", "y_m", "z_m", "lon", "lat", "speed_mps")
-LEVELS = ("1", "2", "3", "octant", "landing", "climb", "right", "left")
+LEVELS = ("1", "2", "3", "octant", "potential", "landing", "climb", "right", "left")
 SEPARATION_STEP_S = 0.05
 PART_COLOURS = {"strategic": "tab:blue", "L1": "tab:green", "L2": "tab:orange", "L3": "tab:purple",
-                "octant": "tab:cyan", "landing": "tab:red", "climb": "tab:brown", "right": "tab:olive",
-                "left": "tab:pink"}
+                "octant": "tab:cyan", "potential": "tab:gray", "landing": "tab:red", "climb": "tab:brown",
+                "right": "tab:olive", "left": "tab:pink"}
 
 
 # ------------------------------------------------------------------ checks and samples
@@ -59,7 +60,8 @@ def _level(v) -> str:
     s = str(v).strip()
     s = {"L1": "1", "L2": "2", "L3": "3", "1.0": "1", "2.0": "2", "3.0": "3"}.get(s, s)
     if s not in LEVELS:
-        raise InputError(f"level {v!r} of a tactical attempt is not one of 1, 2, 3, 'octant', 'landing', 'climb', 'right' or 'left'")
+        raise InputError(f"level {v!r} of a tactical attempt is not one of 1, 2, 3, 'octant', 'potential', 'landing', "
+                         "'climb', 'right' or 'left'")
     return s
 
 

@@ -102,7 +102,8 @@ class FlyParams:
     ``method``: ``levels`` (levels 1-3) or ``octant`` (seed 004: zone partitioning and the
     octant manoeuvre for intruder conflicts, :mod:`.octant_replan`); ``periphery_m`` [m]: the
     octant method's sensing periphery P_r; ``zone_period_s`` [s]: its zone prediction period
-    T_p.
+    T_p; ``zone_potential``: the octant method re-routes along the potential field with the
+    dense zones as obstacles when the plan meets one (:func:`.octant_replan.zone_potential`).
 
     Safety bubble (``constraints.clearance: sboa``, seed 003; default off): ``bubble_k`` k
     makes every STEP III of the replay re-check its samples at max(r_p, k sigma_p(t) +
@@ -135,6 +136,7 @@ class FlyParams:
     method: str = "levels"
     periphery_m: float = 60.0
     zone_period_s: float = 10.0
+    zone_potential: bool = True
 
     def __post_init__(self):
         if self.method not in TACTICAL_METHODS:
@@ -283,6 +285,8 @@ class _Replay:
         self.dense_zones: list[NoFlyZone] = []
         self.dense_zone_log: list[dict] = []
         self.zone_ids: tuple[str, ...] | None = None   # intruders of the last zone determination
+        self.zone_field = None                # the dense zones' potential field (octant_replan.zone_potential)
+        self.zone_field_world = None          # the world it was computed on
 
     def _known_at(self, ev: TacticalEvent) -> float:
         lat = self.p.report_latency_s if ev.kind in ("intruder", "intruder_update") else 0.0

@@ -142,7 +142,23 @@ class RotorSpec(FrozenModel):
         return self.count * math.pi * self.radius_m**2
 
 
-class VehicleProfile(FrozenModel):
+class _SphereAndBattery:
+    """The collision sphere and battery energy every vehicle kind derives the same way (its
+    fields ``safety_distance_m``, ``safety_factor``, ``max_position_error_m``,
+    ``battery_capacity_mah``, ``battery_voltage_v``)."""
+
+    @property
+    def r_p_m(self) -> float:
+        """Collision-sphere radius r_p = d_m + K_m dp_max [m] (seed 000 eq. 13)."""
+        return self.safety_distance_m + self.safety_factor * self.max_position_error_m
+
+    @property
+    def battery_energy_j(self) -> float:
+        """Battery energy [J] = capacity [mAh] * 3.6 [C/mAh] * voltage [V]."""
+        return self.battery_capacity_mah * 3.6 * self.battery_voltage_v
+
+
+class VehicleProfile(_SphereAndBattery, FrozenModel):
     """A rotorcraft profile: constraints of seed 000 Table I plus energy-model parameters."""
 
     name: str
@@ -183,16 +199,6 @@ class VehicleProfile(FrozenModel):
         return self
 
     @property
-    def r_p_m(self) -> float:
-        """Collision-sphere radius r_p = d_m + K_m dp_max [m] (seed 000 eq. 13)."""
-        return self.safety_distance_m + self.safety_factor * self.max_position_error_m
-
-    @property
-    def battery_energy_j(self) -> float:
-        """Battery energy [J] = capacity [mAh] * 3.6 [C/mAh] * voltage [V]."""
-        return self.battery_capacity_mah * 3.6 * self.battery_voltage_v
-
-    @property
     def weight_n(self) -> float:
         """Take-off weight m g [N]."""
         return self.airframe.total_mass_kg * G0
@@ -226,7 +232,7 @@ def flown_airspeed(v_opt: float, v_stall: float, min_factor: float, v_max: float
     return min(max(v_opt, min_factor * v_stall), v_max)
 
 
-class FixedWingProfile(FrozenModel):
+class FixedWingProfile(_SphereAndBattery, FrozenModel):
     """A fixed-wing aircraft (seed 002 section 3.2): airframe, drag polar and limits.
 
     Drag polar (seed 002 eq. 4-6, parabolic): ``D/L = A V^2 + B / V^2`` with
@@ -352,16 +358,6 @@ class FixedWingProfile(FrozenModel):
     def max_flight_path_angle_deg(self) -> float:
         """The larger of the climb and descent angle limits [deg]."""
         return max(self.max_climb_angle_deg, self.max_descent_angle_deg)
-
-    @property
-    def r_p_m(self) -> float:
-        """Collision-sphere radius r_p = d_m + K_m dp_max [m] (seed 000 eq. 13)."""
-        return self.safety_distance_m + self.safety_factor * self.max_position_error_m
-
-    @property
-    def battery_energy_j(self) -> float:
-        """Battery energy [J] = capacity [mAh] * 3.6 [C/mAh] * voltage [V]."""
-        return self.battery_capacity_mah * 3.6 * self.battery_voltage_v
 
 
 AnyVehicle = VehicleProfile | FixedWingProfile

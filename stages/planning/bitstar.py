@@ -46,7 +46,10 @@ from skyroute.stages.planning.problem import PlanningProblem
 ou.setLogLevel(ou.LOG_ERROR)
 
 
-class _Validity(ob.StateValidityChecker):
+class StateValidity(ob.StateValidityChecker):
+    """OMPL validity of an (x, y, z) state: the compiled state check of the planning problem
+    (also used by :mod:`.bitstar_dubins`)."""
+
     def __init__(self, si, problem: PlanningProblem):
         super().__init__(si)
         self._args = problem.state_args
@@ -130,7 +133,7 @@ class _BitStarSetup:
         self.bounds = b
         self.space.setBounds(b)
         self.si = ob.SpaceInformation(self.space)
-        self.checker = _Validity(self.si, problem)
+        self.checker = StateValidity(self.si, problem)
         self.motion = _Motion(self.si, problem)
         self.si.setStateValidityChecker(self.checker)
         self.si.setMotionValidator(self.motion)
@@ -187,4 +190,4 @@ def plan_bitstar(problem: PlanningProblem, time_budget_s: float, seed: int = 0,
             "cost_to_go_calls": setup.objective.n_ctg, "best_cost": float(setup.planner.bestCost().value())}
 
 
-__all__ = ["plan_bitstar"]
+__all__ = ["StateValidity", "plan_bitstar"]

@@ -29,20 +29,10 @@ from ompl import util as ou
 
 from skyroute.stages import control
 from skyroute.stages.base import InputError
-from skyroute.stages.planning.kernels import OK, entry_point, state_code
+from skyroute.stages.planning.bitstar import StateValidity
 from skyroute.stages.planning.problem import PlanningProblem
 
 __all__ = ["plan_bitstar_dubins"]
-
-
-class _Validity(ob.StateValidityChecker):
-    def __init__(self, si, problem: PlanningProblem):
-        super().__init__(si)
-        self._args = problem.state_args
-        self._code = entry_point(state_code, 0.0, 0.0, 0.0, *self._args)
-
-    def isValid(self, s) -> bool:
-        return self._code(s[0], s[1], s[2], *self._args) == OK
 
 
 class _Length(ob.OptimizationObjective):
@@ -102,7 +92,7 @@ def plan_bitstar_dubins(problem: PlanningProblem, time_budget_s: float = 10.0, s
         b.setHigh(i, hi)
     space.setBounds(b)
     si = ob.SpaceInformation(space)
-    checker = _Validity(si, problem)
+    checker = StateValidity(si, problem)
     si.setStateValidityChecker(checker)
     space.setLongestValidSegmentFraction(0.5 * g.resolution_m / space.getMaximumExtent())
     si.setup()

@@ -100,7 +100,8 @@ def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, pa
     datum = "\n".join(textwrap.wrap(str(floor.attrs.get("vertical_datum", "")), 36)[:2])
     fig.colorbar(im, ax=axes[0].tolist(), label="coverage floor [m]" + (f"\n{datum}" if datum else ""),
                  shrink=0.85)
-    fig.suptitle(f"GNSS coverage maps, {kind}; {window}; grey = unflyable")
+    title = f"GNSS coverage maps, {kind}; {window}; grey = unflyable"
+    fig.suptitle("\n".join(textwrap.wrap(title, max(40, int(11 * (4.2 * n + 0.8))))))   # one narrow panel: wrap
     grow_until_unclipped(fig)   # a long suptitle over few narrow panels
     fig.savefig(path, dpi=110)
     plt.close(fig)

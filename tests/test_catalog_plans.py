@@ -150,7 +150,12 @@ TACTICAL = [n for n in CATALOG if load_scenario(n).events]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("name", "method"), [(n, "levels") for n in TACTICAL] + [("helsinki-tactical", "octant")])
+def _method(name: str) -> str:
+    """The tactical method a scenario flies with by default (fixed-wing: seed 002's local planner)."""
+    return "local" if load_vehicle(load_scenario(name).vehicle).kind == "fixed-wing" else "levels"
+
+
+@pytest.mark.parametrize(("name", "method"), [(n, _method(n)) for n in TACTICAL] + [("helsinki-tactical", "octant")])
 def test_tactical_scenarios_fly_safely(name, method, cache, tmp_path):
     """``skyroute fly`` on every shipped scenario with events (issue 11), checked from its
     written files only: the distance at equal times between the flown trajectory and every
@@ -214,6 +219,10 @@ def test_tactical_scenarios_fly_safely(name, method, cache, tmp_path):
         assert "octant" in chosen and {"octant"} <= set(chosen) <= {"octant", "potential", "1", "2", "3"}
         assert "octant" in {r["part"] for r in rows}
         assert summary["fly"]["dense_zones"]
+    elif method == "local":
+        # seed 002: climb over the unknown obstacle, turn right for the other UAV
+        assert summary["fly"]["outcome"] == "goal"
+        assert {r["level"] for r in tac if r["chosen"] == "true"} == {"climb", "right"}
     else:
         assert summary["fly"]["outcome"] == "goal"
         assert {r["level"] for r in tac if r["chosen"] == "true"} >= ({"1", "2"} if name == "helsinki-tactical" else {"2"})

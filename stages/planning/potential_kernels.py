@@ -41,6 +41,20 @@ def _move_ok(free, k, i, j, dk, di, dj, ny, nx):
 # --------------------------------------------------------------------------- wave propagation
 
 
+@numba.njit(cache=True, inline="always")
+def _bucket_push(buf, cnt, cap, sl, v):
+    """Append voxel ``v`` to bucket slot ``sl`` of ``buf`` (nb, cap), doubling the capacity
+    when the slot is full; returns ``(buf, cap)`` (the buffer may be a new array)."""
+    if cnt[sl] >= cap:
+        buf2 = np.empty((buf.shape[0], 2 * cap), dtype=np.int64)
+        buf2[:, :cap] = buf
+        buf = buf2
+        cap *= 2
+    buf[sl, cnt[sl]] = v
+    cnt[sl] += 1
+    return buf, cap
+
+
 @numba.njit(cache=True, parallel=True)
 def _classify_kernel(free, nz, ny, nx, state):
     """state[v] = 1 blocked, 0 free with all 26 neighbours free (inside the box), 3 other free."""
@@ -120,14 +134,7 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
                 break
             if b < cur:
                 b = cur
-            sl = b % nb
-            if cnt[sl] >= cap:
-                buf2 = np.empty((nb, 2 * cap), dtype=np.int64)
-                buf2[:, :cap] = buf
-                buf = buf2
-                cap *= 2
-            buf[sl, cnt[sl]] = sv
-            cnt[sl] += 1
+            buf, cap = _bucket_push(buf, cnt, cap, b % nb, sv)
             state[sv] |= 4
             queued += 1
             sp += 1
@@ -186,14 +193,7 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
                     elif (su & 4) != 0 and b == int(math.floor(Uu / q)):
                         continue                 # already queued in that bucket: it reads U[u] when settled
                     state[u] = su | 4
-                    sl = b % nb
-                    if cnt[sl] >= cap:
-                        buf2 = np.empty((nb, 2 * cap), dtype=np.int64)
-                        buf2[:, :cap] = buf
-                        buf = buf2
-                        cap *= 2
-                    buf[sl, cnt[sl]] = u
-                    cnt[sl] += 1
+                    buf, cap = _bucket_push(buf, cnt, cap, b % nb, u)
                     queued += 1
         cur += 1
         if target >= 0 and state[target] == 2:

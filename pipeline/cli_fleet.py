@@ -115,3 +115,7 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
                f"{c['preempted-replanned']} preempted-replanned, {c['rejected']} rejected; mean delay "
                f"{section['mean_delay_s'] or 0:.0f} s; {section['throughput_plans_per_min']} plans/min; "
                f"conflicts (independent check) {section['conflicts_independent_check']} -> {out_dir}")
+    if section["accepted_total"] == 0:      # an honest result: nothing flies (every reason is in fleet.csv)
+        reasons = sorted({o.reason for o in res.outcomes if o.reason})
+        click.echo("no mission accepted: " + (" | ".join(reasons[:3]) or "no mission was given"), err=True)
+        sys.exit(3)

@@ -244,7 +244,7 @@ def _fleet_section(folder: Path | None, sec: dict[str, Any] | None) -> str:
         return ""
     counts = sec.get("counts") or {}
     rows = [[k, v] for k, v in counts.items()]
-    for k in ("mean_delay_s", "plans_per_min", "conflicts_independent_check"):
+    for k in ("mean_delay_s", "throughput_plans_per_min", "conflicts_independent_check"):
         if k in sec:
             rows.append([k, sec[k]])
     head = "<h2>Fleet (U-space, first come first served)</h2>" + _table(["", ""], rows, text_cols=(0,))

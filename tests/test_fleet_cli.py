@@ -314,3 +314,17 @@ def test_report_of_a_fleet_folder(drawn, tmp_path):
     assert table.count("<tr>") == len(rows) + 1
     for r in rows:
         assert f"<td>{r['status']}</td>" in table
+
+
+def test_nothing_accepted_exits_3_with_the_reason(tmp_path, cache_dir):
+    """A fleet whose only mission cannot fly (its goal is inside a 70 m building) writes its
+    outputs and exits 3 with the reason, like `plan` without a flyable candidate."""
+    f = _yaml(tmp_path / "walled.yaml", {"missions": [
+        {"id": "walled", "operator": "op-a", "start": A, "goal": {"x": 385620.0, "y": 6671880.0, "alt_agl_m": 10},
+         "departure": 0}]})
+    res = CliRunner().invoke(main, ["fleet", "helsinki-medical", *GROUND, "--cache-dir", str(cache_dir), "-q",
+                                    "--fleet", str(f), "--out", str(tmp_path / "o"), "--max-delay-min", "1"])
+    assert res.exit_code == 3, res.output
+    assert "no mission accepted:" in res.output and "inside obstacle clearance" in res.output
+    (row,) = _rows(tmp_path / "o")
+    assert row["status"] == "rejected" and "inside obstacle clearance" in row["reason"]

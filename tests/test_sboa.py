@@ -266,3 +266,16 @@ def test_helsinki_medical_with_the_bubble_flies_clear_of_it(cache):
     d = _prism_distance(chosen.xyz_m, sub, s[rows, cols])
     need = np.maximum(veh.r_p_m, k * chosen.sigma_p_m + su)
     assert (d >= need - 1e-6).all() and (d >= chosen.clearance_radius_m - 1e-6).all(), float(d.min())
+
+
+def test_fly_params_refuse_a_bad_bubble():
+    """The replay's safety-bubble parameters (``constraints.clearance: sboa`` in ``skyroute fly``)."""
+    from skyroute.stages.base import InputError
+    from skyroute.stages.tactical.replay import FlyParams
+
+    assert FlyParams().bubble is None
+    assert FlyParams(bubble_k=3.0, surface_uncertainty_m=1.0).bubble == (3.0, 1.0)
+    with pytest.raises(InputError, match=r"safety bubble k -1\.0 must be > 0"):
+        FlyParams(bubble_k=-1.0)
+    with pytest.raises(InputError, match=r"surface uncertainty -0\.5 m >= 0"):
+        FlyParams(bubble_k=3.0, surface_uncertainty_m=-0.5)

@@ -383,6 +383,9 @@ def known_vehicles() -> list[str]:
     return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".yaml"))
 
 
+_PARSED: dict[str, AnyVehicle] = {}   # YAML text -> profile (parsing takes ~10 ms; planners load per call)
+
+
 def load_vehicle(name_or_path: str | Path | AnyVehicle) -> AnyVehicle:
     """A :class:`VehicleProfile` (multirotor) or :class:`FixedWingProfile` by catalog name
     (``"dji-m300-rtk"``, ``"skywalker-x8"``) or YAML file path.
@@ -407,6 +410,9 @@ def load_vehicle(name_or_path: str | Path | AnyVehicle) -> AnyVehicle:
             raise UnknownNameError("vehicle", s, known_vehicles())
         text = res.read_text()
         source = f"vehicle {s}"
+    hit = _PARSED.get(text)
+    if hit is not None:     # the same file content parsed before: the same (frozen) profile
+        return hit
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -417,7 +423,11 @@ def load_vehicle(name_or_path: str | Path | AnyVehicle) -> AnyVehicle:
         raise ScenarioError(source, [f"kind: unknown vehicle kind {raw.get('kind')!r}; known kinds: "
                                      f"{', '.join(VEHICLE_KINDS)}"])
     try:
-        return vehicle_from_dict(raw)
+        veh = vehicle_from_dict(raw)
     except ValidationError as exc:
         problems = [f"{'.'.join(str(p) for p in e['loc']) or '(root)'}: {e['msg']}" for e in exc.errors()]
         raise ScenarioError(source, problems) from exc
+    if len(_PARSED) >= 64:
+        _PARSED.clear()
+    _PARSED[text] = veh
+    return veh

@@ -16,6 +16,7 @@ from skyroute.stages.energy import energy_cost
 from skyroute.stages.grid import Grid
 from skyroute.stages.planning.grid_planner import (
     _OFFS,
+    EdgeCache,
     astar,
     heuristic_2d,
     make_lattice,
@@ -161,6 +162,31 @@ def test_astar_is_exact_on_the_lattice():
     assert res["f"] == pytest.approx(ref, rel=1e-9)
     assert pr.path_costs(res["waypoints"])["f"] == pytest.approx(ref, rel=1e-9)
     assert pr.path_costs(res["waypoints"])["valid"]
+
+
+def test_edge_cache_shared_by_missions_keeps_each_lattice_optimum():
+    """Missions on the same maps with lattices anchored on one altitude share an EdgeCache
+    (skyroute fleet): every search, on a cold or a warm cache, returns the scipy Dijkstra
+    optimum of its own lattice and the same path as the uncached search."""
+    base = make_problem(wind=(3.0, 1.0, 0.0), weights=(1, 2, 1, 1))     # a 70 m tower in the middle
+    cache = EdgeCache()
+    ends = [((10, 50, 20), (190, 50, 20)), ((190, 8, 27), (8, 92, 13)), ((100, 5, 31), (100, 95, 18)),
+            ((10, 50, 20), (190, 50, 20))]
+    seen = []
+    for start, goal in ends:
+        pr = dataclasses.replace(base, start_xyz=tuple(map(float, start)), goal_xyz=tuple(map(float, goal)))
+        lat = make_lattice(pr, step_cells=4, dz_m=3.0, z_anchor_m=1.0)
+        np.testing.assert_allclose((lat.z - 1.0) / 3.0, np.round((lat.z - 1.0) / 3.0), atol=1e-12)  # anchored
+        assert lat.z.min() >= pr.floor_m[np.isfinite(pr.floor_m)].min() - 1e-9
+        cached = astar(pr, lat, edge_cache=cache)
+        plain = astar(pr, lat)
+        assert np.isfinite(plain["f"])
+        assert cached["f"] == plain["f"] and cached["expanded"] == plain["expanded"]
+        np.testing.assert_array_equal(cached["waypoints"], plain["waypoints"])
+        assert cached["f"] == pytest.approx(_dijkstra_oracle(pr, lat), rel=1e-9)
+        seen.append(np.isfinite(cache.for_lattice(lat)).sum())
+    assert len(cache._arrays) == 1          # one shared lattice
+    assert 0 < seen[0] < seen[-1]           # later missions reuse and extend the costs
 
 
 def test_heuristic_is_admissible_and_tight_in_a_varying_wind():

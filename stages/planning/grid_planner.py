@@ -90,8 +90,11 @@ def _links(lat_x, lat_y, lat_z, p, radius_h: int = 2, radius_v: int = 1) -> np.n
     return np.array(ids, dtype=np.int64)
 
 
-def make_lattice(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: float | None = None) -> Lattice:
-    """The A* lattice of ``problem`` (module docstring)."""
+def make_lattice(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: float | None = None,
+                 z_anchor_m: float | None = None) -> Lattice:
+    """The A* lattice of ``problem`` (module docstring).  ``z_anchor_m`` [m]: an altitude the
+    levels are aligned on (default the start's); missions planned with the same anchor on the
+    same maps share one lattice (and its :class:`EdgeCache`)."""
     if int(step_cells) < 1:
         raise InputError(f"step_cells {step_cells} must be >= 1")
     g = problem.grid
@@ -108,9 +111,14 @@ def make_lattice(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: f
     fin = problem.floor_m[np.isfinite(problem.floor_m)]
     zlo = float(fin.min()) if fin.size else float(problem.terrain_m.min())
     zhi = float(problem.ceiling_m.max())
-    zs = problem.start_xyz[2]
-    kdown = math.floor((zs - zlo) / dz_m + 1e-9)
-    kup = math.floor((zhi - zs) / dz_m + 1e-9)
+    if z_anchor_m is None:
+        zs = problem.start_xyz[2]
+        kdown = math.floor((zs - zlo) / dz_m + 1e-9)
+        kup = math.floor((zhi - zs) / dz_m + 1e-9)
+    else:     # the anchor's levels within [zlo, zhi]
+        zs = float(z_anchor_m)
+        kdown = -math.ceil((zlo - zs) / dz_m - 1e-9)
+        kup = math.floor((zhi - zs) / dz_m + 1e-9)
     z = zs + dz_m * np.arange(-kdown, kup + 1)
     zz, yy, xx = np.meshgrid(z, y, x, indexing="ij")
     valid = problem.state_valid(np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1)).reshape(zz.shape)
@@ -145,7 +153,7 @@ class SearchParams(NamedTuple):
 
 
 @numba.njit(cache=True, nogil=True)
-def _astar_kernel(nodes, search, stop, maps, wind, vehicle, power):
+def _astar_kernel(nodes, search, stop, edges, maps, wind, vehicle, power):
     lx, ly, lz, valid, offs, start_links, goal_links = nodes
     sx, sy, sz = search.start_m
     gx, gy, gz = search.goal_m
@@ -163,6 +171,7 @@ def _astar_kernel(nodes, search, stop, maps, wind, vehicle, power):
     for i in range(goal_links.shape[0]):
         is_goal_link[goal_links[i]] = True
     buf = np.empty(6)
+    use_edges = edges.shape[0] == n     # the lattice's EdgeCache (else a (0, 26) placeholder)
     gcost[S] = 0.0
     heap = [(rate * math.sqrt((sx - gx) ** 2 + (sy - gy) ** 2 + (sz - gz) ** 2), S)]
     expanded = 0
@@ -218,12 +227,20 @@ def _astar_kernel(nodes, search, stop, maps, wind, vehicle, power):
                 vx, vy, vz = lx[cc], ly[rr], lz[kk]
             if closed[v]:
                 continue
-            code = segment_eval_if_valid(ux, uy, uz, vx, vy, vz, maps, wind, vehicle, power, buf)
-            if code != OK:
+            inner = use_edges and u != S and v != G
+            w = edges[u, m] if inner else np.nan
+            if w != w:                  # not cached: evaluate the motion
+                code = segment_eval_if_valid(ux, uy, uz, vx, vy, vz, maps, wind, vehicle, power, buf)
+                if code != OK:
+                    w = np.inf
+                else:
+                    w = wts[0] * buf[0] + wts[1] * buf[1] + wts[2] * buf[2]
+                    if wts[3] > 0:
+                        w += wts[3] * buf[3]
+                if inner:
+                    edges[u, m] = w
+            if w == np.inf:
                 continue
-            w = wts[0] * buf[0] + wts[1] * buf[1] + wts[2] * buf[2]
-            if wts[3] > 0:
-                w += wts[3] * buf[3]
             ng = gcost[u] + w
             if ng < gcost[v]:
                 gcost[v] = ng
@@ -350,8 +367,41 @@ def heuristic_2d(problem: PlanningProblem, lattice: Lattice, col_ok: np.ndarray 
     return np.ascontiguousarray(np.where(np.isfinite(d[:n]), d[:n], np.inf).reshape(ny, nx))
 
 
+class EdgeCache:
+    """The costs f of the inner edges of lattices (node -> 26 neighbours), filled lazily by the
+    A* searches and reused by later ones: for a caller that plans many missions on the SAME
+    problem maps, weights and vehicle (``skyroute fleet``), with lattices anchored on one
+    altitude (:func:`make_lattice` ``z_anchor_m``) so that they coincide.  An edge cost does not
+    depend on the endpoints (the start and goal links are never cached), so a search returns
+    exactly what it would without the cache.  One (n, 26) float64 array per lattice geometry
+    (NaN: not evaluated, inf: invalid motion), 8 bytes x 26 per lattice node."""
+
+    def __init__(self, max_lattices: int = 4):
+        self.max_lattices = int(max_lattices)
+        self._arrays: dict[tuple, np.ndarray] = {}
+
+    def for_lattice(self, lattice: Lattice) -> np.ndarray:
+        key = (lattice.shape, lattice.x.tobytes(), lattice.y.tobytes(), lattice.z.tobytes(),
+               lattice.valid.tobytes())
+        a = self._arrays.get(key)
+        if a is None:
+            while len(self._arrays) >= self.max_lattices:
+                self._arrays.pop(next(iter(self._arrays)))
+            a = np.full((lattice.valid.size, _OFFS.shape[0]), np.nan)
+            self._arrays[key] = a
+        return a
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self._arrays.values())
+
+
+_NO_EDGES = np.empty((0, _OFFS.shape[0]))
+
+
 def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_000_000,
-          heuristic: str = "dijkstra2d", h2: np.ndarray | None = None, time_limit_s: float | None = None) -> dict:
+          heuristic: str = "dijkstra2d", h2: np.ndarray | None = None, time_limit_s: float | None = None,
+          edge_cache: EdgeCache | None = None) -> dict:
     """A* from start to goal on ``lattice``.  Returns ``waypoints`` (k, 3) or None, ``f`` (the
     lattice optimum), ``expanded`` (node expansions), ``stopped_by`` (``""``, or ``"time"`` when
     the search ran out of ``time_limit_s`` [s] wall clock before reaching the goal: no path).
@@ -360,7 +410,9 @@ def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_0
     consistent, so the result is the lattice optimum either way.  ``h2``: a precomputed
     ``"dijkstra2d"`` table (ny_l, nx_l) (e.g. :func:`shared_heuristic` of the loosest level).
     The compiled search polls a stop flag every 1024 expansions: a cancel request
-    (:mod:`skyroute.stages.control`) raises ``Interrupted`` within milliseconds."""
+    (:mod:`skyroute.stages.control`) raises ``Interrupted`` within milliseconds.
+    ``edge_cache``: an :class:`EdgeCache` kept for ``problem``'s maps, weights and vehicle
+    (same result, fewer motion evaluations)."""
     sx, sy, sz = problem.start_xyz
     gx, gy, gz = problem.goal_xyz
     if heuristic == "dijkstra2d":
@@ -383,7 +435,8 @@ def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_0
         search = SearchParams((float(sx), float(sy), float(sz)), (float(gx), float(gy), float(gz)),
                               tuple(float(w) for w in problem.weights), float(problem.cost_rate_lb),
                               int(max_expansions), h2, bool(use_h2), float(b_up), float(c_down))
-        f, parent, expanded = _astar_kernel(nodes, search, stop.array, *problem.seg_args)
+        edges = _NO_EDGES if edge_cache is None else edge_cache.for_lattice(lattice)
+        f, parent, expanded = _astar_kernel(nodes, search, stop.array, edges, *problem.seg_args)
         stop.check()
         stopped = "time" if stop.expired and not np.isfinite(f) else ""
     if not np.isfinite(f):
@@ -501,27 +554,30 @@ def refine_path(problem: PlanningProblem, wp: np.ndarray, step0_m: float | None 
     return wp
 
 
-def shared_heuristic(loosest: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: float | None = None
-                     ) -> np.ndarray:
+def shared_heuristic(loosest: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: float | None = None,
+                     z_anchor_m: float | None = None) -> np.ndarray:
     """The :func:`heuristic_2d` table of the least constrained problem (the loosest coverage
     level, lowest floors): admissible and consistent for every level with the same grid, map
     costs, wind, vehicle, weights and goal whose floors are >= its floors (see
     :func:`heuristic_2d`), so it is computed once per mission."""
-    lat = make_lattice(loosest, step_cells, dz_m)
+    lat = make_lattice(loosest, step_cells, dz_m, z_anchor_m)
     return heuristic_2d(loosest, lat)
 
 
 def plan_grid(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: float | None = None,
               refine: bool = True, max_expansions: int = 50_000_000, heuristic: str = "dijkstra2d",
-              h2: np.ndarray | None = None, time_limit_s: float = math.inf) -> dict:
+              h2: np.ndarray | None = None, time_limit_s: float = math.inf, z_anchor_m: float | None = None,
+              edge_cache: EdgeCache | None = None) -> dict:
     """A* on the lattice then (optionally) :func:`refine_path`, within ``time_limit_s`` [s] wall
     clock.  Returns a dict with ``waypoints`` (or None), ``lattice_f``, ``expanded``,
     ``lattice``, ``compute_s`` and ``stopped_by`` (``""``; ``"time"`` when the limit cut the
     search, then no path, or the refinement, then the path refined so far).
-    ``h2``: precomputed heuristic table (:func:`shared_heuristic`)."""
+    ``h2``: precomputed heuristic table (:func:`shared_heuristic`); ``z_anchor_m``,
+    ``edge_cache``: see :func:`make_lattice` and :class:`EdgeCache`."""
     t0 = time.perf_counter()
-    lat = make_lattice(problem, step_cells, dz_m)
-    res = astar(problem, lat, max_expansions, heuristic, h2, time_limit_s=time_limit_s - (time.perf_counter() - t0))
+    lat = make_lattice(problem, step_cells, dz_m, z_anchor_m)
+    res = astar(problem, lat, max_expansions, heuristic, h2, time_limit_s=time_limit_s - (time.perf_counter() - t0),
+                edge_cache=edge_cache)
     wp = res["waypoints"]
     stopped = res["stopped_by"]
     if wp is not None and refine:
@@ -533,5 +589,5 @@ def plan_grid(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: floa
             "compute_s": time.perf_counter() - t0, "stopped_by": stopped}
 
 
-__all__ = ["STEP_CELLS", "Lattice", "astar", "heuristic_2d", "make_lattice", "plan_grid", "refine_path",
+__all__ = ["STEP_CELLS", "EdgeCache", "Lattice", "astar", "heuristic_2d", "make_lattice", "plan_grid", "refine_path",
            "relax_vertices", "shared_heuristic", "shortcut", "vertical_rates"]

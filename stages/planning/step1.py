@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from skyroute.stages.base import InputError, UnknownNameError
-from skyroute.stages.planning.grid_planner import STEP_CELLS, plan_grid, refine_path
+from skyroute.stages.planning.grid_planner import STEP_CELLS, EdgeCache, plan_grid, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 
 PLANNERS = ("bitstar", "astar", "potential", "eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
@@ -100,7 +100,8 @@ def bitstar_iterations(time_budget_s: float) -> int:
 
 def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, seed: int, refine: bool,
                 step_cells: int, max_iterations: int | None, h2: np.ndarray | None = None,
-                deadline: float = math.inf) -> tuple[np.ndarray | None, dict]:
+                deadline: float = math.inf, z_anchor_m: float | None = None,
+                edge_cache: EdgeCache | None = None) -> tuple[np.ndarray | None, dict]:
     """One plan; ``deadline``: ``time.perf_counter()`` value at which the level's cap ends."""
     left = deadline - time.perf_counter()
     if planner == "potential":          # seed 004 III-B: numerical potential field (deterministic)
@@ -110,7 +111,8 @@ def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, se
         return r["waypoints"], {"stopped_by": r["stopped_by"] or "completed", "reason": r["reason"],
                                 "compute_s": r["compute_s"]}
     if planner == "astar":
-        r = plan_grid(problem, step_cells=step_cells, refine=refine, h2=h2, time_limit_s=left)
+        r = plan_grid(problem, step_cells=step_cells, refine=refine, h2=h2, time_limit_s=left, z_anchor_m=z_anchor_m,
+                      edge_cache=edge_cache)
         return r["waypoints"], {"lattice_f": r["lattice_f"], "expanded": r["expanded"],
                                 "stopped_by": r["stopped_by"] or "completed"}
     from skyroute.stages.planning.bitstar import plan_bitstar
@@ -150,7 +152,8 @@ def _no_path_reason(label: str, planner: str, info: dict, cap_s: float, time_bud
 def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: float = 5.0, seed: int = 0,
                max_tries: int = 3, refine: bool = True, step_cells: int = STEP_CELLS,
                max_iterations: int | None = None, h2: np.ndarray | None = None,
-               battery_reserve_pct: float = 0.0) -> Step1Result:
+               battery_reserve_pct: float = 0.0, z_anchor_m: float | None = None,
+               edge_cache: EdgeCache | None = None) -> Step1Result:
     """STEP I on one level: plan, check the energy, re-plan with larger w_l if needed.
 
     ``planner``: one of :data:`PLANNERS`; ``time_budget_s`` [s] > 0: BIT*'s budget per try
@@ -165,6 +168,10 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
     A* lattice step; ``h2``: precomputed A* heuristic table for the first try
     (:func:`~skyroute.stages.planning.grid_planner.shared_heuristic`).
     ``battery_reserve_pct`` [%]: the chain may use ``battery * (1 - reserve / 100)``.
+    A* only: ``z_anchor_m`` [m] the altitude its lattice levels are aligned on (default the
+    start's), ``edge_cache`` the :class:`~skyroute.stages.planning.grid_planner.EdgeCache` of
+    ``problem``'s maps, weights and vehicle, used by the first try (the later ones change the
+    weights).
     Raises UnknownNameError / InputError for a bad planner / budget.
     """
     _check(planner, time_budget_s)
@@ -191,7 +198,8 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
             break
         prob = problem if attempt == 0 else problem.with_weights(w)
         wp, inf = _solve_once(prob, planner, time_budget_s, seed + attempt, refine, step_cells, max_iterations,
-                              h2 if attempt == 0 else None, deadline)
+                              h2 if attempt == 0 else None, deadline, z_anchor_m,
+                              edge_cache if attempt == 0 else None)
         if "time" in (inf.get("stopped_by"), inf.get("refine_stopped_by")):
             info["stopped_by"] = "time"
         if wp is None:

@@ -36,7 +36,7 @@ from skyroute.stages import control
 from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.planning.deconflict import Step2Result, deconflict
 from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
-from skyroute.stages.planning.grid_planner import STEP_CELLS, shared_heuristic
+from skyroute.stages.planning.grid_planner import STEP_CELLS, EdgeCache, shared_heuristic
 from skyroute.stages.planning.kinds import FIXED_WING_PLANNERS, check_planner_vehicle
 from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz_from_agl
 from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, PLANNERS, Step1Result, plan_step1
@@ -50,6 +50,10 @@ from skyroute.stages.planning.step3 import (
 from skyroute.stages.smoothing import CornerTrajectory
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.vehicle import FixedWingProfile, VehicleProfile, load_vehicle
+
+LATTICE_ANCHOR_M = 0.0   # [m] the altitude shared A* lattices are aligned on (``edge_cache``)
+STEP1_MEMO = 256         # STEP I results kept in an ``edge_cache`` dict
+STEP2_MAX_ITER = 5000    # K of STEP II (deconflict's default)
 
 
 @dataclass
@@ -80,7 +84,8 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                    max_iterations: int | None = None, battery_reserve_pct: float = 0.0,
                    clearance_by_level: Mapping[float, xr.Dataset] | None = None,
                    bubble: tuple[float, float] | None = None,
-                   heuristic_cache: dict | None = None) -> StrategicPlan:
+                   heuristic_cache: dict | None = None, edge_cache: dict | None = None,
+                   step2_max_iter: int = STEP2_MAX_ITER) -> StrategicPlan:
     """Plan the mission for every coverage level of ``coverage`` (one level without GNSS data).
 
     Levels with identical floor and coverage arrays are solved once.  With ``planner="astar"``
@@ -110,7 +115,17 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
     ``heuristic_cache``: a dict kept by a caller that plans many missions on the SAME maps
     (``skyroute fleet``): the A* heuristic table, which depends on the goal, the start altitude
     (the lattice's levels), the levels, the vehicle, the weights and the lattice step only
-    (given the maps), is reused for a goal seen before (same result, less time)."""
+    (given the maps), is reused for a goal seen before (same result, less time).
+
+    ``edge_cache``: a dict kept by such a caller too: the A* lattices of every mission are then
+    aligned on ``LATTICE_ANCHOR_M`` (instead of each start's altitude) so that missions share
+    them, and the costs of their edges are kept per level
+    (:class:`~skyroute.stages.planning.grid_planner.EdgeCache`) and reused: each search returns
+    what it would without the dict, on the anchored lattice.  The dict also keeps the last
+    ``STEP1_MEMO`` STEP I results (A*): STEP I does not depend on the departure time or the
+    traffic, so a mission planned again (a later departure) reuses its chain.
+
+    ``step2_max_iter``: K, the STEP II RRT's iterations (its reproducible stop rule)."""
     t0 = time.perf_counter()
     wind_map = wind.load() if wind is not None else None
     cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
@@ -151,16 +166,25 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                                       battery_reserve_pct=battery_reserve_pct, sky=sky, occ=occ,
                                       surface_2d=surface_2d, start_time_utc=start_time_utc, uere_m=uere_m)
     h2 = None
+    anchor = None if edge_cache is None else LATTICE_ANCHOR_M
     if planner == "astar":   # one A* heuristic for all levels: that of the loosest (lowest floors)
         loosest = _loosest(problems)
         if loosest is not None and not loosest.endpoint_problem():
-            hkey = (tuple(np.round(goal, 6)), round(float(start[2]), 6), loosest.dop_threshold, veh.name, tuple(weights), step_cells,
+            zkey = ("anchor", anchor) if anchor is not None else round(float(start[2]), 6)   # the lattice levels
+            hkey = (tuple(np.round(goal, 6)), zkey, loosest.dop_threshold, veh.name, tuple(weights), step_cells,
                     min_agl_m, max_agl_m, dop_kind, battery_reserve_pct)
             h2 = None if heuristic_cache is None else heuristic_cache.get(hkey)
             if h2 is None:
-                h2 = shared_heuristic(loosest, step_cells)
+                h2 = shared_heuristic(loosest, step_cells, z_anchor_m=anchor)
                 if heuristic_cache is not None:
                     heuristic_cache[hkey] = h2
+
+    def level_edges(d) -> EdgeCache | None:
+        if edge_cache is None or planner != "astar":
+            return None
+        radius = float(by_level[d].attrs["radius_m"]) if d is not None and d in by_level else None
+        key = (d, radius, veh.name, tuple(weights), step_cells, min_agl_m, max_agl_m, dop_kind)
+        return edge_cache.setdefault(key, EdgeCache())
 
     ticker = _Progress(planner)
 
@@ -169,15 +193,26 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         problem, d = problems[i], levels[i][0]
         tl = time.perf_counter()
         ticker.phase(problem.label, "STEP I")
-        s1 = plan_step1(problem, planner=planner, time_budget_s=time_budget_s, seed=seed, max_tries=max_tries,
-                        step_cells=step_cells, max_iterations=max_iterations, h2=h2,
-                        battery_reserve_pct=battery_reserve_pct)
+        ec = level_edges(d)
+        s1key = None if ec is None else (id(ec), problem.start_xyz, problem.goal_xyz, max_tries, battery_reserve_pct,
+                                         time_budget_s)
+        s1 = None if s1key is None else edge_cache.get(("step1", s1key))
+        if s1 is None:
+            s1 = plan_step1(problem, planner=planner, time_budget_s=time_budget_s, seed=seed, max_tries=max_tries,
+                            step_cells=step_cells, max_iterations=max_iterations, h2=h2,
+                            battery_reserve_pct=battery_reserve_pct, z_anchor_m=anchor, edge_cache=ec)
+            if s1key is not None and s1.info.get("stopped_by") != "time":    # a complete search only
+                memo = [k for k in edge_cache if isinstance(k, tuple) and k[:1] == ("step1",)]
+                for k in memo[:max(len(memo) - STEP1_MEMO + 1, 0)]:
+                    del edge_cache[k]
+                edge_cache[("step1", s1key)] = s1
         if not s1.solved:
             ticker.phase(problem.label, None)
             why = (s1.reason or s1.status).removeprefix(f"{problem.label}: ")
             return s1, None, empty_candidate(problem.label, d, [f"STEP I: {why}"], tl, s1.status)
         ticker.phase(problem.label, "STEP II")
-        s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=LEVEL_CAP_FACTOR * time_budget_s)
+        s2 = deconflict(problem, s1.waypoints, occ, seed=seed, time_budget_s=LEVEL_CAP_FACTOR * time_budget_s,
+                        max_iter=step2_max_iter)
         if s2.status == "failed":
             ticker.phase(problem.label, None)
             return s1, s2, empty_candidate(problem.label, d, [f"STEP II: {s2.reason}"], tl, s2.status)

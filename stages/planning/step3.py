@@ -300,9 +300,9 @@ def _visibility_windowed(vis, los, los_all, sub, origin, g, z, r, c, inside, ep,
     """The loop of :func:`line_of_sight` over the epochs without a cache, on the window ``sub``
     (at ``origin`` in the map) -- with the same answers, faster: a sample at or above the
     highest cell of the window sees every satellite (a visibility height never exceeds the
-    heights it comes from), and for the others each satellite is scanned only over its
+    heights it comes from); for the others each satellite is scanned only over its
     :func:`~skyroute.stages.occlusion.occluder_window` within ``sub`` (the cells that can
-    decide those samples), not over all of ``sub``."""
+    decide those samples), and not at all when they are at or above its highest cell."""
     r0, c0 = origin
     h_max = float(np.float32(sub.max())) if sub.size else -np.inf   # the kernel works in float32
     for e in np.unique(ep):
@@ -322,7 +322,11 @@ def _visibility_windowed(vis, los, los_all, sub, origin, g, z, r, c, inside, ep,
         for j, s in enumerate(sats):
             w0, w1, v0, v1 = occluder_window(rr, cc, float(zn.min()), h_max, float(az_g[j]), float(el[e, s]),
                                              g.resolution_m, sub.shape)
-            vh = visibility_heights_numpy(sub[w0:w1, v0:v1], az_g[j:j + 1], el[e, s:s + 1], g.resolution_m,
+            win = sub[w0:w1, v0:v1]
+            if np.all(zn >= np.float32(win.max())):       # above every cell that can decide them
+                vis[nr, s] = True
+                continue
+            vh = visibility_heights_numpy(win, az_g[j:j + 1], el[e, s:s + 1], g.resolution_m,
                                           origin=(r0 + w0, c0 + v0))[0]
             vis[nr, s] = zn >= vh[rr - w0, cc - v0]
 

@@ -24,9 +24,10 @@ Model (continuous time, ENU frame, 11 states)
   ``S_f = h0/2 c^2``, ``S_g = 2 pi^2 h_-2 c^2``; defaults for a TCXO ``h0 = 2e-19``,
   ``h_-2 = 2e-20`` (same source).
 
-Discretisation is exact (Van Loan) for each distinct epoch spacing.  Pseudorange of a visible
-satellite: ``rho = |r_sat - p| + c dt + e``, Jacobian row ``[-u, 0, 0, 1, 0]`` with ``u`` the
-unit line of sight receiver -> satellite (ENU); ``e`` white with sigma ``gnss_sigma_m``.
+Discretisation is exact for each distinct epoch spacing (the Van Loan integrals, in closed
+form for this model).  Pseudorange of a visible satellite: ``rho = |r_sat - p| + c dt + e``,
+Jacobian row ``[-u, 0, 0, 1, 0]`` with ``u`` the unit line of sight receiver -> satellite
+(ENU); ``e`` white with sigma ``gnss_sigma_m``.
 
 UERE default: 3.0 m (1 sigma), a typical single-frequency GPS SPS user range error budget
 (signal-in-space error < 1 m plus residual ionosphere after the broadcast model, troposphere,
@@ -47,6 +48,7 @@ sqrt(P_EE + P_NN)`` (horizontal), ``sigma_v_m = sqrt(P_UU)`` (vertical).
 from __future__ import annotations
 
 import functools
+import math
 
 import numba
 import numpy as np
@@ -89,8 +91,10 @@ def continuous_model(imu: ImuSpec, clock_h0: float = TCXO_H0, clock_hm2: float =
 
 
 def discretise(F: np.ndarray, Qc: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact transition matrix and process-noise covariance over ``dt_s`` (Van Loan 1978).
-    Results are memoised per (F, Qc, dt) (a bounded LRU: trajectories repeat their steps)."""
+    """Exact transition matrix and process-noise covariance over ``dt_s`` (Van Loan 1978; for
+    the model of :func:`continuous_model` with ``dt_s <= tau_b / 2`` the same integrals in
+    closed form, :func:`_discretise_model`).  Results are memoised per (F, Qc, dt) (a bounded
+    LRU: trajectories repeat their steps)."""
     F = np.ascontiguousarray(F, dtype=float)
     Qc = np.ascontiguousarray(Qc, dtype=float)
     phi, qd = _discretise_memo(F.tobytes(), Qc.tobytes(), F.shape[0], float(dt_s))
@@ -101,6 +105,14 @@ def discretise(F: np.ndarray, Qc: np.ndarray, dt_s: float) -> tuple[np.ndarray, 
 def _discretise_memo(f_bytes: bytes, q_bytes: bytes, n: int, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     F = np.frombuffer(f_bytes).reshape(n, n)
     Qc = np.frombuffer(q_bytes).reshape(n, n)
+    model = _model_scalars(F, Qc)
+    if model is not None and 0.0 <= model[0] * dt_s <= 0.5:
+        return _discretise_model(*model, dt_s)
+    return _van_loan(F, Qc, dt_s)
+
+
+def _van_loan(F: np.ndarray, Qc: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    n = F.shape[0]
     M = np.zeros((2 * n, 2 * n))
     M[:n, :n] = -F
     M[:n, n:] = Qc
@@ -109,6 +121,74 @@ def _discretise_memo(f_bytes: bytes, q_bytes: bytes, n: int, dt_s: float) -> tup
     phi = E[n:, n:].T
     qd = phi @ E[:n, n:]
     return phi, 0.5 * (qd + qd.T)
+
+
+def _model_scalars(F: np.ndarray, Qc: np.ndarray) -> tuple[float, float, float, float, float] | None:
+    """``(1 / tau_b [1/s], S_v, S_b, S_f, S_g)`` when ``F``, ``Qc`` are exactly the matrices
+    :func:`continuous_model` builds from them, else None."""
+    if F.shape != (NX, NX) or Qc.shape != (NX, NX):
+        return None
+    a, qv, qb, qf, qg = -F[6, 6], Qc[3, 3], Qc[6, 6], Qc[9, 9], Qc[10, 10]
+    if not (np.isfinite([a, qv, qb, qf, qg]).all() and a > 0):
+        return None
+    Ft = np.zeros((NX, NX))
+    Qt = np.zeros((NX, NX))
+    for i in range(3):
+        Ft[i, 3 + i], Ft[3 + i, 6 + i], Ft[6 + i, 6 + i] = 1.0, -1.0, -a
+        Qt[3 + i, 3 + i], Qt[6 + i, 6 + i] = qv, qb
+    Ft[9, 10] = 1.0
+    Qt[9, 9], Qt[10, 10] = qf, qg
+    if not (np.array_equal(F, Ft) and np.array_equal(Qc, Qt)):
+        return None
+    return float(a), float(qv), float(qb), float(qf), float(qg)
+
+
+_NTERMS = 24                                        # x^24 / 24! < 1e-31 for x <= 1/2
+_FACT = np.array([math.factorial(k) for k in range(_NTERMS)], dtype=float)
+_INV = 1.0 / np.arange(1, 2 * _NTERMS)
+
+
+def _discretise_model(a: float, qv: float, qb: float, qf: float, qg: float, dt_s: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``(phi, Q_d)`` over ``T = dt_s`` of :func:`continuous_model` (``a = 1 / tau_b``, PSDs
+    ``qv`` velocity, ``qb`` bias, ``qf`` / ``qg`` clock), for ``a T <= 1/2``: the Van Loan
+    integrals in closed form.  Per axis the bias column of ``phi(s)`` is ``g(s) = (g_p, g_v,
+    e^{-a s})`` with ``g_v = -(1 - e^{-a s}) / a`` and ``g_p = int_0^s g_v``, each written as its
+    (absolutely convergent, cancellation-free) power series in ``u = s / T``; ``Q_d = qv
+    int (s, 1, 0)(s, 1, 0)^T ds + qb int g g^T ds`` (products of series, integrated term by
+    term over ``[0, T]``); the clock is the two-state closed form (Brown & Hwang)."""
+    T = float(dt_s)
+    x = a * T
+    pw = (-x) ** np.arange(_NTERMS)                 # (-x)^k
+    ge = pw / _FACT                                 # e^{-a T u} = sum (-x)^k u^k / k!
+    gv = np.zeros(_NTERMS)
+    gv[1:] = -T * pw[:-1] / _FACT[1:]               # g_v(T u) = -T sum_{k>=1} (-x)^(k-1) u^k / k!
+    gp = np.zeros(_NTERMS)
+    gp[2:] = -T * T * pw[:-2] / _FACT[2:]           # g_p(T u) = -T^2 sum_{k>=2} (-x)^(k-2) u^k / k!
+    g = (gp, gv, ge)
+    qb_int = np.empty((3, 3))
+    for i in range(3):
+        for j in range(i, 3):                       # T int_0^1 g_i g_j du, smallest terms first
+            qb_int[i, j] = qb_int[j, i] = T * float(np.sum((np.convolve(g[i], g[j]) * _INV)[::-1]))
+    qv_int = np.array([[T**3 / 3.0, T**2 / 2.0, 0.0], [T**2 / 2.0, T, 0.0], [0.0, 0.0, 0.0]])
+    blk = qv * qv_int + qb * qb_int
+    col_b = (float(np.sum(gp[::-1])), float(np.sum(gv[::-1])), math.exp(-x))
+    phi = np.zeros((NX, NX))
+    qd = np.zeros((NX, NX))
+    for ax in range(3):
+        idx = (ax, 3 + ax, 6 + ax)
+        phi[ax, ax] = phi[3 + ax, 3 + ax] = 1.0
+        phi[ax, 3 + ax] = T
+        for i in range(3):
+            phi[idx[i], 6 + ax] = col_b[i]
+            for j in range(3):
+                qd[idx[i], idx[j]] = blk[i, j]
+    phi[9, 9] = phi[10, 10] = 1.0
+    phi[9, 10] = T
+    qd[9, 9] = qf * T + qg * T**3 / 3.0
+    qd[9, 10] = qd[10, 9] = qg * T**2 / 2.0
+    qd[10, 10] = qg * T
+    return phi, qd
 
 
 @numba.njit(cache=True, nogil=True)

@@ -61,19 +61,21 @@ Layers: the numba kernel :func:`_scan_kernel`, the numpy runner
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Literal
 
 import numba
 import numpy as np
 import xarray as xr
-from pyproj import CRS, Proj
+from pyproj import CRS, Proj, Transformer
 
 from skyroute.stages.base import CRSError, InputError
 from skyroute.stages.grid import Grid
 
 __all__ = [
     "grid_azimuth_deg",
+    "occluder_window",
     "shadow_halo_cells",
     "visibility_height",
     "visibility_heights_dask",
@@ -424,6 +426,42 @@ def _direction_geometry(az_grid_deg: float, el_deg: float, cell_m: float):
     return sweep_axis, sa, sb, m, kappa
 
 
+def occluder_window(rows, cols, z_min_m: float, h_max_m: float, az_grid_deg: float, el_deg: float,
+                    cell_m: float, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """Bounds ``(r0, r1, c0, c1)`` (rows ``r0:r1``, columns ``c0:c1`` of a map of ``shape``) of
+    the cells that can decide whether points at altitudes >= ``z_min_m`` [m] in the cells
+    ``(rows, cols)`` see the satellite (grid azimuth / elevation [deg]) when every height of
+    the map is <= ``h_max_m`` [m].
+
+    Every other cell requires less than ``z_min_m - kappa`` of these cells (``kappa`` the drop
+    of the ray over one cell, > 0) in :func:`visibility_heights_numpy`'s bound (:func:`_scan_kernel`:
+    a cell ``d`` columns toward the satellite requires at most ``h - kappa (d - 1)``, and the
+    terms of a cell only involve its own column and the next one within 3 rows, and beyond,
+    the lines that bracket its rays, which stay within 2 rows below them and
+    ``2 + m (d + 1)`` rows above them).  So the visibility heights of ``(rows, cols)``
+    computed on this window (with its ``origin``) are those of any larger window wherever
+    either is >= ``z_min_m`` -- the same visible / occluded decisions for those points."""
+    rows = np.asarray(rows)
+    cols = np.asarray(cols)
+    ny, nx = int(shape[0]), int(shape[1])
+    if rows.size == 0:
+        return 0, 0, 0, 0
+    if not (math.isfinite(z_min_m) and math.isfinite(h_max_m)):
+        return 0, ny, 0, nx
+    sweep_axis, sa, sb, m, _ = _direction_geometry(az_grid_deg, el_deg, cell_m)
+    kappa = cell_m * math.tan(math.radians(min(el_deg, 89.999)))   # <= the kernel's kappa
+    reach = int(math.ceil(max(h_max_m - z_min_m, 0.0) / kappa)) + 3       # columns toward the satellite
+    across = int(math.ceil(m * reach)) + 5                                 # rows the rays rise meanwhile
+    ext_sweep = (3, reach) if sa > 0 else (reach, 3)                       # (low index side, high side)
+    ext_cross = (5, across) if sb > 0 else (across, 5)
+    ext_r, ext_c = (ext_sweep, ext_cross) if sweep_axis == 0 else (ext_cross, ext_sweep)
+    r0 = max(int(rows.min()) - ext_r[0], 0)
+    r1 = min(int(rows.max()) + ext_r[1] + 1, ny)
+    c0 = max(int(cols.min()) - ext_c[0], 0)
+    c1 = min(int(cols.max()) + ext_c[1] + 1, nx)
+    return r0, max(r1, r0), c0, max(c1, c0)
+
+
 def visibility_heights_numpy(surface_2d: np.ndarray, az_grid_deg, el_deg, cell_m: float, *,
                              origin: tuple[int, int] = (0, 0),
                              lines_per_cell: int = LINES_PER_CELL) -> np.ndarray:
@@ -554,6 +592,19 @@ def _fill_nearest(h: np.ndarray) -> np.ndarray:
 # public API
 # ----------------------------------------------------------------------------------------
 
+@functools.lru_cache(maxsize=64)
+def _meridian_convergence_deg(crs_wkt: str, bounds: tuple[float, float, float, float]) -> float:
+    """PROJ meridian convergence [deg] at the centre of ``bounds`` (xmin, ymin, xmax, ymax) [m]
+    of a projected CRS (memoised: one value per map, asked once per sky epoch)."""
+    crs = CRS.from_user_input(crs_wkt)
+    if not crs.is_projected:
+        raise CRSError(f"grid CRS {crs.name!r} is not projected: reproject the surface to a "
+                       "projected CRS in metres (e.g. its UTM zone)")
+    xmin, ymin, xmax, ymax = bounds
+    lon, lat = Transformer.from_crs(crs, 4326, always_xy=True).transform(0.5 * (xmin + xmax), 0.5 * (ymin + ymax))
+    return float(Proj(crs).get_factors(lon, lat).meridian_convergence)
+
+
 def grid_azimuth_deg(true_az_deg, grid: Grid | xr.DataArray):
     """Grid azimuth [deg, 0..360) of true (ENU) azimuths [deg] on a projected grid.
 
@@ -564,13 +615,7 @@ def grid_azimuth_deg(true_az_deg, grid: Grid | xr.DataArray):
     """
     if isinstance(grid, xr.DataArray):
         grid = Grid.from_dataarray(grid)
-    crs = CRS.from_user_input(grid.crs_wkt)
-    if not crs.is_projected:
-        raise CRSError(f"grid CRS {crs.name!r} is not projected: reproject the surface to a "
-                       "projected CRS in metres (e.g. its UTM zone)")
-    xmin, ymin, xmax, ymax = grid.bounds
-    lon, lat = grid.to_lonlat(0.5 * (xmin + xmax), 0.5 * (ymin + ymax))
-    gamma = float(Proj(crs).get_factors(lon, lat).meridian_convergence)
+    gamma = _meridian_convergence_deg(grid.crs_wkt, tuple(grid.bounds))
     out = np.mod(np.asarray(true_az_deg, dtype=np.float64) - gamma, 360.0)
     return float(out) if out.ndim == 0 else out
 

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import xarray as xr
 
+from skyroute.pipeline.errors import InputError
 from skyroute.stages.grid import Grid
 from skyroute.stages.planning.problem import build_problem
 from skyroute.stages.planning.validate import validate_plan
@@ -52,3 +54,25 @@ def test_validator_checks_max_agl_against_the_lowest_ground():
     assert not any("maximum altitude" in m for m in validate_plan((t, p), **kw))
     msgs = validate_plan((t, p), **kw, terrain_min_m=ds["terrain_min"].values)
     assert any("above the maximum altitude 80.0 m AGL (highest 81.00 m)" in m for m in msgs)
+
+
+def test_cost_maps_must_be_non_negative():
+    """risk_cost / landing_cost: NaN or a negative cell (also -inf) is refused, +inf risk is a
+    no-fly cell (its cost becomes 0, its floor +inf)."""
+    g, ds = _sloped()
+
+    def build(risk, land):
+        return build_problem(ds, np.zeros(g.shape), None, risk, land, (0, 0, 0), VEH, (1, 0, 0, 0), (10, 50, 40),
+                             (190, 50, 220), 0.0, 80.0)
+
+    for bad in (np.nan, -1e-9, -np.inf):
+        for which in (0, 1):
+            maps = [np.ones(g.shape), np.ones(g.shape)]
+            maps[which][10, 20] = bad
+            with pytest.raises(InputError, match="must be >= 0"):
+                build(*maps)
+    risk = np.ones(g.shape)
+    risk[10, 20] = np.inf
+    pr = build(risk, np.zeros(g.shape))
+    assert pr.risk_cost[10, 20] == 0.0 and np.isinf(pr.floor_m[10, 20]) and pr.nofly[10, 20]
+    assert np.isfinite(pr.floor_m[10, 21])

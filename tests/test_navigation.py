@@ -178,3 +178,55 @@ def test_bad_input(imu):
     ds = N.navigation_error(t, los, vis, {"accel_bias_instability_mg": 0.11,
                                           "velocity_random_walk_mps_per_sqrt_h": 0.06})
     assert ds.attrs["accel_bias_instability_mg"] == 0.11           # seed 001 Table 1 IMU
+
+
+def _quadrature_qd(F, Qc, dt, n=40):
+    """Q_d = int_0^dt expm(F s) Qc expm(F s)^T ds by Gauss-Legendre (no Van Loan block matrix)."""
+    x, wq = np.polynomial.legendre.leggauss(n)
+    out = np.zeros_like(F)
+    for s, wk in zip(0.5 * dt * (x + 1), wq, strict=True):
+        e = scipy.linalg.expm(F * s)
+        out += 0.5 * dt * wk * e @ Qc @ e.T
+    return out
+
+
+@pytest.mark.parametrize("tau_s", [3600.0, 300.0, 20.0])
+@pytest.mark.parametrize("dt", [1e-3, 0.0137, 0.5, 1.0, 3.7, 10.0])
+def test_closed_form_discretisation_matches_van_loan(imu, tau_s, dt):
+    """The closed-form phi / Q_d of the navigation model against the Van Loan block exponential
+    (scipy expm) and against a Gauss-Legendre quadrature of its integral: equal to 1e-12
+    relative on every entry (Van Loan leaves round-off of ~1e-16 of the matrix scale where
+    the exact value is 0), exact zeros where the model has none."""
+    spec = imu.model_copy(update={"accel_bias_correlation_time_s": tau_s})
+    F, Qc = N.continuous_model(spec, clock_h0=3e-19, clock_hm2=5e-20)
+    if dt / tau_s > 0.5:
+        pytest.skip("beyond the closed form's range (Van Loan is used there)")
+    assert N._model_scalars(F, Qc) is not None
+    phi, qd = N.discretise(F, Qc, dt)
+    phi_vl, qd_vl = N._van_loan(F, Qc, dt)
+    for got, ref in ((phi, phi_vl), (qd, qd_vl)):
+        nz = got != 0
+        np.testing.assert_allclose(got[nz], ref[nz], rtol=1e-12, atol=0)   # every entry, however small
+        assert np.all(np.abs(ref[~nz]) <= 1e-15 * np.abs(ref).max())      # exact zeros: Van Loan round-off
+    np.testing.assert_allclose(phi, scipy.linalg.expm(F * dt), rtol=1e-13, atol=1e-15)
+    ref = _quadrature_qd(F, Qc, dt)
+    np.testing.assert_allclose(qd, ref, rtol=1e-11, atol=1e-14 * np.abs(ref).max())
+    assert np.array_equal(qd, qd.T)
+    # a per-axis entry that the quadrature resolves well: bias-driven position variance
+    # ~ qb T^5 / 20 for T << tau
+    qb = Qc[6, 6]
+    if dt / tau_s < 1e-3:
+        assert qd[0, 0] - Qc[3, 3] * dt**3 / 3 == pytest.approx(qb * dt**5 / 20, rel=1e-3)
+
+
+def test_discretise_falls_back_to_van_loan(imu):
+    """Matrices not of the navigation model's form, or steps beyond tau_b / 2, go through the
+    Van Loan exponential."""
+    F, Qc = N.continuous_model(imu)
+    F2 = F.copy()
+    F2[0, 1] = 2.0
+    assert N._model_scalars(F2, Qc) is None
+    for args in ((F2, Qc, 0.5), (F, Qc, 0.6 * imu.accel_bias_correlation_time_s)):
+        phi, qd = N.discretise(*args)
+        phi_vl, qd_vl = N._van_loan(*args)
+        assert np.array_equal(phi, phi_vl) and np.array_equal(qd, qd_vl)

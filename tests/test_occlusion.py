@@ -21,6 +21,7 @@ from skyroute.pipeline.errors import CRSError, InputError
 from skyroute.stages.grid import Grid
 from skyroute.stages.occlusion import (
     grid_azimuth_deg,
+    occluder_window,
     shadow_halo_cells,
     visibility_height,
     visibility_heights_numpy,
@@ -439,3 +440,33 @@ def test_exact_visibility_height_map_coordinates():
         exact_visibility_height(surface, x, y, 10.0, 0.0)
     with pytest.raises(InputError, match="equal length"):
         exact_visibility_height(surface, x, y, [10.0, 20.0], [15.0])
+
+
+def test_occluder_window_keeps_the_decisions():
+    """Visibility heights of a cluster of cells computed on its occluder window equal those of
+    the whole map wherever either reaches the cluster's lowest altitude (and stay below it
+    otherwise): the same visible / occluded decisions at and above that altitude, on a
+    window much smaller than the map.  Random directions, clusters and altitudes."""
+    h = towers_city().values.astype(np.float32)
+    cell = 2.0
+    rng = np.random.default_rng(5)
+    checked = decided_by_towers = 0
+    area = []
+    for _ in range(60):
+        az, el = rng.uniform(0.0, 360.0), rng.uniform(3.0, 85.0)
+        full = visibility_heights_numpy(h, az, el, cell)[0]
+        r = rng.integers(0, h.shape[0], 6) // 3 + rng.integers(0, 2 * h.shape[0] // 3)
+        c = rng.integers(0, h.shape[1], 6) // 3 + rng.integers(0, 2 * h.shape[1] // 3)
+        z_min = float(rng.uniform(0.0, 220.0))
+        r0, r1, c0, c1 = occluder_window(r, c, z_min, float(h.max()), az, el, cell, h.shape)
+        assert r0 <= r.min() and r.max() < r1 and c0 <= c.min() and c.max() < c1
+        win = visibility_heights_numpy(h[r0:r1, c0:c1], az, el, cell, origin=(r0, c0))[0]
+        f, w = full[r, c], win[r - r0, c - c0]
+        high = f >= z_min
+        assert np.array_equal(w[high], f[high])
+        assert np.all(w[~high] < z_min)
+        checked += r.size
+        decided_by_towers += int((high & (f > h[r, c])).sum())
+        area.append((r1 - r0) * (c1 - c0) / h.size)
+    assert decided_by_towers >= 10                 # shadows of other cells were part of the test
+    assert np.median(area) < 0.5

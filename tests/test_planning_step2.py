@@ -182,3 +182,87 @@ def test_bad_input(problem, occ):
         deconflict(problem, CHAIN, occ, max_iter=0)
     with pytest.raises(InputError, match="before the occupancy maps"):
         deconflict(problem, CHAIN, occ, t0_s=-50.0)
+
+
+class _StockProblem(PlanningProblem):
+    """The same problem, but ``segment_details`` overridden: STEP II then evaluates its legs
+    through it (the reference path) instead of the compiled kernel directly."""
+
+    def segment_details(self, p0, p1):
+        return super().segment_details(p0, p1)
+
+
+def _traffic_with_prisms(occ):
+    import shapely
+
+    from skyroute.stages.fleet import Volume4
+    from skyroute.stages.traffic import volume_prisms
+    box = Volume4(shapely.box(X0 + 380, Y0 + 250, X0 + 430, Y0 + 380), 0.0, 60.0, 20.0, 60.0)
+    return occ.with_volumes(volume_prisms([box], grow_m=2.0))
+
+
+def test_feasibility_matches_the_stock_leg_functions(problem, occ):
+    """IS_FEASIBLE's one-leg fast path (compiled kernel called directly, scalar traffic test)
+    against the stock vectorised functions (np.allclose, leg_time_energy, leg_conflicts) on
+    random legs: same flag, time, energy and reject reason, bit for bit."""
+    from skyroute.stages.planning.deconflict import (
+        _Feasibility,
+        _Tree,
+        leg_conflicts,
+        leg_time_energy,
+    )
+    rng = np.random.default_rng(11)
+    seen = set()
+    for traffic in (None, occ, _traffic_with_prisms(occ)):
+        for battery in (problem.vehicle.battery_energy_j, 3.0e4):
+            feas = _Feasibility(problem, traffic, battery)
+            assert feas._eval is not None
+            tree = _Tree(CHAIN[0], 0.0)
+            for _ in range(40):
+                tree.add(CHAIN[0] + rng.normal(0, 1, 3) * [300, 150, 15] + [400, 0, 0], rng.uniform(0, 150),
+                         rng.uniform(0, 2e4), 0)
+            for _ in range(600):
+                a = int(rng.integers(tree.n))
+                q = tree.p[a].copy() if rng.random() < 0.05 else tree.p[a] + rng.normal(0, 1, 3) * [80, 80, 12]
+                before = dict(feas.rejects)
+                got = feas.leg(tree, a, q)
+                why = [k for k in feas.rejects if feas.rejects[k] != before[k]]
+                pa = tree.p[a]
+                if np.allclose(pa, q):
+                    ref, ref_why = (False, 0.0, 0.0), []
+                else:
+                    tau, e, ok = leg_time_energy(problem, pa, q)
+                    tau, e = float(tau[0]), float(e[0])
+                    if not ok[0]:
+                        ref, ref_why = (False, 0.0, 0.0), ["bounds"]
+                    elif tree.e[a] + e > battery:
+                        ref, ref_why = (False, tau, e), ["battery"]
+                    elif leg_conflicts(traffic, pa, tree.t[a], q, tree.t[a] + tau)[0]:
+                        ref, ref_why = (False, tau, e), ["traffic"]
+                    else:
+                        ref, ref_why = (True, tau, e), []
+                assert got == ref and why == ref_why
+                seen.update(why)
+    assert seen == {"bounds", "battery", "traffic"}                  # every branch was exercised
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_same_result_as_the_stock_leg_functions(occ, seed):
+    """deconflict with the fast IS_FEASIBLE and the memoised leg requests gives the result of
+    the reference path (legs through an overridden ``segment_details``) exactly, reject
+    counters included; with capsules and prisms."""
+    fast, stock = make_problem(), make_problem()
+    object.__setattr__(stock, "__class__", _StockProblem)     # a frozen dataclass
+    for traffic in (occ, _traffic_with_prisms(occ)):
+        a = deconflict(fast, CHAIN, traffic, seed=seed, max_iter=400)
+        b = deconflict(stock, CHAIN, traffic, seed=seed, max_iter=400)
+        assert a.status == b.status and a.iterations == b.iterations and a.tree_size == b.tree_size
+        np.testing.assert_array_equal(a.waypoints, b.waypoints)
+        np.testing.assert_array_equal(a.times_s, b.times_s)
+        np.testing.assert_array_equal(a.energy_J, b.energy_J)
+    g = CHAIN[-1]                                     # a failing search: same counters in the reason
+    hover = build_occupancy([Intruder("on-goal", np.array([0.0, 400.0]), np.array([g, g]), 5.0)], T_TOT, N_O, D_C, DT_C)
+    a = deconflict(fast, CHAIN, hover, seed=seed, max_iter=300)
+    b = deconflict(stock, CHAIN, hover, seed=seed, max_iter=300)
+    assert a.status == b.status == "failed"
+    assert a.reason.split("rejected legs:")[1] == b.reason.split("rejected legs:")[1]

@@ -181,6 +181,24 @@ def test_line_of_sight_against_ray_march(problem, sky):
     assert blocked_frac > 0.02                                         # the block does occlude
 
 
+def test_line_of_sight_windowed_equals_whole_map(problem, sky):
+    """Without a cache, line_of_sight scans each satellite only over the cells that can decide
+    its samples (occluder windows); with a cache, whole-map visibility heights: the same
+    answers at every sample (above, beside, in the shadow of the block, outside the map),
+    over several sky epochs."""
+    rng = np.random.default_rng(8)
+    n = 400
+    pts = np.column_stack([X0 + rng.uniform(-50, 1050, n), Y0 + rng.uniform(150, 560, n), rng.uniform(5, 60, n)])
+    pts[:40, 2] = 45.0                                               # exactly the block's height
+    t = np.sort(rng.uniform(-30.0, 200.0, n))
+    los_w, vis_w = line_of_sight(problem, sky, surface(), t, pts, START)
+    los_c, vis_c = line_of_sight(problem, sky, surface(), t, pts, START, cache={})
+    np.testing.assert_array_equal(vis_w, vis_c)
+    np.testing.assert_array_equal(los_w, los_c)
+    up_any = vis_c.any(axis=0)
+    assert 0.02 < 1 - vis_c[:, up_any].mean() < 0.9                  # occlusions are part of the test
+
+
 def test_sigma_above_dp_max_is_not_flyable(sky):
     veh = load_vehicle("dji-m300-rtk").model_copy(update={"max_position_error_m": 0.3})
     prob = make_problem(vehicle=veh)

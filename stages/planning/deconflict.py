@@ -43,6 +43,7 @@ leg pieces after the horizon are not checked (the result reports it in ``reason`
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -50,7 +51,10 @@ import numpy as np
 
 from skyroute.stages import control
 from skyroute.stages.base import InputError
+from skyroute.stages.planning.kernels import OK, entry_point, segment_eval_if_valid
+from skyroute.stages.planning.problem import PlanningProblem
 from skyroute.stages.traffic import TrafficOccupancy
+from skyroute.stages.vehicle import FixedWingProfile
 
 __all__ = ["Step2Result", "chain_conflicts", "chain_timing", "deconflict", "leg_conflicts", "leg_time_energy"]
 
@@ -174,6 +178,8 @@ class _Tree:
         return i
 
     def nearest(self, q) -> int:
+        if self.n == 1:              # what the argmin below gives for a single node
+            return 0
         d = self.p[: self.n] - np.asarray(q, float)
         return int(np.argmin(np.einsum("ij,ij->i", d, d)))
 
@@ -185,31 +191,123 @@ class _Tree:
         return out[::-1]
 
 
+def _close(x: float, y: float) -> bool:
+    """``np.isclose(x, y)`` of two floats (rtol 1e-5, atol 1e-8, NaN never close), without
+    numpy's per-call overhead."""
+    return (abs(x - y) <= 1e-08 + 1e-05 * abs(y) and math.isfinite(y)) or x == y
+
+
+def _fast_problem(problem) -> bool:
+    """True when ``problem``'s legs can be evaluated by the compiled segment kernel directly:
+    a rotorcraft :class:`PlanningProblem` whose ``segment_details`` is the stock one."""
+    return (isinstance(problem, PlanningProblem)
+            and type(problem).segment_details is PlanningProblem.segment_details
+            and type(problem).motion_codes is PlanningProblem.motion_codes
+            and not isinstance(problem.vehicle, FixedWingProfile))
+
+
 class _Feasibility:
-    """IS_FEASIBLE of Algorithm 1 with counters (for the failure reason)."""
+    """IS_FEASIBLE of Algorithm 1 with counters (for the failure reason).
+
+    One leg at a time without numpy's per-call overheads: the compiled segment kernel is
+    called directly (the one :meth:`PlanningProblem.segment_details` loops over; an invalid
+    leg stops at its first violation, whose costs IS_FEASIBLE does not use) and the traffic
+    test of :func:`leg_conflicts` is done on scalars -- the same floating-point operations,
+    so the same answers.  Tree nodes never change once added, so the legs from a node to a
+    point of the STEP I chain (asked again and again while the tree is stuck) are memoised
+    (``leg_w``; the counters still count every request)."""
 
     def __init__(self, problem, occ, battery_j):
         self.problem, self.occ, self.battery = problem, occ, battery_j
         self.rejects = {"bounds": 0, "battery": 0, "traffic": 0}
+        self._eval = None
+        if _fast_problem(problem):
+            self._buf = np.empty(6)
+            self._args = tuple(problem.seg_args)
+            self._eval = entry_point(segment_eval_if_valid, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, *self._args, self._buf)
+        self._traffic = occ is not None and not occ.empty
+        self._vols = occ.volumes if self._traffic and occ.volumes is not None and occ.volumes.n else None
+        self._caps = self._traffic and occ.caps.shape[0] > 0
+        self._p0, self._p1 = np.empty((1, 3)), np.empty((1, 3))
+        self._t0, self._t1 = np.empty(1), np.empty(1)
+        self._hit = np.zeros(1, bool)
+        self._memo: dict = {}
+
+    def _conflict(self, pa: np.ndarray, ta: float, q: np.ndarray, tb: float) -> bool:
+        """``leg_conflicts(occ, pa, ta, q, tb)[0]`` of one leg with finite times."""
+        if not self._traffic:
+            return False
+        if self._vols is not None:
+            self._p0[0], self._p1[0], self._t0[0], self._t1[0] = pa, q, ta, tb
+            self._hit[0] = False
+            self._vols.segment_hits(self._p0, self._t0, self._p1, self._t1, self._hit)
+            if self._hit[0]:
+                return True
+        if not self._caps:
+            return False
+        occ = self.occ
+        lo, hi = occ.t0_s, occ.t0_s + occ.t_total_s
+        a, b = max(ta, lo), min(tb, hi)
+        if not a <= b:
+            return False
+        dur = tb - ta
+        sa = (a - ta) / dur if dur > 0 else 0.0
+        sb = (b - ta) / dur if dur > 0 else 1.0
+        qa = pa + sa * (q - pa)
+        qb = pa + sb * (q - pa)
+        return bool(occ.segment_conflicts(qa[None, :], np.array([a]), qb[None, :], np.array([b]))[0])
+
+    def _leg(self, tree: _Tree, a: int, q) -> tuple[tuple[bool, float, float], str | None]:
+        pa = tree.p[a]
+        q = np.asarray(q, float)
+        x0, y0, z0 = float(pa[0]), float(pa[1]), float(pa[2])
+        x1, y1, z1 = float(q[0]), float(q[1]), float(q[2])
+        if _close(x0, x1) and _close(y0, y1) and _close(z0, z1):      # np.allclose(pa, q)
+            return (False, 0.0, 0.0), None
+        if self._eval is not None:
+            ok = self._eval(x0, y0, z0, x1, y1, z1, *self._args, self._buf) == OK
+            tau, e = float(self._buf[5]), float(self._buf[4])
+        else:
+            tau_a, e_a, ok_a = leg_time_energy(self.problem, pa, q)
+            ok, tau, e = bool(ok_a[0]), float(tau_a[0]), float(e_a[0])
+        if not ok:
+            return (False, 0.0, 0.0), "bounds"
+        if tree.e[a] + e > self.battery:
+            return (False, tau, e), "battery"
+        if self._conflict(pa, tree.t[a], q, tree.t[a] + tau):
+            return (False, tau, e), "traffic"
+        return (True, tau, e), None
 
     def leg(self, tree: _Tree, a: int, q) -> tuple[bool, float, float]:
         """(feasible, tau [s], energy [J]) of the leg node a -> q."""
-        pa = tree.p[a]
-        q = np.asarray(q, float)
-        if np.allclose(pa, q):
-            return False, 0.0, 0.0
-        tau, e, ok = leg_time_energy(self.problem, pa, q)
-        if not ok[0]:
-            self.rejects["bounds"] += 1
-            return False, 0.0, 0.0
-        tau, e = float(tau[0]), float(e[0])
-        if tree.e[a] + e > self.battery:
-            self.rejects["battery"] += 1
-            return False, tau, e
-        if leg_conflicts(self.occ, pa, tree.t[a], q, tree.t[a] + tau)[0]:
-            self.rejects["traffic"] += 1
-            return False, tau, e
-        return True, tau, e
+        out, why = self._leg(tree, a, q)
+        if why is not None:
+            self.rejects[why] += 1
+        return out
+
+    def leg_w(self, tree: _Tree, a: int, i: int, q) -> tuple[bool, float, float]:
+        """:meth:`leg` to ``q``, the STEP I point ``i`` (memoised on (a, i))."""
+        key = ("w", a, i)
+        hit = self._memo.get(key)
+        if hit is None:
+            hit = self._memo[key] = self._leg(tree, a, q)
+        out, why = hit
+        if why is not None:
+            self.rejects[why] += 1
+        return out
+
+    def memo(self, key, compute, *args):
+        """``compute(*args)`` once per ``key`` (a result that depends on tree nodes and STEP I
+        points only); the reject counters of the computation are replayed on every call."""
+        hit = self._memo.get(key)
+        if hit is None:
+            before = dict(self.rejects)
+            val = compute(*args)
+            hit = self._memo[key] = (val, {k: v - before[k] for k, v in self.rejects.items() if v != before[k]})
+        else:
+            for k, v in hit[1].items():
+                self.rejects[k] += v
+        return hit[0]
 
 
 def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_s: float = 0.0, seed: int = 0,
@@ -301,7 +399,14 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
     goal = W.shape[0] - 1
     sig = np.array([sigma_m, sigma_m, sigma_m * vertical_ratio])
 
-    def next_point() -> int:                       # GET_NEXT_POINT, eq. 14
+    next_cache = [-1, goal]                        # (tree size, answer): in_tree changes with the tree
+
+    def next_point() -> int:
+        if next_cache[0] != tree.n:
+            next_cache[0], next_cache[1] = tree.n, _next_point()
+        return next_cache[1]
+
+    def _next_point() -> int:                      # GET_NEXT_POINT, eq. 14
         ng = tree.p[tree.nearest(W[goal])]
         d = W[goal] - ng
         dd = float(d @ d)
@@ -358,16 +463,16 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
                 break
         iterations = k
         wn = next_point()
-        near = tree.nearest(W[wn])
-        ok, tau, e = feas.leg(tree, near, W[wn])
+        near = feas.memo(("near", tree.n, wn), tree.nearest, W[wn])
+        ok, tau, e = feas.leg_w(tree, near, wn, W[wn])
         x_w, w_idx = None, None
         if ok:
             x_w, w_idx = W[wn], wn
         else:
             if rng.random() < explore:             # exploration: anywhere along the STEP I chain
                 xc = chain_point(rng.random())
-            else:
-                xc = last_feasible(near, W[wn])
+            else:                                  # nodes and W never change: memoised
+                xc = feas.memo(("last", near, wn), last_feasible, near, W[wn])
             grow = min(1.0 + fails / 25.0, 4.0)    # widen the search while stuck
             xr = xc + rng.normal(0.0, 1.0, 3) * sig * grow
             near = tree.nearest(xr)
@@ -383,7 +488,7 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
             goal_node = i
             break
         nxt = min(wn + 1, goal)                     # w_{n+}: the point after w_n in W
-        ok, tau, e = feas.leg(tree, i, W[nxt])
+        ok, tau, e = feas.leg_w(tree, i, nxt, W[nxt])
         if ok:
             j = tree.add(W[nxt], tree.t[i] + tau, tree.e[i] + e, i)
             in_tree[nxt] = True

@@ -77,8 +77,8 @@ def degenerate_cost_terms(environment: xr.Dataset | None, wind=None, *, atol: fl
         if "nofly" in environment:   # cells forbidden at every altitude (not altitude-limited zones)
             nofly = np.asarray(environment["nofly"].values, dtype=bool)
             if "nofly_floor_m" in environment and "nofly_ceiling_m" in environment:
-                lo = np.nan_to_num(np.asarray(environment["nofly_floor_m"].values, dtype=float), nan=0.0)
-                nofly = nofly & (lo <= 0) & np.isinf(np.asarray(environment["nofly_ceiling_m"].values, dtype=float))
+                lo = np.asarray(environment["nofly_floor_m"].values, dtype=float)
+                nofly = nofly & ~(lo > 0) & np.isinf(np.asarray(environment["nofly_ceiling_m"].values, dtype=float))
             fly &= ~nofly
         r = _uniform(risk[fly], atol)
         if r is not None:

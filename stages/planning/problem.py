@@ -468,7 +468,7 @@ def build_problem(surface_ds: xr.Dataset, clearance_floor, coverage_floor_j, ris
     risk = _raster(risk_cost, shape, "risk_cost", 0.0)
     land = _raster(landing_cost, shape, "landing_cost", 0.0)
     for name, a in (("risk_cost", risk), ("landing_cost", land)):
-        if np.any(np.nan_to_num(a, nan=-1.0, posinf=0.0) < 0):
+        if not np.all(a >= 0):                      # NaN or negative (+inf risk: no-fly)
             raise InputError(f"{name} must be >= 0 (dimensionless; NaN not allowed)")
     nf = np.zeros(shape, bool) if nofly is None else np.asarray(
         nofly.values if isinstance(nofly, xr.DataArray) else nofly).astype(bool)

@@ -59,7 +59,7 @@ from scipy.integrate import trapezoid
 from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.energy import rotor_power
 from skyroute.stages.navigation import DEFAULT_UERE_M, navigation_error
-from skyroute.stages.occlusion import grid_azimuth_deg, visibility_heights_numpy
+from skyroute.stages.occlusion import grid_azimuth_deg, occluder_window, visibility_heights_numpy
 from skyroute.stages.planning.deconflict import Step2Result, leg_conflicts
 from skyroute.stages.planning.validate import validate_bubble, validate_plan
 from skyroute.stages.smoothing import CornerTrajectory, KinematicLimits, corner_trajectory
@@ -268,8 +268,11 @@ def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc
     halo = int(math.ceil(relief / math.tan(math.radians(max(el_min, 0.1))) / g.resolution_m)) + 2
     r0, r1 = max(int(r[inside].min()) - halo, 0) if inside.any() else 0, min(int(r.max()) + halo + 1, g.ny)
     c0, c1 = max(int(c[inside].min()) - halo, 0) if inside.any() else 0, min(int(c.max()) + halo + 1, g.nx)
-    if cache is not None:
-        r0, r1, c0, c1 = 0, g.ny, 0, g.nx
+    if cache is None:
+        _visibility_windowed(vis, los, los_all, h[r0:r1, c0:c1], (r0, c0), g, p[:, 2], r, c, inside, ep, up, az,
+                             el)
+        return np.where(np.isfinite(los), los, 0.0), vis
+    r0, r1, c0, c1 = 0, g.ny, 0, g.nx
     sub = h[r0:r1, c0:c1]
     for e in np.unique(ep):
         rows = np.nonzero(ep == e)[0]
@@ -291,6 +294,41 @@ def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc
     # LOS rows of invisible satellites are irrelevant; keep them unit-length where finite
     los = np.where(np.isfinite(los), los, 0.0)
     return los, vis
+
+
+def _visibility_windowed(vis, los, los_all, sub, origin, g, z, r, c, inside, ep, up, az, el) -> None:
+    """The loop of :func:`line_of_sight` over the epochs without a cache, on the window ``sub``
+    (at ``origin`` in the map) -- with the same answers, faster: a sample at or above the
+    highest cell of the window sees every satellite (a visibility height never exceeds the
+    heights it comes from); for the others each satellite is scanned only over its
+    :func:`~skyroute.stages.occlusion.occluder_window` within ``sub`` (the cells that can
+    decide those samples), and not at all when they are at or above its highest cell."""
+    r0, c0 = origin
+    h_max = float(np.float32(sub.max())) if sub.size else -np.inf   # the kernel works in float32
+    for e in np.unique(ep):
+        rows = np.nonzero(ep == e)[0]
+        sats = np.nonzero(up[e])[0]
+        los[rows] = los_all[e][None, :, :]
+        if sats.size == 0:
+            continue
+        zr = z[rows]
+        vis[np.ix_(rows, sats)] = (zr >= -np.inf)[:, None]      # outside the map / above every cell
+        need = inside[rows] & ~(zr >= h_max)
+        if not need.any():
+            continue
+        nr = rows[need]
+        rr, cc, zn = r[nr] - r0, c[nr] - c0, z[nr]
+        az_g = np.atleast_1d(grid_azimuth_deg(az[e, sats], g))
+        for j, s in enumerate(sats):
+            w0, w1, v0, v1 = occluder_window(rr, cc, float(zn.min()), h_max, float(az_g[j]), float(el[e, s]),
+                                             g.resolution_m, sub.shape)
+            win = sub[w0:w1, v0:v1]
+            if np.all(zn >= np.float32(win.max())):       # above every cell that can decide them
+                vis[nr, s] = True
+                continue
+            vh = visibility_heights_numpy(win, az_g[j:j + 1], el[e, s:s + 1], g.resolution_m,
+                                          origin=(r0 + w0, c0 + v0))[0]
+            vis[nr, s] = zn >= vh[rr - w0, cc - v0]
 
 
 # ------------------------------------------------------------------ STEP III

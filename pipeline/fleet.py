@@ -354,6 +354,7 @@ class Attempt:
     chain: tuple | None = None        # STEP II chain (waypoints (k, 3) [m], times [s] mission time)
     trajectory: tuple | None = None   # (CornerTrajectory, t0 [s] mission time)
     static: bool = False              # failed in STEP I: no departure can help
+    free_legs: np.ndarray | None = None   # Step2Result.free_legs of an RRT run (mission time)
 
 
 def _seed(base: int, mission: str, departure_s: float) -> int:
@@ -419,8 +420,11 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
     if c is None:
         static = all(s1 is not None and not s1.solved and s1.info.get("stopped_by") != "time"
                      for s1 in plan.step1)   # STEP I failed: the same at any departure
+        s2 = plan.step2[0] if len(plan.step2) == 1 else None
         return Attempt(task.id, departure_s, False, plan.reason or "no flyable plan",
-                       compute_s=time.perf_counter() - t_start, seen=seen, static=static)
+                       compute_s=time.perf_counter() - t_start, seen=seen, static=static,
+                       step2_status=s2.status if s2 is not None else "",
+                       free_legs=s2.free_legs if s2 is not None and s2.status == "failed" else None)
     traj, t0 = c.trajectory, float(c.t_s[0])
     crs = maps["surface"]["surface"].rio.crs
     from pyproj import Transformer
@@ -456,22 +460,36 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
                    c.energy_J / 3600.0, float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()),
                    float(c.flight_time_s), time.perf_counter() - t_start, seen,
                    s2.status if s2 is not None else "", None if s2 is None else (s2.waypoints, s2.times_s),
-                   (traj, t0))
+                   (traj, t0), free_legs=None if s2 is None else s2.free_legs)
 
 
 def still_valid(a: Attempt, added: Sequence[tuple[str, Any]], task: FleetTask, sc: Scenario,
                 opt: FleetOptions) -> bool:
     """Would planning again with the extra obstacles ``added`` give the same attempt ``a``?
-    Yes when STEP II left the STEP I chain unchanged (no RRT: no random draw depends on the
-    traffic) and neither that chain's timed legs (STEP II's test) nor the retimed trajectory's
-    chords (STEP III's re-check, the same chords) meet the new prisms: conflicts are an OR over
-    the prisms, so every traffic test of the attempt answers as before."""
-    from skyroute.stages.planning.deconflict import chain_conflicts
+    Conflicts are an OR over the prisms: more obstacles can only turn a traffic test's "free"
+    into "conflict".  So the attempt is the same when none of its tests that answered "free"
+    meets a new prism:
+
+    * STEP II left the STEP I chain unchanged: that chain's timed legs;
+    * STEP II ran its RRT (``a.free_legs``, recorded when no wall clock stopped it): every leg
+      it found free, the chain's free legs included -- the RRT then draws the same random
+      numbers and gets the same answers, so it builds the same tree, to the same chain or the
+      same failure;
+    * and, for a plan, the retimed trajectory's chords (STEP III's re-check, the same chords)."""
+    from skyroute.stages.planning.deconflict import chain_conflicts, leg_conflicts
     from skyroute.stages.planning.step3 import _retimed_conflicts
     from skyroute.stages.traffic import build_occupancy, volume_prisms
     from skyroute.stages.vehicle import load_vehicle
 
-    if not a.ok or a.step2_status != "unchanged" or a.chain is None or a.trajectory is None:
+    if not a.ok and a.static:          # STEP I failed: traffic plays no part
+        return True
+    if a.step2_status == "unchanged":
+        if not a.ok or a.chain is None or a.trajectory is None:
+            return False
+    elif a.step2_status in ("deconflicted", "failed"):
+        if a.free_legs is None or (a.ok and a.trajectory is None) or (not a.ok and a.step2_status != "failed"):
+            return False
+    else:
         return False
     if not added:
         return True
@@ -479,8 +497,15 @@ def still_valid(a: Attempt, added: Sequence[tuple[str, Any]], task: FleetTask, s
     gh, gz, gt = _grow(opt, r_veh)
     prisms = volume_prisms([v for _, v in added], grow_m=gh, grow_z_m=gz, grow_t_s=gt).shifted(-a.departure_s)
     occ = build_occupancy([], max(float(prisms.band[:, 3].max()), 1.0) + 1.0, 1, 0.0, 0.0).with_volumes(prisms)
-    if chain_conflicts(occ, *a.chain).any():
-        return False
+    if a.step2_status == "unchanged":
+        if chain_conflicts(occ, *a.chain).any():
+            return False
+    else:
+        fl = a.free_legs
+        if fl.shape[0] and leg_conflicts(occ, fl[:, 0:3], fl[:, 3], fl[:, 4:7], fl[:, 7]).any():
+            return False
+    if not a.ok:
+        return True
     traj, t0 = a.trajectory
     return not _retimed_conflicts(occ, traj, t0, 1.0)[2].any()   # step3's default check_spacing_m
 

@@ -266,3 +266,41 @@ def test_same_result_as_the_stock_leg_functions(occ, seed):
     b = deconflict(stock, CHAIN, hover, seed=seed, max_iter=300)
     assert a.status == b.status == "failed"
     assert a.reason.split("rejected legs:")[1] == b.reason.split("rejected legs:")[1]
+
+
+def test_free_legs_decide_whether_more_traffic_changes_the_rrt(problem, occ):
+    """Step2Result.free_legs (what ``skyroute fleet`` uses to keep a speculative plan): random
+    extra prisms that meet none of a run's free legs give the SAME run (chain, times, tree
+    size, iterations) when added to the traffic; the check is not vacuous (some prisms meet a
+    free leg, and adding one of those changes a run)."""
+    import shapely
+
+    from skyroute.stages.fleet import Volume4
+    from skyroute.stages.planning.deconflict import leg_conflicts
+    from skyroute.stages.traffic import volume_prisms
+
+    box0 = Volume4(shapely.box(X0 + 380, Y0 + 250, X0 + 430, Y0 + 380), 0.0, 60.0, 20.0, 60.0)
+    base = occ.with_volumes(volume_prisms([box0], grow_m=2.0))
+    rng = np.random.default_rng(4)
+    kept = hit = changed = 0
+    for seed in (0, 3):
+        ref = deconflict(problem, CHAIN, base, seed=seed, max_iter=400)
+        assert ref.status in ("deconflicted", "failed") and ref.free_legs is not None and ref.free_legs.shape[0] > 0
+        fl = ref.free_legs
+        for _ in range(25):
+            x, y, t = X0 + rng.uniform(50, 950), Y0 + rng.uniform(230, 370), rng.uniform(0, 150)
+            box = Volume4(shapely.box(x, y, x + rng.uniform(10, 60), y + rng.uniform(10, 60)), 0.0, 80.0, t,
+                          t + rng.uniform(5, 60))
+            alone = build_occupancy([], T_TOT, N_O, D_C, DT_C).with_volumes(volume_prisms([box], grow_m=2.0))
+            touches = leg_conflicts(alone, fl[:, 0:3], fl[:, 3], fl[:, 4:7], fl[:, 7]).any()
+            run = deconflict(problem, CHAIN, occ.with_volumes(volume_prisms([box0, box], grow_m=2.0)), seed=seed,
+                             max_iter=400)
+            same = (run.status == ref.status and run.iterations == ref.iterations and run.tree_size == ref.tree_size
+                    and np.array_equal(run.waypoints, ref.waypoints) and np.array_equal(run.times_s, ref.times_s))
+            if touches:
+                hit += 1
+                changed += not same
+            else:
+                kept += 1
+                assert same
+    assert kept >= 10 and hit >= 3 and changed >= 1

@@ -79,6 +79,10 @@ class Step2Result:
     tree_size: int = 0
     compute_time_s: float = 0.0
     notes: tuple[str, ...] = field(default_factory=tuple)
+    # (n, 8) [x0, y0, z0, t0, x1, y1, z1, t1] ([m], [s]) every leg the RRT found free of traffic
+    # (bounds and battery passed); more traffic changes an RRT run only if it conflicts with one
+    # of them (the other answers stay "infeasible").  None: no RRT ran, or the wall clock stopped it.
+    free_legs: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -89,10 +93,11 @@ class Step2Result:
         return np.diff(self.times_s)
 
 
-def _failed(reason: str, iterations: int = 0, tree: int = 0, t_start: float | None = None) -> Step2Result:
+def _failed(reason: str, iterations: int = 0, tree: int = 0, t_start: float | None = None,
+            free_legs: np.ndarray | None = None) -> Step2Result:
     e = np.zeros(0)
     return Step2Result(np.zeros((0, 3)), e, e, STATUS_FAILED, reason, iterations, tree,
-                       0.0 if t_start is None else time.perf_counter() - t_start)
+                       0.0 if t_start is None else time.perf_counter() - t_start, free_legs=free_legs)
 
 
 # ------------------------------------------------------------------ legs
@@ -232,6 +237,7 @@ class _Feasibility:
         self._t0, self._t1 = np.empty(1), np.empty(1)
         self._hit = np.zeros(1, bool)
         self._memo: dict = {}
+        self.free: list[tuple[float, ...]] = []     # Step2Result.free_legs
 
     def _conflict(self, pa: np.ndarray, ta: float, q: np.ndarray, tb: float) -> bool:
         """``leg_conflicts(occ, pa, ta, q, tb)[0]`` of one leg with finite times."""
@@ -274,9 +280,14 @@ class _Feasibility:
             return (False, 0.0, 0.0), "bounds"
         if tree.e[a] + e > self.battery:
             return (False, tau, e), "battery"
-        if self._conflict(pa, tree.t[a], q, tree.t[a] + tau):
+        ta = float(tree.t[a])
+        if self._conflict(pa, ta, q, ta + tau):
             return (False, tau, e), "traffic"
+        self.free.append((x0, y0, z0, ta, x1, y1, z1, ta + tau))
         return (True, tau, e), None
+
+    def free_legs(self) -> np.ndarray:
+        return np.array(self.free, dtype=float).reshape(-1, 8)
 
     def leg(self, tree: _Tree, a: int, q) -> tuple[bool, float, float]:
         """(feasible, tau [s], energy [J]) of the leg node a -> q."""
@@ -392,6 +403,8 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
     # ---------------------------------------------------------------- Algorithm 1
     rng = np.random.default_rng(seed)
     feas = _Feasibility(problem, occupancy, battery)
+    for i in np.flatnonzero(~conf):                # the chain's free legs (more traffic would change conf)
+        feas.free.append((*map(float, W[i]), float(times[i]), *map(float, W[i + 1]), float(times[i + 1])))
     tree = _Tree(W[0], t0_s)
     in_tree = np.zeros(W.shape[0], bool)       # W / Gamma_p bookkeeping
     in_tree[0] = True
@@ -502,9 +515,10 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
                "depends on the machine's load)" if capped else f"its {max_iter} iterations")
         rej = ", ".join(f"{n} {v}" for n, v in feas.rejects.items() if v)
         return _failed(f"STEP II reached {why} ({iterations} iterations, {elapsed:.2f} s, {tree.n} nodes) "
-                       f"without reaching the goal; rejected legs: {rej or 'none'}", iterations, tree.n, t_start)
+                       f"without reaching the goal; rejected legs: {rej or 'none'}", iterations, tree.n, t_start,
+                       None if capped else feas.free_legs())
     idx = tree.path(goal_node)
     wp, tt, ee = tree.p[idx].copy(), tree.t[idx].copy(), tree.e[idx].copy()
     return Step2Result(wp, tt, ee, STATUS_DECONFLICTED,
                        f"{int(conf.sum())} conflicting STEP I leg(s) resolved by the RRT", iterations, tree.n, elapsed,
-                       tuple(notes))
+                       tuple(notes), None if capped else feas.free_legs())

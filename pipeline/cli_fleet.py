@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -101,7 +102,8 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
     files, section = write_fleet(res, sc, maps, out_dir)
     section.update({"default_dop_level": level, "scheduler": scheduler,
                     "source": str(fleet_file) if fleet_file else f"--missions {missions} --seed {seed}",
-                    "window_min": window_min, "max_delay_min": max_delay_min, "delay_step_s": delay_step_s})
+                    "window_min": window_min, "max_delay_min": max_delay_min, "delay_step_s": delay_step_s,
+                    "options": dataclasses.asdict(opt)})
     for w in warnings:
         click.echo(f"warning: {w}", err=True)
     doc = write_folder_summary(out_dir, "fleet", maps["_result"], [str(f) for f in files], {"fleet": section})

@@ -604,14 +604,27 @@ class _Planner:
     def __init__(self, sc, cache_dir, opt, level_of, client=None):
         self.sc, self.cache_dir, self.opt, self.level_of, self.client = sc, cache_dir, opt, level_of, client
         self.spec: dict[str, Any] = {}           # mission id -> (departure, seen, future)
+        self.workers: list[str] | None = None
         self.stats = {"speculative_used": 0, "speculative_still_valid": 0, "speculative_replanned": 0, "attempts": 0}
+
+    def _worker_of(self, task) -> list[str] | None:
+        """A preferred worker per goal (soft: an idle worker may still take the task): the
+        attempts of one mission, and the missions to one goal, meet the same worker's STEP I
+        memo, A* heuristic table and edge costs."""
+        if self.workers is None:
+            self.workers = sorted(self.client.scheduler_info().get("workers", {}))
+        if not self.workers:
+            return None
+        key = f"{task.goal_xy[0]:.3f},{task.goal_xy[1]:.3f}".encode()
+        return [self.workers[zlib.crc32(key) % len(self.workers)]]
 
     def submit(self, task, dep, seen, obst, urgent: bool = True):
         args = (self.sc, self.cache_dir, task, dep, self.level_of(task), obst, self.opt, seen)
         if self.client is None:
             return plan_attempt(*args)
         # the attempt the driver waits for first, then the speculative ones in mission order
-        return self.client.submit(plan_attempt, *args, pure=False, priority=10**9 if urgent else -task.index)
+        return self.client.submit(plan_attempt, *args, pure=False, priority=10**9 if urgent else -task.index,
+                                  workers=self._worker_of(task), allow_other_workers=True)
 
     def run(self, task, dep, seen, obst) -> Attempt:
         self.stats["attempts"] += 1
@@ -746,9 +759,13 @@ def independent_conflicts(docs: dict[str, dict], crs, start_time_utc) -> list[tu
 
     vols = {m: volumes_of_intent(d, crs, start_time_utc) for m, d in docs.items()}
     ids = sorted(vols)
+    span = {m: (min((u.t_start_s for u in vs), default=math.inf), max((u.t_end_s for u in vs), default=-math.inf))
+            for m, vs in vols.items()}
     bad = []
     for i, a in enumerate(ids):
         for b in ids[i + 1:]:
+            if not (span[a][0] < span[b][1] and span[b][0] < span[a][1]):
+                continue       # no volume of a overlaps a volume of b in time
             hit = False
             for u in vols[a]:
                 for v in vols[b]:
@@ -772,6 +789,8 @@ def min_separation_m(tracks: dict[str, tuple[np.ndarray, np.ndarray]]) -> tuple[
         ta, pa = tracks[a]
         for b in ids[i + 1:]:
             tb, pb = tracks[b]
+            if ta[-1] < tb[0] or tb[-1] < ta[0]:
+                continue
             m = (ta >= tb[0]) & (ta <= tb[-1])
             if not m.any():
                 continue
@@ -869,11 +888,19 @@ def write_fleet(res: FleetResult, sc: Scenario, maps: dict, out_dir: Path) -> tu
                "conflicts_independent_check": len(conflicts), "conflicting_pairs": [list(c) for c in conflicts],
                "min_separation_m": None if not math.isfinite(sep) else round(sep, 3),
                "min_separation_pair": list(pair) if pair else None,
-               "required_separation_m": None, "preempted": sorted(o.task.id for o in res.outcomes if o.preempted_by),
+               "required_separation_m": _required_separation_m(acc, sc), "preempted": sorted(o.task.id for o in res.outcomes if o.preempted_by),
                "speculative": res.speculative, "z_datum_geojson": datum,
                "notes": ["the scenario's own intruders are not fleet traffic: the traffic of each mission is the "
                          "accepted intents"]}
     return files, section
+
+
+def _required_separation_m(acc: Sequence[MissionOutcome], sc: Scenario) -> float | None:
+    """The separation the accepted tracks must keep [m]: the least r_p of their vehicles + d_c."""
+    from skyroute.stages.vehicle import load_vehicle
+
+    r = [load_vehicle(o.task.vehicle).r_p_m for o in acc]
+    return round(min(r) + float(sc.traffic.margin_m), 3) if r else None
 
 
 def plot_fleet(res: FleetResult, sc: Scenario, maps: dict, path: Path) -> Path:

@@ -601,7 +601,10 @@ def _box_overlap(a, b) -> bool:
 class _Planner:
     """Runs attempts: inline (sequential) or on a dask client (speculative)."""
 
-    def __init__(self, sc, cache_dir, opt, level_of, client=None):
+    def __init__(self, sc, cache_dir, opt, level_of, client=None, affinity: str = "speculative"):
+        if affinity not in ("all", "speculative", "none"):
+            raise InputError(f"affinity {affinity!r} must be 'all', 'speculative' or 'none'")
+        self.affinity = affinity
         self.sc, self.cache_dir, self.opt, self.level_of, self.client = sc, cache_dir, opt, level_of, client
         self.spec: dict[str, Any] = {}           # mission id -> (departure, seen, future)
         self.workers: list[str] | None = None
@@ -623,8 +626,9 @@ class _Planner:
         if self.client is None:
             return plan_attempt(*args)
         # the attempt the driver waits for first, then the speculative ones in mission order
+        prefer = self.affinity == "all" or (self.affinity == "speculative" and not urgent)
         return self.client.submit(plan_attempt, *args, pure=False, priority=10**9 if urgent else -task.index,
-                                  workers=self._worker_of(task), allow_other_workers=True)
+                                  workers=self._worker_of(task) if prefer else None, allow_other_workers=prefer)
 
     def run(self, task, dep, seen, obst) -> Attempt:
         self.stats["attempts"] += 1
@@ -660,10 +664,12 @@ class _Planner:
 
 
 def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, options: FleetOptions | None = None,
-              default_dop: float | None = None, client=None, depth: int = 4,
+              default_dop: float | None = None, client=None, depth: int = 4, affinity: str = "speculative",
               echo: Callable[[str], None] | None = None) -> FleetResult:
     """First-come-first-served planning of ``tasks`` (see the module docstring); ``client``: a
-    dask.distributed Client for the speculative parallel driver (``depth`` missions in flight)."""
+    dask.distributed Client for the speculative parallel driver (``depth`` missions in flight;
+    ``affinity``: which attempts prefer their goal's worker: "all", "speculative" (the driver
+    does not wait for them) or "none")."""
     opt = options or FleetOptions()
     t_setup = time.perf_counter()
     if client is not None and tasks:   # every worker loads the maps and kernels before the clock starts
@@ -675,7 +681,7 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
     def level_of(t: FleetTask):
         return t.dop_level if t.dop_level is not None else default_dop
 
-    planner = _Planner(sc, cache_dir, opt, level_of, client)
+    planner = _Planner(sc, cache_dir, opt, level_of, client, affinity)
     state = _State()
     order = sorted(tasks, key=lambda t: (t.earliest_s, -t.priority, t.id))
     outcomes = {t.id: MissionOutcome(t, level=level_of(t)) for t in order}

@@ -6,11 +6,13 @@ delay, the independent conflict count (pairwise shapely over the written intents
 plans per minute and the speed-up, and checks that both runs decide the same.
 
     SKYROUTE_CACHE_DIR=... python benchmarks/bench_fleet.py [--quick] [--missions 1000]
-        [--window-min 120] [--seed 3] [--workers 2] [--no-parallel]
+        [--window-min 120] [--seed 3] [--workers 2] [--no-parallel] [--configs 4:speculative,1:none]
 
 Full run: 1000 missions over 2 hours (target >= 100 plans/min on 2 cores, maps cached).
---quick: 4 missions over 10 min (about 60 s once the maps are cached, on a loaded 2-core
-machine).  The maps come from the stage cache (computed on the first run).  The clock starts
+--quick: 4 missions over 10 min (about 30 s once the maps are cached).  ``--configs``: the
+parallel runs to make, DEPTH:AFFINITY each (speculative missions in flight; which attempts
+prefer the worker of their goal, see :func:`skyroute.pipeline.fleet.run_fleet`).  The
+sequential run's plans/min counts every planning attempt (first tries and later departures).  The maps come from the stage cache (computed on the first run).  The clock starts
 after the maps are loaded (and, on the cluster, after each worker has loaded them and planned
 one mission to load the kernels: ``worker_setup_s``).
 """

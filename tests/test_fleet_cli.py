@@ -318,7 +318,8 @@ def test_report_of_a_fleet_folder(drawn, tmp_path):
 
 def test_nothing_accepted_exits_3_with_the_reason(tmp_path, cache_dir):
     """A fleet whose only mission cannot fly (its goal is inside a 70 m building) writes its
-    outputs and exits 3 with the reason, like `plan` without a flyable candidate."""
+    outputs and exits 3 with the reason, like `plan` without a flyable candidate; STEP I fails
+    whatever the departure, so the mission is not tried again at later departures."""
     f = _yaml(tmp_path / "walled.yaml", {"missions": [
         {"id": "walled", "operator": "op-a", "start": A, "goal": {"x": 385620.0, "y": 6671880.0, "alt_agl_m": 10},
          "departure": 0}]})
@@ -328,3 +329,4 @@ def test_nothing_accepted_exits_3_with_the_reason(tmp_path, cache_dir):
     assert "no mission accepted:" in res.output and "inside obstacle clearance" in res.output
     (row,) = _rows(tmp_path / "o")
     assert row["status"] == "rejected" and "inside obstacle clearance" in row["reason"]
+    assert row["attempts"] == "1" and "no plan at any departure" in row["reason"]

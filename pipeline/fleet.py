@@ -606,9 +606,14 @@ class _Planner:
             raise InputError(f"affinity {affinity!r} must be 'all', 'speculative' or 'none'")
         self.affinity = affinity
         self.sc, self.cache_dir, self.opt, self.level_of, self.client = sc, cache_dir, opt, level_of, client
-        self.spec: dict[str, Any] = {}           # mission id -> (departure, seen, future)
+        self.spec: dict[tuple[str, float], Any] = {}   # (mission id, departure) -> (seen, future, task)
+        self.checked: set[tuple[str, float]] = set()
         self.workers: list[str] | None = None
-        self.stats = {"speculative_used": 0, "speculative_still_valid": 0, "speculative_replanned": 0, "attempts": 0}
+        self.queue: list[FleetTask] = []
+        self.state: _State | None = None
+        self.depth = 0
+        self.stats = {"speculative_used": 0, "speculative_still_valid": 0, "speculative_replanned": 0,
+                      "speculative_later_departures": 0, "attempts": 0}
 
     def _worker_of(self, task) -> list[str] | None:
         """A preferred worker per goal (soft: an idle worker may still take the task): the
@@ -632,13 +637,15 @@ class _Planner:
 
     def run(self, task, dep, seen, obst) -> Attempt:
         self.stats["attempts"] += 1
-        s = self.spec.pop(task.id, None)
+        self.speculate()
+        s = self.spec.pop((task.id, dep), None)
+        self.checked.discard((task.id, dep))
         if s is not None:
-            sdep, sseen, fut = s
-            if sdep == dep and sseen == seen:
+            sseen, fut, _ = s
+            if sseen == seen:
                 self.stats["speculative_used"] += 1
                 return fut.result()
-            if sdep == dep and set(sseen) <= set(seen):     # only new accepted missions in the corridor
+            if set(sseen) <= set(seen):     # only new accepted missions in the corridor
                 a = fut.result()
                 new = {m for m, _ in set(seen) - set(sseen)}
                 if still_valid(a, [(m, v) for m, v in obst if m in new], task, self.sc, self.opt):
@@ -651,16 +658,41 @@ class _Planner:
         out = self.submit(task, dep, seen, obst)
         return out if self.client is None else out.result()
 
-    def speculate(self, tasks: Sequence[FleetTask], state: _State, depth: int) -> None:
-        """Keep ``depth`` upcoming first attempts in flight, each against the accepted set of the
-        moment it was submitted (a running task cannot be stopped: it is never cancelled)."""
-        if self.client is None:
+    def done(self, task) -> None:
+        """``task`` is decided: drop its speculative attempts."""
+        for key in [k for k in self.spec if k[0] == task.id]:
+            self.spec.pop(key)[1].cancel()
+            self.checked.discard(key)
+
+    def speculate(self) -> None:
+        """Keep the first attempts of the next ``depth`` missions of ``queue`` in flight, each
+        against the accepted set of the moment it was submitted, and, when a speculative attempt
+        has come back failed (not in STEP I) or meeting an accepted volume, the same mission
+        one delay step later: the attempt the driver will ask for next if nothing changes.  A
+        running task cannot be stopped: an attempt no longer wanted is left to finish."""
+        if self.client is None or self.state is None:
             return
-        for t in tasks[:depth]:
-            if t.id in self.spec:      # in flight: checked (still_valid) or re-planned when committed
+        opt, state = self.opt, self.state
+        for t in self.queue[:self.depth]:
+            if (t.id, t.earliest_s) in self.spec:
                 continue
-            seen, obst = state.corridor(t, t.earliest_s, self.opt)
-            self.spec[t.id] = (t.earliest_s, seen, self.submit(t, t.earliest_s, seen, obst, urgent=False))
+            seen, obst = state.corridor(t, t.earliest_s, opt)
+            self.spec[(t.id, t.earliest_s)] = (seen, self.submit(t, t.earliest_s, seen, obst, urgent=False), t)
+        for (mid, dep), (_, fut, t) in list(self.spec.items()):
+            if (mid, dep) in self.checked or fut.status != "finished":
+                continue
+            self.checked.add((mid, dep))
+            a = fut.result()
+            if a.ok and not state.index.conflicts(a.volumes):
+                continue
+            if not a.ok and a.static:
+                continue
+            nd = dep + opt.delay_step_s
+            if (mid, nd) in self.spec or nd - t.earliest_s > opt.max_delay_s + 1e-9:
+                continue
+            seen, obst = state.corridor(t, nd, opt)
+            self.spec[(mid, nd)] = (seen, self.submit(t, nd, seen, obst, urgent=False), t)
+            self.stats["speculative_later_departures"] += 1
 
 
 def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, options: FleetOptions | None = None,
@@ -682,10 +714,12 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
         return t.dop_level if t.dop_level is not None else default_dop
 
     planner = _Planner(sc, cache_dir, opt, level_of, client, affinity)
+    planner.depth = depth
     state = _State()
     order = sorted(tasks, key=lambda t: (t.earliest_s, -t.priority, t.id))
     outcomes = {t.id: MissionOutcome(t, level=level_of(t)) for t in order}
     queue: list[FleetTask] = list(order)
+    planner.queue, planner.state = queue, state
     n_done = 0
 
     def try_at(task: FleetTask, dep: float, min_priority: int | None = None) -> tuple[Attempt, list[str]]:
@@ -705,7 +739,7 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
 
     while queue:
         task = queue.pop(0)
-        planner.speculate(queue, state, depth)
+        planner.speculate()
         o = outcomes[task.id]
         dep = task.earliest_s
         accepted: Attempt | None = None
@@ -746,11 +780,12 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
             o.reason = ((f"preempted by {o.preempted_by}; then " if o.preempted_by else "")
                         + (f"no plan at any departure: {last_reason}" if not a.ok and a.static else
                            f"no conflict-free plan up to {opt.max_delay_s:g} s of delay: {last_reason}"))
+        planner.done(task)
         n_done += 1
         if echo is not None:
             echo(f"fleet: {task.id} {o.status} (delay {o.delay_s:g} s, {o.attempts} attempt(s))")
     for s in planner.spec.values():
-        s[2].cancel()
+        s[1].cancel()
     res = FleetResult([outcomes[t.id] for t in order], time.perf_counter() - t_start,
                       {**planner.stats, "worker_setup_s": round(setup_s, 3)})
     return res

@@ -238,6 +238,44 @@ def test_distributed_gives_the_sequential_result(small, cache_dir):
     assert res.speculative["speculative_used"] + res.speculative["speculative_replanned"] >= 1
 
 
+def test_distributed_speculation_on_a_dense_drawn_fleet(cache_dir):
+    """A dense drawn fleet (30 missions in 4 min, most of them delayed or deconflicted): the
+    speculative driver, whose kept attempts include RRT-deconflicted ones (still_valid through
+    their free legs) and later departures, gives the sequential result plan for plan."""
+    from distributed import Client
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.fleet import (
+        FleetOptions,
+        default_level,
+        draw_missions,
+        fleet_maps,
+        run_fleet,
+    )
+
+    sc = load_scenario("helsinki-medical")
+    sc = sc.model_copy(update={"data": sc.data.model_copy(
+        update={"ground": GroundReference(height_m=10.0, vertical_datum="EGM96 geoid")})})
+    root = Cache(cache_dir).root
+    maps = fleet_maps(sc, root)
+    tasks = draw_missions(sc, maps, 30, 5, 240.0)
+    opt = FleetOptions(seed=5)
+    seq = run_fleet(sc, tasks, cache_dir=root, options=opt, default_dop=default_level(maps))
+    with Client(processes=False, n_workers=2, threads_per_worker=1, dashboard_address=None) as client:
+        par = run_fleet(sc, tasks, cache_dir=root, options=opt, default_dop=default_level(maps), client=client,
+                        depth=3)
+    assert [(o.task.id, o.status, o.delay_s, o.attempts) for o in seq.outcomes] == \
+        [(o.task.id, o.status, o.delay_s, o.attempts) for o in par.outcomes]
+    for a, b in zip(seq.outcomes, par.outcomes, strict=True):
+        if a.attempt is not None:
+            np.testing.assert_array_equal(a.attempt.xyz_m, b.attempt.xyz_m)
+            assert a.attempt.doc == b.attempt.doc
+    st = par.speculative
+    assert sum(o.delay_s > 0 for o in seq.outcomes) >= 5
+    assert st["speculative_used"] >= 5 and st["speculative_still_valid"] >= 1, st
+    assert st["speculative_later_departures"] >= 1, st
+
+
 @pytest.mark.parametrize("missions, lines", [
     ([{"id": "a", "start": A, "departure": 0}], 1),                                   # no goal
     ([{"id": "a", "start": A, "goal": B}, {"id": "a", "start": A, "goal": {"x": 1.0, "y": 2.0, "alt_agl_m": 5}}], 2),

@@ -349,3 +349,59 @@ def test_ridge_kernel_against_numpy_definition():
         want &= free & (D >= 1.0)
         vm = P.VoxelMap(0.0, 0.0, 0.0, 1.0, 1.0, 1, free, ~free, np.zeros(sh[1:]), np.zeros(sh[1:]))
         assert np.array_equal(P.skeleton(vm, D, 1.0), want)
+
+
+def _serial_wave(free, weight, steps, seeds):
+    """Independent plain-Python reference of the wave's values and parents: a serial Dijkstra
+    with buckets of width q = the least edge cost, settled in increasing order, a bucket's
+    voxels by increasing flat index, each relaxing its 26 neighbours in offset order, the first
+    strict improvement setting the parent."""
+    shape = free.shape
+    f, w = free.ravel(), weight.ravel().astype(np.float32)
+    U = np.full(free.size, np.inf)
+    parent = np.full(free.size, -1, np.int8)
+    U[seeds] = 0.0
+    q = steps.min() * float(w[f].min())
+    settled = np.zeros(free.size, bool)
+    buckets: dict[int, set] = {0: set(int(s) for s in seeds)}
+    while buckets:
+        b = min(buckets)
+        for v in sorted(buckets.pop(b)):
+            if settled[v]:
+                continue
+            settled[v] = True
+            k, i, j = np.unravel_index(v, shape)
+            for o, (dk, di, dj) in enumerate(OFFS):
+                n = (k + dk, i + di, j + dj)
+                if not all(0 <= n[a] < shape[a] for a in range(3)):
+                    continue
+                u = int(np.ravel_multi_index(n, shape))
+                if settled[u] or not all(free[k + x * dk, i + y * di, j + z * dj]
+                                         for x in (0, 1) for y in (0, 1) for z in (0, 1)):
+                    continue
+                c = U[v] + steps[o] * 0.5 * (w[v] + w[u])
+                if c < U[u]:
+                    U[u] = c
+                    parent[u] = 25 - o
+                    buckets.setdefault(max(int(np.floor(c / q)), b + 1), set()).add(u)
+    return U.reshape(shape), parent.reshape(shape)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_wave_values_and_parents_equal_a_serial_bucket_dijkstra(seed):
+    """Bit for bit, parents (tie rule) included, on bitmaps with inner voxels (fast path),
+    border and obstacle voxels, unit steps (many ties) and the planner's anisotropic steps with
+    skeleton-like weights 1 / 8."""
+    rng = np.random.default_rng(100 + seed)
+    free = _random_free(rng, (11, 9, 8), 0.08 if seed % 2 else 0.25)
+    seeds = rng.choice(np.flatnonzero(free), 1 + seed // 3, replace=False)
+    if seed < 2:
+        steps, weight = np.ones(26), np.ones(free.shape)
+    else:
+        steps = np.linalg.norm(OFFS * np.array([2.0 * 3.73, 2.0, 2.0]), axis=1)
+        weight = np.where(rng.random(free.shape) < 0.2, 1.0, 8.0)
+    U, parent = P.wave_propagation(free, seeds, steps_m=steps, weight=weight)
+    U0, parent0 = _serial_wave(free, weight, steps, seeds)
+    np.testing.assert_array_equal(U, U0)
+    np.testing.assert_array_equal(parent, parent0)
+

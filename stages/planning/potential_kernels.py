@@ -316,6 +316,30 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
     return settled
 
 
+@numba.njit(cache=True, parallel=True)
+def zfast_kernel(a, out):
+    """``out[i, j, k] = a[k, i, j]``: a (nz, ny, nx) array with the levels made the fastest
+    axis (ny, nx, nz), rows in parallel."""
+    nz, ny, nx = a.shape
+    for i in numba.prange(ny):
+        for j in range(nx):
+            for k in range(nz):
+                out[i, j, k] = a[k, i, j]
+
+
+@numba.njit(cache=True, parallel=True)
+def zslow_kernel(U, parent, p2o, U_out, parent_out):
+    """Back from :func:`zfast_kernel`'s order: ``U_out[k, i, j] = U[i, j, k]`` and the parent
+    offset indices mapped by ``p2o`` (-1 kept), rows in parallel."""
+    ny, nx, nz = U.shape
+    for i in numba.prange(ny):
+        for j in range(nx):
+            for k in range(nz):
+                U_out[k, i, j] = U[i, j, k]
+                p = parent[i, j, k]
+                parent_out[k, i, j] = p2o[p] if p >= 0 else -1
+
+
 @numba.njit(cache=True)
 def affected_kernel(parent, changed, nz, ny, nx, out):
     """``out[v] = 1`` when the parent chain of ``v`` reaches a voxel with ``changed != 0``

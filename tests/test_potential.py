@@ -351,19 +351,24 @@ def test_ridge_kernel_against_numpy_definition():
         assert np.array_equal(P.skeleton(vm, D, 1.0), want)
 
 
-def _serial_wave(free, weight, steps, seeds):
+def _serial_wave(free, weight, steps, seeds, U=None, parent=None):
     """Independent plain-Python reference of the wave's values and parents: a serial Dijkstra
     with buckets of width q = the least edge cost, settled in increasing order, a bucket's
     voxels by increasing flat index, each relaxing its 26 neighbours in offset order, the first
-    strict improvement setting the parent."""
+    strict improvement setting the parent.  ``U`` / ``parent`` (flat): initial upper bounds
+    and their parents (default: 0 at the seeds, inf elsewhere)."""
     shape = free.shape
     f, w = free.ravel(), weight.ravel().astype(np.float32)
-    U = np.full(free.size, np.inf)
-    parent = np.full(free.size, -1, np.int8)
-    U[seeds] = 0.0
     q = steps.min() * float(w[f].min())
+    if U is None:
+        U = np.full(free.size, np.inf)
+        U[seeds] = 0.0
+        parent = np.full(free.size, -1, np.int8)
+    U, parent = U.copy(), parent.copy()
     settled = np.zeros(free.size, bool)
-    buckets: dict[int, set] = {0: set(int(s) for s in seeds)}
+    buckets: dict[int, set] = {}
+    for s in seeds:
+        buckets.setdefault(int(np.floor(U[s] / q)), set()).add(int(s))
     while buckets:
         b = min(buckets)
         for v in sorted(buckets.pop(b)):
@@ -405,3 +410,31 @@ def test_wave_values_and_parents_equal_a_serial_bucket_dijkstra(seed):
     np.testing.assert_array_equal(U, U0)
     np.testing.assert_array_equal(parent, parent0)
 
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_wave_from_upper_bounds_equals_the_serial_reference(seed):
+    """The incremental update's use of the kernel: a whole field with a block reset to inf,
+    many seeds at their values, the rest as upper bounds with their parents; values and
+    parents bit for bit against the serial reference."""
+    from skyroute.stages.planning.potential_kernels import wave_kernel
+
+    rng = np.random.default_rng(200 + seed)
+    free = _random_free(rng, (11, 9, 8), 0.1 if seed % 2 else 0.25)
+    steps = np.ones(26) if seed < 2 else np.linalg.norm(OFFS * np.array([2.0 * 3.73, 2.0, 2.0]), axis=1)
+    weight = np.ones(free.shape) if seed < 2 else np.where(rng.random(free.shape) < 0.2, 1.0, 8.0)
+    g = int(rng.choice(np.flatnonzero(free)))
+    U0, parent0 = P.wave_propagation(free, [g], steps_m=steps, weight=weight)
+    U1, parent1 = U0.ravel().copy(), parent0.ravel().copy()
+    U1[rng.random(free.size) < 0.3] = np.inf
+    parent1[~np.isfinite(U1)] = -1
+    fin = np.flatnonzero(np.isfinite(U1))
+    seeds = rng.choice(fin, max(1, fin.size // 4), replace=False)
+    U, parent = U1.copy(), parent1.copy()
+    n = wave_kernel(free.ravel().view(np.uint8), weight.ravel().astype(np.float32), *free.shape, steps, seeds, U,
+                    parent, np.zeros(1, np.int8))
+    Ur, parentr = _serial_wave(free, weight, steps, seeds, U1, parent1)
+    assert n > 0
+    np.testing.assert_array_equal(U, Ur.ravel())
+    np.testing.assert_array_equal(parent, parentr.ravel())
+    assert (U <= U1).all() and (U >= U0.ravel()).all()     # only lowered, never below the true potential

@@ -134,7 +134,7 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
     """:func:`wave_kernel` with bucket lists of ``like.dtype``; ``state`` (N,) uint8 from
     :func:`_classify_kernel` (overwritten).
 
-    Per bucket: its voxels are marked settled (state 16 | class), sorted by index (memory
+    Per bucket: its voxels are marked settled (state 128 | class), sorted by index (memory
     locality; the order does not change the result, see the tie rule), then each relaxes its
     neighbours.  *Inner* voxels (all 26 neighbours free, inside the box) take the fast path:
     flat offsets ``off``, no bounds or corner checks, and a branch-free screen of the 26
@@ -145,9 +145,10 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
 
     Tie rule (the parents are those of a serial Dijkstra settling buckets in increasing order
     and a bucket's voxels by increasing index, the first strict improvement winning): when a
-    relaxation from ``v`` equals ``U[u]``, ``u`` takes ``v`` as parent if its current parent is
-    in the same bucket with a larger index.  The result does not depend on the settling order
-    within a bucket."""
+    relaxation from ``v`` equals ``U[u]`` and that value was set by a relaxation of this wave
+    (not an initial upper bound), ``u`` takes ``v`` as parent if its current parent was
+    settled in the same bucket with a larger index.  The result does not depend on the
+    settling order within a bucket."""
     N = free.size
     wmin = np.inf
     wmax = 0.0
@@ -182,7 +183,8 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
                 for c in range(2):
                     m |= 1 << ((a * dk + 1) * 9 + (b * di + 1) * 3 + (c * dj + 1))
         box[oi] = m
-    # state: 0 inner, 3 other free, 1 blocked, | 4 queued; 8 settled; 16 | class settled in this bucket
+    # state: 0 inner, 3 other free, 1 blocked; | 4 queued, | 32 value set by a relaxation of this wave;
+    # 64 settled, 128 | class settled in the current bucket
     order = np.argsort(U[seeds])
     sp = 0
     nseeds = seeds.size
@@ -192,14 +194,14 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
     settled = 0
     while True:
         if queued == 0:
-            while sp < nseeds and state[seeds[order[sp]]] >= 8:
+            while sp < nseeds and state[seeds[order[sp]]] >= 64:
                 sp += 1
             if sp >= nseeds:
                 break
             cur = int(math.floor(U[seeds[order[sp]]] / q))
         while sp < nseeds:                        # seeds inside the window [cur, cur + nb - 2]
             sv = seeds[order[sp]]
-            if state[sv] >= 8:
+            if state[sv] >= 64:
                 sp += 1
                 continue
             b = int(math.floor(U[sv] / q))
@@ -227,9 +229,9 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
         for t in range(m):
             v = buf[slot, t]
             s = state[v]
-            if s >= 8:
+            if s >= 64:
                 continue
-            state[v] = 16 | (s & 3)
+            state[v] = 128 | (s & 3)
             buf[slot, n] = v
             n += 1
         items = buf[slot, :n]
@@ -249,7 +251,7 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
             wv = weight[v]
             lbv = wv + wmin32
             sel = 0                               # bit oi: move oi allowed and may improve / tie
-            if state[v] == 16:
+            if state[v] == 128:
                 for oi in range(26):
                     sel |= np.int64(Uv + hc[oi] * lbv <= U[v + off[oi]]) << oi
             else:
@@ -278,7 +280,7 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
                     continue
                 u = v + off[oi]
                 su = state[u]
-                if su >= 8:
+                if su >= 64:
                     continue
                 Uu = U[u]
                 c = Uv + hc[oi] * (wv + weight[u])
@@ -289,8 +291,9 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
                     if b <= cur:
                         b = cur + 1
                     elif (su & 4) != 0 and b == int(math.floor(Uu / q)):
+                        state[u] = su | 32
                         continue                  # already queued in that bucket: it reads U[u] when settled
-                    state[u] = su | 4
+                    state[u] = su | 36
                     sl = b % nb
                     if cnt[sl] >= cap:
                         buf = _grow(buf, cap)
@@ -298,18 +301,18 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
                     buf[sl, cnt[sl]] = u
                     cnt[sl] += 1
                     queued += 1
-                elif c == Uu:                     # tie rule (docstring)
+                elif c == Uu and (su & 32) != 0:  # tie rule (docstring)
                     pp = parent[u]
                     if pp >= 0:
                         p = u + off[pp]
-                        if state[p] >= 16 and p > v:
+                        if state[p] >= 128 and p > v:
                             parent[u] = 25 - oi
         for t in range(n):
-            state[items[t]] = 8
+            state[items[t]] = 64
         cur += 1
-        if target >= 0 and state[target] >= 8:
+        if target >= 0 and state[target] >= 64:
             for v in range(N):
-                if state[v] < 8:
+                if state[v] < 64:
                     U[v] = np.inf
                     parent[v] = -1
             break

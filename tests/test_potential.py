@@ -438,3 +438,29 @@ def test_wave_from_upper_bounds_equals_the_serial_reference(seed):
     np.testing.assert_array_equal(U, Ur.ravel())
     np.testing.assert_array_equal(parent, parentr.ravel())
     assert (U <= U1).all() and (U >= U0.ravel()).all()     # only lowered, never below the true potential
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_affected_voxels_are_those_whose_parent_chain_meets_a_change(seed):
+    """affected_kernel against walking every voxel's parent chain in Python."""
+    from skyroute.stages.planning.potential_kernels import affected_kernel
+
+    rng = np.random.default_rng(300 + seed)
+    free = _random_free(rng, (7, 9, 10), 0.2)
+    _, parent = P.wave_propagation(free, rng.choice(np.flatnonzero(free), 2, replace=False))
+    changed = (rng.random(free.shape) < 0.03).astype(np.uint8)
+    out = np.empty(free.size, np.uint8)
+    affected_kernel(parent.ravel(), changed.ravel(), *free.shape, out)
+    ref = np.zeros(free.size, np.uint8)
+    for v in range(free.size):
+        kij = np.array(np.unravel_index(v, free.shape))
+        while True:
+            if changed[tuple(kij)]:
+                ref[v] = 1
+                break
+            p = parent[tuple(kij)]
+            if p < 0:
+                break
+            kij = kij + OFFS[p]
+    assert 0 < ref.sum() < free.size
+    np.testing.assert_array_equal(out, ref)

@@ -76,31 +76,30 @@ def _grow(buf, cap):
 @numba.njit(cache=True, parallel=True)
 def _classify_kernel(free, nz, ny, nx, state):
     """state[v] = 1 blocked, 0 free with all 26 neighbours free (inside the box), 3 other free.
-    Row by row (k, i) in parallel: the AND of the 9 rows (k + dk, i + di) column by column,
+    Planes k in parallel, row by row: the AND of the 9 rows (k + dk, i + di) column by column,
     then of three consecutive columns (streaming, no per-voxel neighbour loop)."""
-    for t in numba.prange(nz * ny):
-        k = t // ny
-        i = t - k * ny
-        base = t * nx
-        if k == 0 or k == nz - 1 or i == 0 or i == ny - 1 or nx < 3:
-            for j in range(nx):
-                state[base + j] = 1 if free[base + j] == 0 else 3
-            continue
+    for k in numba.prange(nz):
         col = np.empty(nx, dtype=np.uint8)
-        for j in range(nx):
-            col[j] = 1 if free[base + j] != 0 else 0
-        for dk in range(-1, 2):
-            for di in range(-1, 2):
-                rb = base + (dk * ny + di) * nx
+        for i in range(ny):
+            base = (k * ny + i) * nx
+            if k == 0 or k == nz - 1 or i == 0 or i == ny - 1 or nx < 3:
                 for j in range(nx):
-                    col[j] &= 1 if free[rb + j] != 0 else 0
-        for j in range(nx):
-            if free[base + j] == 0:
-                state[base + j] = 1
-            elif 0 < j < nx - 1 and (col[j - 1] & col[j] & col[j + 1]) != 0:
-                state[base + j] = 0
-            else:
-                state[base + j] = 3
+                    state[base + j] = 1 if free[base + j] == 0 else 3
+                continue
+            for j in range(nx):
+                col[j] = 1 if free[base + j] != 0 else 0
+            for dk in range(-1, 2):
+                for di in range(-1, 2):
+                    rb = base + (dk * ny + di) * nx
+                    for j in range(nx):
+                        col[j] = min(col[j], free[rb + j])    # col is 0 / 1: AND with "free != 0"
+            for j in range(nx):
+                if free[base + j] == 0:
+                    state[base + j] = 1
+                elif 0 < j < nx - 1 and (col[j - 1] & col[j] & col[j + 1]) != 0:
+                    state[base + j] = 0
+                else:
+                    state[base + j] = 3
 
 
 def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=-1):
@@ -346,49 +345,47 @@ def zslow_kernel(U, parent, p2o, U_out, parent_out):
 @numba.njit(cache=True)
 def affected_kernel(parent, changed, nz, ny, nx, out):
     """``out[v] = 1`` when the parent chain of ``v`` reaches a voxel with ``changed != 0``
-    (``v`` included), else 0: the voxels whose value may depend on a change.  O(N)."""
+    (``v`` included), else 0: the voxels whose value may depend on a change.  Searched forward:
+    from the changed voxels to their children in the parent tree (the neighbours ``u`` whose
+    parent offset points back), depth first; O(N) for the scan of ``changed`` plus 26 x the
+    affected voxels (instead of walking every voxel's chain)."""
     N = parent.size
-    state = np.zeros(N, dtype=np.int8)          # 0 unknown, 1 affected, 2 not
-    stack = np.empty(N if N < 1 << 16 else 1 << 16, dtype=np.int64)
     nyx = ny * nx
-    for v0 in range(N):
-        if state[v0] != 0:
-            continue
-        top = 0
-        v = v0
-        res = 2
-        while True:
-            if state[v] != 0:
-                res = state[v]
-                break
-            if changed[v] != 0:
-                res = 1
-                state[v] = 1
-                break
-            p = parent[v]
-            if p < 0:
-                res = 2
-                state[v] = 2
-                break
-            if top >= stack.size:
-                s2 = np.empty(stack.size * 2, dtype=np.int64)
-                s2[:top] = stack[:top]
-                stack = s2
+    m = 0
+    for v in range(N):
+        out[v] = 0
+        if changed[v] != 0:
+            m += 1
+    stack = np.empty(max(m, 1024), dtype=np.int64)
+    top = 0
+    for v in range(N):
+        if changed[v] != 0:
+            out[v] = 1
             stack[top] = v
             top += 1
-            o = p if p < 13 else p + 1
-            dk = o // 9 - 1
-            di = (o // 3) % 3 - 1
-            dj = o % 3 - 1
-            k = v // nyx
-            r = v - k * nyx
-            i = r // nx
-            j = r - i * nx
-            v = ((k + dk) * ny + (i + di)) * nx + (j + dj)
-        for t in range(top):
-            state[stack[t]] = res
-    for v in range(N):
-        out[v] = 1 if state[v] == 1 else 0
+    while top > 0:
+        top -= 1
+        v = stack[top]
+        k = v // nyx
+        r = v - k * nyx
+        i = r // nx
+        j = r - i * nx
+        for oi in range(26):
+            o = oi if oi < 13 else oi + 1
+            kk = k + o // 9 - 1
+            ii = i + (o // 3) % 3 - 1
+            jj = j + o % 3 - 1
+            if kk < 0 or kk >= nz or ii < 0 or ii >= ny or jj < 0 or jj >= nx:
+                continue
+            u = (kk * ny + ii) * nx + jj
+            if out[u] == 0 and parent[u] == 25 - oi:      # u's parent offset points back to v
+                out[u] = 1
+                if top >= stack.size:
+                    s2 = np.empty(2 * stack.size, dtype=np.int64)
+                    s2[:top] = stack[:top]
+                    stack = s2
+                stack[top] = u
+                top += 1
 
 
 # --------------------------------------------------------------------------- skeleton

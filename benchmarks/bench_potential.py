@@ -2,6 +2,7 @@
 
     python benchmarks/bench_potential.py --quick     # < 60 s on an idle 2-core machine
     python benchmarks/bench_potential.py             # whole AOIs for (a), a full recompute in (b)
+    python benchmarks/bench_potential.py --quick --part b   # only the scale part (b)
 
 (a) helsinki-medical and rotterdam-canyon, STEP I without a GNSS constraint (clearance floor of
     r_p, AGL bounds, no-fly zones), potential vs astar vs bitstar: the STEP I chain is timed at

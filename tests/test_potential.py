@@ -396,15 +396,16 @@ def _serial_wave(free, weight, steps, seeds, U=None, parent=None):
 def test_wave_values_and_parents_equal_a_serial_bucket_dijkstra(seed):
     """Bit for bit, parents (tie rule) included, on bitmaps with inner voxels (fast path),
     border and obstacle voxels, unit steps (many ties) and the planner's anisotropic steps with
-    skeleton-like weights 1 / 8."""
+    skeleton-like weights 1 / 8 or continuous weights."""
     rng = np.random.default_rng(100 + seed)
     free = _random_free(rng, (11, 9, 8), 0.08 if seed % 2 else 0.25)
     seeds = rng.choice(np.flatnonzero(free), 1 + seed // 3, replace=False)
     if seed < 2:
         steps, weight = np.ones(26), np.ones(free.shape)
-    else:
+    else:       # two weights (the planner's; packed in the kernel's state byte) or many
         steps = np.linalg.norm(OFFS * np.array([2.0 * 3.73, 2.0, 2.0]), axis=1)
-        weight = np.where(rng.random(free.shape) < 0.2, 1.0, 8.0)
+        weight = (np.where(rng.random(free.shape) < 0.2, 1.0, 8.0) if seed < 4
+                  else rng.uniform(1.0, 5.0, free.shape))
     U, parent = P.wave_propagation(free, seeds, steps_m=steps, weight=weight)
     U0, parent0 = _serial_wave(free, weight, steps, seeds)
     np.testing.assert_array_equal(U, U0)

@@ -123,15 +123,45 @@ def wave_kernel(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target=
     started: a crash)."""
     state = np.empty(free.size, dtype=np.uint8)
     _classify_kernel(free, nz, ny, nx, state)
+    wtab = np.empty(2, dtype=np.float32)
+    packed = _weight_bit(free, weight, state, wtab)
     like = np.empty(1, dtype=np.int32 if free.size < 2**31 - 2**20 else np.int64)
     return _wave(free, weight, int(nz), int(ny), int(nx), np.asarray(steps, dtype=np.float64), seeds, U, parent,
-                 stop, int(target), like, state)
+                 stop, int(target), like, state, packed, wtab)
 
 
 @numba.njit(cache=True)
-def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like, state):
+def _weight_bit(free, weight, state, wtab):
+    """When the free voxels' weights take at most two values (the planner's: 1 on the
+    skeleton, K off it): ``wtab`` = the two values, bit 3 of ``state`` set where the weight is
+    ``wtab[1]``, returns True (the wave then reads a voxel's weight from its state byte, one
+    array less in its random accesses); else False."""
+    n = 0
+    for v in range(free.size):
+        if free[v] == 0:
+            continue
+        x = weight[v]
+        if n == 0:
+            wtab[0] = x
+            wtab[1] = x
+            n = 1
+        elif x != wtab[0] and x != wtab[1]:
+            if n == 2:
+                return False
+            wtab[1] = x
+            n = 2
+    if n == 2:
+        for v in range(free.size):
+            if free[v] != 0 and weight[v] == wtab[1]:
+                state[v] |= 8
+    return True
+
+
+@numba.njit(cache=True)
+def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like, state, packed, wtab):
     """:func:`wave_kernel` with bucket lists of ``like.dtype``; ``state`` (N,) uint8 from
-    :func:`_classify_kernel` (overwritten).
+    :func:`_classify_kernel` (overwritten); ``packed``: the weights are ``wtab[bit 3 of
+    state]`` (:func:`_weight_bit`), else read from ``weight``.
 
     Per bucket: its voxels are marked settled (state 128 | class), sorted by index (memory
     locality; the order does not change the result, see the tie rule), then each relaxes its
@@ -182,8 +212,8 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
                 for c in range(2):
                     m |= 1 << ((a * dk + 1) * 9 + (b * di + 1) * 3 + (c * dj + 1))
         box[oi] = m
-    # state: 0 inner, 3 other free, 1 blocked; | 4 queued, | 32 value set by a relaxation of this wave;
-    # 64 settled, 128 | class settled in the current bucket
+    # state: 0 inner, 3 other free, 1 blocked; | 8 weight wtab[1] (packed); | 4 queued, | 32 value set
+    # by a relaxation of this wave; 64 settled, 128 | class | weight bit: settled in the current bucket
     order = np.argsort(U[seeds])
     sp = 0
     nseeds = seeds.size
@@ -230,7 +260,7 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
             s = state[v]
             if s >= 64:
                 continue
-            state[v] = 128 | (s & 3)
+            state[v] = 128 | (s & 11)
             buf[slot, n] = v
             n += 1
         items = buf[slot, :n]
@@ -241,16 +271,17 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
                 w2 = items[t + 6]
                 for oi in range(1, 26, 3):       # the middle of each run of 3 neighbours
                     _prefetch(U, w2 + off[oi])
-                    _prefetch(weight, w2 + off[oi])
+                    if not packed:
+                        _prefetch(weight, w2 + off[oi])
                     _prefetch(state, w2 + off[oi])
             settled += 1
             if (settled & 0xFFFF) == 0 and stop[0] != 0:
                 return -1
             Uv = U[v]
-            wv = weight[v]
+            wv = wtab[(state[v] >> 3) & 1] if packed else weight[v]
             lbv = wv + wmin32
             sel = 0                               # bit oi: move oi allowed and may improve / tie
-            if state[v] == 128:
+            if (state[v] & 0xF7) == 128:
                 for oi in range(26):
                     sel |= np.int64(Uv + hc[oi] * lbv <= U[v + off[oi]]) << oi
             else:
@@ -282,7 +313,7 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
                 if su >= 64:
                     continue
                 Uu = U[u]
-                c = Uv + hc[oi] * (wv + weight[u])
+                c = Uv + hc[oi] * (wv + (wtab[(su >> 3) & 1] if packed else weight[u]))
                 if c < Uu:
                     U[u] = c
                     parent[u] = 25 - oi           # offset from u back to v (opposite)

@@ -2,6 +2,7 @@
 
     python benchmarks/bench_potential.py --quick     # < 60 s on an idle 2-core machine
     python benchmarks/bench_potential.py             # whole AOIs for (a), a full recompute in (b)
+    python benchmarks/bench_potential.py --quick --part b   # only the scale part (b)
 
 (a) helsinki-medical and rotterdam-canyon, STEP I without a GNSS constraint (clearance floor of
     r_p, AGL bounds, no-fly zones), potential vs astar vs bitstar: the STEP I chain is timed at
@@ -281,18 +282,22 @@ def main(argv=None) -> None:
     ap.add_argument("--quick", action="store_true", help="mission box for (a), no full recompute in (b)")
     ap.add_argument("--cache", default="/tmp/skyroute-bench-cache", help="pipeline cache of the maps")
     ap.add_argument("--out", default="/tmp/skyroute-bench-potential", help="directory of the comparison figures")
+    ap.add_argument("--part", choices=("a", "b", "ab"), default="ab", help="run only part (a) or (b) (default both)")
     a = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     cache = Cache(a.cache)
     t = time.perf_counter()
-    print("(a) STEP I chains smoothed by STEP III's corner trajectory; exact clearance to the surface prisms [m]")
-    print(f"  {'case':17s} {'planner':9s} {'min':>7s} {'mean':>7s} {'length':>8s} {'f eq.11':>9s} {'STEP I s':>7s} {'wps':>4s}")
-    for name in ("helsinki-medical", "rotterdam-canyon"):
-        for row in compare(name, cache, a.quick, Path(a.out)):
+    if "a" in a.part:
+        print("(a) STEP I chains smoothed by STEP III's corner trajectory; exact clearance to the surface prisms [m]")
+        print(f"  {'case':17s} {'planner':9s} {'min':>7s} {'mean':>7s} {'length':>8s} {'f eq.11':>9s} "
+              f"{'STEP I s':>7s} {'wps':>4s}")
+        for name in ("helsinki-medical", "rotterdam-canyon"):
+            for row in compare(name, cache, a.quick, Path(a.out)):
+                print(row, flush=True)
+    if "b" in a.part:
+        print("(b) scale: potential field on the whole Helsinki AOI, 2 m voxels, 0-80 m AGL")
+        for row in scale(cache, a.quick):
             print(row, flush=True)
-    print("(b) scale: potential field on the whole Helsinki AOI, 2 m voxels, 0-80 m AGL")
-    for row in scale(cache, a.quick):
-        print(row, flush=True)
     print(f"total {time.perf_counter() - t:.0f} s")
 
 

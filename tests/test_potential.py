@@ -349,3 +349,119 @@ def test_ridge_kernel_against_numpy_definition():
         want &= free & (D >= 1.0)
         vm = P.VoxelMap(0.0, 0.0, 0.0, 1.0, 1.0, 1, free, ~free, np.zeros(sh[1:]), np.zeros(sh[1:]))
         assert np.array_equal(P.skeleton(vm, D, 1.0), want)
+
+
+def _serial_wave(free, weight, steps, seeds, U=None, parent=None):
+    """Independent plain-Python reference of the wave's values and parents: a serial Dijkstra
+    with buckets of width q = the least edge cost, settled in increasing order, a bucket's
+    voxels by increasing flat index, each relaxing its 26 neighbours in offset order, the first
+    strict improvement setting the parent.  ``U`` / ``parent`` (flat): initial upper bounds
+    and their parents (default: 0 at the seeds, inf elsewhere)."""
+    shape = free.shape
+    f, w = free.ravel(), weight.ravel().astype(np.float32)
+    q = steps.min() * float(w[f].min())
+    if U is None:
+        U = np.full(free.size, np.inf)
+        U[seeds] = 0.0
+        parent = np.full(free.size, -1, np.int8)
+    U, parent = U.copy(), parent.copy()
+    settled = np.zeros(free.size, bool)
+    buckets: dict[int, set] = {}
+    for s in seeds:
+        buckets.setdefault(int(np.floor(U[s] / q)), set()).add(int(s))
+    while buckets:
+        b = min(buckets)
+        for v in sorted(buckets.pop(b)):
+            if settled[v]:
+                continue
+            settled[v] = True
+            k, i, j = np.unravel_index(v, shape)
+            for o, (dk, di, dj) in enumerate(OFFS):
+                n = (k + dk, i + di, j + dj)
+                if not all(0 <= n[a] < shape[a] for a in range(3)):
+                    continue
+                u = int(np.ravel_multi_index(n, shape))
+                if settled[u] or not all(free[k + x * dk, i + y * di, j + z * dj]
+                                         for x in (0, 1) for y in (0, 1) for z in (0, 1)):
+                    continue
+                c = U[v] + steps[o] * 0.5 * (w[v] + w[u])
+                if c < U[u]:
+                    U[u] = c
+                    parent[u] = 25 - o
+                    buckets.setdefault(max(int(np.floor(c / q)), b + 1), set()).add(u)
+    return U.reshape(shape), parent.reshape(shape)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_wave_values_and_parents_equal_a_serial_bucket_dijkstra(seed):
+    """Bit for bit, parents (tie rule) included, on bitmaps with inner voxels (fast path),
+    border and obstacle voxels, unit steps (many ties) and the planner's anisotropic steps with
+    skeleton-like weights 1 / 8 or continuous weights."""
+    rng = np.random.default_rng(100 + seed)
+    free = _random_free(rng, (11, 9, 8), 0.08 if seed % 2 else 0.25)
+    seeds = rng.choice(np.flatnonzero(free), 1 + seed // 3, replace=False)
+    if seed < 2:
+        steps, weight = np.ones(26), np.ones(free.shape)
+    else:       # two weights (the planner's; packed in the kernel's state byte) or many
+        steps = np.linalg.norm(OFFS * np.array([2.0 * 3.73, 2.0, 2.0]), axis=1)
+        weight = (np.where(rng.random(free.shape) < 0.2, 1.0, 8.0) if seed < 4
+                  else rng.uniform(1.0, 5.0, free.shape))
+    U, parent = P.wave_propagation(free, seeds, steps_m=steps, weight=weight)
+    U0, parent0 = _serial_wave(free, weight, steps, seeds)
+    np.testing.assert_array_equal(U, U0)
+    np.testing.assert_array_equal(parent, parent0)
+
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_wave_from_upper_bounds_equals_the_serial_reference(seed):
+    """The incremental update's use of the kernel: a whole field with a block reset to inf,
+    many seeds at their values, the rest as upper bounds with their parents; values and
+    parents bit for bit against the serial reference."""
+    from skyroute.stages.planning.potential_kernels import wave_kernel
+
+    rng = np.random.default_rng(200 + seed)
+    free = _random_free(rng, (11, 9, 8), 0.1 if seed % 2 else 0.25)
+    steps = np.ones(26) if seed < 2 else np.linalg.norm(OFFS * np.array([2.0 * 3.73, 2.0, 2.0]), axis=1)
+    weight = np.ones(free.shape) if seed < 2 else np.where(rng.random(free.shape) < 0.2, 1.0, 8.0)
+    g = int(rng.choice(np.flatnonzero(free)))
+    U0, parent0 = P.wave_propagation(free, [g], steps_m=steps, weight=weight)
+    U1, parent1 = U0.ravel().copy(), parent0.ravel().copy()
+    U1[rng.random(free.size) < 0.3] = np.inf
+    parent1[~np.isfinite(U1)] = -1
+    fin = np.flatnonzero(np.isfinite(U1))
+    seeds = rng.choice(fin, max(1, fin.size // 4), replace=False)
+    U, parent = U1.copy(), parent1.copy()
+    n = wave_kernel(free.ravel().view(np.uint8), weight.ravel().astype(np.float32), *free.shape, steps, seeds, U,
+                    parent, np.zeros(1, np.int8))
+    Ur, parentr = _serial_wave(free, weight, steps, seeds, U1, parent1)
+    assert n > 0
+    np.testing.assert_array_equal(U, Ur.ravel())
+    np.testing.assert_array_equal(parent, parentr.ravel())
+    assert (U <= U1).all() and (U >= U0.ravel()).all()     # only lowered, never below the true potential
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_affected_voxels_are_those_whose_parent_chain_meets_a_change(seed):
+    """affected_kernel against walking every voxel's parent chain in Python."""
+    from skyroute.stages.planning.potential_kernels import affected_kernel
+
+    rng = np.random.default_rng(300 + seed)
+    free = _random_free(rng, (7, 9, 10), 0.2)
+    _, parent = P.wave_propagation(free, rng.choice(np.flatnonzero(free), 2, replace=False))
+    changed = (rng.random(free.shape) < 0.03).astype(np.uint8)
+    out = np.empty(free.size, np.uint8)
+    affected_kernel(parent.ravel(), changed.ravel(), *free.shape, out)
+    ref = np.zeros(free.size, np.uint8)
+    for v in range(free.size):
+        kij = np.array(np.unravel_index(v, free.shape))
+        while True:
+            if changed[tuple(kij)]:
+                ref[v] = 1
+                break
+            p = parent[tuple(kij)]
+            if p < 0:
+                break
+            kij = kij + OFFS[p]
+    assert 0 < ref.sum() < free.size
+    np.testing.assert_array_equal(out, ref)

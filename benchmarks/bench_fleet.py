@@ -47,8 +47,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--no-parallel", action="store_true", help="only the sequential run")
     ap.add_argument("--configs", default="4:speculative",
-                    help="parallel runs DEPTH:AFFINITY,... (speculative missions in flight; attempts that "
-                         "prefer their goal's worker: all, speculative, none)")
+                    help="parallel runs DEPTH:AFFINITY[:nolater],... (speculative missions in flight; attempts "
+                         "that prefer their goal's worker: all, speculative, none; nolater: no speculation of "
+                         "later departures)")
     ap.add_argument("--scenario", default="helsinki-medical")
     a = ap.parse_args()
     n = a.missions or (4 if a.quick else 1000)
@@ -85,14 +86,14 @@ def main() -> None:
         if a.no_parallel:
             return
         for cfg in a.configs.split(","):
-            depth, affinity = cfg.split(":")
+            depth, affinity, *later = cfg.split(":")
             with scheduler_context("distributed", a.workers) as client:
                 par = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, client=client,
-                                depth=int(depth), affinity=affinity)
-            report(f"LocalCluster {a.workers} workers, depth {depth}, affinity {affinity}", par, Path(tmp) / "par")
+                                depth=int(depth), affinity=affinity, later_departures=later != ["nolater"])
+            report(f"LocalCluster {a.workers} workers, {cfg}", par, Path(tmp) / "par")
             same = [(o.task.id, o.status, o.delay_s) for o in seq.outcomes] == \
                    [(o.task.id, o.status, o.delay_s) for o in par.outcomes]
-            print(f"speed-up with {a.workers} workers (depth {depth}, affinity {affinity}): "
+            print(f"speed-up with {a.workers} workers ({cfg}): "
                   f"{seq.seconds / par.seconds:.2f}x (worker setup {par.speculative['worker_setup_s']:.1f} s not "
                   f"counted); same decisions: {same}")
 

@@ -612,6 +612,7 @@ class _Planner:
         self.queue: list[FleetTask] = []
         self.state: _State | None = None
         self.depth = 0
+        self.later = True
         self.stats = {"speculative_used": 0, "speculative_still_valid": 0, "speculative_replanned": 0,
                       "speculative_later_departures": 0, "attempts": 0}
 
@@ -678,7 +679,7 @@ class _Planner:
                 continue
             seen, obst = state.corridor(t, t.earliest_s, opt)
             self.spec[(t.id, t.earliest_s)] = (seen, self.submit(t, t.earliest_s, seen, obst, urgent=False), t)
-        for (mid, dep), (_, fut, t) in list(self.spec.items()):
+        for (mid, dep), (_, fut, t) in list(self.spec.items()) if self.later else ():
             if (mid, dep) in self.checked or fut.status != "finished":
                 continue
             self.checked.add((mid, dep))
@@ -697,11 +698,12 @@ class _Planner:
 
 def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, options: FleetOptions | None = None,
               default_dop: float | None = None, client=None, depth: int = 4, affinity: str = "speculative",
-              echo: Callable[[str], None] | None = None) -> FleetResult:
+              later_departures: bool = True, echo: Callable[[str], None] | None = None) -> FleetResult:
     """First-come-first-served planning of ``tasks`` (see the module docstring); ``client``: a
     dask.distributed Client for the speculative parallel driver (``depth`` missions in flight;
     ``affinity``: which attempts prefer their goal's worker: "all", "speculative" (the driver
-    does not wait for them) or "none")."""
+    does not wait for them) or "none"; ``later_departures``: also speculate a mission's next
+    departure when its speculative attempt came back failed or conflicting)."""
     opt = options or FleetOptions()
     t_setup = time.perf_counter()
     if client is not None and tasks:   # every worker loads the maps and kernels before the clock starts
@@ -714,7 +716,7 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
         return t.dop_level if t.dop_level is not None else default_dop
 
     planner = _Planner(sc, cache_dir, opt, level_of, client, affinity)
-    planner.depth = depth
+    planner.depth, planner.later = depth, later_departures
     state = _State()
     order = sorted(tasks, key=lambda t: (t.earliest_s, -t.priority, t.id))
     outcomes = {t.id: MissionOutcome(t, level=level_of(t)) for t in order}

@@ -46,7 +46,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--no-parallel", action="store_true", help="only the sequential run")
-    ap.add_argument("--configs", default="4:speculative",
+    ap.add_argument("--configs", default="1:speculative",
                     help="parallel runs DEPTH:AFFINITY[:nolater],... (speculative missions in flight; attempts "
                          "that prefer their goal's worker: all, speculative, none; nolater: no speculation of "
                          "later departures)")

@@ -697,7 +697,7 @@ class _Planner:
 
 
 def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, options: FleetOptions | None = None,
-              default_dop: float | None = None, client=None, depth: int = 4, affinity: str = "speculative",
+              default_dop: float | None = None, client=None, depth: int = 1, affinity: str = "speculative",
               later_departures: bool = True, echo: Callable[[str], None] | None = None) -> FleetResult:
     """First-come-first-served planning of ``tasks`` (see the module docstring); ``client``: a
     dask.distributed Client for the speculative parallel driver (``depth`` missions in flight;

@@ -65,12 +65,18 @@ def _prefetch(typingctx, arr, idx):
     return sig, codegen
 
 
-@numba.njit(cache=True)
-def _grow(buf, cap):
-    """``buf`` (nb, cap) copied into a new (nb, 2 cap) array of the same dtype."""
-    buf2 = np.empty((buf.shape[0], 2 * cap), dtype=buf.dtype)
-    buf2[:, :cap] = buf
-    return buf2
+@numba.njit(cache=True, inline="always")
+def _bucket_push(buf, cnt, cap, sl, v):
+    """Append voxel ``v`` to bucket slot ``sl`` of ``buf`` (nb, cap), doubling the capacity
+    (a new array of the same dtype) when the slot is full; returns ``(buf, cap)``."""
+    if cnt[sl] >= cap:
+        buf2 = np.empty((buf.shape[0], 2 * cap), dtype=buf.dtype)
+        buf2[:, :cap] = buf
+        buf = buf2
+        cap *= 2
+    buf[sl, cnt[sl]] = v
+    cnt[sl] += 1
+    return buf, cap
 
 
 @numba.njit(cache=True, parallel=True)
@@ -238,12 +244,7 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
                 break
             if b < cur:
                 b = cur
-            sl = b % nb
-            if cnt[sl] >= cap:
-                buf = _grow(buf, cap)
-                cap *= 2
-            buf[sl, cnt[sl]] = sv
-            cnt[sl] += 1
+            buf, cap = _bucket_push(buf, cnt, cap, b % nb, sv)
             state[sv] |= 4
             queued += 1
             sp += 1
@@ -324,12 +325,7 @@ def _wave(free, weight, nz, ny, nx, steps, seeds, U, parent, stop, target, like,
                         state[u] = su | 32
                         continue                  # already queued in that bucket: it reads U[u] when settled
                     state[u] = su | 36
-                    sl = b % nb
-                    if cnt[sl] >= cap:
-                        buf = _grow(buf, cap)
-                        cap *= 2
-                    buf[sl, cnt[sl]] = u
-                    cnt[sl] += 1
+                    buf, cap = _bucket_push(buf, cnt, cap, b % nb, u)
                     queued += 1
                 elif c == Uu and (su & 32) != 0:  # tie rule (docstring)
                     pp = parent[u]

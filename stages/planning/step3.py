@@ -262,38 +262,32 @@ def line_of_sight(problem, sky: xr.Dataset, surface_2d, t_s, xyz, start_time_utc
     m, nsat = t.size, az.shape[1]
     vis = np.zeros((m, nsat), bool)
     los = np.zeros((m, nsat, 3))
-    # bounding box of the path + the longest shadow onto it
-    el_min = float(np.min(el[np.unique(ep)][up[np.unique(ep)]])) if up[np.unique(ep)].any() else 90.0
-    relief = max(float(h.max()) - float(p[:, 2].min()), 0.0)
-    halo = int(math.ceil(relief / math.tan(math.radians(max(el_min, 0.1))) / g.resolution_m)) + 2
-    r0, r1 = max(int(r[inside].min()) - halo, 0) if inside.any() else 0, min(int(r.max()) + halo + 1, g.ny)
-    c0, c1 = max(int(c[inside].min()) - halo, 0) if inside.any() else 0, min(int(c.max()) + halo + 1, g.nx)
-    if cache is None:
+    if cache is None:   # the bounding box of the path + the longest shadow onto it
+        eps = np.unique(ep)
+        el_min = float(np.min(el[eps][up[eps]])) if up[eps].any() else 90.0
+        relief = max(float(h.max()) - float(p[:, 2].min()), 0.0)
+        halo = int(math.ceil(relief / math.tan(math.radians(max(el_min, 0.1))) / g.resolution_m)) + 2
+        r0, r1 = max(int(r[inside].min()) - halo, 0) if inside.any() else 0, min(int(r.max()) + halo + 1, g.ny)
+        c0, c1 = max(int(c[inside].min()) - halo, 0) if inside.any() else 0, min(int(c.max()) + halo + 1, g.nx)
         _visibility_windowed(vis, los, los_all, h[r0:r1, c0:c1], (r0, c0), g, p[:, 2], r, c, inside, ep, up, az,
                              el)
-        return np.where(np.isfinite(los), los, 0.0), vis
-    r0, r1, c0, c1 = 0, g.ny, 0, g.nx
-    sub = h[r0:r1, c0:c1]
-    for e in np.unique(ep):
-        rows = np.nonzero(ep == e)[0]
-        sats = np.nonzero(up[e])[0]
-        los[rows] = los_all[e][None, :, :]
-        if sats.size == 0:
-            continue
-        vh = cache.get(int(e)) if cache is not None else None
-        if vh is None:
-            az_g = np.atleast_1d(grid_azimuth_deg(az[e, sats], g))
-            vh = visibility_heights_numpy(sub, az_g, el[e, sats], g.resolution_m, origin=(r0, c0))
-            if cache is not None:
-                cache[int(e)] = vh
-        rr, cc, ii = r[rows], c[rows], inside[rows]
-        for j, s in enumerate(sats):
-            hv = np.where(ii, vh[j][np.clip(rr - r0, 0, sub.shape[0] - 1), np.clip(cc - c0, 0, sub.shape[1] - 1)],
-                          -np.inf)
-            vis[rows, s] = p[rows, 2] >= hv
+    else:               # whole-grid visibility heights per epoch, kept in ``cache``
+        for e in np.unique(ep):
+            rows = np.nonzero(ep == e)[0]
+            sats = np.nonzero(up[e])[0]
+            los[rows] = los_all[e][None, :, :]
+            if sats.size == 0:
+                continue
+            vh = cache.get(int(e))
+            if vh is None:
+                az_g = np.atleast_1d(grid_azimuth_deg(az[e, sats], g))
+                vh = cache[int(e)] = visibility_heights_numpy(h, az_g, el[e, sats], g.resolution_m, origin=(0, 0))
+            rr, cc, ii = r[rows], c[rows], inside[rows]
+            for j, s in enumerate(sats):
+                hv = np.where(ii, vh[j][np.clip(rr, 0, g.ny - 1), np.clip(cc, 0, g.nx - 1)], -np.inf)
+                vis[rows, s] = p[rows, 2] >= hv
     # LOS rows of invisible satellites are irrelevant; keep them unit-length where finite
-    los = np.where(np.isfinite(los), los, 0.0)
-    return los, vis
+    return np.where(np.isfinite(los), los, 0.0), vis
 
 
 def _visibility_windowed(vis, los, los_all, sub, origin, g, z, r, c, inside, ep, up, az, el) -> None:

@@ -613,6 +613,13 @@ def neighbours_kernel(idx, nz, ny, nx, out):
 
 
 @numba.njit(cache=True, inline="always")
+def _line_scratch(n):
+    """The line ``f`` (n), the scratch of :func:`_edt_line` and its output ``o`` (n)."""
+    return (np.empty(n), np.empty(n + 2), np.empty(n + 2), np.empty(n + 2, dtype=np.int64), np.empty(n + 3),
+            np.empty(n))
+
+
+@numba.njit(cache=True, inline="always")
 def _edt_line(f, n, h2, lo_wall, hi_wall, pos, val, v, z, out):
     """Exact 1-D squared distance transform (Felzenszwalb-Huttenlocher lower envelope of
     parabolas): ``out[p] = min_q h2 (p - q)^2 + f[q]`` over the finite ``f[q]`` and, when
@@ -679,39 +686,24 @@ def edt_kernel(obstacle, dz, h, north, south, west, east, out):
     for t in numba.prange(nz * ny):           # along x (rows), walls west / east
         k = t // ny
         i = t - k * ny
-        f = np.empty(nx)
+        f, pos, val, v, zz, o = _line_scratch(nx)
         for j in range(nx):
             f[j] = 0.0 if obstacle[k, i, j] else np.inf
-        pos = np.empty(nx + 2)
-        val = np.empty(nx + 2)
-        v = np.empty(nx + 2, dtype=np.int64)
-        zz = np.empty(nx + 3)
-        o = np.empty(nx)
         _edt_line(f, nx, h2, west, east, pos, val, v, zz, o)
         for j in range(nx):
             g[k, i, j] = o[j]
     for t in numba.prange(nz * nx):           # along y (columns), walls north / south
         k = t // nx
         j = t - k * nx
-        f = np.empty(ny)
+        f, pos, val, v, zz, o = _line_scratch(ny)
         for i in range(ny):
             f[i] = g[k, i, j]
-        pos = np.empty(ny + 2)
-        val = np.empty(ny + 2)
-        v = np.empty(ny + 2, dtype=np.int64)
-        zz = np.empty(ny + 3)
-        o = np.empty(ny)
         _edt_line(f, ny, h2, north, south, pos, val, v, zz, o)
         for i in range(ny):
             g[k, i, j] = o[i]
     d2 = dz * dz
     for t in numba.prange(ny):                # along z (levels), no walls
-        f = np.empty(nz)
-        pos = np.empty(nz + 2)
-        val = np.empty(nz + 2)
-        v = np.empty(nz + 2, dtype=np.int64)
-        zz = np.empty(nz + 3)
-        o = np.empty(nz)
+        f, pos, val, v, zz, o = _line_scratch(nz)
         for j in range(nx):
             for k in range(nz):
                 f[k] = g[k, t, j]

@@ -179,12 +179,9 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                 if heuristic_cache is not None:
                     heuristic_cache[hkey] = h2
 
-    def level_edges(d) -> EdgeCache | None:
-        if edge_cache is None or planner != "astar":
-            return None
+    def level_key(d) -> tuple:        # what a level's lattice edge costs depend on, given the maps
         radius = float(by_level[d].attrs["radius_m"]) if d is not None and d in by_level else None
-        key = (d, radius, veh.name, tuple(weights), step_cells, min_agl_m, max_agl_m, dop_kind)
-        return edge_cache.setdefault(key, EdgeCache())
+        return (d, radius, veh.name, tuple(weights), step_cells, min_agl_m, max_agl_m, dop_kind)
 
     ticker = _Progress(planner)
 
@@ -193,19 +190,20 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         problem, d = problems[i], levels[i][0]
         tl = time.perf_counter()
         ticker.phase(problem.label, "STEP I")
-        ec = level_edges(d)
-        s1key = None if ec is None else (id(ec), problem.start_xyz, problem.goal_xyz, max_tries, battery_reserve_pct,
-                                         time_budget_s)
-        s1 = None if s1key is None else edge_cache.get(("step1", s1key))
+        ec = memo = s1key = s1 = None
+        if edge_cache is not None and planner == "astar":
+            ec = edge_cache.setdefault(level_key(d), EdgeCache())
+            memo = edge_cache.setdefault("step1", {})        # the STEP I results, oldest first
+            s1key = (level_key(d), problem.start_xyz, problem.goal_xyz, max_tries, battery_reserve_pct, time_budget_s)
+            s1 = memo.get(s1key)
         if s1 is None:
             s1 = plan_step1(problem, planner=planner, time_budget_s=time_budget_s, seed=seed, max_tries=max_tries,
                             step_cells=step_cells, max_iterations=max_iterations, h2=h2,
                             battery_reserve_pct=battery_reserve_pct, z_anchor_m=anchor, edge_cache=ec)
-            if s1key is not None and s1.info.get("stopped_by") != "time":    # a complete search only
-                memo = [k for k in edge_cache if isinstance(k, tuple) and k[:1] == ("step1",)]
-                for k in memo[:max(len(memo) - STEP1_MEMO + 1, 0)]:
-                    del edge_cache[k]
-                edge_cache[("step1", s1key)] = s1
+            if memo is not None and s1.info.get("stopped_by") != "time":    # a complete search only
+                while len(memo) >= STEP1_MEMO:
+                    memo.pop(next(iter(memo)), None)
+                memo[s1key] = s1
         if not s1.solved:
             ticker.phase(problem.label, None)
             why = (s1.reason or s1.status).removeprefix(f"{problem.label}: ")

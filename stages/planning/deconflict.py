@@ -58,6 +58,7 @@ from skyroute.stages.vehicle import FixedWingProfile
 
 __all__ = ["Step2Result", "chain_conflicts", "chain_timing", "deconflict", "leg_conflicts", "leg_time_energy"]
 
+MAX_ITER = 5000   # K, the RRT's iterations (seed 000)
 STATUS_UNCHANGED = "unchanged"
 STATUS_DECONFLICTED = "deconflicted"
 STATUS_FAILED = "failed"
@@ -322,7 +323,7 @@ class _Feasibility:
 
 
 def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_s: float = 0.0, seed: int = 0,
-               max_iter: int = 5000, time_budget_s: float = 30.0, sigma_m: float = 30.0,
+               max_iter: int = MAX_ITER, time_budget_s: float = 30.0, sigma_m: float = 30.0,
                vertical_ratio: float = 0.5, step_m: float = 5.0, explore: float = 0.2,
                require_valid_chain: bool = True) -> Step2Result:
     """STEP II of seed 000 (Algorithm 1): make the STEP I chain conflict-free in time.

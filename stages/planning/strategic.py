@@ -34,6 +34,7 @@ import xarray as xr
 
 from skyroute.stages import control
 from skyroute.stages.base import InputError, PlanningError
+from skyroute.stages.planning.deconflict import MAX_ITER as STEP2_MAX_ITER
 from skyroute.stages.planning.deconflict import Step2Result, deconflict
 from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
 from skyroute.stages.planning.grid_planner import STEP_CELLS, EdgeCache, shared_heuristic
@@ -53,7 +54,6 @@ from skyroute.stages.vehicle import FixedWingProfile, VehicleProfile, load_vehic
 
 LATTICE_ANCHOR_M = 0.0   # [m] the altitude shared A* lattices are aligned on (``edge_cache``)
 STEP1_MEMO = 256         # STEP I results kept in an ``edge_cache`` dict
-STEP2_MAX_ITER = 5000    # K of STEP II (deconflict's default)
 
 
 @dataclass

@@ -353,7 +353,7 @@ class Attempt:
     step2_status: str = ""
     chain: tuple | None = None        # STEP II chain (waypoints (k, 3) [m], times [s] mission time)
     trajectory: tuple | None = None   # (CornerTrajectory, t0 [s] mission time)
-    static: bool = False              # failed in STEP I: no departure can help
+    static: bool = False              # failed (ok False) in STEP I: no departure can help
     free_legs: np.ndarray | None = None   # Step2Result.free_legs of an RRT run (mission time)
 
 
@@ -481,7 +481,7 @@ def still_valid(a: Attempt, added: Sequence[tuple[str, Any]], task: FleetTask, s
     from skyroute.stages.traffic import build_occupancy, volume_prisms
     from skyroute.stages.vehicle import load_vehicle
 
-    if not a.ok and a.static:          # STEP I failed: traffic plays no part
+    if a.static:                       # STEP I failed: traffic plays no part
         return True
     if a.step2_status == "unchanged":
         if not a.ok or a.chain is None or a.trajectory is None:
@@ -601,18 +601,16 @@ def _box_overlap(a, b) -> bool:
 class _Planner:
     """Runs attempts: inline (sequential) or on a dask client (speculative)."""
 
-    def __init__(self, sc, cache_dir, opt, level_of, client=None, affinity: str = "speculative"):
+    def __init__(self, sc, cache_dir, opt, level_of, queue: list[FleetTask], state: _State, client=None,
+                 depth: int = 1, affinity: str = "speculative", later: bool = True):
         if affinity not in ("all", "speculative", "none"):
             raise InputError(f"affinity {affinity!r} must be 'all', 'speculative' or 'none'")
-        self.affinity = affinity
         self.sc, self.cache_dir, self.opt, self.level_of, self.client = sc, cache_dir, opt, level_of, client
+        self.queue, self.state = queue, state       # the driver's: the missions to come, the accepted set
+        self.depth, self.affinity, self.later = depth, affinity, later
         self.spec: dict[tuple[str, float], Any] = {}   # (mission id, departure) -> (seen, future, task)
         self.checked: set[tuple[str, float]] = set()
         self.workers: list[str] | None = None
-        self.queue: list[FleetTask] = []
-        self.state: _State | None = None
-        self.depth = 0
-        self.later = True
         self.stats = {"speculative_used": 0, "speculative_still_valid": 0, "speculative_replanned": 0,
                       "speculative_later_departures": 0, "attempts": 0}
 
@@ -671,7 +669,7 @@ class _Planner:
         has come back failed (not in STEP I) or meeting an accepted volume, the same mission
         one delay step later: the attempt the driver will ask for next if nothing changes.  A
         running task cannot be stopped: an attempt no longer wanted is left to finish."""
-        if self.client is None or self.state is None:
+        if self.client is None:
             return
         opt, state = self.opt, self.state
         for t in self.queue[:self.depth]:
@@ -686,7 +684,7 @@ class _Planner:
             a = fut.result()
             if a.ok and not state.index.conflicts(a.volumes):
                 continue
-            if not a.ok and a.static:
+            if a.static:
                 continue
             nd = dep + opt.delay_step_s
             if (mid, nd) in self.spec or nd - t.earliest_s > opt.max_delay_s + 1e-9:
@@ -715,13 +713,11 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
     def level_of(t: FleetTask):
         return t.dop_level if t.dop_level is not None else default_dop
 
-    planner = _Planner(sc, cache_dir, opt, level_of, client, affinity)
-    planner.depth, planner.later = depth, later_departures
     state = _State()
     order = sorted(tasks, key=lambda t: (t.earliest_s, -t.priority, t.id))
     outcomes = {t.id: MissionOutcome(t, level=level_of(t)) for t in order}
     queue: list[FleetTask] = list(order)
-    planner.queue, planner.state = queue, state
+    planner = _Planner(sc, cache_dir, opt, level_of, queue, state, client, depth, affinity, later_departures)
     n_done = 0
 
     def try_at(task: FleetTask, dep: float, min_priority: int | None = None) -> tuple[Attempt, list[str]]:
@@ -764,7 +760,7 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
                     for m in sorted(victims, key=lambda m: (outcomes[m].task.earliest_s, m), reverse=True):
                         queue.insert(0, outcomes[m].task)
             k = 1
-            while accepted is None and not (not a.ok and a.static) and k * opt.delay_step_s <= opt.max_delay_s + 1e-9:
+            while accepted is None and not a.static and k * opt.delay_step_s <= opt.max_delay_s + 1e-9:
                 a, who = try_at(task, dep + k * opt.delay_step_s)
                 if a.ok and not who:
                     accepted = a
@@ -780,7 +776,7 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
         else:
             o.status = "rejected"
             o.reason = ((f"preempted by {o.preempted_by}; then " if o.preempted_by else "")
-                        + (f"no plan at any departure: {last_reason}" if not a.ok and a.static else
+                        + (f"no plan at any departure: {last_reason}" if a.static else
                            f"no conflict-free plan up to {opt.max_delay_s:g} s of delay: {last_reason}"))
         planner.done(task)
         n_done += 1

@@ -68,7 +68,7 @@ from typing import Literal
 import numba
 import numpy as np
 import xarray as xr
-from pyproj import CRS, Proj, Transformer
+from pyproj import CRS, Proj
 
 from skyroute.stages.base import CRSError, InputError
 from skyroute.stages.grid import Grid
@@ -593,15 +593,15 @@ def _fill_nearest(h: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------------
 
 @functools.lru_cache(maxsize=64)
-def _meridian_convergence_deg(crs_wkt: str, bounds: tuple[float, float, float, float]) -> float:
-    """PROJ meridian convergence [deg] at the centre of ``bounds`` (xmin, ymin, xmax, ymax) [m]
-    of a projected CRS (memoised: one value per map, asked once per sky epoch)."""
-    crs = CRS.from_user_input(crs_wkt)
+def _meridian_convergence_deg(grid: Grid) -> float:
+    """PROJ meridian convergence [deg] at the centre of ``grid`` (a projected CRS; memoised:
+    one value per map, asked once per sky epoch)."""
+    crs = CRS.from_user_input(grid.crs_wkt)
     if not crs.is_projected:
         raise CRSError(f"grid CRS {crs.name!r} is not projected: reproject the surface to a "
                        "projected CRS in metres (e.g. its UTM zone)")
-    xmin, ymin, xmax, ymax = bounds
-    lon, lat = Transformer.from_crs(crs, 4326, always_xy=True).transform(0.5 * (xmin + xmax), 0.5 * (ymin + ymax))
+    xmin, ymin, xmax, ymax = grid.bounds
+    lon, lat = grid.to_lonlat(0.5 * (xmin + xmax), 0.5 * (ymin + ymax))
     return float(Proj(crs).get_factors(lon, lat).meridian_convergence)
 
 
@@ -615,7 +615,7 @@ def grid_azimuth_deg(true_az_deg, grid: Grid | xr.DataArray):
     """
     if isinstance(grid, xr.DataArray):
         grid = Grid.from_dataarray(grid)
-    gamma = _meridian_convergence_deg(grid.crs_wkt, tuple(grid.bounds))
+    gamma = _meridian_convergence_deg(grid)
     out = np.mod(np.asarray(true_az_deg, dtype=np.float64) - gamma, 360.0)
     return float(out) if out.ndim == 0 else out
 

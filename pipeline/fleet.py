@@ -603,8 +603,6 @@ class _Planner:
 
     def __init__(self, sc, cache_dir, opt, level_of, queue: list[FleetTask], state: _State, client=None,
                  depth: int = 1, affinity: str = "speculative", later: bool = True):
-        if affinity not in ("all", "speculative", "none"):
-            raise InputError(f"affinity {affinity!r} must be 'all', 'speculative' or 'none'")
         self.sc, self.cache_dir, self.opt, self.level_of, self.client = sc, cache_dir, opt, level_of, client
         self.queue, self.state = queue, state       # the driver's: the missions to come, the accepted set
         self.depth, self.affinity, self.later = depth, affinity, later
@@ -702,6 +700,10 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
     ``affinity``: which attempts prefer their goal's worker: "all", "speculative" (the driver
     does not wait for them) or "none"; ``later_departures``: also speculate a mission's next
     departure when its speculative attempt came back failed or conflicting)."""
+    if affinity not in ("all", "speculative", "none"):
+        raise InputError(f"affinity {affinity!r} must be 'all', 'speculative' or 'none'")
+    if not (isinstance(depth, int) and depth >= 0):
+        raise InputError(f"depth {depth!r} must be an integer >= 0 (speculative missions in flight)")
     opt = options or FleetOptions()
     t_setup = time.perf_counter()
     if client is not None and tasks:   # every worker loads the maps and kernels before the clock starts

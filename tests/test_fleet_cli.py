@@ -276,6 +276,16 @@ def test_distributed_speculation_on_a_dense_drawn_fleet(cache_dir):
     assert st["speculative_later_departures"] >= 1, st
 
 
+@pytest.mark.parametrize("kw, match", [({"affinity": "goal"}, "affinity 'goal' must be"),
+                                       ({"depth": -1}, "depth -1 must be an integer >= 0")])
+def test_run_fleet_refuses_bad_driver_settings(kw, match):
+    from skyroute.pipeline.errors import InputError
+    from skyroute.pipeline.fleet import run_fleet
+
+    with pytest.raises(InputError, match=match):
+        run_fleet(load_scenario("helsinki-medical"), [], **kw)
+
+
 @pytest.mark.parametrize("missions, lines", [
     ([{"id": "a", "start": A, "departure": 0}], 1),                                   # no goal
     ([{"id": "a", "start": A, "goal": B}, {"id": "a", "start": A, "goal": {"x": 1.0, "y": 2.0, "alt_agl_m": 5}}], 2),

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -64,6 +65,58 @@ TCXO_H0 = 2e-19
 TCXO_HM2 = 2e-20
 NX = 11
 STATE_NAMES = ("p_e", "p_n", "p_u", "v_e", "v_n", "v_u", "b_e", "b_n", "b_u", "clock_bias", "clock_drift")
+
+
+@dataclass(frozen=True)
+class FilterState:
+    """The navigation filter at one instant, to continue it (a tactical replan continues the
+    filter the vehicle has, issue 22): posterior covariance ``P`` (11, 11) [SI units, state
+    order :data:`STATE_NAMES`] at ``t_s`` [s], and ``t_update_s`` [s], the time of the last GNSS
+    update at or before ``t_s`` (the update schedule continues from it)."""
+
+    t_s: float
+    P: np.ndarray
+    t_update_s: float
+
+    def __post_init__(self):
+        P = np.asarray(self.P, float)
+        if P.shape != (NX, NX) or not np.isfinite(P).all():
+            raise InputError(f"FilterState.P must be a finite ({NX}, {NX}) covariance; got shape {P.shape}")
+        if not (math.isfinite(self.t_s) and self.t_update_s <= self.t_s + 1e-9):
+            raise InputError(f"FilterState: t_s = {self.t_s} must be finite and t_update_s = {self.t_update_s} "
+                             "not later than it [s]")
+        object.__setattr__(self, "P", P)
+
+    @property
+    def sigma_p_m(self) -> float:
+        """3-D position sigma sqrt(P_EE + P_NN + P_UU) [m]."""
+        return float(math.sqrt(self.P[0, 0] + self.P[1, 1] + self.P[2, 2]))
+
+
+@dataclass(frozen=True)
+class FilterTrack:
+    """The filter along a flight: epochs ``t_s`` (m,) [s, increasing], posterior covariances
+    ``P`` (m, 11, 11) and ``t_update_s`` (m,) [s] (last GNSS update at or before each epoch)."""
+
+    t_s: np.ndarray
+    P: np.ndarray
+    t_update_s: np.ndarray
+
+    def state_at(self, t_s: float) -> FilterState:
+        """The state of the last epoch at or before ``t_s`` [s] (a run continued from it
+        propagates to its own first epoch); InputError before the first epoch."""
+        i = int(np.searchsorted(self.t_s, float(t_s) + 1e-9, side="right")) - 1
+        if i < 0:
+            raise InputError(f"the navigation filter track starts at t = {self.t_s[0]:.3f} s, after {t_s:.3f} s")
+        return FilterState(float(self.t_s[i]), self.P[i], float(self.t_update_s[i]))
+
+    @classmethod
+    def from_dataset(cls, nav: xr.Dataset) -> FilterTrack:
+        """From a :func:`navigation_error` result computed with ``return_covariance=True``."""
+        if "P" not in nav or "t_update_s" not in nav:
+            raise InputError("the navigation dataset has no covariance: compute it with return_covariance=True")
+        return cls(np.asarray(nav["time"].values, float), np.asarray(nav["P"].values, float),
+                   np.asarray(nav["t_update_s"].values, float))
 
 
 def los_from_az_el(az_deg, el_deg) -> np.ndarray:
@@ -296,7 +349,7 @@ def navigation_error(times_s, los_enu, visible, imu: ImuSpec | VehicleProfile | 
                      gnss_sigma_m=DEFAULT_UERE_M, dt_s: float | None = None,
                      initial_sigma: tuple[float, float, float, float] = (10.0, 1.0, 300.0, 10.0),
                      clock_h0: float = TCXO_H0, clock_hm2: float = TCXO_HM2,
-                     return_covariance: bool = False) -> xr.Dataset:
+                     return_covariance: bool = False, initial_state: FilterState | None = None) -> xr.Dataset:
     """Predicted 1-sigma position error along a trajectory (covariance analysis, see module doc).
 
     Parameters
@@ -310,7 +363,13 @@ def navigation_error(times_s, los_enu, visible, imu: ImuSpec | VehicleProfile | 
         propagated (default ``None``: update at every epoch).
     initial_sigma : prior sigmas (position [m], velocity [m/s], clock bias [m], clock drift [m/s]);
         the accelerometer bias starts at its steady-state sigma.
-    return_covariance : also return the full covariance ``P`` (time, state, state2).
+    return_covariance : also return the full covariance ``P`` (time, state, state2) and
+        ``t_update_s`` (time) [s], the last update at or before each epoch
+        (:meth:`FilterTrack.from_dataset`).
+    initial_state : continue a filter (:class:`FilterState`) instead of starting from
+        ``initial_sigma``: its covariance is propagated from ``initial_state.t_s`` to the first
+        epoch (which may equal it), and the update schedule continues from
+        ``initial_state.t_update_s``.
 
     Returns
     -------
@@ -324,6 +383,18 @@ def navigation_error(times_s, los_enu, visible, imu: ImuSpec | VehicleProfile | 
         raise InputError(f"dt_s must be > 0 [s] or None, got {dt_s}")
     if len(initial_sigma) != 4 or min(initial_sigma) <= 0:
         raise InputError("initial_sigma needs 4 positive values (position m, velocity m/s, clock m, clock m/s)")
+    lead = 0                                   # a leading epoch at the initial state's time
+    if initial_state is not None:
+        dt0 = float(t[0]) - float(initial_state.t_s)
+        if dt0 < -1e-9:
+            raise InputError(f"the initial filter state (t = {initial_state.t_s:.3f} s) is later than the first epoch "
+                             f"(t = {t[0]:.3f} s)")
+        if dt0 > 1e-9:
+            lead = 1
+            t = np.concatenate([[float(initial_state.t_s)], t])
+            los = np.concatenate([np.zeros((1,) + los.shape[1:]), los])
+            vis = np.concatenate([np.zeros((1, vis.shape[1]), bool), vis])
+            r_var = np.concatenate([np.ones((1, r_var.shape[1])), r_var])
     m = t.size
     F, Qc = continuous_model(imu, clock_h0, clock_hm2)
     steps = np.diff(t, prepend=t[0])
@@ -335,19 +406,28 @@ def navigation_error(times_s, los_enu, visible, imu: ImuSpec | VehicleProfile | 
     for u, dt in enumerate(uniq):
         phis[u], qds[u] = discretise(F, Qc, float(dt))
     step_idx = np.concatenate([[0], inv]).astype(np.int64)
-    if dt_s is None:
-        do_update = np.ones(m, bool)
+    last = -np.inf if initial_state is None else float(initial_state.t_update_s)
+    do_update = np.zeros(m, bool)
+    t_upd = np.empty(m)
+    for i in range(m):
+        if i < lead:
+            pass                               # the initial state itself: already updated
+        elif dt_s is None:
+            do_update[i] = t[i] > last + 1e-9
+        elif t[i] - last >= dt_s - 1e-9:
+            do_update[i] = True
+        if do_update[i]:
+            last = t[i]
+        t_upd[i] = last
+    if initial_state is None:
+        sp, sv, sc, sd = initial_sigma
+        p0 = np.diag([sp**2] * 3 + [sv**2] * 3 + [imu.accel_bias_sigma_mps2**2] * 3 + [sc**2, sd**2])
     else:
-        do_update = np.zeros(m, bool)
-        last = -np.inf
-        for i in range(m):
-            if t[i] - last >= dt_s - 1e-9:
-                do_update[i] = True
-                last = t[i]
-    sp, sv, sc, sd = initial_sigma
-    p0 = np.diag([sp**2] * 3 + [sv**2] * 3 + [imu.accel_bias_sigma_mps2**2] * 3 + [sc**2, sd**2])
+        p0 = np.array(initial_state.P, float)
     out = np.empty((m, NX, NX))
     _kf_kernel(phis, qds, step_idx, los, vis, r_var, do_update, p0, out)
+    if lead:
+        t, los, vis, r_var, do_update, t_upd, out = (a[lead:] for a in (t, los, vis, r_var, do_update, t_upd, out))
     d = np.diagonal(out, axis1=1, axis2=2)
     coords = {"time": ("time", t, {"units": "s", "long_name": "epoch"})}
     data = {
@@ -364,6 +444,7 @@ def navigation_error(times_s, los_enu, visible, imu: ImuSpec | VehicleProfile | 
         coords["state"] = ("state", list(STATE_NAMES))
         coords["state2"] = ("state2", list(STATE_NAMES))
         data["P"] = (("time", "state", "state2"), out, {"long_name": "posterior state covariance (SI units)"})
+        data["t_update_s"] = ("time", t_upd, {"units": "s", "long_name": "last GNSS update at or before the epoch"})
     ds = xr.Dataset(data, coords=coords)
     ds.attrs.update(method="GNSS pseudorange / INS covariance analysis (no simulated measurements)",
                     gnss_sigma_m=float(np.mean(np.sqrt(r_var[vis]))) if vis.any() else float("nan"),
@@ -373,5 +454,5 @@ def navigation_error(times_s, los_enu, visible, imu: ImuSpec | VehicleProfile | 
     return ds
 
 
-__all__ = ["DEFAULT_UERE_M", "STATE_NAMES", "continuous_model", "discretise", "los_from_az_el", "propagate_covariance", "scalar_update",
+__all__ = ["DEFAULT_UERE_M", "FilterState", "FilterTrack", "STATE_NAMES", "continuous_model", "discretise", "los_from_az_el", "propagate_covariance", "scalar_update",
            "navigation_error", "resolve_imu"]

@@ -339,6 +339,27 @@ class CornerTrajectory(_Kinematics):
                 out[arc] = (v0[arc] ** 2 / Ra)[:, None] * (-sp * e1[arc] + cp * e2[arc])
         return out
 
+    def with_hold(self, hold_s: float) -> CornerTrajectory:
+        """The same trajectory followed by a hover of ``hold_s`` [s] (> 0) at its end point: one
+        more line phase at speed 0 (acceleration 0) and one more piece.  The trajectory ends
+        at rest, so the speed stays continuous (a tactical escape holds there until a conflict
+        clears, :mod:`skyroute.stages.tactical.escape`)."""
+        h = float(hold_s)
+        if not (math.isfinite(h) and h > 0):
+            raise InputError(f"hold_s = {hold_s} s must be finite and > 0")
+        v_end = float(self.v0[-1] + self.a[-1] * (self.duration_s - self.phase_t0_s[-1]))
+        if self.kind[-1] != _LINE or abs(v_end) > 1e-6:
+            raise InputError("a hold can only follow a trajectory that ends at rest on a line")
+        end = self.sample([self.duration_s])[0]
+        T = float(self.duration_s)
+        return CornerTrajectory(
+            phase_t0_s=np.append(self.phase_t0_s, T), kind=np.append(self.kind, np.int8(_LINE)),
+            origin=np.vstack([self.origin, end]), e1=np.vstack([self.e1, self.e1[-1]]),
+            e2=np.vstack([self.e2, self.e2[-1]]), s0=np.append(self.s0, 0.0), v0=np.append(self.v0, 0.0),
+            a=np.append(self.a, 0.0), radius_m=np.append(self.radius_m, 0.0), duration_s=T + h,
+            piece_t_s=np.append(self.piece_t_s, T + h), waypoints=np.vstack([self.waypoints, end]),
+            corner_kind=self.corner_kind, corner_reason=self.corner_reason)
+
     def sample_times(self, dt_s: float, min_gap_s: float = 0.1) -> np.ndarray:
         """Output times: every ``dt_s`` [s] plus every piece and phase boundary (so no chord
         spans two pieces, and the speed is linear between samples: the trapezoidal length is
@@ -361,6 +382,48 @@ class CornerTrajectory(_Kinematics):
         gap = max(min_gap_s, MIN_SAMPLE_GAP_S)
         near = np.min(np.abs(reg[:, None] - k[None, :]), axis=1) < gap
         return np.unique(np.concatenate([reg[~near], k]))
+
+
+def turn_and_stop(p0, e1, e2, v0_mps: float, radius_m: float, angle_rad: float,
+                  limits: KinematicLimits) -> CornerTrajectory:
+    """A vehicle at ``p0`` (3,) [m] flying ``v0_mps`` [m/s] along the unit vector ``e1`` turns at
+    once on a circular arc of ``radius_m`` [m] towards the unit vector ``e2`` (perpendicular to
+    ``e1``) by ``angle_rad`` [rad] at constant speed, then brakes to rest along the arc's end
+    tangent at the acceleration limit (the tactical escape's turn, :mod:`skyroute.stages.tactical.escape`).
+
+    Hard limits: the normal acceleration ``v0^2 / R`` and the braking must be within
+    ``max_acceleration_mps2``, the arc's tangents (combinations of ``e1`` and ``e2``) within the
+    flight-path-angle cone and the vertical-rate limits (PlanningError otherwise); the airspeed
+    in wind is the validator's to check."""
+    p0, e1, e2 = (np.asarray(a, float) for a in (p0, e1, e2))
+    v, R, phi = float(v0_mps), float(radius_m), float(angle_rad)
+    if not (v > 0 and R > 0 and 0 < phi < math.pi):
+        raise InputError(f"turn_and_stop: need v0 > 0, R > 0 and 0 < angle < pi; got {v}, {R}, {phi}")
+    if abs(float(e1 @ e2)) > 1e-9 or abs(np.linalg.norm(e1) - 1) > 1e-9 or abs(np.linalg.norm(e2) - 1) > 1e-9:
+        raise InputError("turn_and_stop: e1 and e2 must be orthogonal unit vectors")
+    a_max = float(limits.max_acceleration_mps2)
+    if v * v / R > a_max * (1 + 1e-12):
+        raise PlanningError(f"a turn of radius {R:.1f} m at {v:.2f} m/s needs {v * v / R:.2f} m/s^2 > "
+                            f"{a_max} m/s^2")
+    end_t = math.cos(phi) * e1 + math.sin(phi) * e2
+    tan_a = math.tan(math.radians(limits.max_flight_path_angle_deg))
+    if not _cone_ok(e1, end_t, tan_a):
+        raise PlanningError("the turn's tangents leave the flight-path-angle cone")
+    uz_max, uz_min = max(e1[2], end_t[2]), min(e1[2], end_t[2])
+    if v * uz_max > limits.max_climb_rate_mps + 1e-9 or -v * uz_min > limits.max_descent_rate_mps + 1e-9:
+        raise PlanningError("the turn exceeds the vertical-rate limits")
+    t_arc = R * phi / v
+    p1 = p0 + R * math.sin(phi) * e1 + R * (1 - math.cos(phi)) * e2
+    t_stop = v / a_max
+    rows = [(0.0, _ARC, p0, e1, e2, 0.0, v, 0.0, R), (t_arc, _LINE, p1, end_t, np.zeros(3), 0.0, v, -a_max, 0.0)]
+    p2 = p1 + end_t * (v * v / (2 * a_max))
+    cols = list(zip(*rows, strict=True))
+    return CornerTrajectory(
+        phase_t0_s=np.array(cols[0]), kind=np.array(cols[1], dtype=np.int8), origin=np.array(cols[2]),
+        e1=np.array(cols[3]), e2=np.array(cols[4]), s0=np.array(cols[5]), v0=np.array(cols[6]),
+        a=np.array(cols[7]), radius_m=np.array(cols[8]), duration_s=t_arc + t_stop,
+        piece_t_s=np.array([0.0, t_arc, t_arc + t_stop]), waypoints=np.array([p0, p1, p2]),
+        corner_kind=(), corner_reason=())
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -611,4 +674,5 @@ def corner_trajectory(waypoints, leg_speed_mps, limits: KinematicLimits, winds=n
 
 
 __all__ = ["CornerTrajectory", "KinematicLimits", "MinSnapTrajectory", "corner_trajectory", "insert_midpoints_where",
+           "turn_and_stop",
            "min_snap", "smooth_with_clearance"]

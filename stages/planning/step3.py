@@ -58,7 +58,7 @@ from scipy.integrate import trapezoid
 
 from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.energy import rotor_power
-from skyroute.stages.navigation import DEFAULT_UERE_M, navigation_error
+from skyroute.stages.navigation import DEFAULT_UERE_M, FilterState, FilterTrack, navigation_error
 from skyroute.stages.occlusion import grid_azimuth_deg, occluder_window, visibility_heights_numpy
 from skyroute.stages.planning.deconflict import Step2Result, leg_conflicts
 from skyroute.stages.planning.validate import validate_bubble, validate_plan
@@ -105,6 +105,7 @@ class Candidate:
     step2_status: str = ""
     dp_max_m: float = float("nan")
     clearance_radius_m: float = float("nan")   # r_j of a safety-bubble level (NaN: the fixed r_p)
+    nav_track: FilterTrack | None = None       # the navigation filter along t_s (step3 keep_nav_track)
 
     @property
     def energy_Wh(self) -> float:
@@ -330,23 +331,31 @@ def _visibility_windowed(vis, los, los_all, sub, origin, g, z, r, c, inside, ep,
 
 def navigation_along(problem, sky: xr.Dataset, surface_2d, t_abs, p, start_time_utc, imu, *,
                      gnss_sigma_m: float = DEFAULT_UERE_M, gnss_period_s: float = 1.0, warmup_s: float = 60.0,
-                     los_cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     los_cache: dict | None = None, initial_state: FilterState | None = None,
+                     return_track: bool = False):
     """``(sigma_p_m, n_visible)`` per sample of the flight ``t_abs`` (m,) [s], ``p`` (m, 3) [m]:
     GNSS in line of sight (:func:`line_of_sight`) and the covariance analysis
     (:func:`~skyroute.stages.navigation.navigation_error`, ``imu``: a vehicle profile or IMU
-    spec); the filter first runs ``warmup_s`` [s] at the start point (no initial transient);
-    ``start_time_utc`` None: the first sky epoch."""
+    spec); the filter first runs ``warmup_s`` [s] at the start point (no initial transient),
+    or, with ``initial_state`` (:class:`~skyroute.stages.navigation.FilterState`, the filter a
+    vehicle in flight has: a tactical replan), continues that filter without a warm-up.
+    ``start_time_utc`` None: the first sky epoch.  ``return_track``: also return the
+    :class:`~skyroute.stages.navigation.FilterTrack` of the samples (a third item)."""
     if start_time_utc is None:
         start_time_utc = pd.Timestamp(sky["time"].values[0])
     t_abs = np.asarray(t_abs, float)
     p = np.asarray(p, float)
-    nw = int(math.floor(warmup_s / gnss_period_s + 1e-9)) if warmup_s > 0 else 0
+    nw = int(math.floor(warmup_s / gnss_period_s + 1e-9)) if (warmup_s > 0 and initial_state is None) else 0
     t_w = t_abs[0] - gnss_period_s * np.arange(nw, 0, -1)
     t_all = np.concatenate([t_w, t_abs])
     p_all = np.concatenate([np.repeat(p[:1], nw, axis=0), p])
     los, vis = line_of_sight(problem, sky, surface_2d, t_all, p_all, start_time_utc, cache=los_cache)
-    nav = navigation_error(t_all, los, vis, imu=imu, gnss_sigma_m=gnss_sigma_m, dt_s=gnss_period_s)
-    return np.asarray(nav["sigma_p_m"].values, float)[nw:], vis.sum(axis=1)[nw:]
+    nav = navigation_error(t_all, los, vis, imu=imu, gnss_sigma_m=gnss_sigma_m, dt_s=gnss_period_s,
+                           initial_state=initial_state, return_covariance=return_track)
+    sigma, nvis = np.asarray(nav["sigma_p_m"].values, float)[nw:], vis.sum(axis=1)[nw:]
+    if not return_track:
+        return sigma, nvis
+    return sigma, nvis, FilterTrack.from_dataset(nav.isel(time=slice(nw, None)))
 
 
 def smooth_chain(problem, waypoints, segment_times_s, *, v_start_mps: float = 0.0,
@@ -367,7 +376,10 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
           sample_dt_s: float = 0.5, check_spacing_m: float = 1.0, gnss_sigma_m: float = DEFAULT_UERE_M,
           gnss_period_s: float = 1.0, warmup_s: float = 60.0, label: str | None = None,
           battery_reserve_pct: float = 0.0, v_start_mps: float = 0.0, los_cache: dict | None = None,
-          stop_at: tuple[int, ...] = (), bubble: tuple[float, float, float] | None = None) -> Candidate:
+          stop_at: tuple[int, ...] = (), bubble: tuple[float, float, float] | None = None,
+          nav_state: FilterState | None = None, keep_nav_track: bool = False,
+          hold_until_s: float | None = None, min_hold_s: float = 1.0,
+          trajectory: CornerTrajectory | None = None) -> Candidate:
     """Smooth, retime, check and cost one STEP II chain (see the module docstring).
 
     ``sky``: :func:`~skyroute.stages.almanac.sky_geometry` Dataset (time, sat) or None (no
@@ -388,6 +400,16 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     ``bubble = (k, surface_uncertainty_m, r_p_m)``: safety bubble re-check (seed 003): every
     sample must keep ``max(r_p, k sigma_p(t) + surface_uncertainty)`` [m] from the surface
     prisms of ``surface_2d`` (:func:`~skyroute.stages.planning.validate.validate_bubble`).
+    ``nav_state``: the navigation filter of a vehicle in flight
+    (:class:`~skyroute.stages.navigation.FilterState` at or before the first sample): sigma_p
+    continues it instead of a warm-up at the first waypoint (tactical replans);
+    ``keep_nav_track``: keep the filter along the samples in ``Candidate.nav_track`` (so a later
+    replan can continue it).  ``hold_until_s`` [s, mission time]: the vehicle hovers at the
+    chain's end until then, at least ``min_hold_s`` [s] (a tactical escape,
+    :meth:`~skyroute.stages.smoothing.CornerTrajectory.with_hold`); the hover is sampled, costed and
+    validated like the rest.  ``trajectory``: fly this corner trajectory (from the chain's first
+    waypoint at its first time) instead of smoothing the chain (a tactical escape's turn,
+    :func:`~skyroute.stages.smoothing.turn_and_stop`); everything else is the same.
     """
     t_start = time.perf_counter()
     lab = label if label is not None else (getattr(problem, "label", "") or "candidate")
@@ -409,9 +431,12 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
                       step2_result.status)
     reasons: list[str] = []
     try:
-        traj = smooth_chain(problem, w, seg_t, v_start_mps=v_start_mps, stop_at=stop_at)
+        traj = (trajectory if trajectory is not None
+                else smooth_chain(problem, w, seg_t, v_start_mps=v_start_mps, stop_at=stop_at))
     except PlanningError as exc:
         return empty_candidate(lab, dop, [f"STEP III: {exc}"], t_start, step2_result.status)
+    if hold_until_s is not None:
+        traj = traj.with_hold(max(float(hold_until_s) - (t0 + traj.duration_s), float(min_hold_s)))
     tc, pc, bad = _retimed_conflicts(occupancy, traj, t0, check_spacing_m)
     if bad.any():
         k = int(np.argmax(bad))
@@ -460,12 +485,15 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     # navigation error
     sigma = np.full(tau.size, np.nan)
     nvis = np.zeros(tau.size, int)
+    nav_track = None
     if sky is None:
         reasons.append("no satellite geometry (sky) given: the navigation error cannot be verified")
     else:
-        sigma, nvis = navigation_along(problem, sky, surface_2d, t_abs, p, start_time_utc, veh,
-                                       gnss_sigma_m=gnss_sigma_m, gnss_period_s=gnss_period_s, warmup_s=warmup_s,
-                                       los_cache=los_cache)
+        sigma, nvis, *track = navigation_along(problem, sky, surface_2d, t_abs, p, start_time_utc, veh,
+                                               gnss_sigma_m=gnss_sigma_m, gnss_period_s=gnss_period_s,
+                                               warmup_s=warmup_s, los_cache=los_cache, initial_state=nav_state,
+                                               return_track=keep_nav_track)
+        nav_track = track[0] if track else None
         if np.nanmax(sigma) > veh.max_position_error_m:
             k = int(np.nanargmax(sigma))
             reasons.append(f"navigation error sigma_p reaches {float(sigma[k]):.2f} m > dp_max "
@@ -473,6 +501,7 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     cand = Candidate(lab, dop, t_abs, p, agl, speed, sigma, nvis, L, C_r, C_d, C_e, f, False,
                      float(np.nanmax(sigma)) if np.isfinite(sigma).any() else float("nan"), energy, T, 0.0,
                      reasons, traj.waypoints, traj.segment_times_s, traj, step2_result.status)
+    cand.nav_track = nav_track
     # independent validation (own code, raw rasters and raw intruder tracks)
     viol = validate_plan(cand, grid=g, terrain_m=problem.terrain_m, vehicle=veh, floor_m=problem.floor_m,
                          ceiling_m=problem.ceiling_m, clearance_floor_m=getattr(problem, "clearance_m", None),

@@ -14,7 +14,8 @@ import numpy as np
 
 __all__ = ["FlightLog", "FlownPart", "IntruderTrack", "LevelAttempt", "NoFlyZone", "PART_NAMES"]
 
-PART_NAMES = ("strategic", "L1", "L2", "L3", "octant", "potential", "landing", "climb", "right", "left")
+PART_NAMES = ("strategic", "L1", "L2", "L3", "octant", "potential", "landing", "escape", "resume", "climb", "right",
+              "left", "loiter", "descend")
 
 
 @dataclass
@@ -59,6 +60,9 @@ class LevelAttempt:
     added_flight_time_s: float
     chosen: bool
     reasons: str = ""
+    intruder: str = ""              # the intruder of the conflict ("" for maps, zones, wind)
+    t_los_s: float = float("nan")   # [s] predicted time to loss of separation when the conflict was known
+    alert: str = ""                 # DAA alert level then (none / preventive / corrective / warning, :mod:`.daa`)
 
 
 @dataclass
@@ -140,6 +144,8 @@ class FlightLog:
     method: str = "levels"                  # tactical method: levels (1-3), octant (seed 004) or local (seed 002)
     dense_zones: list = field(default_factory=list)   # octant method: dense zone definitions (dicts)
     local: dict | None = None     # local method (fixed-wing, seed 002): ranges, delay, added energy, clearance
+    escapes: list = field(default_factory=list)   # escape decisions (dicts, :mod:`.escape`)
+    losses: list = field(default_factory=list)    # accepted (unavoidable) predicted losses of separation (dicts)
 
     def flown(self) -> tuple[np.ndarray, np.ndarray]:
         """The whole flown trajectory ``(t_s (m,), xyz_m (m, 3))``, shared part boundaries once."""

@@ -52,7 +52,6 @@ from skyroute.stages.tactical.octant import (
     pocket_directions,
     rank_octants,
 )
-from skyroute.stages.tactical.timeline import Segment
 from skyroute.stages.tactical.zones import ZoneTracker
 
 __all__ = ["intruder_state", "octant_replan", "update_zones", "zone_potential"]
@@ -133,7 +132,7 @@ def _direct(rp, chain, speeds, v0: float, t_eff: float, tail, problem, budget_J:
         full = np.concatenate([pre, wp[1:]])
         sp = np.concatenate([speeds[: pre.shape[0] - 1],
                              np.full(full.shape[0] - pre.shape[0], rp.veh.cruise_speed_mps)])
-        cand = rp._finish(problem, full, sp, t_eff, v0, "octant", budget_J)
+        cand = rp.finish(problem, full, sp, t_eff, v0, "octant", budget_J)
     except (PlanningError, InputError) as exc:
         return None, str(exc)
     return cand, "; ".join(cand.reasons)
@@ -152,7 +151,7 @@ def octant_replan(rp, k: int, ev, t_e: float, t_eff0: float, t_v: float, t_coll:
     for grow in PERIPHERY_GROWTH:
         P = grow * rp.p.periphery_m
         t_b = _breach_time(rp, t_e, detail.index, P)
-        t_eff = rp._effective_time(max(t_eff0, min(t_b, t_v)))
+        t_eff = rp.effective_time(max(t_eff0, min(t_b, t_v)))
         res = _escape(rp, t_eff, P, detail, cause)
         tried_all.append(res["head"] + (": " + " | ".join(res["tried"][-2:]) if res["chosen"] is None else ""))
         if res["chosen"] is not None or t_b <= t_eff0:
@@ -169,7 +168,7 @@ def octant_replan(rp, k: int, ev, t_e: float, t_eff0: float, t_v: float, t_coll:
                                     f"{res['head']}; escape {name} D = {D:.0f} m, min f of {res['n_ok']} valid "
                                     f"escapes ({cause})" + (f"; earlier: {' || '.join(tried_all[:-1])}"
                                                             if len(tried_all) > 1 else "")))
-    rp.tl.add(Segment(cand.trajectory, t_eff, "octant", k), t_eff)
+    rp.follow(cand, t_eff, "octant", k)
     return "octant"
 
 
@@ -235,7 +234,7 @@ def _escape(rp, t_eff: float, P_r: float, detail, cause: str) -> dict:
 
             cand, why = _direct(rp, chain, speeds, v0, t_eff, tail, problem, budget)
             if cand is None or not cand.flyable:
-                cand, why = rp._via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, "octant", budget)
+                cand, why = rp.via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, "octant", budget)
             if cand is not None and cand.flyable and zones:
                 for z in zones:
                     kz = _first_in_zone(cand.t_s, cand.xyz_m, z, rp.veh.r_p_m)
@@ -271,7 +270,7 @@ def zone_potential(rp, t_s: float, boxes) -> dict:
     from skyroute.stages.tactical.zone_field import ZoneField
 
     out = {"potential": "", "potential_s": 0.0, "reroute": ""}
-    t_eff = rp._effective_time(t_s + rp.p.t_rep_s)
+    t_eff = rp.effective_time(t_s + rp.p.t_rep_s)
     if t_eff >= rp.tl.t_end_s:
         out["reroute"] = "the flight ends before a new path could take effect"
         return out
@@ -314,7 +313,7 @@ def zone_potential(rp, t_s: float, boxes) -> dict:
 
     cand, why = _direct(rp, chain, speeds, v0, t_eff, tail, problem, budget)
     if cand is None or not cand.flyable:
-        cand, why = rp._via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, "potential", budget)
+        cand, why = rp.via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, "potential", budget)
     if cand is not None and cand.flyable:
         for z in zones:
             kz = _first_in_zone(cand.t_s, cand.xyz_m, z, r_p)
@@ -332,6 +331,6 @@ def zone_potential(rp, t_s: float, boxes) -> dict:
                                     float(cand.t_s[-1]) - rp.tl.t_end_s, True,
                                     f"the plan entered {hit.id!r}; gradient motion of the {out['potential'] or 'unchanged'}"
                                     " zone potential field"))
-    rp.tl.add(Segment(cand.trajectory, t_eff, "potential", k), t_eff)
+    rp.follow(cand, t_eff, "potential", k)
     out["reroute"] = f"new path from t = {t_eff:.1f} s (replanning {k})"
     return out

@@ -38,19 +38,25 @@ from skyroute.stages.base import InputError
 from skyroute.stages.figures import add_map_furniture, grow_until_unclipped
 from skyroute.stages.planning.outputs import crs_of, raster_values, write_csv
 from skyroute.stages.planning.step3 import utc_of
+from skyroute.stages.tactical.daa import ALERT_LEVELS, daa_series
 from skyroute.stages.tactical.log import PART_NAMES, FlightLog
 
 __all__ = ["write_flight", "flight_section", "fly_summary_line", "flown_samples", "min_separations", "nofly_time_inside",
            "TACTICAL_COLUMNS", "FLOWN_COLUMNS", "SEPARATION_STEP_S", "PART_COLOURS"]
 
 TACTICAL_COLUMNS = ("replanning", "event", "t_event_s", "t_coll_s", "level", "flyable", "C_l_m", "C_e_m", "f_m",
-                    "max_sigma_p_m", "compute_s", "update_s", "added_flight_time_s", "chosen", "reasons")
+                    "max_sigma_p_m", "compute_s", "update_s", "added_flight_time_s", "chosen", "reasons",
+                    "intruder", "t_los_s", "alert")
+DAA_COLUMNS = ("t_s", "intruder", "range_m", "required_m", "t_los_s", "t_preventive_s", "alert")
 FLOWN_COLUMNS = ("t_utc", "t_s", "part", "x_m", "y_m", "z_m", "lon", "lat", "speed_mps")
-LEVELS = ("1", "2", "3", "octant", "potential", "landing", "climb", "right", "left")
+LEVELS = ("1", "2", "3", "octant", "potential", "landing", "escape", "resume", "climb", "right", "left", "loiter",
+          "descend")
 SEPARATION_STEP_S = 0.05
 PART_COLOURS = {"strategic": "tab:blue", "L1": "tab:green", "L2": "tab:orange", "L3": "tab:purple",
-                "octant": "tab:cyan", "potential": "tab:gray", "landing": "tab:red", "climb": "tab:brown",
-                "right": "tab:olive", "left": "tab:pink"}
+                "octant": "tab:cyan", "potential": "tab:gray", "landing": "tab:red", "escape": "gold",
+                "resume": "darkgreen", "climb": "tab:brown", "right": "tab:olive", "left": "tab:pink",
+                "loiter": "darkgoldenrod", "descend": "slategray"}
+ALERT_COLOURS = {"none": "#ffffff", "preventive": "#fff3b0", "corrective": "#ffc06b", "warning": "#ff7b7b"}
 
 
 # ------------------------------------------------------------------ checks and samples
@@ -196,7 +202,9 @@ def _tactical_rows(log: FlightLog) -> list[list[str]]:
         rows.append([str(int(a.replanning)), str(a.event), _val(a.t_event_s, 3), _val(a.t_coll_s, 3), _level(a.level),
                      _val(bool(a.flyable)), _val(a.C_l_m, 1), _val(a.C_e_m, 1), _val(a.f_m, 1),
                      _val(a.max_sigma_p_m, 3), _val(a.compute_s, 6), _val(a.update_s, 6),
-                     _val(a.added_flight_time_s, 2), _val(bool(a.chosen)), str(a.reasons)])
+                     _val(a.added_flight_time_s, 2), _val(bool(a.chosen)), str(a.reasons),
+                     str(getattr(a, "intruder", "")), _val(getattr(a, "t_los_s", math.nan), 3),
+                     str(getattr(a, "alert", ""))])
     return rows
 
 
@@ -306,8 +314,16 @@ def write_flight(log: FlightLog, out_dir, *, figures: bool = True) -> dict[str, 
              f"{lon[i]:.9f}", f"{lat[i]:.9f}", _val(v[i], 3)] for i in range(t.size)]
     files["flown.csv"] = out / "flown.csv"
     write_csv(files["flown.csv"], FLOWN_COLUMNS, rows)
+    daa = daa_series(log)
+    if daa:
+        files["daa.csv"] = out / "daa.csv"
+        write_csv(files["daa.csv"], DAA_COLUMNS,
+                  [[_val(r["t_s"], 2), r["intruder"], _val(r["range_m"], 2), _val(r["required_m"], 2),
+                    _val(r["t_los_s"], 2), _val(r["t_preventive_s"], 2), r["alert"]] for r in daa])
     if figures and t.size >= 2:
         files.update(_figures(log, out))
+        if daa:
+            files["fly_daa.png"] = _daa_figure(log, daa, out / "fly_daa.png")
     return files
 
 
@@ -350,10 +366,11 @@ def flight_section(log: FlightLog) -> dict[str, Any]:
                "t_coll_s": _num(e.get("t_coll_s", math.inf)), "outcome": str(e.get("outcome", ""))}
               for e in log.events]
     energy = getattr(log, "energy_Wh", None)
+    seps = min_separations(log)
     return {"scenario": log.scenario, "outcome": log.outcome, "reason": log.reason,
             "reached_goal": log.outcome == "goal", "n_replannings": len(reps),
             "chosen_levels": [r["chosen_level"] for r in reps], "events": events, "replannings": reps,
-            "parts": parts, "separation_step_s": SEPARATION_STEP_S, "min_separation": min_separations(log),
+            "parts": parts, "separation_step_s": SEPARATION_STEP_S, "min_separation": seps,
             "nofly": nofly_time_inside(log),
             "flight_time_s": float(t[-1] - t[0]) if t.size else None,
             "length_m": float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if t.size else None,
@@ -364,7 +381,26 @@ def flight_section(log: FlightLog) -> dict[str, Any]:
             "safety_bubble": {k: _num(v) for k, v in log.bubble.items()} if getattr(log, "bubble", None) else None,
             "warnings": list(log.warnings), "tactical_method": str(getattr(log, "method", "levels")),
             "dense_zones": list(getattr(log, "dense_zones", [])),
-            "local_planner": _json_safe(log.local) if getattr(log, "local", None) else None}
+            "local_planner": _json_safe(log.local) if getattr(log, "local", None) else None,
+            "escapes": _json_safe(list(getattr(log, "escapes", []))),
+            "unavoidable_losses": _json_safe(list(getattr(log, "losses", []))),
+            "separation_lost": any(r["clearance_m"] is not None and r["clearance_m"] < 0 for r in seps),
+            "alerts": _alert_summary(log)}
+
+
+def _alert_summary(log: FlightLog) -> list[dict[str, Any]]:
+    """Per known intruder: the highest alert level shown (state-based, :func:`daa_series`),
+    when it first showed each level, and the smallest predicted time to loss of separation."""
+    out = []
+    rows = daa_series(log)
+    for ident in dict.fromkeys(r["intruder"] for r in rows):
+        rr = [r for r in rows if r["intruder"] == ident]
+        levels = [r["alert"] for r in rr]
+        top = max(levels, key=ALERT_LEVELS.index)
+        first = {a: _num(next(r["t_s"] for r in rr if r["alert"] == a)) for a in ALERT_LEVELS[1:] if a in levels}
+        out.append({"intruder": ident, "highest_alert": top, "first_alert_s": first,
+                    "min_t_los_s": _num(min(r["t_los_s"] for r in rr))})
+    return out
 
 
 def _json_safe(v):
@@ -690,3 +726,50 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
     fig.savefig(files["fly_speed.png"])
     plt.close(fig)
     return files
+
+
+def _daa_figure(log: FlightLog, rows: list[dict], path: Path) -> Path:
+    """``fly_daa.png``: per known intruder, the range [m] over time as a DAA display shows it
+    (state-based, :func:`~skyroute.stages.tactical.daa.daa_series`), on bands coloured by the
+    alert level, with the required separation, and the flown parts along the time axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    ids = list(dict.fromkeys(r["intruder"] for r in rows))
+    n = len(ids)
+    fig, axes = plt.subplots(n, 1, figsize=(11, 2.6 * n + 1.4), dpi=100, sharex=True, squeeze=False,
+                             layout="constrained")
+    for ax, ident in zip(axes[:, 0], ids, strict=True):
+        rr = [r for r in rows if r["intruder"] == ident]
+        t = np.array([r["t_s"] for r in rr])
+        rng = np.array([r["range_m"] for r in rr])
+        need = float(rr[0]["required_m"])
+        step = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+        for r in rr:
+            if r["alert"] != "none":
+                ax.axvspan(r["t_s"] - step / 2, r["t_s"] + step / 2, color=ALERT_COLOURS[r["alert"]], lw=0)
+        ax.plot(t, rng, color="k", lw=1.6, label="range (centres)")
+        ax.axhline(need, color="tab:red", ls="--", lw=1.2, label=f"required separation {need:.1f} m")
+        ax.set_ylabel("range [m] (log)")
+        ax.set_yscale("log")
+        top = float(np.nanmax(rng)) if rng.size else need
+        low = float(np.nanmin(rng)) if rng.size else need
+        ax.set_ylim(max(min(low, need) * 0.5, 0.1), max(top, 2.0 * need) * 1.5)
+        ax.set_title(f"intruder {ident}: detect-and-avoid alerts (DO-365 levels scaled to the separation)",
+                     fontsize=10, loc="left")
+        ax.grid(True, alpha=0.3)
+        for pt in log.parts:
+            if len(pt.t_s) >= 2 and pt.part != "strategic":
+                ax.axvline(float(pt.t_s[0]), color=PART_COLOURS[pt.part], lw=1.0, alpha=0.9)
+    axes[-1, 0].set_xlabel("mission time [s]")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    handles += [Patch(color=ALERT_COLOURS[a], label=f"alert: {a}") for a in ALERT_LEVELS[1:]]
+    handles += [plt.Line2D([], [], color=PART_COLOURS[p], label=f"start of {p}")
+                for p in dict.fromkeys(pt.part for pt in log.parts if pt.part != "strategic")]
+    fig.legend(handles=handles, loc="outside lower center", ncol=4, fontsize=8, frameon=False)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

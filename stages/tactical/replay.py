@@ -46,6 +46,7 @@ streams, so a seed gives one result on any machine.
 from __future__ import annotations
 
 import dataclasses
+import heapq
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -68,6 +69,7 @@ from skyroute.stages.planning.step3 import (
 )
 from skyroute.stages.smoothing import KinematicLimits
 from skyroute.stages.tactical.conflict import IntruderTracks, first_conflict
+from skyroute.stages.tactical.daa import alert_of
 from skyroute.stages.tactical.log import (
     FlightLog,
     FlownPart,
@@ -82,6 +84,7 @@ from skyroute.stages.vehicle import VehicleProfile
 __all__ = ["TACTICAL_METHODS", "FlyParams", "TacticalEvent", "World", "encounter_geometry", "replay"]
 
 TACTICAL_METHODS = ("levels", "octant")   # rotorcraft; fixed-wing: local (pipeline/fly_fw.py)
+STRATEGIC_SAMPLE_DT_S = 0.5   # [s] the strategic STEP III's sampling (step3's default): the filter's epochs
 FRONTAL_DEG = 135.0        # encounter angle above which the geometry is frontal (level 1 refused)
 STATIC_INTRUDER_MPS = 0.5  # an intruder slower than this is treated as static (level 1 refused)
 
@@ -104,6 +107,9 @@ class FlyParams:
     octant method's sensing periphery P_r; ``zone_period_s`` [s]: its zone prediction period
     T_p; ``zone_potential``: the octant method re-routes along the potential field with the
     dense zones as obstacles when the plan meets one (:func:`.octant_replan.zone_potential`).
+    ``escape``: the escape of last resort (:mod:`.escape`: brake, move off the conflict, hold,
+    replan; default on); ``escape_latency_s`` [s]: how long after a conflict is known a reflex
+    escape takes effect (the decision's compute time, measured p95 < 0.5 s).
 
     Safety bubble (``constraints.clearance: sboa``, seed 003; default off): ``bubble_k`` k
     makes every STEP III of the replay re-check its samples at max(r_p, k sigma_p(t) +
@@ -137,10 +143,14 @@ class FlyParams:
     periphery_m: float = 60.0
     zone_period_s: float = 10.0
     zone_potential: bool = True
+    escape: bool = True
+    escape_latency_s: float = 0.5
 
     def __post_init__(self):
         if self.method not in TACTICAL_METHODS:
             raise InputError(f"tactical method {self.method!r}: use one of {', '.join(TACTICAL_METHODS)}")
+        if not (math.isfinite(self.escape_latency_s) and self.escape_latency_s >= 0):
+            raise InputError(f"escape_latency_s = {self.escape_latency_s} s must be finite and >= 0")
         if not (self.periphery_m > 0 and self.zone_period_s > 0):
             raise InputError("periphery_m [m] and zone_period_s [s] must be > 0")
         if not (self.t_rep_s > 0 and self.tick_s > 0 and self.occupancy_slice_s > 0):
@@ -287,6 +297,11 @@ class _Replay:
         self.zone_ids: tuple[str, ...] | None = None   # intruders of the last zone determination
         self.zone_field = None                # the dense zones' potential field (octant_replan.zone_potential)
         self.zone_field_world = None          # the world it was computed on
+        self.n_escapes = 0                    # escapes of last resort flown (escape.plan_escape)
+        self.escape_log: list[dict] = []      # one entry per escape decision
+        self.losses: list[dict] = []          # predicted losses of separation the flight had to accept
+        self._queue: list = []                # pending events (known time, event time, order, event)
+        self._seq = 0
 
     def _known_at(self, ev: TacticalEvent) -> float:
         lat = self.p.report_latency_s if ev.kind in ("intruder", "intruder_update") else 0.0
@@ -364,10 +379,22 @@ class _Replay:
         return self._grid_obj
 
     # -------------------------------------------------------------- checks
-    def tracks(self) -> tuple[IntruderTracks, np.ndarray]:
+    def tracks(self, buffer_m: float = 0.0) -> tuple[IntruderTracks, np.ndarray]:
+        """The known intruders' believed tracks and the separation [m] from each, r_p + r_i + d_c
+        (+ ``buffer_m``)."""
         intr = self.known.intruders()
-        sep = np.array([self.veh.r_p_m + i.radius_m + self.p.d_c_m for i in intr])
+        sep = np.array([self.veh.r_p_m + i.radius_m + self.p.d_c_m + buffer_m for i in intr])
         return IntruderTracks.from_intruders(intr), sep
+
+    def chord_buffer_m(self, t_s: np.ndarray) -> float:
+        """How far [m] the exact trajectory can be from the chords between its samples ``t_s``:
+        a_max dt^2 / 8 for the longest gap dt (every phase of a corner trajectory accelerates at
+        most a_max, tangentially or normally), so separation checks on the sampled polyline
+        hold for the trajectory itself."""
+        if t_s.size < 2:
+            return 0.0
+        dt = float(np.max(np.diff(t_s)))
+        return self.lim.max_acceleration_mps2 * dt * dt / 8.0 + 1e-6
 
     def first_violation(self, t_s: np.ndarray, p: np.ndarray, problem: PlanningProblem) -> tuple[float, str, object]:
         """Earliest violation ``(t [s], cause, detail)`` of a timed path; ``(inf, '', None)``."""
@@ -410,11 +437,22 @@ class _Replay:
         return float(np.trapezoid(flight_power_W(v, wind_sampler(problem)(p), self.veh), t_s))
 
     # -------------------------------------------------------------- the loop
+    def push(self, ev: TacticalEvent, t_known_s: float) -> None:
+        """Queue an event the ownship learns of at ``t_known_s`` [s]."""
+        heapq.heappush(self._queue, (float(t_known_s), float(ev.t_s), self._seq, ev))
+        self._seq += 1
+
     def run(self) -> None:
         p = self.p
         for ev in self.events:
+            self.push(ev, self._known_at(ev))
+        while self._queue:
+            t_e, _t, _n, ev = heapq.heappop(self._queue)
             control.check()
-            t_e = self._known_at(ev)
+            if ev.kind == "resume":
+                if not self.resume(ev, t_e):
+                    return
+                continue
             if t_e >= self.tl.t_end_s:
                 self.event_log.append(_ev(ev, t_e, math.inf, "after the flight ended"))
                 continue
@@ -434,15 +472,33 @@ class _Replay:
             t_coll = t_v - t_e
             k = self.n_replan
             self.n_replan += 1
+            alert = self.alert(t_s, pts, t_e, t_v, detail)
+            intruder_conflict = hasattr(detail, "own_velocity_mps")
             if t_coll <= p.t_rep_s:
                 why = f"t_coll {t_coll:.2f} s <= t_rep {p.t_rep_s:g} s ({cause})"
-                ok = self.land(k, ev, t_e, t_e, t_coll, update_s, why)
-                self.event_log.append(_ev(ev, t_e, t_coll, "landing" if ok else "failed", cause))
-                if not ok:
+                ok, tried = self.land(k, ev, t_e, t_e, t_coll, update_s, why)
+                outcome = "landing" if ok else self.last_resort(k, ev, t_e, t_e + p.escape_latency_s, t_coll,
+                                                                 update_s, why, tried)
+                self._tag(k, alert)
+                self.event_log.append(_ev(ev, t_e, t_coll, outcome, cause))
+                if outcome == "failed":
                     return
                 continue
-            t_eff = self._effective_time(t_e + p.t_rep_s)
-            if p.method == "octant" and hasattr(detail, "own_velocity_mps"):
+            t_eff = self.effective_time(t_e + p.t_rep_s)
+            if (p.escape and intruder_conflict and t_eff < self.tl.t_end_s
+                    and not self.escape_available(t_eff)):
+                # waiting t_rep for a plan would leave no escape that keeps the separation:
+                # escape now (a reflex), replan from the hold
+                t_now = self.effective_time(t_e + p.escape_latency_s)
+                why = (f"no escape would keep the separation after waiting t_rep {p.t_rep_s:g} s for a plan "
+                       f"({cause})")
+                outcome = self.last_resort(k, ev, t_e, t_now, t_coll, update_s, why, "", reflex=True)
+                self._tag(k, alert)
+                self.event_log.append(_ev(ev, t_e, t_coll, outcome, cause))
+                if outcome == "failed":
+                    return
+                continue
+            if p.method == "octant" and intruder_conflict:
                 from skyroute.stages.tactical.octant_replan import octant_replan
 
                 best = octant_replan(self, k, ev, t_e, t_eff, t_v, t_coll, update_s, cause, detail)
@@ -450,12 +506,126 @@ class _Replay:
                 best = self.replan(k, ev, t_e, t_eff, t_coll, update_s, cause, detail)
             if best is None:
                 why = f"no level found a valid plan ({cause})"
-                ok = self.land(k, ev, t_e, t_eff, t_coll, update_s, why)
-                self.event_log.append(_ev(ev, t_e, t_coll, "landing" if ok else "failed", cause))
-                if not ok:
+                ok, tried = self.land(k, ev, t_e, t_eff, t_coll, update_s, why)
+                outcome = "landing" if ok else self.last_resort(k, ev, t_e, t_eff, t_coll, update_s, why, tried)
+                self._tag(k, alert)
+                self.event_log.append(_ev(ev, t_e, t_coll, outcome, cause))
+                if outcome == "failed":
                     return
                 continue
+            self._tag(k, alert)
             self.event_log.append(_ev(ev, t_e, t_coll, f"replanned {best}", cause))
+
+    # -------------------------------------------------------------- alerting
+    def alert(self, t_s: np.ndarray, pts: np.ndarray, t_e: float, t_v: float, detail) -> dict:
+        """The DAA alert (:mod:`.daa`, intent-based) of a conflict found at ``t_e``: the
+        intruder, time to loss of separation and to the preventive volume [s], level."""
+        if not hasattr(detail, "own_velocity_mps"):
+            return {"intruder": "", "t_los_s": math.nan, "alert": ""}
+        from skyroute.stages.tactical.daa import PREVENTIVE_FACTOR
+
+        tracks, sep = self.tracks()
+        sep_pre = sep * 0.0
+        sep_pre[detail.index] = PREVENTIVE_FACTOR * sep[detail.index]
+        c = first_conflict(t_s, pts, tracks, sep_pre)
+        t_pre = (c.t_s - t_e) if c is not None else math.inf
+        t_los = t_v - t_e
+        return {"intruder": detail.id, "t_los_s": t_los, "alert": alert_of(t_los, t_pre)}
+
+    def _tag(self, k: int, alert: dict) -> None:
+        for a in self.attempts:
+            if a.replanning == k:
+                a.intruder, a.t_los_s, a.alert = alert["intruder"], alert["t_los_s"], alert["alert"]
+
+    # -------------------------------------------------------------- escapes
+    def escape_available(self, t0: float) -> bool:
+        """Whether an escape from ``t0`` [s] keeps the separation from every known intruder
+        (the screen of :func:`~skyroute.stages.tactical.escape.plan_escape`)."""
+        from skyroute.stages.tactical.escape import plan_escape
+
+        if t0 >= self.tl.t_end_s:
+            return True
+        dec = plan_escape(self, t0, full=False)
+        return dec.chosen is not None and dec.chosen.keeps_separation
+
+    def last_resort(self, k: int, ev: TacticalEvent, t_e: float, t0: float, t_coll: float, update_s: float,
+                    why: str, tried: str, reflex: bool = False) -> str:
+        """After levels 1-3 and the landing found nothing (or as a reflex): the escape of
+        :mod:`.escape` from ``t0`` [s], hold, then replan (a ``resume`` event); when no escape
+        is valid the vehicle keeps its plan and the flight fails.  Returns the event outcome."""
+        from skyroute.stages.tactical.escape import MAX_ESCAPES, plan_escape
+
+        t0 = self.effective_time(t0)
+        dec = None
+        if self.p.escape and self.n_escapes < MAX_ESCAPES and t0 < self.tl.t_end_s:
+            dec = plan_escape(self, t0)
+        opt = dec.chosen if dec is not None else None
+        if opt is None or opt.candidate is None:
+            if dec is None:
+                head = ("escapes are off" if not self.p.escape else
+                        f"{self.n_escapes} escapes flown already" if self.n_escapes >= MAX_ESCAPES else
+                        "the flight ends before an escape could start")
+            else:
+                head = "no escape is valid: " + dec.summary()
+            self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "escape", False, math.nan, math.nan,
+                                              math.nan, math.nan, dec.compute_s if dec else 0.0, update_s, math.nan,
+                                              True, f"{why}; {head}; the vehicle keeps its plan"))
+            self.outcome = "failed"
+            self.reason = f"{why}; {tried + '; ' if tried else ''}{head}"
+            return "failed"
+        cand = opt.candidate
+        self.n_escapes += 1
+        keeps = bool(cand.flyable)
+        verdict = (f"escape {opt.kind}: predicted minimum separation margin {opt.margin_m:+.1f} m"
+                   if math.isfinite(opt.margin_m) else f"escape {opt.kind}")
+        if not keeps:
+            loss = {"replanning": k, "event": ev.label, "t_s": t0, "intruder": opt.intruder,
+                    "predicted_margin_m": opt.margin_m,
+                    "why": (f"no manoeuvre keeps the separation: the best, {opt.kind}, still comes "
+                            f"{-opt.margin_m:.1f} m inside it (the intruder is too fast or known too late)")}
+            self.losses.append(loss)
+            verdict += f"; UNAVOIDABLE: {loss['why']}"
+        self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "escape", keeps, cand.C_l, cand.C_e, cand.f,
+                                          cand.max_sigma_p_m, dec.compute_s, update_s, math.nan, True,
+                                          f"{why}; {'reflex: ' if reflex else ''}{verdict}; hold at "
+                                          f"({opt.target_xyz_m[0]:.0f}, {opt.target_xyz_m[1]:.0f}, "
+                                          f"{opt.target_xyz_m[2]:.0f}) until t = {float(cand.t_s[-1]):.1f} s"))
+        self.escape_log.append({"replanning": k, "t_s": t0, "kind": opt.kind, "reflex": reflex,
+                                "margin_m": opt.margin_m, "keeps_separation": keeps,
+                                "hold_until_s": float(cand.t_s[-1]), "compute_s": dec.compute_s,
+                                "options": len(dec.options)})
+        chain, speeds = opt.rejoin
+        self.follow(cand, t0, "escape", k, then=(chain, speeds))
+        t_res = float(cand.t_s[-1])
+        self.push(TacticalEvent(max(t_res - self.p.t_rep_s, t0), "resume", f"resume after escape {k}"),
+                  max(t_res - self.p.t_rep_s, t0))
+        if self.outcome == "failed":
+            self.outcome, self.reason = "goal", ""
+        return f"escape {opt.kind}" + ("" if keeps else " (unavoidable loss of separation)")
+
+    def resume(self, ev: TacticalEvent, t_e: float) -> bool:
+        """The hold of an escape ends: replan from it (the rest of the old plan as it is, then
+        levels 2 and 3, the landing, another escape).  False when the flight ends here."""
+        seg = self.tl.segments[-1]
+        t_end = self.tl.t_end_s
+        if seg.part != "escape" or seg.then_chain is None or t_e > t_end + 1e-9:
+            self.event_log.append(_ev(ev, t_e, math.inf, "superseded"))
+            return True
+        k = self.n_replan
+        self.n_replan += 1
+        cause = f"the hold of {ev.label.removeprefix('resume after ')} ends"
+        best = self.replan(k, ev, t_e, t_end, math.inf, 0.0, cause, None, resume=True)
+        if best is not None:
+            self.event_log.append(_ev(ev, t_e, math.inf, f"replanned {best}", cause))
+            return True
+        why = f"no plan from the hold ({cause})"
+        ok, tried = self.land(k, ev, t_e, t_end, math.inf, 0.0, why)
+        outcome = "landing" if ok else self.last_resort(k, ev, t_e, t_end, math.inf, 0.0, why, tried)
+        self.event_log.append(_ev(ev, t_e, math.inf, outcome, cause))
+        if outcome == "failed":
+            self.reason = f"holding at the escape point: {self.reason}"
+            return False
+        return True
 
     def apply(self, ev: TacticalEvent, t_e: float) -> None:
         if ev.kind == "intruder" or ev.kind == "intruder_update":
@@ -495,7 +665,7 @@ class _Replay:
         line_of_sight(prob, sky, self.world.surface["surface"].values, want, pts, self.start_time_utc,
                       cache=self.world.los_cache)
 
-    def _effective_time(self, t: float) -> float:
+    def effective_time(self, t: float) -> float:
         """``t`` (capped at the end of the plan)."""
         return min(t, self.tl.t_end_s)
 
@@ -514,7 +684,10 @@ class _Replay:
         vel = seg.velocity([t_eff])[0]
         v0 = float(np.linalg.norm(vel))
         if line or v0 < 1e-6:
-            return np.concatenate([p0[None], verts[leg + 1:]]), speeds[leg:], 0, v0
+            ch, sp = np.concatenate([p0[None], verts[leg + 1:]]), speeds[leg:]
+            if seg.then_chain is not None:      # an escape's hold: the mission goes on from its end
+                ch, sp = np.concatenate([ch, seg.then_chain[1:]]), np.concatenate([sp, seg.then_speeds])
+            return ch, sp, 0, v0
         # on the fillet arc at the corner verts[leg] (between legs leg-1 and leg): the rest of the
         # arc is the fillet of the corner where the current tangent meets the next leg, at
         # R tan(phi_rem / 2) ahead (phi_rem: the arc angle left); the chain goes through it
@@ -524,7 +697,38 @@ class _Replay:
         v_rem = p0 + vel / v0 * (R * math.tan(phi / 2.0))
         ch = np.concatenate([p0[None], v_rem[None], verts[leg + 1:]])
         sp = np.concatenate([[max(v0, speeds[leg])], speeds[leg:]])
+        if seg.then_chain is not None:
+            ch, sp = np.concatenate([ch, seg.then_chain[1:]]), np.concatenate([sp, seg.then_speeds])
         return ch, sp, 1, v0
+
+    def follow(self, cand: Candidate, t_eff: float, part: str, k: int | None, then=None) -> None:
+        """Fly ``cand`` (its trajectory from ``t_eff`` [s]) as part ``part`` of replanning ``k``;
+        ``then``: ``(chain, leg speeds)`` of the mission after it (an escape's hold)."""
+        tc, ts = (None, None) if then is None else (np.asarray(then[0], float), np.asarray(then[1], float))
+        self.tl.add(Segment(cand.trajectory, t_eff, part, k, nav=cand.nav_track, then_chain=tc, then_speeds=ts),
+                    t_eff)
+
+    def nav_state_at(self, t_s: float):
+        """The navigation filter the vehicle has at ``t_s`` [s] (a
+        :class:`~skyroute.stages.navigation.FilterState`), None without GNSS data."""
+        nav = self.tl.segments[self.tl.active(t_s)].nav
+        return None if nav is None else nav.state_at(t_s)
+
+    def init_navigation(self) -> None:
+        """The filter along the strategic plan as its STEP III computed it (same samples,
+        warm-up and maps), so every replan continues it (issue 22)."""
+        sky = self.world.satellites
+        if sky is None:
+            return
+        from skyroute.stages.planning.step3 import navigation_along
+
+        seg = self.tl.segments[0]
+        tau = seg.traj.sample_times(STRATEGIC_SAMPLE_DT_S)
+        prob = self.problem(self.goal, self.goal, zones_from_s=math.inf)
+        *_, track = navigation_along(prob, sky, self.world.surface["surface"].values, seg.t0_s + tau,
+                                     seg.traj.sample(tau), self.start_time_utc, self.veh, gnss_sigma_m=self.p.uere_m,
+                                     los_cache=self.world.los_cache, return_track=True)
+        self.tl.segments[0] = dataclasses.replace(seg, nav=track)
 
     def braking_point(self, chain: np.ndarray, v0: float, scale: float = 1.0) -> tuple[np.ndarray, int]:
         """The chain cut the braking distance v0^2 / (2 a_max) (plus 0.5 m) after its start,
@@ -542,9 +746,14 @@ class _Replay:
         return np.concatenate([chain[: j + 1], pb[None]]), j + 1
 
     # -------------------------------------------------------------- levels
-    def _finish(self, problem: PlanningProblem, chain: np.ndarray, speeds: np.ndarray, t_eff: float, v0: float,
-                label: str, budget_J: float, stop_at: tuple[int, ...] = ()) -> Candidate:
-        """STEP III of a tactical chain from ``t_eff`` at ``v0``, then the exact separation check."""
+    def finish(self, problem: PlanningProblem, chain: np.ndarray, speeds: np.ndarray, t_eff: float, v0: float,
+               label: str, budget_J: float, stop_at: tuple[int, ...] = (),
+               hold_until_s: float | None = None, trajectory=None, min_hold_s: float = 1.0) -> Candidate:
+        """STEP III of a tactical chain from ``t_eff`` at ``v0`` (the navigation filter continued
+        from the vehicle's at ``t_eff``; ``hold_until_s``: hover at the end until then), then the
+        exact separation check (on the samples, the separation grown by the chord buffer) and
+        the temporary zones.  ``trajectory``: fly this corner trajectory instead of smoothing
+        the chain (an escape's turn; ``chain`` is then its start and end)."""
         chain, speeds, lengths, stop_at = _dedupe(chain, speeds, stop_at)
         times = t_eff + np.concatenate([[0.0], np.cumsum(lengths / np.maximum(speeds, 1e-3))])
         s2 = Step2Result(chain, times, np.zeros(chain.shape[0]), "tactical")
@@ -556,9 +765,12 @@ class _Replay:
                      label=label, gnss_sigma_m=self.p.uere_m, battery_reserve_pct=max(reserve, 0.0),
                      v_start_mps=v0, sample_dt_s=min(0.5, self.p.tick_s * 5), los_cache=self.world.los_cache,
                      stop_at=stop_at,
-                     bubble=None if self.p.bubble is None else (*self.p.bubble, float(self.veh.r_p_m)))
+                     bubble=None if self.p.bubble is None else (*self.p.bubble, float(self.veh.r_p_m)),
+                     nav_state=self.nav_state_at(t_eff), keep_nav_track=True, hold_until_s=hold_until_s,
+                     trajectory=trajectory, min_hold_s=min_hold_s)
         if cand.t_s.size:
-            c = first_conflict(cand.t_s, cand.xyz_m, *self.tracks()) if self.known.intruders() else None
+            c = (first_conflict(cand.t_s, cand.xyz_m, *self.tracks(self.chord_buffer_m(cand.t_s)))
+                 if self.known.intruders() else None)
             if c is not None:
                 cand.reasons.append(f"separation from intruder {c.id!r}: {c.distance_m:.1f} m at t = {c.t_cpa_s:.1f} s")
             for z in self.known.zones:
@@ -580,7 +792,7 @@ class _Replay:
         tau = tr.sample_times(self.p.tick_s * 5)
         t, pts = t_eff + tau, tr.sample(tau)
         if self.known.intruders():
-            c = first_conflict(t, pts, *self.tracks())
+            c = first_conflict(t, pts, *self.tracks(self.chord_buffer_m(t)))
             if c is not None:
                 return f"separation from intruder {c.id!r}: {c.distance_m:.1f} m at t = {c.t_cpa_s:.1f} s"
         for z in self.known.zones:
@@ -595,7 +807,10 @@ class _Replay:
         return self.veh.battery_energy_j * (1.0 - self.p.battery_reserve_pct / 100.0) - spent
 
     def replan(self, k: int, ev: TacticalEvent, t_e: float, t_eff: float, t_coll: float, update_s: float,
-               cause: str, detail) -> str | None:
+               cause: str, detail, resume: bool = False) -> str | None:
+        """Levels 1-3 from ``t_eff`` [s] (module docstring); with ``resume`` (the end of an
+        escape's hold) the rest of the mission as it is comes first (row ``resume``).  The
+        valid solution with minimum f is flown; None when there is none."""
         p = self.p
         chain, speeds, _lead, v0 = self.rest_chain(t_eff)
         t_arrive_old = self.tl.t_end_s
@@ -613,11 +828,20 @@ class _Replay:
                                       (float(cand.t_s[-1]) - t_arrive_old) if ok else math.nan, False, reasons),
                          cand, level))
 
+        if resume:            # the mission from the hold as it is
+            t0 = time.perf_counter()
+            try:
+                cr = self.finish(problem, chain, speeds, t_eff, v0, "resume", budget)
+                row("resume", cr, time.perf_counter() - t0, "; ".join(cr.reasons[:2]))
+            except (PlanningError, InputError) as exc:
+                row("resume", None, time.perf_counter() - t0, str(exc))
         # level 1: time scaling
         t0 = time.perf_counter()
         why1 = ""
         cand1 = None
-        if detail is not None and hasattr(detail, "own_velocity_mps"):
+        if resume:
+            why1 = "resuming from a hold: no encounter to time-scale"
+        elif detail is not None and hasattr(detail, "own_velocity_mps"):
             kind, ang = encounter_geometry(detail.own_velocity_mps, detail.intruder_velocity_mps)
             if kind in ("frontal", "static"):
                 why1 = (f"{kind} encounter ({ang:.0f} deg): time scaling cannot separate it" if kind == "frontal"
@@ -652,7 +876,7 @@ class _Replay:
                     c = None
                     if not why:
                         try:
-                            c = self._finish(problem1, chain, sp, t_eff, v0, f"L1 s={s:g}", budget)
+                            c = self.finish(problem1, chain, sp, t_eff, v0, f"L1 s={s:g}", budget)
                         except PlanningError as exc:
                             why = str(exc)
                         else:
@@ -681,7 +905,7 @@ class _Replay:
                                 time_budget_s=600.0, sigma_m=sigma, explore=explore, require_valid_chain=False)
                 return s2.waypoints if s2.ok else s2.reason
 
-            cand, why = self._via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, f"L{level}", budget)
+            cand, why = self.via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, f"L{level}", budget)
             row(level, cand, time.perf_counter() - t0, why)
         # choose
         valid = [(r, c, lv) for r, c, lv in rows if r.flyable and c is not None and math.isfinite(c.f)]
@@ -692,8 +916,8 @@ class _Replay:
                 if r2 is not r and r2.flyable:
                     r2.reasons = f"valid but f = {r2.f_m:.1f} m > {r.f_m:.1f} m of level {lv}"
             self.attempts.extend(r2 for r2, _, _ in rows)
-            self.tl.add(Segment(c.trajectory, t_eff, f"L{lv}", k), t_eff)
-            return f"L{lv}"
+            self.follow(c, t_eff, lv if lv == "resume" else f"L{lv}", k)
+            return lv if lv == "resume" else f"L{lv}"
         self.attempts.extend(r2 for r2, _, _ in rows)
         return None
 
@@ -706,7 +930,7 @@ class _Replay:
         return build_occupancy(intr, horizon, n, self.veh.r_p_m + self.p.d_c_m, self.p.dt_c_s, t0_s=t_from)
 
     # -------------------------------------------------------------- contingency landing
-    def _via_braking(self, chain, speeds, v0: float, t_eff: float, tail, problem_of, label: str, budget_J: float):
+    def via_braking(self, chain, speeds, v0: float, t_eff: float, tail, problem_of, label: str, budget_J: float):
         """A new chain that stops at the braking point ``P_b`` of the current one and continues
         with ``tail(pre, nb, t_b)`` (waypoints from ``P_b``, or a reason string): ``(candidate or
         None, reason)``.  When the vehicle cannot slow down in time for the corners between
@@ -724,7 +948,7 @@ class _Replay:
                     return None, wp
                 full = np.concatenate([pre, wp[1:]])
                 sp = np.concatenate([pre_speeds, np.full(full.shape[0] - 1 - pre_speeds.size, self.veh.cruise_speed_mps)])
-                cand = self._finish(problem_of(pre[-1]), full, sp, t_eff, v0, label, budget_J,
+                cand = self.finish(problem_of(pre[-1]), full, sp, t_eff, v0, label, budget_J,
                                     stop_at=(pre.shape[0] - 1,))
                 why = "; ".join(cand.reasons)
                 if "cannot slow down" in why and scale < 4.0:     # STEP III reports it as a reason
@@ -739,8 +963,10 @@ class _Replay:
         return None, why
 
     def land(self, k: int, ev: TacticalEvent, t_e: float, t_from: float, t_coll: float, update_s: float,
-             why: str) -> bool:
-        t_eff = self._effective_time(t_from)
+             why: str) -> tuple[bool, str]:
+        """Contingency landing from ``t_from`` [s] (module docstring): ``(landed, why not)``;
+        a landing sets the outcome ``landed``."""
+        t_eff = self.effective_time(t_from)
         chain, speeds, _lead, v0 = self.rest_chain(t_eff)
         t0 = time.perf_counter()
         tried = []
@@ -763,7 +989,7 @@ class _Replay:
                                 max_iter=self.p.level2_iterations, time_budget_s=600.0)
                 return s2.waypoints if s2.ok else s2.reason
 
-            cand, reason = self._via_braking(chain, speeds, v0, t_eff, tail,
+            cand, reason = self.via_braking(chain, speeds, v0, t_eff, tail,
                                              lambda pb, approach=approach: self.problem(pb, approach, gnss=False,
                                                                                         zones_from_s=t_eff),
                                              "landing", budget)
@@ -777,16 +1003,13 @@ class _Replay:
                                               cand.f, cand.max_sigma_p_m, time.perf_counter() - t0, update_s,
                                               float(cand.t_s[-1]) - self.tl.t_end_s, True,
                                               f"{why}; landing at {name}"))
-            self.tl.add(Segment(cand.trajectory, t_eff, "landing", k), t_eff)
+            self.follow(cand, t_eff, "landing", k)
             self.outcome, self.reason = "landed", f"contingency landing at {name}: {why}"
-            return True
+            return True, ""
         self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "landing", False, math.nan, math.nan,
-                                          math.nan, math.nan, time.perf_counter() - t0, update_s, math.nan, True,
+                                          math.nan, math.nan, time.perf_counter() - t0, update_s, math.nan, False,
                                           f"{why}; no reachable landing site: " + " | ".join(tried[:3])))
-        self.outcome = "failed"
-        self.reason = f"{why}; no landing site reachable: " + (" | ".join(tried[:3]) or "no landing site on the map")
-        self.tl.add(self.tl.segments[self.tl.active(t_eff)], t_eff)
-        return False
+        return False, "no landing site reachable: " + (" | ".join(tried[:3]) or "no landing site on the map")
 
     def _landing_targets(self, pb) -> list[tuple[str, np.ndarray]]:
         """Approach points r_p (with the safety bubble: r_j) above the landing sites nearest
@@ -893,6 +1116,7 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
     r = _Replay(tl, goal_xyz, world, world_at, events, strategic_intruders, vehicle, params, start_time_utc,
                 dop_threshold)
     r.prepare_world()
+    r.init_navigation()
     compile_s = time.perf_counter() - t_comp
     r.run()
     from skyroute.stages.grid import Grid
@@ -923,6 +1147,8 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
     log.compile_s = compile_s
     log.method = params.method
     log.dense_zones = list(r.dense_zone_log)
+    log.escapes = list(r.escape_log)
+    log.losses = list(r.losses)
     log.warnings = r.warnings
     log.grid = grid
     last = r.world          # the maps at the end of the flight (new obstacles, GNSS outages included)

@@ -28,13 +28,20 @@ _LINE = 0
 @dataclass(frozen=True)
 class Segment:
     """A trajectory flown from mission time ``t0_s`` [s]; ``part``: ``strategic``, ``L1``,
-    ``L2``, ``L3`` or ``landing``; ``replanning``: the replanning that made it (None: the
-    strategic plan)."""
+    ``L2``, ``L3``, ``landing``, ``escape``, ``resume`` ...; ``replanning``: the replanning that
+    made it (None: the strategic plan).  ``nav``: the navigation filter along it
+    (:class:`~skyroute.stages.navigation.FilterTrack`, so a replan continues the filter the
+    vehicle has; None without GNSS data); ``then_chain`` (k, 3) [m] / ``then_speeds`` (k-1,)
+    [m/s]: the rest of the mission after the segment's end (an escape ends in a hold; the
+    mission continues from there), None when the segment itself ends the mission."""
 
     traj: CornerTrajectory
     t0_s: float
     part: str = "strategic"
     replanning: int | None = None
+    nav: object | None = None
+    then_chain: np.ndarray | None = None
+    then_speeds: np.ndarray | None = None
 
     @property
     def t_end_s(self) -> float:

@@ -1,0 +1,317 @@
+"""The escape of last resort of a multirotor in the tactical replay (issue 22).
+
+A multirotor always has a manoeuvre that needs no plan: brake, move a short way off the
+predicted conflict, and hold there.  The replay (:mod:`.replay`) uses it
+
+* when levels 1-3 (or the octant manoeuvre) and the contingency landing found nothing, from the
+  time the replanning takes effect ``t_eff``;
+* at once (a reflex, ``t_e + escape_latency_s``) when a known intruder conflict is found and no
+  escape from ``t_eff`` would keep the separation: waiting for a plan would then risk a loss of
+  separation that braking now avoids (the vehicle keeps an escape available);
+* when the conflict is closer than ``t_rep`` and no landing is reachable.
+
+**Options** (from the vehicle's state at ``t0``: position, speed ``v0`` along its current
+direction ``e``).  Every option first brakes to a stop at the earliest point the deceleration
+``a_max`` allows, ``P_b = p0 + (v0^2 / (2 a_max) + 0.5 m) e`` straight ahead (and, when the
+plan turns within that distance, also at the same distance along the plan), then
+
+* ``hover``: holds at ``P_b``;
+* ``forward`` / ``back`` / ``left`` / ``right`` (horizontal directions of ``e``), each level,
+  ``climb`` or ``descend`` (a ramp at 0.98 x the vehicle's flight-path-angle limit: the limit is
+  hard, so a multirotor's vertical escape climbs along a ramp, inside the AGL band of the maps)
+  and over :data:`DISTANCE_FACTORS` x the separation ``S = r_p + r_i + d_c``: a stop corner at
+  ``P_b``, a straight leg to the target ``E``, and a hold there.
+
+The hold lasts until every known intruder stays farther than :data:`CLEAR_FACTOR` x S from
+``E`` (closed form on its believed track, :func:`clear_time`), at least :data:`MIN_HOLD_S` and
+at most :data:`MAX_HOLD_S` (the n-th escape of a flight holds at least ``2^n`` x the minimum:
+a conflict that does not clear with time, e.g. a new obstacle, is not retried in a tight loop);
+the replay then replans from the hold (levels 1-3 again, first the
+old plan as it is: ``resume``).
+
+**Selection**: every option is screened (its exact corner trajectory with the hold, sampled
+every :data:`SCREEN_DT_S`; the static bounds of the current maps at every sample, the
+temporary no-fly zones, and the exact minimum separation from every known intruder over the
+whole escape, :func:`~skyroute.stages.tactical.conflict.min_separation`), ranked by its
+predicted minimum separation margin ``min_i (d_i - S_i)`` (largest first; ties: the order
+above, the smallest manoeuvre first), and the best ones go through the same STEP III, validator,
+navigation filter, battery and exact separation check as every replan (at most
+:data:`MAX_FULL_CHECKS`).  The first that passes is flown (part ``escape``).  When none keeps the
+separation (the intruder is too fast or known too late: physically unavoidable with these
+manoeuvres) the valid option with the largest margin is flown and the loss is reported with the
+predicted minimum separation and why.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from skyroute.stages.base import InputError, PlanningError
+from skyroute.stages.smoothing import turn_and_stop
+from skyroute.stages.tactical.conflict import IntruderTracks, min_separation
+
+__all__ = ["CLEAR_FACTOR", "DISTANCE_FACTORS", "EscapeDecision", "EscapeOption", "MAX_ESCAPES", "MAX_HOLD_S",
+           "MIN_HOLD_S", "clear_time", "plan_escape"]
+
+CLEAR_FACTOR = 2.0              # the hold ends once every known intruder stays this many separations away
+MIN_HOLD_S = 1.0                # [s] shortest hold at the escape point
+MAX_HOLD_S = 300.0              # [s] longest hold before the replay tries to resume anyway
+MAX_ESCAPES = 6                 # escapes per flight; then the vehicle stays on hold (operator)
+DISTANCE_FACTORS = (1.5, 3.0)   # escape distances in separations S
+RAMP_FRACTION = 0.98            # climb / descent ramps at this fraction of the flight-path-angle limit
+SCREEN_DT_S = 0.25              # [s] sampling of the screen
+TURN_ANGLES_DEG = (45.0, 90.0, 135.0)   # turns at once (tightest radius), then brake
+MAX_FULL_CHECKS = 6             # options that go through the full STEP III per decision
+SEPARATION_PREFIX = "separation from intruder"
+
+
+@dataclass
+class EscapeOption:
+    """One escape manoeuvre from ``t0_s``: ``kind`` (e.g. ``hover``, ``left``, ``back-climb``),
+    target ``target_xyz_m`` (3,) [m], the chain it flies (``chain`` (k, 3), leg ``speeds`` (k-1,),
+    ``stop_at`` vertices), ``hold_until_s`` [s], and the screen's verdict: ``static_ok`` (maps,
+    zones, kinematics), ``margin_m`` [m] (min over known intruders of distance - separation over
+    the escape and its hold; +inf without intruders), ``intruder`` (the closest), ``why`` (why
+    not valid); ``candidate``: the full STEP III result when it was checked."""
+
+    kind: str
+    target_xyz_m: np.ndarray
+    chain: np.ndarray
+    speeds: np.ndarray
+    stop_at: tuple[int, ...]
+    hold_until_s: float
+    static_ok: bool = False
+    margin_m: float = -math.inf
+    intruder: str = ""
+    why: str = ""
+    candidate: object | None = None
+    rejoin: tuple[np.ndarray, np.ndarray] | None = None   # the mission after the hold (chain, leg speeds)
+    trajectory: object | None = None    # a turn's exact trajectory (no chain to smooth), before the hold
+
+    @property
+    def keeps_separation(self) -> bool:
+        return self.static_ok and self.margin_m >= 0.0
+
+
+@dataclass
+class EscapeDecision:
+    """The escape decision at ``t0_s`` [s]: every option screened, the ``chosen`` one (flown:
+    flyable, or the best valid one when none keeps the separation) or None, and the time the
+    decision took ``compute_s`` [s]."""
+
+    t0_s: float
+    options: list[EscapeOption] = field(default_factory=list)
+    chosen: EscapeOption | None = None
+    compute_s: float = 0.0
+
+    @property
+    def keeps_separation(self) -> bool:
+        c = self.chosen
+        return c is not None and c.candidate is not None and bool(c.candidate.flyable)
+
+    def summary(self, n: int = 3) -> str:
+        """The best ``n`` options as text (kind, margin, why not)."""
+        ranked = sorted(self.options, key=lambda o: (not o.static_ok, -o.margin_m))
+        out = []
+        for o in ranked[:n]:
+            m = "inf" if math.isinf(o.margin_m) and o.margin_m > 0 else f"{o.margin_m:+.1f} m"
+            out.append(f"{o.kind} (margin {m}{'; ' + o.why[:100] if o.why else ''})")
+        return " | ".join(out)
+
+
+def clear_time(tracks: IntruderTracks, radius_m: np.ndarray, point_xyz_m, t_from_s: float) -> float:
+    """The last time [s] at or after ``t_from_s`` that some intruder of ``tracks`` is strictly
+    closer than its ``radius_m`` (N,) [m] to the fixed point ``point_xyz_m`` (3,) [m]
+    (closed form per track segment; an intruder exists only on its track's time span); ``t_from_s``
+    when none is."""
+    q = np.asarray(point_xyz_m, float)
+    last = float(t_from_s)
+    for i in range(tracks.n):
+        lo, hi = int(tracks.offsets[i]), int(tracks.offsets[i + 1])
+        t, p = tracks.t_s[lo:hi], tracks.xyz_m[lo:hi]
+        r2 = float(radius_m[i]) ** 2
+        if t.size == 1:
+            if t[0] >= t_from_s and float(np.sum((p[0] - q) ** 2)) < r2:
+                last = max(last, float(t[0]))
+            continue
+        for k in range(t.size - 1):
+            a, b = float(t[k]), float(t[k + 1])
+            if b < t_from_s:
+                continue
+            v = (p[k + 1] - p[k]) / (b - a)
+            d0 = p[k] - q
+            A, B, C = float(v @ v), float(d0 @ v), float(d0 @ d0) - r2
+            # |d0 + v tau|^2 < r^2 on tau in [0, b - a]: the roots of A tau^2 + 2 B tau + C
+            if A <= 0.0:
+                if C < 0.0:
+                    last = max(last, b)
+                continue
+            disc = B * B - A * C
+            if disc <= 0.0:
+                continue
+            hi_tau = (-B + math.sqrt(disc)) / A
+            lo_tau = (-B - math.sqrt(disc)) / A
+            if hi_tau <= 0.0 or lo_tau >= b - a:
+                continue
+            last = max(last, a + min(hi_tau, b - a))
+    return last
+
+
+def _unit(v: np.ndarray) -> np.ndarray | None:
+    n = float(np.linalg.norm(v))
+    return v / n if n > 1e-9 else None
+
+
+def _targets(pb: np.ndarray, e_h: np.ndarray, sep_m: float, tan_ramp: float) -> list[tuple[str, np.ndarray]]:
+    """Escape targets from the stop point ``pb``: (kind, E)."""
+    n = np.array([-e_h[1], e_h[0], 0.0])                    # left of the direction of travel
+    out: list[tuple[str, np.ndarray]] = [("hover", pb.copy())]
+    dirs = (("left", n), ("right", -n), ("back", -e_h), ("forward", e_h))
+    for fac in DISTANCE_FACTORS:
+        d = fac * sep_m
+        for vert, sz in (("", 0.0), ("-climb", 1.0), ("-descend", -1.0)):
+            for name, u in dirs:
+                out.append((f"{name}{vert} {d:.0f} m", pb + d * u + np.array([0.0, 0.0, sz * d * tan_ramp])))
+    return out
+
+
+def _rejoin(target: np.ndarray, chain: np.ndarray, speeds: np.ndarray, nb: int, pb_path: np.ndarray,
+            cruise_mps: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rest of the mission after an escape to ``target``: back to the plan at its braking
+    point ``pb_path`` (``nb`` chain vertices before it), then the plan's chain to the goal."""
+    ch = np.concatenate([target[None], pb_path[None], chain[nb:]])
+    sp = np.concatenate([[cruise_mps], speeds[max(nb - 1, 0):]])
+    return ch, sp[: ch.shape[0] - 1]
+
+
+def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") -> EscapeDecision:
+    """The escape decision of the replay ``rp`` (a :class:`~skyroute.stages.tactical.replay._Replay`:
+    its timeline, knowledge, maps and STEP III) from mission time ``t0_s`` [s] (module
+    docstring).  ``full=False``: the screen only (is an escape that keeps the separation
+    available?); the chosen option is then the best screened one without a candidate."""
+    from skyroute.stages.planning.step3 import smooth_chain
+
+    wall = time.perf_counter()
+    dec = EscapeDecision(float(t0_s))
+    min_hold = MIN_HOLD_S * 2.0 ** min(rp.n_escapes, 6)     # each further escape of a flight waits longer
+    chain, speeds, _lead, v0 = rp.rest_chain(t0_s)
+    p0 = chain[0]
+    vel = rp.tl.velocity(t0_s)
+    e = _unit(vel) if v0 > 1e-6 else None
+    if e is None:
+        e = _unit(chain[1] - p0) if chain.shape[0] > 1 else None
+    if e is None:
+        e = _unit(rp.goal - p0)
+    if e is None:
+        e = np.array([1.0, 0.0, 0.0])
+    e_h = _unit(np.array([e[0], e[1], 0.0]))
+    if e_h is None:
+        e_h = _unit(np.array([*(rp.goal - p0)[:2], 0.0]))
+    if e_h is None:
+        e_h = np.array([1.0, 0.0, 0.0])
+    lim = rp.lim
+    d_b = v0 * v0 / (2.0 * lim.max_acceleration_mps2) + 0.5
+    cruise = float(rp.veh.cruise_speed_mps)
+    problem = rp.problem(p0, rp.goal, zones_from_s=math.inf)      # temporary zones: checked in time
+    intr = rp.known.intruders()
+    tracks, sep = rp.tracks() if intr else (None, np.zeros(0))
+    sep_m = float(np.max(sep)) if sep.size else float(rp.veh.r_p_m + rp.p.d_c_m)
+    tan_ramp = RAMP_FRACTION * math.tan(math.radians(rp.veh.max_flight_path_angle_deg))
+    # the braking bases: straight ahead, and along the plan when it turns within d_b
+    pre_path, nb = rp.braking_point(chain, v0)
+    pb_path = pre_path[-1]
+    bases = [("", np.stack([p0, p0 + d_b * e]), np.array([max(v0, 1e-3)]))]
+    if pre_path.shape[0] > 2:
+        bases.append(("path ", pre_path, np.maximum(speeds[: pre_path.shape[0] - 1], 1e-3)))
+    zones = [z for z in rp.known.zones if z.end_s > t0_s]
+    from skyroute.stages.tactical.replay import _first_in_zone
+
+    candidates = []                          # (kind, chain, speeds, stop_at, target, turn trajectory)
+    for bname, base, bsp in bases:
+        pb = base[-1]
+        for kind, E in _targets(pb, e_h, sep_m, tan_ramp):
+            if kind == "hover":
+                candidates.append((bname + kind, base, bsp, (), E, None))
+            else:
+                candidates.append((bname + kind, np.concatenate([base, E[None]]), np.concatenate([bsp, [cruise]]),
+                                   (base.shape[0] - 1,), E, None))
+    if v0 > 1.0:                             # turns at once, at the acceleration limit, then brake
+        n = np.array([-e_h[1], e_h[0], 0.0])
+        R = v0 * v0 / lim.max_acceleration_mps2 * (1.0 + 1e-9)
+        for side, e2 in (("left", n), ("right", -n)):
+            for ang in TURN_ANGLES_DEG:
+                try:
+                    tr = turn_and_stop(p0, e, e2, v0, R, math.radians(ang), lim)
+                except (PlanningError, InputError):
+                    continue
+                E = tr.sample([tr.duration_s])[0]
+                candidates.append((f"turn-{side} {ang:.0f} deg", np.stack([p0, E]), np.array([cruise]), (), E, tr))
+    for kind, ch, sp, stop, E, turn in candidates:
+        hold_until = clear_time(tracks, CLEAR_FACTOR * sep, E, t0_s) if tracks is not None else t0_s
+        opt = EscapeOption(kind, E, ch, sp, stop, hold_until, trajectory=turn)
+        dec.options.append(opt)
+        try:
+            if turn is not None:
+                traj = turn
+            else:
+                legs = np.linalg.norm(np.diff(ch, axis=0), axis=1)
+                traj = smooth_chain(problem, ch, legs / sp, v_start_mps=v0, stop_at=stop)
+            arrive = t0_s + traj.duration_s
+            hold = min(max(hold_until - arrive, min_hold), MAX_HOLD_S)
+            opt.hold_until_s = arrive + hold
+            traj = traj.with_hold(hold)
+        except (PlanningError, InputError) as exc:
+            opt.why = f"STEP III: {exc}"
+            continue
+        tau = traj.sample_times(SCREEN_DT_S)
+        t, pts = t0_s + tau, traj.sample(tau)
+        ok = np.asarray(problem.state_valid(pts), bool)
+        if not ok.all():
+            k = int(np.argmin(ok))
+            opt.why = f"static bounds at t = {t[k]:.1f} s: {problem.explain_invalid(pts[k])}"
+            continue
+        hit = next((z for z in zones if _first_in_zone(t, pts, z, rp.veh.r_p_m) >= 0), None)
+        if hit is not None:
+            opt.why = f"inside the temporary no-fly zone {hit.id!r}"
+            continue
+        opt.static_ok = True
+        if tracks is None:
+            opt.margin_m = math.inf
+        else:
+            d = min_separation(t, pts, tracks, t_from_s=t0_s) - sep - rp.chord_buffer_m(t)
+            i = int(np.argmin(d))
+            opt.margin_m, opt.intruder = float(d[i]), tracks.ids[i]
+    order = sorted(range(len(dec.options)), key=lambda i: (not dec.options[i].static_ok, -dec.options[i].margin_m, i))
+    ranked = [dec.options[i] for i in order if dec.options[i].static_ok]
+    if not full:
+        dec.chosen = ranked[0] if ranked else None
+        dec.compute_s = time.perf_counter() - wall
+        return dec
+    budget = rp.budget_J(t0_s, problem)
+    best_effort = None
+    for opt in ranked[:MAX_FULL_CHECKS]:
+        try:
+            cand = rp.finish(problem, opt.chain, opt.speeds, t0_s, v0, f"{label} {opt.kind}", budget,
+                             stop_at=opt.stop_at, hold_until_s=opt.hold_until_s, trajectory=opt.trajectory,
+                             min_hold_s=min_hold)
+        except (PlanningError, InputError) as exc:
+            opt.why = str(exc)
+            continue
+        opt.candidate = cand
+        if cand.flyable:
+            dec.chosen = opt
+            break
+        other = [r for r in cand.reasons if not r.startswith(SEPARATION_PREFIX)]
+        opt.why = "; ".join(cand.reasons[:2])
+        if not other and best_effort is None:
+            best_effort = opt                 # valid but for the separation: the best loss
+    if dec.chosen is None:
+        dec.chosen = best_effort
+    if dec.chosen is not None:
+        dec.chosen.rejoin = _rejoin(dec.chosen.target_xyz_m, chain, speeds, nb, pb_path, cruise)
+    dec.compute_s = time.perf_counter() - wall
+    return dec

@@ -428,6 +428,9 @@ def navigation_error(times_s, los_enu, visible, imu: ImuSpec | VehicleProfile | 
     _kf_kernel(phis, qds, step_idx, los, vis, r_var, do_update, p0, out)
     if lead:
         t, los, vis, r_var, do_update, t_upd, out = (a[lead:] for a in (t, los, vis, r_var, do_update, t_upd, out))
+    elif initial_state is not None and abs(float(initial_state.t_update_s) - float(t[0])) <= 1e-9:
+        do_update = do_update.copy()
+        do_update[0] = True          # the state is that epoch's posterior: its update happened before
     d = np.diagonal(out, axis1=1, axis2=2)
     coords = {"time": ("time", t, {"units": "s", "long_name": "epoch"})}
     data = {

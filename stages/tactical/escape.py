@@ -16,14 +16,26 @@ direction ``e``).  Every option first brakes to a stop at the earliest point the
 plan turns within that distance, also at the same distance along the plan), then
 
 * ``hover``: holds at ``P_b``;
-* ``forward`` / ``back`` / ``left`` / ``right`` (horizontal directions of ``e``), each level,
+* ``forward`` / ``back`` / ``left`` / ``right`` and the four diagonals between them (horizontal
+  directions relative to ``e``), each level,
   ``climb`` or ``descend`` (a ramp at 0.98 x the vehicle's flight-path-angle limit: the limit is
   hard, so a multirotor's vertical escape climbs along a ramp, inside the AGL band of the maps)
   and over :data:`DISTANCE_FACTORS` x the separation ``S = r_p + r_i + d_c``: a stop corner at
-  ``P_b``, a straight leg to the target ``E``, and a hold there.
+  ``P_b``, a straight leg to the target ``E``, and a hold there;
 
-The hold lasts until every known intruder stays farther than :data:`CLEAR_FACTOR` x S from
-``E`` (closed form on its believed track, :func:`clear_time`), at least :data:`MIN_HOLD_S` and
+and without braking first:
+
+* ``dash``: straight on along ``e`` for :data:`DASH_FACTORS` x S, as fast as the airspeed limit
+  allows (away from an intruder closing from behind), then a stop and a hold;
+* ``turn-left`` / ``turn-right``: a level turn at once on the tightest radius the acceleration
+  limit allows (``v0^2 / a_max``) by :data:`TURN_ANGLES_DEG`, then braking straight to a stop
+  (:func:`~skyroute.stages.smoothing.turn_and_stop`) and a hold.
+
+The hold lasts until the conflict clears: every known intruder stays farther than
+:data:`CLEAR_FACTOR` x S from ``E`` (closed form on its believed track, :func:`clear_time`), and
+the route from ``E`` back to the plan and on to the goal, flown at its leg speeds from the end of
+the hold, keeps :data:`RESUME_FACTOR` x S from every known intruder (:func:`resume_time`: the
+earliest such start on a :data:`RESUME_STEP_S` grid); at least :data:`MIN_HOLD_S` and
 at most :data:`MAX_HOLD_S` (the n-th escape of a flight holds at least ``2^n`` x the minimum:
 a conflict that does not clear with time, e.g. a new obstacle, is not retried in a tight loop);
 the replay then replans from the hold (levels 1-3 again, first the
@@ -52,19 +64,23 @@ import numpy as np
 
 from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.smoothing import turn_and_stop
-from skyroute.stages.tactical.conflict import IntruderTracks, min_separation
+from skyroute.stages.tactical.conflict import IntruderTracks, first_conflict, min_separation
 
-__all__ = ["CLEAR_FACTOR", "DISTANCE_FACTORS", "EscapeDecision", "EscapeOption", "MAX_ESCAPES", "MAX_HOLD_S",
-           "MIN_HOLD_S", "clear_time", "plan_escape"]
+__all__ = ["CLEAR_FACTOR", "DISTANCE_FACTORS", "EscapeDecision", "EscapeOption", "HOLD_LOOKAHEAD_S", "MAX_ESCAPES",
+           "MAX_HOLD_S", "MIN_HOLD_S", "clear_time", "plan_escape", "resume_time"]
 
 CLEAR_FACTOR = 2.0              # the hold ends once every known intruder stays this many separations away
 MIN_HOLD_S = 1.0                # [s] shortest hold at the escape point
 MAX_HOLD_S = 300.0              # [s] longest hold before the replay tries to resume anyway
 MAX_ESCAPES = 6                 # escapes per flight; then the vehicle stays on hold (operator)
 DISTANCE_FACTORS = (1.5, 3.0)   # escape distances in separations S
+DASH_FACTORS = (3.0, 6.0)       # dashes straight on at full speed, in separations S
 RAMP_FRACTION = 0.98            # climb / descent ramps at this fraction of the flight-path-angle limit
 SCREEN_DT_S = 0.25              # [s] sampling of the screen
 TURN_ANGLES_DEG = (45.0, 90.0, 135.0)   # turns at once (tightest radius), then brake
+RESUME_STEP_S = 0.5             # [s] step of the search for the end of a hold
+RESUME_FACTOR = 1.25            # the route resumed after a hold keeps this many separations (its smoothing differs)
+HOLD_LOOKAHEAD_S = 15.0         # [s] a hold is checked as lasting this much longer (it ends only when replaced)
 MAX_FULL_CHECKS = 6             # options that go through the full STEP III per decision
 SEPARATION_PREFIX = "separation from intruder"
 
@@ -161,6 +177,27 @@ def clear_time(tracks: IntruderTracks, radius_m: np.ndarray, point_xyz_m, t_from
     return last
 
 
+def resume_time(tracks: IntruderTracks, sep_m: np.ndarray, chain: np.ndarray, speeds: np.ndarray, t_from_s: float,
+                t_to_s: float, step_s: float = RESUME_STEP_S) -> float | None:
+    """The earliest time [s] in ``[t_from_s, t_to_s]`` (every ``step_s``) from which flying
+    ``chain`` (k, 3) [m] at its leg ``speeds`` (k-1,) [m/s] (a piecewise-linear timing, the
+    route after a hold) keeps ``sep_m`` (N,) [m] from every intruder of ``tracks``
+    (:func:`~skyroute.stages.tactical.conflict.first_conflict`, exact on the polyline); None when
+    no start time in the window does."""
+    legs = np.linalg.norm(np.diff(chain, axis=0), axis=1)
+    keep = np.r_[True, legs > 1e-6]
+    ch = chain[keep]
+    sp = np.maximum(speeds[keep[1:]], 1e-3)
+    legs = legs[keep[1:]]
+    if ch.shape[0] < 2:
+        return t_from_s
+    rel = np.concatenate([[0.0], np.cumsum(legs / sp)])
+    for T in np.arange(t_from_s, t_to_s + 1e-9, step_s):
+        if first_conflict(T + rel, ch, tracks, sep_m) is None:
+            return float(T)
+    return None
+
+
 def _unit(v: np.ndarray) -> np.ndarray | None:
     n = float(np.linalg.norm(v))
     return v / n if n > 1e-9 else None
@@ -170,7 +207,9 @@ def _targets(pb: np.ndarray, e_h: np.ndarray, sep_m: float, tan_ramp: float) -> 
     """Escape targets from the stop point ``pb``: (kind, E)."""
     n = np.array([-e_h[1], e_h[0], 0.0])                    # left of the direction of travel
     out: list[tuple[str, np.ndarray]] = [("hover", pb.copy())]
-    dirs = (("left", n), ("right", -n), ("back", -e_h), ("forward", e_h))
+    r2 = math.sqrt(0.5)
+    dirs = (("left", n), ("right", -n), ("back", -e_h), ("forward", e_h), ("back-left", r2 * (n - e_h)),
+            ("back-right", r2 * (-n - e_h)), ("forward-left", r2 * (n + e_h)), ("forward-right", r2 * (e_h - n)))
     for fac in DISTANCE_FACTORS:
         d = fac * sep_m
         for vert, sz in (("", 0.0), ("-climb", 1.0), ("-descend", -1.0)):
@@ -239,6 +278,10 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
             else:
                 candidates.append((bname + kind, np.concatenate([base, E[None]]), np.concatenate([bsp, [cruise]]),
                                    (base.shape[0] - 1,), E, None))
+    v_dash = float(rp.veh.max_airspeed_mps)  # corner_trajectory caps it by the airspeed in the wind
+    for fac in DASH_FACTORS:                 # straight on, as fast as the limits allow, then brake
+        E = p0 + fac * sep_m * e
+        candidates.append((f"dash {fac * sep_m:.0f} m", np.stack([p0, E]), np.array([max(v_dash, v0)]), (), E, None))
     if v0 > 1.0:                             # turns at once, at the acceleration limit, then brake
         n = np.array([-e_h[1], e_h[0], 0.0])
         R = v0 * v0 / lim.max_acceleration_mps2 * (1.0 + 1e-9)
@@ -252,7 +295,8 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
                 candidates.append((f"turn-{side} {ang:.0f} deg", np.stack([p0, E]), np.array([cruise]), (), E, tr))
     for kind, ch, sp, stop, E, turn in candidates:
         hold_until = clear_time(tracks, CLEAR_FACTOR * sep, E, t0_s) if tracks is not None else t0_s
-        opt = EscapeOption(kind, E, ch, sp, stop, hold_until, trajectory=turn)
+        opt = EscapeOption(kind, E, ch, sp, stop, hold_until, trajectory=turn,
+                           rejoin=_rejoin(E, chain, speeds, nb, pb_path, cruise))
         dec.options.append(opt)
         try:
             if turn is not None:
@@ -261,6 +305,10 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
                 legs = np.linalg.norm(np.diff(ch, axis=0), axis=1)
                 traj = smooth_chain(problem, ch, legs / sp, v_start_mps=v0, stop_at=stop)
             arrive = t0_s + traj.duration_s
+            if tracks is not None:
+                t_res = resume_time(tracks, RESUME_FACTOR * sep, *opt.rejoin, max(arrive + min_hold, hold_until),
+                                    arrive + MAX_HOLD_S)
+                hold_until = max(hold_until, t_res if t_res is not None else hold_until)
             hold = min(max(hold_until - arrive, min_hold), MAX_HOLD_S)
             opt.hold_until_s = arrive + hold
             traj = traj.with_hold(hold)
@@ -311,7 +359,5 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
             best_effort = opt                 # valid but for the separation: the best loss
     if dec.chosen is None:
         dec.chosen = best_effort
-    if dec.chosen is not None:
-        dec.chosen.rejoin = _rejoin(dec.chosen.target_xyz_m, chain, speeds, nb, pb_path, cruise)
     dec.compute_s = time.perf_counter() - wall
     return dec

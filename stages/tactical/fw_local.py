@@ -79,7 +79,9 @@ __all__ = ["LocalPlannerParams", "StaticObstacle", "LocalAgent", "LocalTrack", "
            "prism_distance_m", "simulate_local", "separation_threshold_m", "fly_fixedwing_fleet",
            "brute_force_min_separation", "obstacle_clearance_m", "local_flight_log"]
 
-MODES = ("strategic", "climb", "right", "left")
+MODES = ("strategic", "climb", "right", "left", "loiter", "descend")
+ESCAPES = ("right", "left", "climb", "loiter", "descend")   # a non-cooperative UAV: the one that keeps most
+ESCAPE_TURN_RAD = math.pi / 2                                # right / left: a 90 deg turn, then straight
 SLOW_EVERY = 5     # ticks between wind samples and terrain-guard checks
 
 
@@ -291,20 +293,61 @@ def _cpa(dp: np.ndarray, dv: np.ndarray) -> tuple[float, float]:
     return tc, float(np.linalg.norm(dp + dv * max(tc, 0.0)))
 
 
-def _side_for_track(dp: np.ndarray, v_other: np.ndarray, v_own: np.ndarray) -> str:
-    """Side of the avoidance for a non-cooperative UAV (it keeps its track): ``right`` (rules
-    of the air) head-on (horizontal velocities more than 135 deg apart) and whenever turning
-    45 deg left does not give a miss distance larger by more than 1 m."""
-    vo, vt = np.asarray(v_own, float)[:2], np.asarray(v_other, float)[:2]
-    no, nt = float(np.linalg.norm(vo)), float(np.linalg.norm(vt))
-    if no > 0 and nt > 0 and float(vo @ vt) / (no * nt) < math.cos(math.radians(135.0)):
-        return "right"
+def _choose_escape(pos, psi: float, V: float, wind, t0: float, track: LocalTrack, S: float, params: LocalPlannerParams,
+                   gam_u: float, gam_d: float, tanb: float, cosg: float, floor_at) -> dict:
+    """The escape from a non-cooperative UAV (issue 22): among :data:`ESCAPES` -- seed 002's
+    right turn (90 deg at the turn-rate limit, then straight), the left turn, the climb (straight
+    at the climb-rate limit), a loiter (a continuous right turn on the tightest circle) and a
+    descent (where the floor allows) -- the one whose predicted minimum distance to the UAV's
+    known track over ``horizon_s`` is largest (right first on a tie: the rules of the air).
+    Prediction and flight use the same point-mass integration with the same commands.  Returns
+    what the manoeuvre record needs: ``kind``, the commands, ``predicted_min_m``,
+    ``t_cpa_pred_s``, ``keeps_separation``, ``options`` (every escape's predicted minimum)."""
+    wall = time.perf_counter()
+    dt = params.tick_s
+    n = int(params.horizon_s / dt)
+    tt = t0 + dt * np.arange(1, n + 1)
+    ts, xs = np.asarray(track.t_s, float), np.asarray(track.xyz_m, float)
+    live = (tt >= ts[0]) & (tt <= ts[-1])
+    q = np.column_stack([np.interp(tt, ts, xs[:, k]) for k in range(3)])
+    om_max = (1 - 1e-3) * G0 * tanb * cosg / V
+    w = np.asarray(wind, float)
     out = {}
-    for side, a in (("right", -math.pi / 4), ("left", math.pi / 4)):
-        c, sn = math.cos(a), math.sin(a)
-        vo = np.array([c * v_own[0] - sn * v_own[1], sn * v_own[0] + c * v_own[1], v_own[2]])
-        out[side] = _cpa(dp, v_other - vo)[1]
-    return "left" if out["left"] > out["right"] + 1.0 else "right"
+    for kind in ESCAPES:
+        osg = {"right": -1.0, "left": 1.0, "loiter": -1.0}.get(kind, 0.0)
+        hsg = {"climb": 1.0, "descend": -1.0}.get(kind, 0.0)
+        lim = ESCAPE_TURN_RAD if kind in ("right", "left") else (math.inf if kind == "loiter" else 0.0)
+        x, y, z, ps, turned = float(pos[0]), float(pos[1]), float(pos[2]), float(psi), 0.0
+        path = np.empty((n, 3))
+        for k in range(n):
+            om = osg * om_max if turned < lim else 0.0
+            turned += abs(om) * dt
+            v_gh = math.hypot(V * math.cos(ps) + w[0], V * math.sin(ps) + w[1])
+            hd = 0.0
+            if hsg > 0:
+                hd = (1 - 1e-3) * math.tan(gam_u) * min(V * math.cos(gam_u), v_gh)
+            elif hsg < 0:
+                hd = -(1 - 1e-3) * math.tan(gam_d) * min(V * math.cos(gam_d), v_gh)
+            Vh = math.sqrt(max(V * V - hd * hd, 0.0))
+            if abs(om) < 1e-12:
+                dx, dy = Vh * math.cos(ps) * dt, Vh * math.sin(ps) * dt
+            else:
+                dx = Vh / om * (math.sin(ps + om * dt) - math.sin(ps))
+                dy = -Vh / om * (math.cos(ps + om * dt) - math.cos(ps))
+            x, y, z, ps = x + dx + w[0] * dt, y + dy + w[1] * dt, z + hd * dt, ps + om * dt
+            path[k] = (x, y, z)
+        if kind == "descend" and floor_at is not None:
+            fl = np.asarray(floor_at(path[:, 0], path[:, 1]), float)
+            if np.any(~np.isfinite(fl) | (path[:, 2] < fl)):
+                continue                              # the descent would go below the floor
+        d = np.where(live, np.linalg.norm(path - q, axis=1), np.inf)
+        k = int(np.argmin(d))
+        out[kind] = (float(d[k]), float(tt[k]), osg, hsg, lim)
+    best = max(out, key=lambda kk: (out[kk][0], -ESCAPES.index(kk)))
+    dmin, tcpa, osg, hsg, lim = out[best]
+    return {"kind": best, "omega_sign": osg, "hdot_sign": hsg, "turn_limit_rad": lim, "turned_rad": 0.0,
+            "predicted_min_m": dmin, "t_cpa_pred_s": tcpa, "keeps_separation": bool(dmin >= S),
+            "options": {kk: round(v[0], 2) for kk, v in out.items()}, "compute_s": time.perf_counter() - wall}
 
 
 def _energy(xyz: np.ndarray, wind_at, vehicle) -> float:
@@ -326,7 +369,7 @@ def _zero_wind(xyz):
 def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticObstacle] = (),
                    intruders: Sequence[LocalTrack] = (), params: LocalPlannerParams = LocalPlannerParams(),
                    wind_at: Callable | None = None, floor_at: Callable | None = None,
-                   baseline: bool = True) -> LocalResult:
+                   baseline: bool = True, known_from_s: dict[str, float] | None = None) -> LocalResult:
     """Fly ``agents`` together with seed 002's local planner (module docstring).
 
     ``wind_at(xyz (m, 3)) -> (m, 3)`` [m/s] (default still air); ``floor_at(x (m,), y (m,))
@@ -334,8 +377,11 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
     starts at its first planned sample and time with the heading of its first chord.  With
     ``baseline`` each agent also flies alone without obstacles and intruders (the undisturbed
     flight: ``baseline_arrived_s``, ``baseline_energy_J``), the reference of ``delay_s`` and
-    ``added_energy_J`` (so that they measure the manoeuvres, not the path following)."""
+    ``added_energy_J`` (so that they measure the manoeuvres, not the path following).
+    ``known_from_s``: intruder id -> the time [s] from which the aircraft knows of it (U-space /
+    V2V, issue 22): it is then sensed whatever its distance."""
     t_wall = time.perf_counter()
+    known_from_s = dict(known_from_s or {})
     wind_at = wind_at or _zero_wind
     dt = float(params.tick_s)
     n = len(agents)
@@ -433,26 +479,31 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
                     continue
                 dist = float(np.linalg.norm(pj - pos[i]))
                 m = engaged_uav[i].get(key)
-                if dist > params.uav_range_m:
+                S = separation_threshold_m(radius[i], rj, params.d_c_m)
+                sensed = dist <= params.uav_range_m or (j < 0 and t >= known_from_s.get(key, math.inf))
+                prim_m = m is not None and "omega_sign" in m      # an escape ends when its threat has cleared
+                cleared = prim_m and t > m["t_cpa_pred_s"] and dist > params.alert_factor * S
+                if (not sensed and not prim_m) or cleared:
                     if m is not None:
                         m["t_end_s"] = t
                         del engaged_uav[i][key]
                     continue
                 if m is None:
-                    S = separation_threshold_m(radius[i], rj, params.d_c_m)
                     tc, dcpa = _cpa(pj - pos[i], vj - vel[i])
                     if (0.0 < tc <= params.horizon_s and dcpa < params.alert_factor * S) or dist < params.alert_factor * S:
-                        side = "right" if j >= 0 else _side_for_track(pj - pos[i], vj, vel[i])
-                        m = {"agent": agents[i].id, "kind": side, "threat": key, "t_start_s": t, "t_end_s": math.inf,
+                        m = {"agent": agents[i].id, "kind": "right", "threat": key, "t_start_s": t, "t_end_s": math.inf,
                              "t_cpa_s": t + tc, "d_cpa_m": dcpa, "distance_m": dist, "feasible": True}
+                        if j < 0:             # non-cooperative: the escape that keeps the most separation
+                            tr = next(x for x in intruders if x.id == key)
+                            m.update(_choose_escape(pos[i], psi[i], airspeed(i, pos[i, 2]), winds[i], t, tr, S,
+                                                    params, gam_u[i], gam_d[i], tanb[i], cosg[i], floor_at))
                         engaged_uav[i][key] = m
                         manoeuvres.append(m)
-            if engaged_uav[i]:
+            prim = next((m for m in engaged_uav[i].values() if "omega_sign" in m), None)
+            if engaged_uav[i] and prim is None:       # UAVs of the fleet: rules of the air, both turn right
                 tg = ch.tangent(min(s[i] + L, ch.length))
-                left = all(m["kind"] == "left" for m in engaged_uav[i].values())
-                sgn = -1.0 if left else 1.0
-                carrot = carrot + sgn * params.avoid_offset_m * np.array([tg[1], -tg[0], 0.0])
-                mode = "left" if left else "right"
+                carrot = carrot + params.avoid_offset_m * np.array([tg[1], -tg[0], 0.0])
+                mode = "right"
             # ---- altitude command
             z_cmd = float(ch.at(s[i] + V * 2.0)[2])
             for o in obstacles:
@@ -511,6 +562,20 @@ def simulate_local(agents: Sequence[LocalAgent], *, obstacles: Sequence[StaticOb
             h_up = (1 - 1e-3) * math.tan(gam_u[i]) * min(V * math.cos(gam_u[i]), v_gh)
             h_dn = (1 - 1e-3) * math.tan(gam_d[i]) * min(V * math.cos(gam_d[i]), v_gh)
             hdot = max(-h_dn, min(h_up, (z_cmd - pos[i, 2]) / 2.0))
+            if prim is not None:                       # the chosen escape, flown as it was predicted
+                om = 0.0
+                if prim["turned_rad"] < prim["turn_limit_rad"]:
+                    om = prim["omega_sign"] * om_max
+                    prim["turned_rad"] += om_max * dt
+                if prim["hdot_sign"] > 0:
+                    hdot = h_up
+                elif prim["hdot_sign"] < 0:
+                    hdot = -h_dn
+                    if floor_at is not None and i in guard:   # the terrain guard has the last word
+                        hdot = max(hdot, min(h_up, (guard[i] - pos[i, 2]) / 2.0))
+                else:
+                    hdot = 0.0 if mode != "climb" else hdot
+                mode = prim["kind"] if mode == "strategic" or prim["kind"] != "climb" else mode
             # ---- log the state at t, then integrate one tick exactly
             lg = logs[i]
             lg["t"].append(t)
@@ -677,17 +742,23 @@ def local_flight_log(result: LocalResult, agent: int, *, scenario: str, crs_wkt:
     mine = [m for m in result.manoeuvres if m["agent"] == ident]
     for r, m in enumerate(mine):
         reason = "" if m["feasible"] else "sensed too late for the climb angle"
-        t_coll = m["t_cpa_s"] - m["t_start_s"] if m["kind"] == "right" else math.nan
+        uav = "omega_sign" in m or m["kind"] != "climb"
+        t_coll = m["t_cpa_s"] - m["t_start_s"] if uav else math.nan
+        ok = bool(m["feasible"]) and bool(m.get("keeps_separation", True))
+        if "predicted_min_m" in m:
+            opts = ", ".join(f"{k} {v:.1f} m" for k, v in m["options"].items())
+            reason = (f"predicted minimum distance {m['predicted_min_m']:.1f} m (best of: {opts})"
+                      + ("" if m["keeps_separation"] else "; UNAVOIDABLE: no manoeuvre keeps the separation"))
         log.attempts.append(LevelAttempt(r, f"{m['kind']} {m['threat']}", float(m["t_start_s"]), float(t_coll),
-                                         m["kind"], bool(m["feasible"]), math.nan, math.nan, math.nan, math.nan, 0.0,
+                                         m["kind"], ok, math.nan, math.nan, math.nan, math.nan, 0.0,
                                          0.0, math.nan, True, reason))
     evs = []
     for e in events:
         e = dict(e)
         hit = [m for m in mine if m["threat"] == e.get("id")]
         e["t_known_s"] = float(hit[0]["t_start_s"]) if hit else math.inf
-        e["outcome"] = ("climbed over" if hit[0]["kind"] == "climb" else f"turned {hit[0]['kind']}") if hit \
-            else "not a threat"
+        e["outcome"] = ({"climb": "climbed", "loiter": "loitered", "descend": "descended"}.get(
+            hit[0]["kind"], f"turned {hit[0]['kind']}") if hit else "not a threat")
         evs.append(e)
     log.events = evs
     log.intruders = list(tracks)
@@ -697,6 +768,9 @@ def local_flight_log(result: LocalResult, agent: int, *, scenario: str, crs_wkt:
     log.outcome = "goal" if arrived else "failed"
     log.reason = "" if arrived else f"did not reach the end of the plan by t = {t[-1]:.0f} s"
     log.energy_Wh = float(result.energy_J[agent]) / 3600.0
+    log.losses = [{"intruder": m["threat"], "t_s": float(m["t_start_s"]), "predicted_min_m": m["predicted_min_m"],
+                   "why": "no fixed-wing escape keeps the separation (the UAV is too fast or known too late)",
+                   "options": m["options"]} for m in mine if not m.get("keeps_separation", True)]
     log.warnings = [w for w in result.warnings if w.startswith(f"{ident}:")]
     p = result.params
     clear = obstacle_clearance_m(result, obstacles, agent)

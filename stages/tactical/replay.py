@@ -463,7 +463,12 @@ class _Replay:
 
                 update_zones(self, t_e)
             update_s = time.perf_counter() - t0
-            t_s, pts = self.tl.samples(t_e, p.tick_s)
+            while self._queue and self._queue[0][0] <= t_e + 1e-9 and self._queue[0][3].kind != "resume":
+                # events known at the same time are known together before the plan is checked
+                _t2, _e2, _n2, ev2 = heapq.heappop(self._queue)
+                self.apply(ev2, t_e)
+                self.event_log.append(_ev(ev2, t_e, math.inf, f"known with {ev.label}"))
+            t_s, pts = self.rest_samples(t_e)
             prob = self.problem(self.tl.sample(t_e), self.goal, zones_from_s=math.inf)   # zones: checked in time
             t_v, cause, detail = self.first_violation(t_s, pts, prob)
             if not math.isfinite(t_v):
@@ -516,6 +521,19 @@ class _Replay:
             self._tag(k, alert)
             self.event_log.append(_ev(ev, t_e, t_coll, f"replanned {best}", cause))
 
+    def rest_samples(self, t_from: float) -> tuple[np.ndarray, np.ndarray]:
+        """The plan from ``t_from`` [s] sampled every tick; a plan that ends in an escape's hold
+        is checked as holding :data:`~skyroute.stages.tactical.escape.HOLD_LOOKAHEAD_S` longer
+        (a hold ends only when a new plan replaces it)."""
+        from skyroute.stages.tactical.escape import HOLD_LOOKAHEAD_S
+
+        t_s, pts = self.tl.samples(t_from, self.p.tick_s)
+        if t_s.size and self.tl.segments[-1].part == "escape":
+            extra = t_s[-1] + np.arange(1, int(HOLD_LOOKAHEAD_S / self.p.tick_s) + 1) * self.p.tick_s
+            t_s = np.concatenate([t_s, extra])
+            pts = np.concatenate([pts, np.repeat(pts[-1:], extra.size, axis=0)])
+        return t_s, pts
+
     # -------------------------------------------------------------- alerting
     def alert(self, t_s: np.ndarray, pts: np.ndarray, t_e: float, t_v: float, detail) -> dict:
         """The DAA alert (:mod:`.daa`, intent-based) of a conflict found at ``t_e``: the
@@ -543,7 +561,7 @@ class _Replay:
         (the screen of :func:`~skyroute.stages.tactical.escape.plan_escape`)."""
         from skyroute.stages.tactical.escape import plan_escape
 
-        if t0 >= self.tl.t_end_s:
+        if t0 >= self.tl.t_end_s and self.tl.segments[-1].part != "escape":
             return True
         dec = plan_escape(self, t0, full=False)
         return dec.chosen is not None and dec.chosen.keeps_separation
@@ -557,7 +575,8 @@ class _Replay:
 
         t0 = self.effective_time(t0)
         dec = None
-        if self.p.escape and self.n_escapes < MAX_ESCAPES and t0 < self.tl.t_end_s:
+        holding = self.tl.segments[-1].part == "escape"        # hovering at the end of the timeline
+        if self.p.escape and self.n_escapes < MAX_ESCAPES and (t0 < self.tl.t_end_s or holding):
             dec = plan_escape(self, t0)
         opt = dec.chosen if dec is not None else None
         if opt is None or opt.candidate is None:
@@ -582,7 +601,8 @@ class _Replay:
             loss = {"replanning": k, "event": ev.label, "t_s": t0, "intruder": opt.intruder,
                     "predicted_margin_m": opt.margin_m,
                     "why": (f"no manoeuvre keeps the separation: the best, {opt.kind}, still comes "
-                            f"{-opt.margin_m:.1f} m inside it (the intruder is too fast or known too late)")}
+                            f"{-opt.margin_m:.1f} m inside it (the intruder is too fast or known too late)"),
+                    "options": dec.summary(6)}
             self.losses.append(loss)
             verdict += f"; UNAVOIDABLE: {loss['why']}"
         self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "escape", keeps, cand.C_l, cand.C_e, cand.f,

@@ -73,5 +73,10 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, c
     from skyroute.stages.tactical.outputs import fly_summary_line
 
     click.echo(fly_summary_line(section))
-    if section["outcome"] == "failed":
+    if section["outcome"] == "failed" or section.get("separation_lost"):
+        if section.get("separation_lost"):
+            lost = [r for r in section["min_separation"] if r["clearance_m"] is not None and r["clearance_m"] < 0]
+            why = "; ".join(u["why"] for u in section.get("unavoidable_losses", [])) or "no escape kept it"
+            click.echo(f"loss of separation: {', '.join(r['id'] for r in lost)} (closest "
+                       f"{min(r['min_distance_m'] for r in lost):.1f} m): {why}", err=True)
         sys.exit(3)

@@ -90,16 +90,10 @@ def encounter_case(scenario, *, cache=None, method: str | None = None) -> Encoun
     if kind == "fixed-wing":
         from skyroute.pipeline.fly_fw import local_params, local_problem
         from skyroute.stages.planning.step3 import wind_sampler
+        from skyroute.stages.tactical.fw_local import floor_sampler
 
         pr = local_problem(sc, res)
-        g = pr.grid
-
-        def floor_at(x, y):
-            r, c = g.index_of(np.asarray(x, float), np.asarray(y, float))
-            ok = (r >= 0) & (r < g.ny) & (c >= 0) & (c < g.nx)
-            return np.where(ok, pr.floor_m[np.clip(r, 0, g.ny - 1), np.clip(c, 0, g.nx - 1)], np.nan)
-
-        local = {"params": local_params(sc, None), "wind_at": wind_sampler(pr), "floor_at": floor_at}
+        local = {"params": local_params(sc, None), "wind_at": wind_sampler(pr), "floor_at": floor_sampler(pr)}
     return EncounterCase(sc.name, traj, float(t0), np.asarray(chosen.xyz_m[-1], float), _world(res), params, veh,
                          sc.mission.start_time_utc.isoformat(), chosen.dop_threshold, kind,
                          np.asarray(chosen.t_s, float), np.asarray(chosen.xyz_m, float),

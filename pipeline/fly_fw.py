@@ -86,6 +86,7 @@ def fly_fixedwing(sc: Scenario, *, cache: Cache | None = None, scheduler: str = 
     from skyroute.stages.tactical.fw_local import (
         LocalAgent,
         LocalTrack,
+        floor_sampler,
         local_flight_log,
         simulate_local,
     )
@@ -134,14 +135,11 @@ def fly_fixedwing(sc: Scenario, *, cache: Cache | None = None, scheduler: str = 
     tracks = [LocalTrack(tr.id, tr.t_s, tr.xyz_m, tr.radius_m) for tr in truth.values() if len(tr.t_s) >= 2]
     pr = local_problem(sc, result)
     g = pr.grid
+    floor_at = floor_sampler(pr)
 
-    def floor_at(x, y):
-        r, c = g.index_of(np.asarray(x, float), np.asarray(y, float))
-        ok = (r >= 0) & (r < g.ny) & (c >= 0) & (c < g.nx)
-        return np.where(ok, pr.floor_m[np.clip(r, 0, g.ny - 1), np.clip(c, 0, g.nx - 1)], np.nan)
-
+    known = {tr.id: float(tr.known_from_s) for tr in truth.values()}   # U-space / V2V: known at any range
     sim = simulate_local([LocalAgent("ownship", t_plan, x_plan, sc.vehicle)], obstacles=obstacles, intruders=tracks,
-                         params=params, wind_at=wind_sampler(pr), floor_at=floor_at)
+                         params=params, wind_at=wind_sampler(pr), floor_at=floor_at, known_from_s=known)
     log = local_flight_log(sim, 0, scenario=sc.name, crs_wkt=str(surface["surface"].rio.crs),
                            vertical_datum=surface["surface"].attrs.get("vertical_datum", ""),
                            start_time_utc=sc.mission.start_time_utc.isoformat(), planned_t_s=t_plan,

@@ -443,3 +443,35 @@ def test_a_flight_never_keeps_an_avoidable_conflict(encounter_cases, data):
         if method != "local":
             predicted = min(loss["predicted_margin_m"] for loss in o.log.losses)
             assert o.margin_m >= predicted - 1.0, (o.margin_m, predicted)
+
+
+def test_a_loss_no_manoeuvre_can_avoid_is_declared_and_proved(synthetic):
+    """An intruder at 25 m/s straight at the drone, known 1.5 s before: no escape keeps the
+    separation; the replay flies the best one, declares the loss with its predicted margin, the
+    flown margin (brute force) is no worse than predicted, the reachable-set bound proves that no
+    trajectory within the acceleration limit could have kept it, and the summary says so."""
+    from skyroute.stages.tactical.encounters import flown_losses, unavoidable_certificate
+    from skyroute.stages.tactical.outputs import flight_section
+    from skyroute.stages.tactical.replay import FlyParams, TacticalEvent, replay
+
+    T, w, cand = synthetic
+    tc = 40.0
+    p = cand.trajectory.sample([tc])[0]
+    vi = np.array([-25.0, 0.0, 0.0])
+    it = Intruder("fast", np.array([tc - 30, tc + 30]), np.stack([p - 30 * vi, p + 30 * vi]), 2.0)
+    ev = TacticalEvent(tc - 1.5, "intruder", "intruder fast", intruder=it)
+    log = replay(cand.trajectory, float(cand.t_s[0]), goal_xyz=T.CHAIN[-1], world=w, world_at=lambda t: w,
+                 events=[ev], strategic_intruders=[], vehicle=VEH, params=FlyParams(), start_time_utc=START,
+                 dop_threshold=None, scenario="synthetic")
+    margin = flown_losses(log)["fast"]
+    assert margin < 0 and log.losses and log.losses[0]["intruder"] == "fast"
+    assert margin >= log.losses[0]["predicted_margin_m"] - 0.5
+    t, pos = log.flown()
+    tk = tc - 1.5 + 0.5
+    p0 = np.array([np.interp(tk, t, pos[:, k]) for k in range(3)])
+    v0 = cand.trajectory.velocity([tk])[0]
+    assert unavoidable_certificate(p0, v0, tk, it.times_s, it.xyz_m, VEH.r_p_m + 2.0 + 5.0,
+                                   VEH.max_acceleration_mps2) is not None
+    sec = flight_section(log)
+    assert sec["separation_lost"] and sec["unavoidable_losses"][0]["predicted_margin_m"] < 0
+    assert any(a.level == "escape" and a.chosen and "UNAVOIDABLE" in a.reasons for a in log.attempts)

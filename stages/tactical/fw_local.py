@@ -77,7 +77,7 @@ from skyroute.stages.vehicle import G0, FixedWingProfile, load_vehicle
 
 __all__ = ["LocalPlannerParams", "StaticObstacle", "LocalAgent", "LocalTrack", "LocalResult", "cylinder_polygon",
            "prism_distance_m", "simulate_local", "separation_threshold_m", "fly_fixedwing_fleet",
-           "brute_force_min_separation", "obstacle_clearance_m", "local_flight_log"]
+           "brute_force_min_separation", "floor_sampler", "obstacle_clearance_m", "local_flight_log"]
 
 MODES = ("strategic", "climb", "right", "left", "loiter", "descend")
 ESCAPES = ("right", "left", "climb", "loiter", "descend")   # a non-cooperative UAV: the one that keeps most
@@ -688,15 +688,22 @@ def fly_fixedwing_fleet(problems: Sequence, *, planner: str = "eeastar", start_t
         agents.append(LocalAgent(ident, np.asarray(cand.t_s, float) + float(t0), np.asarray(cand.xyz_m, float),
                                  pr.vehicle))
     pr0 = problems[0]
-    g = pr0.grid
+    sim = simulate_local(agents, obstacles=obstacles, params=params, wind_at=wind_sampler(pr0),
+                         floor_at=floor_sampler(pr0))
+    return sim, cands
+
+
+def floor_sampler(problem) -> Callable:
+    """``floor_at(x, y) -> (m,)``: the lowest admissible altitude [m] of ``problem``'s floor
+    raster at map points (NaN outside the grid), the terrain guard of :func:`simulate_local`."""
+    g = problem.grid
 
     def floor_at(x, y):
         r, c = g.index_of(np.asarray(x, float), np.asarray(y, float))
         ok = (r >= 0) & (r < g.ny) & (c >= 0) & (c < g.nx)
-        return np.where(ok, pr0.floor_m[np.clip(r, 0, g.ny - 1), np.clip(c, 0, g.nx - 1)], np.nan)
+        return np.where(ok, problem.floor_m[np.clip(r, 0, g.ny - 1), np.clip(c, 0, g.nx - 1)], np.nan)
 
-    sim = simulate_local(agents, obstacles=obstacles, params=params, wind_at=wind_sampler(pr0), floor_at=floor_at)
-    return sim, cands
+    return floor_at
 
 
 def obstacle_clearance_m(result: LocalResult, obstacles: Sequence[StaticObstacle], agent: int = 0,

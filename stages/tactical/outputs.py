@@ -338,7 +338,12 @@ def flight_section(log: FlightLog) -> dict[str, Any]:
     every ``separation_step_s``), ``nofly`` (:func:`nofly_time_inside`), ``flight_time_s``,
     ``length_m``, ``energy_Wh`` (None when the log has none), ``compile_s`` and the replay's
     settings (``t_rep_s``, ``tick_s``, ``seed``, ``dop_threshold``), ``tactical_method`` (levels or
-    octant) and ``dense_zones`` (octant method: the zone definitions, :mod:`.octant_replan`)."""
+    octant) and ``dense_zones`` (octant method: the zone definitions, :mod:`.octant_replan`);
+    issue 22: ``escapes`` (each escape decision: kind, reflex, predicted margin, hold),
+    ``unavoidable_losses`` (predicted losses the flight had to accept, with why),
+    ``separation_lost`` (the brute-force flown minimum is below the required separation for
+    some intruder: ``skyroute fly`` exits 3) and ``alerts`` (per intruder: the highest DAA
+    alert level shown, when each level first showed, the smallest time to loss of separation)."""
     _check(log)
     t, p = log.flown()
     by: dict[int, list] = {}

@@ -457,17 +457,18 @@ class _Replay:
                 self.event_log.append(_ev(ev, t_e, math.inf, "after the flight ended"))
                 continue
             t0 = time.perf_counter()
-            self.apply(ev, t_e)
-            if p.method == "octant" and ev.kind in ("intruder", "intruder_update"):
-                from skyroute.stages.tactical.octant_replan import update_zones
-
-                update_zones(self, t_e)
-            update_s = time.perf_counter() - t0
+            batch = [ev]
             while self._queue and self._queue[0][0] <= t_e + 1e-9 and self._queue[0][3].kind != "resume":
-                # events known at the same time are known together before the plan is checked
-                _t2, _e2, _n2, ev2 = heapq.heappop(self._queue)
-                self.apply(ev2, t_e)
-                self.event_log.append(_ev(ev2, t_e, math.inf, f"known with {ev.label}"))
+                batch.append(heapq.heappop(self._queue)[3])   # known together before the plan is checked
+            for e in batch:
+                self.apply(e, t_e)
+                if p.method == "octant" and e.kind in ("intruder", "intruder_update"):
+                    from skyroute.stages.tactical.octant_replan import update_zones
+
+                    update_zones(self, t_e)
+            for e in batch[1:]:
+                self.event_log.append(_ev(e, t_e, math.inf, f"known with {ev.label}"))
+            update_s = time.perf_counter() - t0
             t_s, pts = self.rest_samples(t_e)
             prob = self.problem(self.tl.sample(t_e), self.goal, zones_from_s=math.inf)   # zones: checked in time
             t_v, cause, detail = self.first_violation(t_s, pts, prob)
@@ -628,7 +629,8 @@ class _Replay:
         levels 2 and 3, the landing, another escape).  False when the flight ends here."""
         seg = self.tl.segments[-1]
         t_end = self.tl.t_end_s
-        if seg.part != "escape" or seg.then_chain is None or t_e > t_end + 1e-9:
+        if (seg.part != "escape" or seg.then_chain is None or t_e > t_end + 1e-9
+                or ev.label != f"resume after escape {seg.replanning}"):     # a later escape replaced it
             self.event_log.append(_ev(ev, t_e, math.inf, "superseded"))
             return True
         k = self.n_replan

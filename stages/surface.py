@@ -93,7 +93,9 @@ from skyroute.stages.grid import (
     NODATA_POLICIES,
     Grid,
     coverage_problem,
+    filled_share,
     fill_holes,
+    regions_in_aoi,
     footprint_resample,
     read_window_holes,
 )
@@ -436,20 +438,96 @@ def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None =
     return out
 
 
-def terrain_from_dem(path: str | Path | list, grid: Grid, *, key: str = "data.terrain") -> tuple[np.ndarray, np.ndarray]:
-    """A DEM (GeoTIFF, VRT or list of tiles) on ``grid`` [m] as two bounds of the ground over
-    each cell: ``(max, min)`` over every DEM pixel overlapping the cell's footprint
-    (:func:`~skyroute.stages.grid.footprint_resample`; the max for minimum-AGL floors, the min
-    for maximum-AGL ceilings).  NoData holes inside the DEM's extent take the highest (for the
-    max) / lowest (for the min) valid height on their rim; AOI cells outside the extent are an
-    error that says so (``key`` names the scenario entry)."""
-    win, holes = read_window_holes(path, grid, what="terrain")
+def dem_sample_offset_px(path) -> tuple[float, str]:
+    """Where the samples of a DEM sit, in pixels from the corner of the pixel the geotransform
+    gives, and a text for the attrs: GDAL's geotransform always describes pixel areas and moves a
+    ``PixelIsPoint`` tie point by half a pixel (RFC 33), so the samples sit at the pixel centres
+    (0.5) for ``AREA_OR_POINT=Area`` and ``Point`` alike -- unless GDAL is told to ignore that
+    (``GTIFF_POINT_GEO_IGNORE=TRUE``): then the samples of a ``Point`` raster sit at the corners
+    (0.0)."""
+    import os
+
+    import rasterio
+    from rasterio.env import get_gdal_config
+
+    first = path[0] if isinstance(path, (list, tuple)) else path
+    with rasterio.open(first) as src:
+        aop = str(src.tags().get("AREA_OR_POINT") or "Area")
+    ignore = str(get_gdal_config("GTIFF_POINT_GEO_IGNORE") or os.environ.get("GTIFF_POINT_GEO_IGNORE", "")).upper()
+    if aop.lower() == "point" and ignore in ("TRUE", "YES", "ON", "1"):
+        return 0.0, "samples at the pixel corners (AREA_OR_POINT=Point read with GTIFF_POINT_GEO_IGNORE)"
+    return 0.5, f"samples at the pixel centres (AREA_OR_POINT={aop})"
+
+
+def patch_resample(values: np.ndarray, transform, crs, grid: Grid, how: str = "max", offset_px: float = 0.5
+                   ) -> np.ndarray:
+    """A sampled surface (``values``: samples of a continuous surface, NaN where none, at
+    ``transform * (j + offset_px, i + offset_px)``) on ``grid`` [m]: ``how="max"`` gives each cell
+    the highest sample of every lattice square (four neighbouring samples) that overlaps the cell,
+    ``"min"`` the lowest.  Any surface that stays between the lowest and the highest sample of
+    each lattice square (bilinear, either triangulation of the square, nearest sample, ...)
+    therefore lies within ``[min, max]`` at every point of the cell.  NaN samples take the value
+    of the nearest sample first (the surface is extended as a constant beyond the outer samples:
+    callers refuse cells outside the data's extent)."""
+    if how not in ("max", "min"):
+        raise InputError(f"patch resampling {how!r} must be 'max' or 'min'")
+    v = np.asarray(values, dtype=np.float64)
+    nan = np.isnan(v)
+    if nan.all():
+        return np.full(grid.shape, np.nan)
+    if nan.any():
+        from scipy.ndimage import distance_transform_edt
+
+        _, (ri, ci) = distance_transform_edt(nan, return_indices=True)
+        v = v[ri, ci]
+    v = np.pad(v, 1, mode="edge")
+    red = np.maximum if how == "max" else np.minimum
+    sq = red(red(v[:-1, :-1], v[1:, :-1]), red(v[:-1, 1:], v[1:, 1:]))
+    from affine import Affine
+
+    return footprint_resample(sq, transform * Affine.translation(offset_px - 1.0, offset_px - 1.0), crs, grid, how)
+
+
+@dataclass(frozen=True)
+class DemRaster:
+    """A DEM on the grid: ``terrain`` / ``terrain_min`` [m] (highest / lowest sample of every
+    lattice square touching the cell), ``notes`` for the attrs and ``warnings``."""
+
+    terrain: np.ndarray
+    terrain_min: np.ndarray
+    notes: str
+    warnings: tuple[str, ...] = ()
+
+
+def terrain_from_dem(path: str | Path | list, grid: Grid, *, key: str = "data.terrain") -> DemRaster:
+    """A DEM (GeoTIFF, VRT or list of tiles) on ``grid`` [m], read as the continuous surface
+    through its samples (not as flat-topped squares): ``terrain`` is the highest sample of every
+    lattice square (four neighbouring samples) that overlaps the cell (minimum-AGL floors), and
+    ``terrain_min`` the lowest (maximum-AGL ceilings), :func:`patch_resample`; between two samples
+    the ground can be as high as the higher of them.  The samples sit at the pixel centres, or at
+    the corners for a ``Point`` raster GDAL reads without its half-pixel shift
+    (:func:`dem_sample_offset_px`).  NoData regions inside the DEM's extent (also those touching
+    its edge) take the highest (for ``terrain``) / lowest (for ``terrain_min``) valid height on
+    their rim, with a warning giving the share of the AOI filled; AOI cells outside the extent
+    are an error that says which ``aoi.bounds`` fit (``key`` names the scenario entry)."""
+    win, holes = read_window_holes(path, grid, what="terrain DEM")
     msg = coverage_problem(win, holes, grid, what="terrain DEM", key=key)
     if msg:
         raise DataError(msg)
-    hi = footprint_resample(fill_holes(win, holes, "fill-max"), win.transform, win.crs, grid, "max")
-    lo = footprint_resample(fill_holes(win, holes, "fill-min"), win.transform, win.crs, grid, "min")
-    return hi, lo
+    off, reading = dem_sample_offset_px(path)
+    hi = patch_resample(fill_holes(win, holes, "fill-max"), win.transform, win.crs, grid, "max", off)
+    lo = patch_resample(fill_holes(win, holes, "fill-min"), win.transform, win.crs, grid, "min", off)
+    share = filled_share(win, holes, grid)
+    warns = []
+    if share > 0:
+        n, n_edge = regions_in_aoi(win, holes, grid)
+        warns.append(f"{key}: {n} NoData region(s) of the DEM ({n_edge} touching its edge) "
+                     f"cover {100 * share:.2f} % of the AOI's cells: filled with the highest height on each region's "
+                     "rim within the DEM for terrain (the lowest for terrain_min); give a DEM without holes for a "
+                     "surveyed ground")
+    notes = (f"DEM (data.terrain) read as the surface through its samples ({reading}): terrain = the highest, "
+             "terrain_min = the lowest sample of every lattice square touching the cell")
+    return DemRaster(hi, lo, notes, tuple(warns))
 
 
 #: Default side [m] of the square window of the grey opening that derives the ground from a DSM.
@@ -471,6 +549,7 @@ class DsmRaster:
     building: np.ndarray | None
     n_holes: int
     notes: str
+    warnings: tuple[str, ...] = ()
 
 
 def ground_from_dsm(dsm: np.ndarray, pixel_m: float, window_m: float = GROUND_WINDOW_M) -> np.ndarray:
@@ -512,9 +591,16 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
     filled = fill_holes(win, holes, nodata if nodata != "error" else "fill-max")
     surface = footprint_resample(filled, win.transform, win.crs, grid, "max")
     surface_min = footprint_resample(filled, win.transform, win.crs, grid, "min")
-    notes = f"NoData holes inside the extent: {holes.n_interior} ({nodata})"
+    n, n_edge = regions_in_aoi(win, holes, grid)
+    notes = f"NoData regions filled under the AOI: {n} ({nodata}, {n_edge} touching the raster's edge)"
+    share = filled_share(win, holes, grid)
+    how = ("the highest height on each region's rim within the raster" if nodata == "fill-max"
+           else "the nearest valid pixel")
+    warns = (f"{key}: {n} NoData region(s) of the DSM ({n_edge} touching its edge) cover "
+             f"{100 * share:.2f} % of the AOI's cells: filled with {how} ({key}.nodata: {nodata}; the other choices: "
+             f"{', '.join(p for p in NODATA_POLICIES if p != nodata)})",) if share > 0 else ()
     if not derive_ground:
-        return DsmRaster(surface, surface_min, None, None, None, holes.n_interior, notes)
+        return DsmRaster(surface, surface_min, None, None, None, n, notes, warns)
     px = abs(win.transform.a)
     ok = np.isfinite(filled)
     g_src = ground_from_dsm(filled, px, ground_window_m)
@@ -525,7 +611,7 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
     notes += (f"; ground derived from the DSM by a grey opening with a {ground_window_m:g} m square window "
               f"({int(np.ceil(ground_window_m / px)) | 1} px of {px:g} m); buildings: more than "
               f"{building_threshold_m:g} m above it over the whole cell (tall vegetation is not told apart)")
-    return DsmRaster(surface, surface_min, ground, ground_min, building, holes.n_interior, notes)
+    return DsmRaster(surface, surface_min, ground, ground_min, building, n, notes, warns)
 
 
 def burn_obstacles(surface: np.ndarray, terrain: np.ndarray, grid: Grid, obstacles) -> np.ndarray:
@@ -586,11 +672,13 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
     if surface_path is not None:
         dsm = dsm_on_grid(surface_path, grid, nodata=surface_nodata, derive_ground=terrain_path is None,
                           ground_window_m=ground_window_m, building_threshold_m=building_threshold_m)
-    warns: list[str] = []
+    warns: list[str] = list(dsm.warnings) if dsm is not None else []
     if terrain_path is not None:
-        terrain, terrain_min = terrain_from_dem(terrain_path, grid)
+        dem = terrain_from_dem(terrain_path, grid)
+        terrain, terrain_min = dem.terrain, dem.terrain_min
+        warns.extend(dem.warnings)
         datum = vertical_datum or "EGM96 geoid"
-        ground_src = "DEM (data.terrain), max / min over each cell"
+        ground_src = dem.notes
     elif dsm is not None:
         terrain, terrain_min = dsm.ground, dsm.ground_min
         datum = surface_datum

@@ -1,0 +1,201 @@
+"""A user's own city, first try (issue 24): the grid never leaves aoi.bounds, NoData regions
+touching a lidar tile's edge are filled conservatively, DEMs are read as the surface through
+their samples.  Every conservative claim is checked against a truth built finer than the grid,
+at points inside cells."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import rasterio
+from affine import Affine
+
+from skyroute.pipeline.errors import DataError, InputError
+from skyroute.pipeline.settings import parse_scenario
+from skyroute.stages.grid import Grid
+from skyroute.stages.surface import build_surface
+
+
+def _write(path, z, transform, crs, nodata=-9999.0, tags=None):
+    z = np.where(np.isnan(z), nodata, z).astype(np.float32)
+    with rasterio.open(path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0], count=1, dtype="float32",
+                       crs=crs, transform=transform, nodata=nodata) as dst:
+        if tags:
+            dst.update_tags(**tags)
+        dst.write(z, 1)
+    return path
+
+
+def _footprint_max(z, T, grid):
+    """Independent: the max of every source pixel overlapping each cell by > 1e-6 m (same CRS)."""
+    out = np.full(grid.shape, -np.inf)
+    xl = T.c + np.arange(z.shape[1]) * T.a
+    yt = T.f + np.arange(z.shape[0]) * T.e
+    r = grid.resolution_m
+    for i in range(grid.ny):
+        rows = (yt > grid.y1 - (i + 1) * r + 1e-6) & (yt + T.e < grid.y1 - i * r - 1e-6)
+        for j in range(grid.nx):
+            cols = (xl + T.a > grid.x0 + j * r + 1e-6) & (xl < grid.x0 + (j + 1) * r - 1e-6)
+            out[i, j] = z[np.ix_(rows, cols)].max()
+    return out
+
+
+# ----------------------------------------------------------------------------- 1. aoi.bounds
+def _scenario(aoi_bounds, res, dsm, tmp_path, nodata="fill-max"):
+    return parse_scenario({
+        "name": "own-dsm", "aoi": {"crs": "EPSG:32631", "bounds": list(aoi_bounds), "resolution_m": res},
+        "data": {"surface": {"path": str(dsm), "vertical_datum": "NAP", "nodata": nodata}},
+        "mission": {"start": {"x": aoi_bounds[0] + 5, "y": aoi_bounds[1] + 5, "alt_agl_m": 20},
+                    "goal": {"x": aoi_bounds[2] - 5, "y": aoi_bounds[3] - 5, "alt_agl_m": 20},
+                    "start_time_utc": "2020-01-03T10:00:00Z"}}, base=tmp_path)
+
+
+def test_the_grid_never_extends_past_aoi_bounds(tmp_path):
+    """Bounds 552608..553527 (919 m) at 2 m inside a DSM whose extent ends 0.5 m past them: the
+    grid snaps inward (918 m) and the surface is built, >= the DSM over every cell."""
+    T = Affine(0.5, 0.0, 552600.0, 0.0, -0.5, 5800100.0)
+    rng = np.random.default_rng(4)
+    z = rng.uniform(0, 3, (200, 1855))                      # extent x 552600 .. 553527.5
+    z[80:120, 400:460] = 25.0
+    dsm = _write(tmp_path / "dsm.tif", z, T, "EPSG:32631")
+    sc = _scenario((552608, 5800010, 553527, 5800090), 2.0, dsm, tmp_path)
+    g = sc.grid
+    assert g.bounds == (552608.0, 5800010.0, 553526.0, 5800090.0)
+    ds = build_surface(g, surface_path=dsm, surface_datum="NAP")
+    assert np.array_equal(ds["surface"].values, _footprint_max(z, T, g).astype(np.float32))
+    # the grid the old outward snapping made reached 1 m past the bounds and off the raster
+    with pytest.raises(DataError, match=r"set aoi.bounds to \[552608, 5800010, 553526, 5800090\]"):
+        build_surface(Grid.from_bounds("EPSG:32631", 552608, 5800010, 553527, 5800090, 2.0), surface_path=dsm,
+                      surface_datum="NAP")
+    # random bounds: inside them, and no whole lattice cell of them left out
+    for _ in range(200):
+        x0, y0 = rng.uniform(-1e4, 1e4, 2)
+        r = float(rng.choice([0.5, 1.0, 2.0, 3.0]))
+        w, h = rng.uniform(2 * r, 50, 2)
+        gi = Grid.from_bounds("EPSG:32631", x0, y0, x0 + w, y0 + h, r, inward=True)
+        b = gi.bounds
+        assert b[0] >= x0 - 1e-6 and b[1] >= y0 - 1e-6 and b[2] <= x0 + w + 1e-6 and b[3] <= y0 + h + 1e-6
+        assert b[0] - x0 < r and (x0 + w) - b[2] < r and b[1] - y0 < r and (y0 + h) - b[3] < r
+    with pytest.raises(InputError, match=r"aoi.bounds .* holds no whole 2 m cell.* widen aoi.bounds or lower "
+                       r"aoi.resolution_m"):
+        Grid.from_bounds("EPSG:32631", 10.5, 10.5, 11.9, 30, 2.0, inward=True)
+
+
+# ------------------------------------------------------------------ 2. lidar tile, NoData at edges
+def _lidar_truth():
+    """A 0.5 m lidar tile (100 m x 80 m) of a waterfront: ground 1-2 m, a canal at -0.4 m along
+    the west and south edges (NoData: water returns nothing), a building at the north edge with a
+    glass roof part at its roof height (NoData), an interior glass roof and a 30 m mast."""
+    ny, nx = 160, 200
+    ii, jj = np.mgrid[0:ny, 0:nx]
+    z = 1.0 + 0.005 * jj + 0.002 * ii
+    z[130:, :] = -0.4                       # canal along the south edge ...
+    z[:, :25] = -0.4                        # ... and the west edge: one region touching two edges
+    z[0:40, 90:150] = 14.0                  # building on the north edge
+    z[60:80, 120:140] = 9.0                 # building inside
+    z[100, 60] = 30.0                       # mast
+    holes = np.zeros_like(z, bool)
+    holes[132:, 10:] = True                 # water: the canal, minus a few quay pixels at its rim
+    holes[:, :23] = True
+    holes[134:, :23] = True
+    holes[0:12, 100:130] = True             # glass roof part touching the north edge (true height 14 m)
+    holes[65:72, 125:133] = True            # glass roof inside (true height 9 m)
+    return z, holes
+
+
+def test_lidar_nodata_touching_two_edges_is_filled_above_the_truth(tmp_path):
+    z, holes = _lidar_truth()
+    T = Affine(0.5, 0.0, 85000.0, 0.0, -0.5, 446080.0)
+    tile = _write(tmp_path / "ahn_tile.tif", np.where(holes, np.nan, z), T, "EPSG:28992")
+    for res, bounds in ((1.0, (85000, 446000, 85100, 446080)), (2.0, (85003.3, 446001.1, 85097.9, 446079.2))):
+        grid = Grid.from_bounds("EPSG:28992", *bounds, res, inward=True)
+        ds = build_surface(grid, surface_path=tile, surface_datum="NAP")
+        s = ds["surface"].values.astype(float)
+        assert np.all(s >= _footprint_max(z, T, grid) - 1e-5)         # the truth, every point of each cell
+        assert float(s.max()) == 30.0
+        warns = json.loads(ds.attrs["warnings"])
+        w = next(w for w in warns if "NoData region" in w)
+        share = (_footprint_max(holes.astype(float), T, grid) > 0).mean()
+        assert f"cover {100 * share:.2f} % of the AOI's cells" in w
+        assert "3 NoData region(s) of the DSM (2 touching its edge)" in w
+        assert "data.surface.nodata: fill-max; the other choices: fill-nearest, error" in w
+    # fill-nearest: filled too, named in the warning
+    ds = build_surface(grid, surface_path=tile, surface_datum="NAP", surface_nodata="fill-nearest")
+    assert np.isfinite(ds["surface"].values).all()
+    assert any("nearest valid pixel" in w for w in json.loads(ds.attrs["warnings"]))
+    # only the AOI part outside the raster is refused, naming the bounds that fit
+    with pytest.raises(DataError, match=r"covers only .* outside the raster's extent; set aoi.bounds to "
+                       r"\[85000, 446000, 85100, 446080\]"):
+        build_surface(Grid.from_bounds("EPSG:28992", 84990, 446000, 85100, 446080, 2.0), surface_path=tile,
+                      surface_datum="NAP")
+
+
+# ------------------------------------------------------------------ 4. DEM samples and their patches
+def _ridge_posts():
+    """20 x 20 posts at 30 m: a valley whose ridge crosses between the posts (its crest posts
+    alternate sides, so every lattice square on it has one high corner)."""
+    ii, jj = np.mgrid[0:20, 0:20].astype(float)
+    v = 500.0 + 3.0 * ii + 2.0 * jj
+    crest = (ii + jj) % 4 == 0
+    v[crest & (np.abs(ii - jj) < 6)] += 120.0
+    return v
+
+
+def _bilinear(v, cx, cy, spacing, x, y, diag=None):
+    """The surface through posts ``v`` (post (i, j) at (cx + j s, cy - i s)) at points (x, y):
+    bilinear, or with ``diag`` one of the two triangulations of each lattice square."""
+    u = (np.asarray(x) - cx) / spacing
+    w = (cy - np.asarray(y)) / spacing
+    j = np.clip(np.floor(u).astype(int), 0, v.shape[1] - 2)
+    i = np.clip(np.floor(w).astype(int), 0, v.shape[0] - 2)
+    fu, fw = np.clip(u - j, 0, 1), np.clip(w - i, 0, 1)
+    a, b, c, d = v[i, j], v[i, j + 1], v[i + 1, j], v[i + 1, j + 1]
+    if diag is None:
+        return a * (1 - fu) * (1 - fw) + b * fu * (1 - fw) + c * (1 - fu) * fw + d * fu * fw
+    if diag == "main":   # split along (0,0)-(1,1)
+        return np.where(fu >= fw, a + (b - a) * fu + (d - b) * fw, a + (c - a) * fw + (d - c) * fu)
+    return np.where(fu + fw <= 1, a + (b - a) * fu + (c - a) * fw, d + (c - d) * (1 - fu) + (b - d) * (1 - fw))
+
+
+def _points_in_cells(grid, k, rng):
+    r = grid.resolution_m
+    ii, jj = np.mgrid[0:grid.ny, 0:grid.nx]
+    pts = []
+    for fx, fy in [(0, 0), (1, 0), (0, 1), (1, 1), (0.5, 0.5)] + [tuple(rng.uniform(0, 1, 2)) for _ in range(k)]:
+        pts.append((ii, jj, grid.x0 + (jj + fx) * r, grid.y1 - (ii + fy) * r))
+    return pts
+
+
+@pytest.mark.parametrize("shift", [(0.0, 0.0), (0.5, 0.0), (0.5, 0.5)])
+def test_point_sampled_dem_with_a_ridge_between_posts_is_read_conservatively(tmp_path, shift):
+    """The terrain of every cell is >= any surface through the samples (bilinear, both
+    triangulations) at points inside the cell, terrain_min <= it; the same DEM georeferenced half
+    a spacing differently (and read with GDAL's PixelIsPoint shift ignored) holds as well; the
+    flat-square reading does not."""
+    v = _ridge_posts()
+    s = 30.0
+    T = Affine(s, 0.0, 380000.0 + shift[0] * s, 0.0, -s, 3795000.0 - shift[1] * s)
+    path = _write(tmp_path / "dem.tif", v, T, "EPSG:32611", tags={"AREA_OR_POINT": "Point"})
+    rng = np.random.default_rng(7)
+    cases = [({}, 0.5), ({"GTIFF_POINT_GEO_IGNORE": True}, 0.0)]
+    flat_below = 0
+    for env, off in cases:
+        with rasterio.Env(**env):
+            with rasterio.open(path) as src:
+                Tr = src.transform
+            cx, cy = Tr.c + off * s, Tr.f - off * s      # post (0, 0) where GDAL puts the sample
+            for res, pad in ((10.0, 61.3), (45.0, 47.0)):
+                grid = Grid.from_bounds("EPSG:32611", Tr.c + pad, Tr.f - 600 + 40, Tr.c + 600 - 40, Tr.f - pad, res)
+                ds = build_surface(grid, terrain_path=path, vertical_datum="EGM96 geoid")
+                hi, lo = ds["terrain"].values.astype(float), ds["terrain_min"].values.astype(float)
+                for ii, jj, x, y in _points_in_cells(grid, 12, rng):
+                    for diag in (None, "main", "anti"):
+                        truth = _bilinear(v, cx, cy, s, x, y, diag)
+                        assert np.all(hi[ii, jj] >= truth - 1e-4), (env, res, diag)
+                        assert np.all(lo[ii, jj] <= truth + 1e-4), (env, res, diag)
+                    flat = _footprint_max(v, Tr, grid)
+                    flat_below += int((flat[ii, jj] < _bilinear(v, cx, cy, s, x, y) - 1.0).sum())
+                assert ("pixel corners" in ds.attrs["ground_source"]) == (off == 0.0)
+    assert flat_below > 0     # the footprint (flat square) reading is below the surface somewhere

@@ -151,6 +151,8 @@ class BuildingRaster:
     sources: np.ndarray
     absolute: bool  # True: ``top`` is an absolute height; False: height above ground
     terrain: np.ndarray | None = None
+    terrain_min: np.ndarray | None = None   # the TIN's minimum over each cell
+    tin_full: np.ndarray | None = None      # cells the TIN covers whole
 
 
 # --------------------------------------------------------------------------- polygon-over-cell maxima
@@ -388,28 +390,49 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
     V, faces = b.vertices_m, b.faces
     roof_i = np.flatnonzero(b.is_roof)
     top, index = polygon_max([[V[np.asarray(r)] for r in faces[i]] for i in roof_i], grid, b.owner[roof_i])
-    tin = None
+    tin = tin_min = tin_full = None
     if b.tin_faces:
-        tin, _ = polygon_max([[V[np.asarray(r)] for r in f] for f in b.tin_faces], grid)
+        polys = [[V[np.asarray(r)] for r in f] for f in b.tin_faces]
+        tin, _ = polygon_max(polys, grid)
+        tin_min = -polygon_max([[P * np.array([1.0, 1.0, -1.0]) for P in poly] for poly in polys], grid)[0]
+        tin_full = _covered_cells(polys, grid) & np.isfinite(tin)
     raster = BuildingRaster(top, index, np.arange(len(b.ids), dtype=np.int64), b.roof_top_m(),
-                            np.asarray(["cityjson:" + i for i in b.ids]), absolute=True, terrain=tin)
+                            np.asarray(["cityjson:" + i for i in b.ids]), absolute=True, terrain=tin,
+                            terrain_min=tin_min, tin_full=tin_full)
     return raster, b.ground_points()
 
 
+def _covered_cells(polys, grid: Grid) -> np.ndarray:
+    """Cells whose closed square lies within the union of ``polys`` (outer rings, map x, y [m]):
+    every cell the complement (the grid's box minus the union) does not touch."""
+    r = grid.resolution_m
+    x0, y0, x1, y1 = grid.bounds
+    union = shapely.union_all([shapely.Polygon(np.asarray(p[0])[:, :2]) for p in polys])
+    rest = shapely.box(x0 - r, y0 - r, x1 + r, y1 + r).difference(union)
+    parts = [g for g in getattr(rest, "geoms", [rest]) if g.geom_type == "Polygon" and not g.is_empty]
+    if not parts:
+        return np.ones(grid.shape, bool)
+    rings = [[np.column_stack([np.asarray(ring.coords)[:-1, :2], np.zeros(len(ring.coords) - 1)])
+              for ring in (g.exterior, *g.interiors)] for g in parts]
+    _, index = polygon_max(rings, grid)
+    return index < 0
+
+
 def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None = None, *,
-                        lowest: bool = False) -> np.ndarray:
+                        lowest: bool = False, tin_full: np.ndarray | None = None) -> np.ndarray:
     """Terrain [m] from scattered ground points ``(n, 3)``: linear on their Delaunay triangles, each
     cell the maximum of that surface over the cell (:func:`polygon_max`; conservative for floors,
     like the surface); cells outside the points' hull take the nearest point's height.
     ``lowest``: the minimum over each cell instead (for maximum-AGL ceilings; the same kernel on
     the negated heights, exact for the linear interpolation).
 
-    ``tin`` (CityJSON ``TINRelief``, :attr:`BuildingRaster.terrain`): where finite, it replaces
-    the interpolation (the TIN's maximum over the cell; ignored with ``lowest``, where the TIN's
-    vertices, which are among ``points``, are interpolated on their own Delaunay triangles)."""
+    ``tin`` (CityJSON ``TINRelief``: its maximum over each cell, :attr:`BuildingRaster.terrain`,
+    or with ``lowest`` its minimum, :attr:`BuildingRaster.terrain_min`): the ground where it
+    covers the cell whole (``tin_full``; every cell it touches when None); a cell it covers in
+    part takes the higher (``lowest``: the lower) of the TIN and the interpolation."""
     if lowest:
         pts = np.asarray(points, np.float64).reshape(-1, 3) * np.array([1.0, 1.0, -1.0])
-        return -terrain_from_points(pts, grid)
+        return -terrain_from_points(pts, grid, None if tin is None else -np.asarray(tin), tin_full=tin_full)
     out = np.zeros(grid.shape)
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     if len(pts):
@@ -434,7 +457,9 @@ def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None =
             r, c = np.nonzero(miss)
             out[r, c] = NearestNDInterpolator(pts[:, :2], pts[:, 2])(grid.x[c], grid.y[r])
     if tin is not None:
-        out = np.where(np.isfinite(tin), tin, out)
+        has = np.isfinite(tin)
+        full = has if tin_full is None else has & tin_full
+        out = np.where(full, tin, np.where(has, np.fmax(tin, out), out))
     return out
 
 
@@ -687,10 +712,16 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
                      f"{ground_window_m:g} m window; AGL limits, landing and the risk map's buildings use it; "
                      "give data.terrain for a surveyed ground")
     elif len(ground_pts):
-        terrain = terrain_from_points(ground_pts, grid, braster.terrain)
-        terrain_min = terrain_from_points(ground_pts, grid, lowest=True)
+        terrain = terrain_from_points(ground_pts, grid, braster.terrain, tin_full=braster.tin_full)
+        terrain_min = terrain_from_points(ground_pts, grid, braster.terrain_min, lowest=True, tin_full=braster.tin_full)
+        # both bounds come from the same surfaces; the min also guards the one corner case where two
+        # Delaunay triangulations of cocircular points differ (lowering terrain_min is safe for ceilings)
+        terrain_min = np.minimum(terrain_min, terrain)
         datum = vertical_datum or "source data heights (CityJSON; NAP for Dutch data)"
-        ground_src = "CityJSON ground points, interpolated"
+        ground_src = ("CityJSON TINRelief (max / min over each cell), building ground surfaces where it does not "
+                      "reach" if braster.terrain is not None else
+                      "CityJSON ground: the lowest ground surface of each building (its parts included), "
+                      "interpolated")
     else:
         terrain = np.zeros(grid.shape)
         terrain_min = terrain

@@ -199,3 +199,78 @@ def test_point_sampled_dem_with_a_ridge_between_posts_is_read_conservatively(tmp
                     flat_below += int((flat[ii, jj] < _bilinear(v, cx, cy, s, x, y) - 1.0).sum())
                 assert ("pixel corners" in ds.attrs["ground_source"]) == (off == 0.0)
     assert flat_below > 0     # the footprint (flat square) reading is below the surface somewhere
+
+
+# ------------------------------------------------------------------ 3. CityJSON LoD2 with BuildingParts
+def _stacked_city(tmp_path, with_tin: bool):
+    """A Building with a part on the ground (GroundSurface 3.5 m, roof 13.6 m) and a part standing
+    on it (GroundSurface 13.6 m, gable roof up to 21 m), on a sloped TINRelief (3.1-4.4 m), in
+    EPSG:28992 -- the Den Haag case."""
+    from tests.test_surface_conservative import _cityjson_doc, _gable_house
+
+    xs = np.array([-4.1, 13.3, 28.9, 46.0])
+    X, Y = np.meshgrid(xs, xs + 0.7)
+    Z = 3.1 + 0.02 * X + 0.01 * Y
+    tin_v = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    tris = []
+    for i in range(3):
+        for j in range(3):
+            a, b, c, d = i * 4 + j, i * 4 + j + 1, (i + 1) * 4 + j + 1, (i + 1) * 4 + j
+            tris += [[[a, b, c]], [[a, c, d]]]
+    V1, f1, sem1 = _gable_house(12.3, 11.7, 16.0, 12.0, 13.6, 13.6, 8.0, ground=3.5)      # flat-roofed part
+    V2, f2, sem2 = _gable_house(15.1, 14.9, 8.0, 6.0, 18.0, 21.0, 8.0, ground=13.6)      # part on the part
+    verts = [tin_v, V1, V2] if with_tin else [V1, V2]
+    b1 = len(tin_v) if with_tin else 0
+    b2 = b1 + len(V1)
+    objs = {
+        "bldg": {"type": "Building", "children": ["bldg-1", "bldg-2"], "attributes": {}},
+        "bldg-1": {"type": "BuildingPart", "parents": ["bldg"], "geometry": [{
+            "type": "MultiSurface", "lod": "2.2", "semantics": sem1,
+            "boundaries": [[[b1 + i for i in ring] for ring in f] for f in f1]}]},
+        "bldg-2": {"type": "BuildingPart", "parents": ["bldg"], "geometry": [{
+            "type": "MultiSurface", "lod": "2.2", "semantics": sem2,
+            "boundaries": [[[b2 + i for i in ring] for ring in f] for f in f2]}]},
+    }
+    if with_tin:
+        objs["relief"] = {"type": "TINRelief", "geometry": [{"type": "TIN", "lod": "1", "boundaries": tris}]}
+    path = tmp_path / f"city_{int(with_tin)}.city.json"
+    path.write_text(json.dumps(_cityjson_doc(np.vstack(verts), objs)))
+    roofs = [V1[[4, 5, 9, 8]], V1[[7, 8, 9, 6]], V2[[4, 5, 9, 8]], V2[[7, 8, 9, 6]]]
+    return path, [tin_v[t[0]] for t in tris], roofs
+
+
+@pytest.mark.parametrize("with_tin", [True, False])
+def test_cityjson_building_part_on_a_part_is_not_ground(tmp_path, with_tin):
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.runner import run_scenario
+    from tests.test_surface_conservative import _face_heights_at, _random_points_in_cells
+
+    path, tin_faces, roofs = _stacked_city(tmp_path, with_tin)
+    grid = Grid.from_bounds("EPSG:28992", 0, 0, 40, 40, 1.0)
+    ds = build_surface(grid, buildings_path=path, buildings_format="cityjson")
+    hi, lo = ds["terrain"].values.astype(float), ds["terrain_min"].values.astype(float)
+    assert np.all(lo <= hi)
+    rng = np.random.default_rng(9)
+    rows, cols = np.mgrid[0:grid.ny, 0:grid.nx]
+    rr, cc, x, y = _random_points_in_cells(grid, rows.ravel(), cols.ravel(), 6, rng)
+    if with_tin:     # the ground is the TIN: bounds of it at every point of every cell
+        z = _face_heights_at(tin_faces, x, y)
+        assert np.isfinite(z).all()
+        assert np.all(hi[rr, cc] >= z - 1e-5) and np.all(lo[rr, cc] <= z + 1e-5)
+        assert "TINRelief" in ds.attrs["ground_source"]
+    else:            # the ground is the lowest ground surface (3.5 m), never the stacked part's 13.6 m
+        assert hi.max() == pytest.approx(3.5, abs=1e-5) and lo.min() == pytest.approx(3.5, abs=1e-5)
+        assert "lowest ground surface of each building" in ds.attrs["ground_source"]
+    zr = _face_heights_at(roofs, x, y)
+    has = np.isfinite(zr)
+    assert np.all(ds["surface"].values[rr[has], cc[has]] >= zr[has] - 1e-5)
+    assert float(ds["surface"].max()) == pytest.approx(21.0, abs=1e-5)
+    # a user who gave only the CityJSON: the maps build (no internal invariant reaches them)
+    sc = parse_scenario({
+        "name": "own-cityjson", "aoi": {"crs": "EPSG:28992", "bounds": [0, 0, 40, 40], "resolution_m": 1.0},
+        "data": {"buildings": {"path": str(path), "format": "cityjson"}},
+        "mission": {"start": {"x": 2, "y": 2, "alt_agl_m": 5}, "goal": {"x": 38, "y": 38, "alt_agl_m": 5},
+                    "start_time_utc": "2020-01-03T10:00:00Z"}}, base=tmp_path)
+    out = run_scenario(sc, cache=Cache(tmp_path / "cache"), targets=["clearance"])
+    clr = out["clearance"].load()
+    assert np.all(clr["max_altitude_m"].values >= clr["min_altitude_m"].values.min())

@@ -201,7 +201,7 @@ def write_folder_summary(out_dir: Path, command: str, result, files, sections: d
 
     rel = relative_files(out_dir, files)
     remove_stale(Path(out_dir), previous_summary(Path(out_dir)), rel, command)
-    warnings = stage_warnings(result)
+    warnings = stage_warnings(result) + [n for n in (sections.get("exports") or {}).get("notes", [])]
     _report_warnings(warnings)
     sc = result.scenario
     return write_summary(out_dir, command, rel, warnings, {

@@ -240,7 +240,10 @@ def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, 
     (default the scenario's start altitude) above the ground: start and goal drawn uniformly
     among the pairs ``min_km``-``max_km`` apart, departure uniform in ``[0, window_s]`` [s],
     operator ``op-1..op-<operators>``, priority 1 with probability ``priority_share`` (else 0),
-    the scenario's vehicle and the default DOP level.  ``np.random.default_rng(seed)``.
+    the scenario's vehicle and the default DOP level.  ``np.random.default_rng(seed)``.  A site
+    is usable when the mission altitude above it lies between the clearance floor and ceiling
+    (not no-fly); a pair is drawn only when both lie in one 8-connected region of cells where
+    the vehicle may be at some altitude.
 
     A city without such a pair of landing sites (a user's own DSM or CityJSON) gets candidate
     sites derived from open ground (:func:`skyroute.stages.landing.open_ground_sites`: no
@@ -254,23 +257,30 @@ def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, 
     else:
         sx = sy = np.zeros(0)
 
+    from scipy import ndimage
+
+    floor_all = np.asarray(clear["min_altitude_m"].values, float)
+    ceil_all = np.asarray(clear["max_altitude_m"].values, float)
+    nofly_all = np.asarray(clear["nofly"].values, bool) if "nofly" in clear else np.zeros(g.shape, bool)
+    # cells where the vehicle may be at some altitude, and their 8-connected regions: a pair of
+    # sites in two regions has no path at all
+    region, _ = ndimage.label(np.isfinite(floor_all) & (floor_all <= ceil_all) & ~nofly_all, np.ones((3, 3), bool))
+
     def usable_pairs(sx, sy):
         r, c = g.cell_of(sx, sy)
-        terr = np.asarray(surf["terrain"].values)[r, c]
-        floor = np.asarray(clear["min_altitude_m"].values)[r, c]
-        ok = np.isfinite(floor) & (floor <= terr + alt)
-        if "nofly" in clear:
-            ok &= ~np.asarray(clear["nofly"].values, bool)[r, c]
+        top = np.asarray(surf["terrain"].values)[r, c] + alt     # the mission's start / goal altitude
+        ok = np.isfinite(floor_all[r, c]) & (floor_all[r, c] <= top) & (top <= ceil_all[r, c]) & ~nofly_all[r, c]
         idx = np.flatnonzero(ok)
         d = np.hypot(sx[idx, None] - sx[None, idx], sy[idx, None] - sy[None, idx])
-        ii, jj = np.nonzero((d >= min_km * 1e3) & (d <= max_km * 1e3))
+        lab = region[r[idx], c[idx]]
+        ii, jj = np.nonzero((d >= min_km * 1e3) & (d <= max_km * 1e3) & (lab[:, None] == lab[None, :]))
         return idx, ii, jj
 
     idx, ii, jj = usable_pairs(sx, sy)
     if ii.size == 0:
         from skyroute.stages.landing import OPEN_GROUND_SPACING_M, open_ground_sites
 
-        nofly = np.asarray(clear["nofly"].values, bool) if "nofly" in clear else np.zeros(g.shape, bool)
+        nofly = nofly_all
         ox, oy, level = open_ground_sites(
             terrain=np.asarray(surf["terrain"].values, float), surface=np.asarray(surf["surface"].values, float),
             obstacle_floor=np.asarray(clear["obstacle_floor_m"].values, float),
@@ -284,6 +294,7 @@ def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, 
         sx, sy = ox, oy
         if notes is not None:
             notes.append(f"fleet: scenario {sc.name} has {n_sites} landing site(s) and no usable pair of them "
+                         f"(the mission altitude {alt:g} m AGL between the clearance floor and ceiling, connected) "
                          f"{min_km}-{max_km} km apart: missions are drawn between {len(ox)} candidate sites derived "
                          f"from open ground (no obstacle within r_p, not no-fly, risk level {level}, one per "
                          f"{OPEN_GROUND_SPACING_M:g} m block); give data.landing_sites (a GeoJSON) for real ones")

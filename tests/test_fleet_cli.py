@@ -19,7 +19,7 @@ from skyroute.pipeline.cli import main
 from skyroute.pipeline.settings import GroundReference, load_scenario
 from skyroute.stages.vehicle import load_vehicle
 
-GROUND = ["--ground-m", "10"]
+GROUND: list[str] = []   # helsinki-medical has its own data.ground (issue 24): no flag needed
 A = {"x": 385747.35, "y": 6672213.62, "alt_agl_m": 60}
 B = {"x": 385969.55, "y": 6672495.29, "alt_agl_m": 60}
 C = {"x": 385990.82, "y": 6672586.58, "alt_agl_m": 60}

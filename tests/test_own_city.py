@@ -6,14 +6,16 @@ at points inside cells."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import rasterio
+import rasterio.windows
 from affine import Affine
 
 from skyroute.pipeline.errors import DataError, InputError
-from skyroute.pipeline.settings import parse_scenario
+from skyroute.pipeline.settings import load_scenario, parse_scenario
 from skyroute.stages.grid import Grid
 from skyroute.stages.surface import build_surface
 
@@ -202,7 +204,7 @@ def test_point_sampled_dem_with_a_ridge_between_posts_is_read_conservatively(tmp
 
 
 # ------------------------------------------------------------------ 3. CityJSON LoD2 with BuildingParts
-def _stacked_city(tmp_path, with_tin: bool):
+def _stacked_city(tmp_path, with_tin: bool, offset=(0.0, 0.0), name=None):
     """A Building with a part on the ground (GroundSurface 3.5 m, roof 13.6 m) and a part standing
     on it (GroundSurface 13.6 m, gable roof up to 21 m), on a sloped TINRelief (3.1-4.4 m), in
     EPSG:28992 -- the Den Haag case."""
@@ -233,8 +235,9 @@ def _stacked_city(tmp_path, with_tin: bool):
     }
     if with_tin:
         objs["relief"] = {"type": "TINRelief", "geometry": [{"type": "TIN", "lod": "1", "boundaries": tris}]}
-    path = tmp_path / f"city_{int(with_tin)}.city.json"
-    path.write_text(json.dumps(_cityjson_doc(np.vstack(verts), objs)))
+    path = tmp_path / (name or f"city_{int(with_tin)}.city.json")
+    allv = np.vstack(verts) + np.array([offset[0], offset[1], 0.0])
+    path.write_text(json.dumps(_cityjson_doc(allv, objs)))
     roofs = [V1[[4, 5, 9, 8]], V1[[7, 8, 9, 6]], V2[[4, 5, 9, 8]], V2[[7, 8, 9, 6]]]
     return path, [tin_v[t[0]] for t in tris], roofs
 
@@ -274,3 +277,69 @@ def test_cityjson_building_part_on_a_part_is_not_ground(tmp_path, with_tin):
     out = run_scenario(sc, cache=Cache(tmp_path / "cache"), targets=["clearance"])
     clr = out["clearance"].load()
     assert np.all(clr["max_altitude_m"].values >= clr["min_altitude_m"].values.min())
+
+
+# ------------------------------------------------------------------ catalogs/README: bring your own city
+def _readme_yamls() -> dict[str, str]:
+    import re
+
+    from skyroute.pipeline.settings import catalog_dir
+
+    text = (catalog_dir() / "README.md").read_text()
+    sec = text.split("## Bring your own city", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```yaml\n(.*?)```", sec, re.S)
+    return {re.search(r"^name: (\S+)", b, re.M).group(1): b for b in blocks}
+
+
+def _own_city_fixtures(tmp_path):
+    """The files the README's YAMLs name, made from small real or synthetic data."""
+    import shutil
+
+    from skyroute.pipeline.settings import catalog_dir
+
+    data = catalog_dir() / "data"
+    shutil.copy(data / "yuma_2020-01-03.txt", tmp_path / "yuma.txt")
+    dsm_src = Path(__file__).parent / "data" / "rotterdam_dsm_0p5m.tif"
+    shutil.copy(dsm_src, tmp_path / "dsm.tif")
+    with rasterio.open(dsm_src) as src:                 # a lidar tile: NoData at two edges and inside
+        z = src.read(1).astype(float)
+        T, crs = src.transform, src.crs
+    z[:, :14] = np.nan                                  # water along the west edge ...
+    z[480:, :60] = np.nan                               # ... and the south-west corner
+    z[:8, 300:360] = np.nan                             # a glass roof at the north edge
+    z[200:215, 200:230] = np.nan                        # and one inside
+    _write(tmp_path / "ahn_tile.tif", z, T, crs)
+    _stacked_city(tmp_path, True, offset=(81000.0, 455000.0), name="city.city.json")
+    with rasterio.open(data / "srtm_bigtujunga30m_utm11.tif") as src:
+        w = rasterio.windows.from_bounds(382500, 3793500, 386500, 3797500, src.transform).round_offsets().round_lengths()
+        a = src.read(1, window=w).astype(float)
+        _write(tmp_path / "dem.tif", a, src.window_transform(w), src.crs)
+    return tmp_path
+
+
+def test_bring_your_own_city_yamls_plan_as_written(tmp_path):
+    """Each YAML of catalogs/README.md's "Bring your own city" loads as written next to a file of
+    its kind, inspects without an error and plans a flyable path (no almanac: no GNSS maps)."""
+    import yaml
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.inspect import inspect_target
+    from skyroute.pipeline.runner import run_scenario
+
+    blocks = _readme_yamls()
+    assert sorted(blocks) == ["my-city-cityjson", "my-city-dsm", "my-city-lidar", "my-mountains-dem"]
+    _own_city_fixtures(tmp_path)
+    cache = Cache(tmp_path / "cache")
+    for name, text in blocks.items():
+        yml = tmp_path / f"{name}.yaml"
+        yml.write_text(text)
+        assert yaml.safe_load(text)["name"] == name
+        ins = inspect_target(str(yml))
+        assert ins.ok, (name, ins.problems)
+        assert ins.data["absolute_heights"]["available"], name
+        sc = load_scenario(yml)
+        res = run_scenario(sc, cache=cache, targets=["plan"])
+        plan = res["plan"]
+        assert int(plan.attrs["chosen_level"]) >= 0, (name, plan.attrs.get("reasons"))
+        if name == "my-city-lidar":
+            assert any("NoData region" in w for w in json.loads(res["surface"].attrs["warnings"]))

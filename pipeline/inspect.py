@@ -82,7 +82,14 @@ def _raster(ins: Inspection, paths: list[Path], grid, *, role: str, key: str, da
     import rasterio.warp
     from pyproj import CRS
 
-    from skyroute.stages.grid import Grid, SourceWindow, coverage_problem, filled_share, find_holes, regions_in_aoi
+    from skyroute.stages.grid import (
+        Grid,
+        SourceWindow,
+        coverage_problem,
+        filled_share,
+        find_holes,
+        regions_in_aoi,
+    )
 
     for p in paths:
         if not p.is_file():
@@ -158,7 +165,7 @@ def _raster(ins: Inspection, paths: list[Path], grid, *, role: str, key: str, da
         ins.facts["heights"] = f"{vals.min():.2f} .. {vals.max():.2f} m"
         ins.data[f"{role}_heights_m"] = [float(vals.min()), float(vals.max())]
     under = np.isnan(win.values) & win.inside
-    share_px = float(under.mean()) if under.size else 0.0
+    share_px = float(under.sum() / max(int(win.inside.sum()), 1))     # of the pixels inside the extent read
     share_cells = filled_share(win, holes, grid) if step == 1 else share_px
     n, n_edge = regions_in_aoi(win, holes, grid) if step == 1 else (holes.n_interior, holes.n_edge)
     how = {"fill-max": "each region the highest height on its rim within the raster",

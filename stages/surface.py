@@ -20,11 +20,13 @@ which is conservative for collision and occlusion.
 CityJSON (1.0 / 1.1 / 2.0, LoD1 or LoD2, Building and BuildingPart): every upper surface
 (``RoofSurface`` / ``OuterCeilingSurface`` / ``OuterFloorSurface``, or for LoD1 without semantics
 every face whose normal points up) is a roof face.  Terrain: a ``TINRelief``, where the file has
-one, is the ground (each cell the TIN's maximum over the cell, the same rasterisation as roofs;
-conservative for altitude floors); otherwise each building's ``TerrainHeight`` attribute
-(preferred: some LoD2 models put the ground surface at z = 0) or its ``GroundSurface`` heights,
-interpolated linearly on the points' Delaunay triangles, each cell the maximum over the cell
-(nearest point outside their hull): :func:`terrain_from_points`.
+one, is the ground (``terrain``: the TIN's maximum over the cell, the same rasterisation as roofs,
+``terrain_min`` its minimum; where it covers a cell only in part, combined with the buildings'
+ground); otherwise, per Building with its BuildingParts, the ``TerrainHeight`` attribute
+(preferred: some LoD2 models put the ground surface at z = 0) or its *lowest* ``GroundSurface``
+(the bottom of a part standing on another part is not ground), interpolated linearly on the
+points' Delaunay triangles, each cell the maximum (``terrain``) / minimum (``terrain_min``) over
+the cell (nearest point outside their hull): :func:`terrain_from_points`.
 
 Rasterisation (conservative: a cell's value holds for every point of the cell)
 -----------------------------------------------------------------------------
@@ -53,15 +55,17 @@ scanline fill) stays for land use, where a cell takes the class at its centre.
 
 DEM and DSM rasters (``data.terrain``, ``data.surface``)
 -------------------------------------------------------
-Both are read by window at their native resolution (a GeoTIFF, a VRT or a list of tiles) and
-resampled to the grid by the footprint max (:func:`~skyroute.stages.grid.footprint_resample`:
-every source pixel overlapping the cell counts, in any CRS), never bilinearly: ``surface`` is
-the highest point of the DSM over the cell (and of the buildings: surface = max of both);
-``terrain`` the highest ground over the cell (minimum-AGL floors) and ``terrain_min`` the lowest
-(maximum-AGL ceilings).  NoData: each connected region inside the extent takes the highest height
-on its rim (DSM ``nodata: fill-max``, the default; ``fill-nearest``; ``error``); a DEM's holes take
-the highest rim height for ``terrain`` and the lowest for ``terrain_min``; regions touching the
-raster's edge are outside its extent, and AOI cells outside the extent are an error saying so.
+Both are read by window at their native resolution (a GeoTIFF, a VRT or a list of tiles), never
+bilinearly.  A DSM is resampled by the footprint max (:func:`~skyroute.stages.grid.footprint_resample`:
+every source pixel overlapping the cell counts, in any CRS): ``surface`` is the highest point of
+the DSM over the cell (and of the buildings: surface = max of both).  A DEM is a set of samples of
+a continuous surface (:func:`terrain_from_dem`, :func:`patch_resample`): ``terrain`` (minimum-AGL
+floors) is the highest and ``terrain_min`` (maximum-AGL ceilings) the lowest sample of every
+lattice square touching the cell.  NoData: each connected region inside the extent, also one
+touching the raster's edge, takes the highest height on its rim within the raster (DSM
+``nodata: fill-max``, the default; ``fill-nearest``; ``error``), with a warning giving the share of
+the AOI filled; a DEM's regions take the highest rim height for ``terrain`` and the lowest for
+``terrain_min``; AOI cells outside the extent are an error giving the ``aoi.bounds`` that fit.
 A DSM without a DEM: the ground is the grey opening of the DSM (:func:`ground_from_dsm`, square
 window ``ground_window_m``, default 60 m, wider than the largest building), said in the attrs
 (``ground_source``) and as a stage warning; ``dsm_building`` marks cells whose every DSM pixel is
@@ -93,11 +97,11 @@ from skyroute.stages.grid import (
     NODATA_POLICIES,
     Grid,
     coverage_problem,
-    filled_share,
     fill_holes,
-    regions_in_aoi,
+    filled_share,
     footprint_resample,
     read_window_holes,
+    regions_in_aoi,
 )
 from skyroute.stages.osm import read_osm
 

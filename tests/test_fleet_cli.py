@@ -185,6 +185,17 @@ def test_trajectories_keep_separation_and_stay_in_their_intents(drawn):
         assert inside.all(), m
 
 
+def test_default_scenario_fleet_of_20_needs_no_flag(tmp_path, cache_dir):
+    """`skyroute fleet helsinki-medical --missions 20 --seed 1` exits 0 with no extra flag: the
+    scenario's own data.ground gives the intents their absolute heights (issue 24; the other
+    city scenarios: tests/test_inspect.py)."""
+    res = CliRunner().invoke(main, ["fleet", "helsinki-medical", "--missions", "20", "--seed", "1", "--out",
+                                    str(tmp_path / "o"), "--cache-dir", str(cache_dir), "-q"])
+    assert res.exit_code == 0, res.output
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["fleet"]["counts"]["accepted"] >= 1 and s["fleet"]["conflicts_independent_check"] == 0
+
+
 def test_fleet_png(drawn):
     import matplotlib.image as mpimg
 

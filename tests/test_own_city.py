@@ -343,3 +343,60 @@ def test_bring_your_own_city_yamls_plan_as_written(tmp_path):
         assert int(plan.attrs["chosen_level"]) >= 0, (name, plan.attrs.get("reasons"))
         if name == "my-city-lidar":
             assert any("NoData region" in w for w in json.loads(res["surface"].attrs["warnings"]))
+
+
+# ------------------------------------------------------------------ 6. fleet landing sites from open ground
+def test_open_ground_sites_against_brute_force():
+    """Candidate sites: not no-fly, nothing on the cell, nothing higher than the ground + 0.5 m
+    within r_p (brute force over the surface raster), lowest risk level present, one per block."""
+    from skyroute.stages.clearance import clearance_floor
+    from skyroute.stages.landing import open_ground_sites
+
+    rng = np.random.default_rng(3)
+    g = Grid.from_bounds("EPSG:32631", 0, 0, 400, 300, 2.0)
+    terr = np.zeros(g.shape)
+    surf = terr.copy()
+    for _ in range(40):                                   # buildings
+        r, c, h, w = rng.integers(0, g.ny - 10), rng.integers(0, g.nx - 10), rng.integers(3, 10), rng.integers(3, 10)
+        surf[r:r + h, c:c + w] = rng.uniform(5, 30)
+    level = np.full(g.shape, 4)
+    level[50:90, 20:120] = 1                              # a park
+    nofly = np.zeros(g.shape, bool)
+    nofly[60:70, 30:60] = True
+    r_p = 5.0
+    floor = clearance_floor(g.dataarray(surf, "surface", units="m"), r_p).values
+    x, y, lv = open_ground_sites(terrain=terr, surface=surf, obstacle_floor=floor, risk_level=level, nofly=nofly,
+                                 grid=g, radius_m=r_p)
+    assert lv == 1 and len(x) >= 2
+    rows, cols = g.index_of(x, y)
+    yy, xx = np.meshgrid(g.y, g.x, indexing="ij")
+    for r, c in zip(rows, cols, strict=True):
+        assert level[r, c] == 1 and not nofly[r, c] and surf[r, c] == 0.0
+        near = np.hypot(xx - g.x[c], yy - g.y[r]) <= r_p + g.resolution_m    # every cell within reach
+        assert surf[near].max() <= 0.5 + 1e-9
+    blocks = {(r // 50, c // 50) for r, c in zip(rows, cols, strict=True)}
+    assert len(blocks) == len(rows)                       # one per 100 m block
+
+
+def test_fleet_draws_missions_on_open_ground_in_a_city_without_sites(tmp_path):
+    """The README's DSM city has no landing sites: fleet --missions draws between candidate sites on
+    open ground, and says so."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.fleet import draw_missions
+    from skyroute.pipeline.runner import run_scenario
+
+    _own_city_fixtures(tmp_path)
+    yml = tmp_path / "my-city-dsm.yaml"
+    yml.write_text(_readme_yamls()["my-city-dsm"])
+    sc = load_scenario(yml)
+    res = run_scenario(sc, cache=Cache(tmp_path / "cache"), targets=["clearance"])
+    maps = {k: res[k].load() for k in ("surface", "environment", "clearance")}
+    notes: list[str] = []
+    tasks = draw_missions(sc, maps, 6, 1, 600.0, notes=notes)
+    assert len(tasks) == 6 and len(notes) == 1 and "derived from open ground" in notes[0]
+    g = sc.grid
+    for t in tasks:
+        for x, y in (t.start_xy, t.goal_xy):
+            r, c = g.cell_of(x, y)
+            assert maps["surface"]["surface"].values[r, c] <= maps["surface"]["terrain"].values[r, c] + 1e-6
+        assert np.hypot(t.start_xy[0] - t.goal_xy[0], t.start_xy[1] - t.goal_xy[1]) >= 200.0

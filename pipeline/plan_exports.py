@@ -95,11 +95,10 @@ def intent_summary(result: RunResult, intent: dict) -> dict:
     import pandas as pd
     from pyproj import Transformer
 
-    from skyroute.stages.intents import intent_conformance
-    from skyroute.stages.planning.strategic import trajectory_from_dataset
+    from skyroute.stages.intents import intent_conformance, plan_path
 
     ds = result["plan"]
-    traj, t0 = trajectory_from_dataset(ds)
+    traj, t0 = plan_path(ds)
     ref, _ = _reference_or_reason(result)
     tau = np.append(np.arange(0.0, traj.duration_s, 0.05), traj.duration_s)
     p = traj.sample(tau)

@@ -400,3 +400,30 @@ def test_fleet_draws_missions_on_open_ground_in_a_city_without_sites(tmp_path):
             r, c = g.cell_of(x, y)
             assert maps["surface"]["surface"].values[r, c] <= maps["surface"]["terrain"].values[r, c] + 1e-6
         assert np.hypot(t.start_xy[0] - t.goal_xy[0], t.start_xy[1] - t.goal_xy[1]) >= 200.0
+
+
+# ------------------------------------------------------------------ 5. intents of a sampled (fixed-wing) plan
+def test_sampled_plan_intent_volumes_contain_the_whole_polyline():
+    """A fixed-wing plan is known by its samples: the intent volumes of that polyline contain every
+    point of it (checked densely with plain interpolation and shapely), each in its time window
+    and altitude band."""
+    import shapely
+
+    from skyroute.stages.intents import PolylineTrajectory, plan_volumes
+
+    rng = np.random.default_rng(2)
+    t = np.cumsum(np.r_[0.0, rng.uniform(0.5, 2.0, 120)])
+    xyz = np.cumsum(np.column_stack([rng.normal(15, 6, t.size), rng.normal(0, 9, t.size),
+                                     rng.normal(0, 1.5, t.size)]), axis=0) + [380000.0, 3795000.0, 900.0]
+    sigma = rng.uniform(1.0, 3.0, t.size)
+    vols = plan_volumes(PolylineTrajectory(t, xyz), 10.0, t + 10.0, sigma, lambda p: p[:, 2] + 30.0,
+                        vehicle_radius_m=1.0, k_sigma=3.0, time_buffer_s=5.0, max_volume_s=20.0)
+    tt = np.linspace(0.0, t[-1], 20000)
+    P = np.column_stack([np.interp(tt, t, xyz[:, k]) for k in range(3)])
+    ok = np.zeros(tt.size, bool)
+    for v in vols:
+        inside = shapely.contains_xy(shapely.Polygon(v.outline_xy_m), P[:, 0], P[:, 1])
+        band = (P[:, 2] + 30.0 >= v.alt_lower_m) & (P[:, 2] + 30.0 <= v.alt_upper_m)
+        when = (tt + 10.0 >= v.t_start_s) & (tt + 10.0 <= v.t_end_s)
+        ok |= inside & band & when
+    assert ok.all()

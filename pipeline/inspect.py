@@ -433,7 +433,7 @@ def _absolute(ins: Inspection, sc, cj: dict | None) -> None:
         kind = datum_kind(ref.datum)
         if kind in ("EGM96", "EGM2008"):
             find_geoid_grid(kind)
-        if datum_kind("EGM96 geoid") == "EGM96" and kind != "EGM96":
+        if kind != "EGM96":
             find_geoid_grid("EGM96")      # KML / QGroundControl heights are above EGM96
         why = None
     except SkyrouteError as exc:

@@ -18,6 +18,10 @@ Landing sites (:func:`landing_sites`)
   so that the distance is exact whenever one site lies in the grid): they set the distance
   near the edges.
 
+A city without any (a user's DSM or CityJSON): :func:`open_ground_sites` derives candidate
+sites from the maps (no obstacle within the vehicle's radius, not no-fly, the lowest risk level
+present, one per 100 m block) for ``skyroute fleet --missions``, which says so.
+
 Distance and cost (:func:`landing_cost`)
 ----------------------------------------
 ``landing_distance_m`` [m]: horizontal distance from each cell centre to the nearest site,

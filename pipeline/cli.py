@@ -201,7 +201,7 @@ def write_folder_summary(out_dir: Path, command: str, result, files, sections: d
 
     rel = relative_files(out_dir, files)
     remove_stale(Path(out_dir), previous_summary(Path(out_dir)), rel, command)
-    warnings = stage_warnings(result)
+    warnings = stage_warnings(result) + [n for n in (sections.get("exports") or {}).get("notes", [])]
     _report_warnings(warnings)
     sc = result.scenario
     return write_summary(out_dir, command, rel, warnings, {
@@ -462,6 +462,7 @@ _PLUGINS = {
     "skyroute.pipeline.cli_compare": "compare_command",
     "skyroute.pipeline.cli_diff": "diff_command",
     "skyroute.pipeline.cli_fleet": "fleet_command",
+    "skyroute.pipeline.cli_inspect": "inspect_command",
 }
 
 

@@ -78,11 +78,11 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fleet")
     cache = Cache(cache_dir)
     maps = fleet_maps(sc, cache.root)
+    warnings: list[str] = []
     if tasks is None:
-        tasks = draw_missions(sc, maps, missions, seed, window_min * 60.0)
+        tasks = draw_missions(sc, maps, missions, seed, window_min * 60.0, notes=warnings)
     level = default_level(maps)
     opt = FleetOptions(delay_step_s=delay_step_s, max_delay_s=max_delay_min * 60.0, seed=seed, preempt=not no_preempt)
-    warnings = []
     gnss_min = sc.gnss.window_min
     last = max(t.earliest_s for t in tasks) / 60.0 + max_delay_min
     if last > gnss_min:

@@ -233,33 +233,71 @@ def load_fleet(path: Path | str, sc: Scenario, levels: Sequence[float] = ()) -> 
 
 def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, *, alt_agl_m: float | None = None,
                   min_km: float = 0.2, max_km: float = 1.5, operators: int = 5,
-                  priority_share: float = 0.1) -> list[FleetTask]:
+                  priority_share: float = 0.1, notes: list[str] | None = None) -> list[FleetTask]:
     """``n`` missions between the landing sites of the environment stage (``site_x`` /
     ``site_y``; OSM helipads, hospitals' pads, parks, ... as :mod:`skyroute.stages.landing`
     finds them) whose cell is not no-fly and whose clearance floor lies below ``alt_agl_m``
     (default the scenario's start altitude) above the ground: start and goal drawn uniformly
     among the pairs ``min_km``-``max_km`` apart, departure uniform in ``[0, window_s]`` [s],
     operator ``op-1..op-<operators>``, priority 1 with probability ``priority_share`` (else 0),
-    the scenario's vehicle and the default DOP level.  ``np.random.default_rng(seed)``."""
+    the scenario's vehicle and the default DOP level.  ``np.random.default_rng(seed)``.  A site
+    is usable when the mission altitude above it lies between the clearance floor and ceiling
+    (not no-fly); a pair is drawn only when both lie in one 8-connected region of cells where
+    the vehicle may be at some altitude.
+
+    A city without such a pair of landing sites (a user's own DSM or CityJSON) gets candidate
+    sites derived from open ground (:func:`skyroute.stages.landing.open_ground_sites`: no
+    obstacle within r_p, not no-fly, the lowest risk level present), said in ``notes``."""
     env, surf, clear = maps["environment"], maps["surface"], maps["clearance"]
-    if "site_x" not in env.coords or env.sizes.get("site", len(env["site_x"])) < 2:
-        raise InputError(f"scenario {sc.name} has fewer than 2 landing sites to draw missions between; give a "
-                         "fleet file (--fleet) instead")
     alt = float(sc.mission.start.alt_agl_m if alt_agl_m is None else alt_agl_m)
     g = sc.grid
-    sx, sy = np.asarray(env["site_x"].values, float), np.asarray(env["site_y"].values, float)
-    r, c = g.cell_of(sx, sy)
-    terr = np.asarray(surf["terrain"].values)[r, c]
-    floor = np.asarray(clear["min_altitude_m"].values)[r, c]
-    ok = np.isfinite(floor) & (floor <= terr + alt)
-    if "nofly" in clear:
-        ok &= ~np.asarray(clear["nofly"].values, bool)[r, c]
-    idx = np.flatnonzero(ok)
-    d = np.hypot(sx[idx, None] - sx[None, idx], sy[idx, None] - sy[None, idx])
-    ii, jj = np.nonzero((d >= min_km * 1e3) & (d <= max_km * 1e3))
+    n_sites = int(len(env["site_x"])) if "site_x" in env.coords else 0
+    if n_sites:
+        sx, sy = np.asarray(env["site_x"].values, float), np.asarray(env["site_y"].values, float)
+    else:
+        sx = sy = np.zeros(0)
+
+    from scipy import ndimage
+
+    floor_all = np.asarray(clear["min_altitude_m"].values, float)
+    ceil_all = np.asarray(clear["max_altitude_m"].values, float)
+    nofly_all = np.asarray(clear["nofly"].values, bool) if "nofly" in clear else np.zeros(g.shape, bool)
+    # cells where the vehicle may be at some altitude, and their 8-connected regions: a pair of
+    # sites in two regions has no path at all
+    region, _ = ndimage.label(np.isfinite(floor_all) & (floor_all <= ceil_all) & ~nofly_all, np.ones((3, 3), bool))
+
+    def usable_pairs(sx, sy):
+        r, c = g.cell_of(sx, sy)
+        top = np.asarray(surf["terrain"].values)[r, c] + alt     # the mission's start / goal altitude
+        ok = np.isfinite(floor_all[r, c]) & (floor_all[r, c] <= top) & (top <= ceil_all[r, c]) & ~nofly_all[r, c]
+        idx = np.flatnonzero(ok)
+        d = np.hypot(sx[idx, None] - sx[None, idx], sy[idx, None] - sy[None, idx])
+        lab = region[r[idx], c[idx]]
+        ii, jj = np.nonzero((d >= min_km * 1e3) & (d <= max_km * 1e3) & (lab[:, None] == lab[None, :]))
+        return idx, ii, jj
+
+    idx, ii, jj = usable_pairs(sx, sy)
     if ii.size == 0:
-        raise InputError(f"no pair of usable landing sites of {sc.name} lies {min_km}-{max_km} km apart; give a "
-                         "fleet file (--fleet) instead")
+        from skyroute.stages.landing import OPEN_GROUND_SPACING_M, open_ground_sites
+
+        nofly = nofly_all
+        ox, oy, level = open_ground_sites(
+            terrain=np.asarray(surf["terrain"].values, float), surface=np.asarray(surf["surface"].values, float),
+            obstacle_floor=np.asarray(clear["obstacle_floor_m"].values, float),
+            risk_level=np.asarray(env["risk_level"].values), nofly=nofly, grid=g,
+            radius_m=float(clear.attrs.get("radius_m", 0.0)))
+        idx, ii, jj = usable_pairs(ox, oy)
+        if ii.size == 0:
+            raise InputError(f"no pair of usable landing sites of {sc.name} lies {min_km}-{max_km} km apart, nor of "
+                             "candidate sites on open ground; give data.landing_sites (a GeoJSON) or a fleet file "
+                             "(--fleet)")
+        sx, sy = ox, oy
+        if notes is not None:
+            notes.append(f"fleet: scenario {sc.name} has {n_sites} landing site(s) and no usable pair of them "
+                         f"(the mission altitude {alt:g} m AGL between the clearance floor and ceiling, connected) "
+                         f"{min_km}-{max_km} km apart: missions are drawn between {len(ox)} candidate sites derived "
+                         f"from open ground (no obstacle within r_p, not no-fly, risk level {level}, one per "
+                         f"{OPEN_GROUND_SPACING_M:g} m block); give data.landing_sites (a GeoJSON) for real ones")
     rng = np.random.default_rng(seed)
     pick = rng.integers(0, ii.size, n)
     dep = np.sort(rng.uniform(0.0, window_s, n))

@@ -382,4 +382,5 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         "output_keys": output_keys,
         **sections,
     }
-    return write_summary(out_dir, command, files, stage_warnings(result), sections)
+    export_notes = list((sections.get("exports") or {}).get("notes", []))   # a pilot file not written
+    return write_summary(out_dir, command, files, stage_warnings(result) + export_notes, sections)

@@ -6,8 +6,9 @@ Absolute heights come from :func:`scenario_height_reference` (the surface model'
 datum, or ``data.ground``).  When they cannot be had (local ground without ``data.ground``, a
 datum without a conversion, no geoid grid on disk) ``plan.kml`` and ``intent.json`` are not
 written, ``plan.plan`` gets home altitude 0 m, the GeoPackage has no intents layer, and
-:func:`pilot_export_notes` says why (summary.json ``exports.notes``: a note, not a warning,
-since the catalog's OSM-only cities have no ``data.ground``)."""
+:func:`pilot_export_notes` says why: summary.json ``exports.notes`` and ``warnings`` (so
+``warning: plan.kml not written: ...`` on stderr and in report.html).  Every shipped scenario
+has absolute heights (``data.ground`` or a geoid-referenced DEM)."""
 
 from __future__ import annotations
 
@@ -50,10 +51,10 @@ def pilot_export_notes(result: RunResult) -> list[str]:
         return []
     _, why = _reference_or_reason(result)
     if why is not None:
-        return [f"exports: plan.kml and intent.json not written, plan.plan home altitude 0 m: {why}"]
+        return [f"plan.kml not written (nor intent.json; plan.plan gets home altitude 0 m): {why}"]
     if not _has_sigma(result["plan"]):
-        return ["exports: intent.json not written: the plan has no predicted navigation error sigma_p (no GNSS "
-                "data), which sizes the intent's volumes"]
+        return ["intent.json not written: the plan has no predicted navigation error sigma_p (no GNSS "
+                "data: data.almanacs), which sizes the intent's volumes"]
     return []
 
 
@@ -94,11 +95,10 @@ def intent_summary(result: RunResult, intent: dict) -> dict:
     import pandas as pd
     from pyproj import Transformer
 
-    from skyroute.stages.intents import intent_conformance
-    from skyroute.stages.planning.strategic import trajectory_from_dataset
+    from skyroute.stages.intents import intent_conformance, plan_path
 
     ds = result["plan"]
-    traj, t0 = trajectory_from_dataset(ds)
+    traj, t0 = plan_path(ds)
     ref, _ = _reference_or_reason(result)
     tau = np.append(np.arange(0.0, traj.duration_s, 0.05), traj.duration_s)
     p = traj.sample(tau)

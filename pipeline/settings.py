@@ -688,6 +688,8 @@ class Scenario(FrozenModel):
             assert a.bounds is not None and a.crs is not None
             crs = resolve_crs(a.crs)
             xmin, ymin, xmax, ymax = a.bounds
+            # map bounds: the grid never extends past them (snapped inward to the resolution lattice)
+            return Grid.from_bounds(crs, xmin, ymin, xmax, ymax, a.resolution_m, inward=True)
         return Grid.from_bounds(crs, xmin, ymin, xmax, ymax, a.resolution_m)
 
     def point_xy(self, p: MissionPoint) -> tuple[float, float]:

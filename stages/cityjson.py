@@ -26,6 +26,9 @@ from pyproj import CRS, Transformer
 
 from skyroute.stages.base import DataError
 
+#: A ground surface of a Building or its parts counts as ground when its lowest vertex is at most
+#: this much [m] above the highest vertex of the building's lowest ground surface.
+GROUND_TOLERANCE_M = 0.5
 #: Semantic surface types that are the top of a building (its roof faces).
 ROOF_TYPES = ("RoofSurface", "OuterCeilingSurface", "OuterFloorSurface")
 
@@ -144,6 +147,7 @@ class CityJSONBuildings:
     is_floor: np.ndarray
     terrain_height_m: np.ndarray
     tin_faces: list[list[list[int]]]
+    root: np.ndarray | None = None   # per building: group of its root Building (shared with its parts)
 
     def roof_top_m(self) -> np.ndarray:
         """Highest roof vertex [m] of each building (NaN for a building without roof face)."""
@@ -153,26 +157,38 @@ class CityJSONBuildings:
             heights[o] = np.fmax(heights[o], self.vertices_m[np.asarray(self.faces[i][0]), 2].max())
         return heights
 
-    def ground_points(self) -> np.ndarray:
-        """Ground points ``(n, 3)`` [m]: under a building with ``TerrainHeight``, its roof and
-        floor vertices at that height (some LoD2 models put the ground surface at z = 0); else
-        its floor vertices; then every ``TINRelief`` vertex."""
+    def ground_points(self, tin: bool = True) -> np.ndarray:
+        """Ground points ``(n, 3)`` [m], per Building with its BuildingParts (:attr:`root`):
+        with a ``TerrainHeight`` attribute, the roof and floor vertices of all of them at that
+        height (some LoD2 models put the ground surface at z = 0); else the vertices of its
+        *lowest* ground surface (``GroundSurface``, or an untyped face facing down) among the
+        building's and its parts' (and any other within :data:`GROUND_TOLERANCE_M` of its height
+        range): the bottom of a part standing on another part is not ground.  Then (``tin``)
+        every ``TINRelief`` vertex."""
         V, faces = self.vertices_m, self.faces
+        root = self.root if self.root is not None else np.arange(len(self.ids))
         ground: list[np.ndarray] = []
-        for bidx in range(len(self.ids)):
-            sel = (np.flatnonzero((self.owner == bidx) & (self.is_roof | self.is_floor)) if len(faces)
+        for r in np.unique(root) if len(root) else ():
+            members = np.flatnonzero(root == r)
+            sel = (np.flatnonzero(np.isin(self.owner, members) & (self.is_roof | self.is_floor)) if len(faces)
                    else np.zeros(0, np.int64))
             if not sel.size:
                 continue
-            th = self.terrain_height_m[bidx]
-            if np.isfinite(th):
+            th = self.terrain_height_m[members]
+            th = th[np.isfinite(th)]
+            if th.size:
                 P = V[np.concatenate([np.asarray(faces[i][0]) for i in sel])]
-                ground.append(np.column_stack([P[:, 0], P[:, 1], np.full(len(P), th)]))
-            else:
-                fl = [i for i in sel if self.is_floor[i]]
-                if fl:
-                    ground.append(V[np.concatenate([np.asarray(faces[i][0]) for i in fl])])
-        if self.tin_faces:
+                ground.append(np.column_stack([P[:, 0], P[:, 1], np.full(len(P), float(th.min()))]))
+                continue
+            fl = [i for i in sel if self.is_floor[i]]
+            if not fl:
+                continue
+            zs = [V[np.asarray(faces[i][0]), 2] for i in fl]
+            k = int(np.argmin([z.min() for z in zs]))
+            top = float(zs[k].max()) + GROUND_TOLERANCE_M
+            keep = [i for i, z in zip(fl, zs, strict=True) if z.min() <= top]
+            ground.append(V[np.concatenate([np.asarray(faces[i][0]) for i in keep])])
+        if tin and self.tin_faces:
             ground.append(V[np.unique(np.concatenate([np.asarray(f[0]) for f in self.tin_faces]))])
         return np.vstack(ground) if ground else np.zeros((0, 3))
 
@@ -184,6 +200,7 @@ def read_buildings(path: str | Path, crs: CRS, *, steep_nz: float = 1e-3) -> Cit
     cj = read_cityjson(path)
     V = vertices_in(cj, crs)
     ids: list[str] = []
+    parents: list[list[str]] = []
     th_of: list[float] = []     # TerrainHeight attribute per building (NaN if absent)
     faces: list[list[list[int]]] = []
     ftype: list[str | None] = []
@@ -203,6 +220,7 @@ def read_buildings(path: str | Path, crs: CRS, *, steep_nz: float = 1e-3) -> Cit
         g = max(geoms, key=lambda gg: float(gg.get("lod", 0)))
         bidx = len(ids)
         ids.append(oid)
+        parents.append([str(p) for p in (obj.get("parents") or [])])
         th = (obj.get("attributes") or {}).get("TerrainHeight")
         th_of.append(float(th) if th is not None else np.nan)
         for rings, stype in surface_rings(g):
@@ -219,7 +237,28 @@ def read_buildings(path: str | Path, crs: CRS, *, steep_nz: float = 1e-3) -> Cit
     # and untyped faces that face up (LoD1 solids without semantics; untyped walls are skipped)
     is_roof = ~is_floor & (np.isin(st, list(ROOF_TYPES)) | ((st == None) & (nz >= steep_nz)))  # noqa: E711
     return CityJSONBuildings(V, tuple(ids), faces, np.asarray(fowner, np.int64), np.asarray(is_roof, bool),
-                             np.asarray(is_floor, bool), np.asarray(th_of, np.float64).reshape(-1), tin_faces)
+                             np.asarray(is_floor, bool), np.asarray(th_of, np.float64).reshape(-1), tin_faces,
+                             _roots(ids, parents, cj["CityObjects"]))
+
+
+def _roots(ids: list[str], parents: list[list[str]], objects: dict) -> np.ndarray:
+    """Per building (index into ``ids``): a group number shared by a Building and all its
+    BuildingParts, following ``parents`` to the topmost ancestor (a Building without geometry of
+    its own still groups its parts)."""
+    groups: dict[str, int] = {}
+    out = np.zeros(len(ids), dtype=np.int64)
+    for k, oid in enumerate(ids):
+        seen, cur = {oid}, oid
+        ps = parents[k]
+        while ps:
+            nxt = ps[0]
+            if nxt in seen:
+                break       # a cycle in a broken file: stop
+            seen.add(nxt)
+            cur = nxt
+            ps = [str(p) for p in ((objects.get(cur) or {}).get("parents") or [])]
+        out[k] = groups.setdefault(cur, len(groups))
+    return out
 
 
 __all__ = ["ROOF_TYPES", "CityJSONBuildings", "cityjson_crs", "newell_normals", "read_buildings", "read_cityjson",

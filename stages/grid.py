@@ -72,17 +72,31 @@ class Grid:
 
     @classmethod
     def from_bounds(cls, crs: CRS | str, xmin: float, ymin: float, xmax: float, ymax: float,
-                    resolution_m: float) -> Grid:
+                    resolution_m: float, *, inward: bool = False, key: str = "aoi.bounds") -> Grid:
+        """The grid of cells on the lattice of multiples of ``resolution_m`` [m] that covers the
+        bounds (``inward=False``: the cells touching them, the grid may reach up to one cell
+        beyond) or that lies within them (``inward=True``: the grid never extends past the bounds;
+        an InputError naming ``key`` when not one whole cell fits)."""
         if not resolution_m > 0:
             raise InputError(f"resolution {resolution_m} m must be positive (e.g. 2.0)")
         if not (xmax > xmin and ymax > ymin):
             raise InputError(f"empty bounds ({xmin}, {ymin}, {xmax}, {ymax}): need xmin < xmax and ymin < ymax")
         crs = resolve_crs(crs)
-        x0 = np.floor(xmin / resolution_m) * resolution_m
-        y1 = np.ceil(ymax / resolution_m) * resolution_m
-        nx = int(np.ceil((xmax - x0) / resolution_m - 1e-9))
-        ny = int(np.ceil((y1 - ymin) / resolution_m - 1e-9))
-        return cls(_crs_text(crs), float(x0), float(y1), nx, ny, float(resolution_m))
+        r = resolution_m
+        if inward:
+            x0 = np.ceil(xmin / r - 1e-9) * r
+            y1 = np.floor(ymax / r + 1e-9) * r
+            nx = int(np.floor((xmax - x0) / r + 1e-9))
+            ny = int(np.floor((y1 - ymin) / r + 1e-9))
+            if nx < 1 or ny < 1:
+                raise InputError(f"{key} ({xmin:g}, {ymin:g}, {xmax:g}, {ymax:g}) holds no whole {r:g} m cell of the "
+                                 f"lattice of multiples of aoi.resolution_m; widen {key} or lower aoi.resolution_m")
+            return cls(_crs_text(crs), float(x0), float(y1), nx, ny, float(r))
+        x0 = np.floor(xmin / r) * r
+        y1 = np.ceil(ymax / r) * r
+        nx = int(np.ceil((xmax - x0) / r - 1e-9))
+        ny = int(np.ceil((y1 - ymin) / r - 1e-9))
+        return cls(_crs_text(crs), float(x0), float(y1), nx, ny, float(r))
 
     @property
     def crs(self) -> CRS:
@@ -381,8 +395,11 @@ NODATA_POLICIES = ("fill-max", "fill-nearest", "error")
 
 @dataclass(frozen=True)
 class Holes:
-    """NoData regions of a :class:`SourceWindow`: ``labels`` (0 = data), per label the rim
-    max/min [m] and whether it reaches outside the data's extent (``outside``)."""
+    """NoData regions of a :class:`SourceWindow` (pixels inside the data's extent without a
+    value): ``labels`` (0 = data), per label the rim max/min [m] (the highest / lowest valid
+    8-neighbour, within the extent), whether it touches the extent's edge (``outside``: a pixel
+    outside the extent, e.g. a lidar tile's border) and whether it touches the border of a partial
+    window (``at_border``: read more to know its whole rim)."""
 
     labels: np.ndarray
     rim_max: np.ndarray
@@ -391,21 +408,33 @@ class Holes:
     at_border: np.ndarray
 
     @property
-    def interior(self) -> np.ndarray:
-        """Pixels of NoData regions inside the extent (every neighbour region is data)."""
-        ok = ~self.outside
+    def fillable(self) -> np.ndarray:
+        """Per label: the region has a valid rim, so it can be filled (label 0 excluded)."""
+        ok = np.isfinite(self.rim_max)
         ok[0] = False
-        return ok[self.labels]
+        return ok
+
+    @property
+    def interior(self) -> np.ndarray:
+        """Pixels of the NoData regions that are filled (every region with a valid rim, whether
+        it touches the extent's edge or not)."""
+        return self.fillable[self.labels]
 
     @property
     def n_interior(self) -> int:
-        return int((~self.outside[1:]).sum())
+        """Number of NoData regions filled."""
+        return int(self.fillable.sum())
+
+    @property
+    def n_edge(self) -> int:
+        """Number of filled NoData regions that touch the extent's edge."""
+        return int((self.fillable & self.outside).sum())
 
 
 def find_holes(win: SourceWindow) -> Holes:
-    """Connected (8-neighbour) NoData regions of ``win`` and their rims.  A region touching a
-    pixel outside the extent (or the border of a window that holds the whole extent) counts as
-    outside the extent; ``at_border``: it touches the border of a partial window (read more)."""
+    """Connected (8-neighbour) NoData regions inside the extent of ``win`` and their rims (see
+    :class:`Holes`).  A region touching the extent's edge is still inside the extent: it is filled
+    from its rim within the extent (a lidar tile's holes over water or at its border)."""
     from scipy import ndimage
 
     nan = np.isnan(win.values) & win.inside
@@ -418,7 +447,6 @@ def find_holes(win: SourceWindow) -> Holes:
         from skyroute.stages.grid_kernels import rim_kernel
 
         rim_kernel(labels.astype(np.int64), win.values, win.inside, win.full, rim_max, rim_min, outside, at_border)
-    outside |= ~np.isfinite(rim_max)  # a region with no valid rim at all
     return Holes(labels, rim_max, rim_min, outside, at_border)
 
 
@@ -436,10 +464,11 @@ def read_window_holes(path, grid: Grid, *, what: str, margin_px: int = 32) -> tu
 
 
 def fill_holes(win: SourceWindow, holes: Holes, how: str) -> np.ndarray:
-    """``win.values`` with every NoData region inside the extent filled: ``"fill-max"`` (the
-    highest valid height on its rim), ``"fill-min"`` (the lowest; for grounds under a ceiling)
-    or ``"fill-nearest"`` (each pixel the nearest valid pixel).  Regions reaching outside the
-    extent stay NaN."""
+    """``win.values`` with every NoData region inside the extent filled (also those touching the
+    extent's edge): ``"fill-max"`` (the highest valid height on its rim within the extent),
+    ``"fill-min"`` (the lowest; for grounds under a ceiling) or ``"fill-nearest"`` (each pixel
+    the nearest valid pixel).  Pixels outside the extent (and regions without any valid rim)
+    stay NaN."""
     v = win.values.copy()
     interior = holes.interior
     if not interior.any():
@@ -458,24 +487,67 @@ def fill_holes(win: SourceWindow, holes: Holes, how: str) -> np.ndarray:
     return v
 
 
+def _inside_box(win: SourceWindow, grid: Grid) -> tuple[float, float, float, float] | None:
+    """Bounds (grid CRS) of the AOI cells over the raster's extent, snapped inward, when those
+    cells form the whole rectangle (else None)."""
+    out = np.isnan(footprint_resample(np.where(win.inside, 0.0, np.nan), win.transform, win.crs, grid))
+    rows = np.flatnonzero((~out).any(axis=1))
+    cols = np.flatnonzero((~out).any(axis=0))
+    if not rows.size or not cols.size or out[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].any():
+        return None
+    r = grid.resolution_m
+    return (grid.x0 + cols[0] * r, grid.y1 - (rows[-1] + 1) * r, grid.x0 + (cols[-1] + 1) * r, grid.y1 - rows[0] * r)
+
+
 def coverage_problem(win: SourceWindow, holes: Holes, grid: Grid, *, what: str, key: str,
                      holes_allowed: bool = True) -> str | None:
-    """The message for AOI cells the raster cannot give (None if every cell is covered):
-    cells outside the data's extent (or in NoData regions reaching its edge) are distinguished
-    from cells over NoData holes inside the extent (refused when ``holes_allowed`` is False)."""
+    """The message for AOI cells the raster cannot give (None if every cell is covered): cells
+    outside the data's extent are refused with the ``aoi.bounds`` that would fit (the AOI within
+    the raster, in the grid's CRS); cells over NoData regions inside the extent are refused only
+    when ``holes_allowed`` is False (``nodata: error``)."""
     outside_px = np.isnan(win.values) & ~holes.interior
     out_cells = np.isnan(footprint_resample(np.where(outside_px, np.nan, 0.0), win.transform, win.crs, grid))
     if out_cells.any():
-        return (f"{key}: covers only {100 * (1 - out_cells.mean()):.1f} % of the AOI: {int(out_cells.sum())} cells "
-                f"are outside the raster's extent (or in NoData regions that reach its edge); shrink aoi.bounds "
-                f"to the {what} or add tiles")
+        box = _inside_box(win, grid)
+        epsg = grid.crs.to_epsg()
+        crs = f"EPSG:{epsg}" if epsg else "the grid's CRS"
+        fix = (f"set aoi.bounds to [{box[0]:.0f}, {box[1]:.0f}, {box[2]:.0f}, {box[3]:.0f}] (with aoi.crs {crs}) "
+               "or add tiles" if box is not None else f"shrink aoi.bounds to the {what} or add tiles")
+        n_out = int(out_cells.sum())
+        no_rim = int((~np.isfinite(holes.rim_max[1:])).sum())
+        why = (f"{n_out} cells are outside the raster's extent" if not no_rim else
+               f"{n_out} cells are outside the raster's extent or in NoData regions without any valid pixel around them")
+        return f"{key}: covers only {100 * (1 - out_cells.mean()):.1f} % of the AOI: {why}; {fix}"
     if not holes_allowed:
         hole_cells = np.isnan(footprint_resample(np.where(holes.interior, np.nan, 0.0), win.transform, win.crs, grid))
         if hole_cells.any():
-            return (f"{key}: {holes.n_interior} NoData hole(s) inside the raster's extent cover "
-                    f"{100 * hole_cells.mean():.2f} % of the AOI ({int(hole_cells.sum())} cells) and nodata is "
-                    f"'error'; fill them or set {key}.nodata: fill-max")
+            n, n_edge = regions_in_aoi(win, holes, grid)
+            return (f"{key}: {n} NoData region(s) inside the raster's extent ({n_edge} touching "
+                    f"its edge) cover {100 * hole_cells.mean():.2f} % of the AOI ({int(hole_cells.sum())} cells) and "
+                    f"{key}.nodata is 'error'; set {key}.nodata to fill-max (each region the highest height on its "
+                    "rim) or fill-nearest (each pixel the nearest valid one)")
     return None
+
+
+def regions_in_aoi(win: SourceWindow, holes: Holes, grid: Grid) -> tuple[int, int]:
+    """(filled NoData regions with a pixel under the AOI, how many of them touch the extent's edge)."""
+    from rasterio.warp import transform_bounds
+
+    t = win.transform
+    bx0, by0, bx1, by1 = transform_bounds(grid.crs, win.crs, *grid.bounds, densify_pts=21)
+    j0, j1 = max(int(np.floor((bx0 - t.c) / t.a)), 0), int(np.ceil((bx1 - t.c) / t.a))
+    i0, i1 = max(int(np.floor((t.f - by1) / -t.e)), 0), int(np.ceil((t.f - by0) / -t.e))
+    lab = np.unique(holes.labels[i0:i1, j0:j1])
+    lab = lab[(lab > 0) & holes.fillable[lab]]
+    return int(lab.size), int(holes.outside[lab].sum())
+
+
+def filled_share(win: SourceWindow, holes: Holes, grid: Grid) -> float:
+    """Share [0..1] of the AOI cells that overlap a filled NoData pixel."""
+    if not holes.interior.any():
+        return 0.0
+    return float(np.isnan(footprint_resample(np.where(holes.interior, np.nan, 0.0), win.transform, win.crs,
+                                             grid)).mean())
 
 
 def ring_cells(xs: np.ndarray, ys: np.ndarray, offsets: np.ndarray, grid: Grid

@@ -268,24 +268,70 @@ def intent_conformance(doc: dict, lon_deg, lat_deg, h_w84_m, times_utc) -> float
     return float(inside.mean()) if inside.size else 1.0
 
 
+class PolylineTrajectory:
+    """A plan known only by its samples (fixed-wing plans: the lattice path with its turn fillets,
+    sampled): the polyline through ``xyz`` [m] at times ``t_s`` [s from 0], with the interface
+    :func:`plan_volumes` reads of a CornerTrajectory (one straight piece per chunk of samples,
+    no arcs: the hull of points sampled along each segment holds the segment)."""
+
+    def __init__(self, t_s, xyz):
+        t = np.asarray(t_s, float)
+        p = np.asarray(xyz, float).reshape(-1, 3)
+        keep = np.r_[True, np.diff(t) > 1e-9]
+        self.t, self.p = t[keep], p[keep]
+        if self.t.size < 2:
+            raise InputError("a sampled plan needs at least two samples at distinct times")
+        self.duration_s = float(self.t[-1])
+        self.piece_t_s = np.array([0.0, self.duration_s])
+        self.phase_t0_s = np.array([0.0])
+        self.kind = np.array([0], np.int8)
+        self.radius_m = np.array([math.inf])
+        v = np.linalg.norm(np.diff(self.p, axis=0), axis=1) / np.diff(self.t)
+        self.v0 = np.array([float(v.max())])
+
+    def sample(self, t) -> np.ndarray:
+        t = np.clip(np.asarray(t, float), 0.0, self.duration_s)
+        return np.column_stack([np.interp(t, self.t, self.p[:, k]) for k in range(3)])
+
+    def velocity(self, t) -> np.ndarray:
+        t = np.clip(np.asarray(t, float), 0.0, self.duration_s)
+        i = np.clip(np.searchsorted(self.t, t, side="right") - 1, 0, self.t.size - 2)
+        return (self.p[i + 1] - self.p[i]) / (self.t[i + 1] - self.t[i])[:, None]
+
+
+def plan_path(plan_ds):
+    """``(trajectory, t0_s)`` of a plan-stage dataset: its exact CornerTrajectory (rotorcraft),
+    else the polyline of its samples (:class:`PolylineTrajectory`, fixed-wing plans); None when
+    neither is there."""
+    from skyroute.stages.planning.strategic import trajectory_from_dataset
+
+    tr = trajectory_from_dataset(plan_ds)
+    if tr is not None:
+        return tr
+    if "t_s" not in plan_ds or "x_m" not in plan_ds:
+        return None
+    t = np.asarray(plan_ds["t_s"].values, float)
+    xyz = np.column_stack([np.asarray(plan_ds[k].values, float) for k in ("x_m", "y_m", "z_m")])
+    return PolylineTrajectory(t - t[0], xyz), float(t[0])
+
+
 def plan_intent(plan_ds, height_w84_of_lonlat: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray], *,
                 vehicle_radius_m: float, k_sigma: float = 3.0, time_buffer_s: float = 5.0,
                 max_volume_s: float = 30.0, priority: int = 0) -> tuple[list[IntentVolume], dict]:
     """``(volumes, OperationalIntentDetails dict)`` of the chosen plan of a plan-stage dataset
-    (:func:`~skyroute.stages.planning.strategic.plan_to_dataset`: exact trajectory, ``t_s``,
+    (:func:`~skyroute.stages.planning.strategic.plan_to_dataset`: exact trajectory or, for a
+    fixed-wing plan, its samples (:func:`plan_path`), ``t_s``,
     ``sigma_p_m``, ``crs`` and ``start_time_utc`` attrs).  ``height_w84_of_lonlat(lon, lat, z)``:
     surface-datum heights [m] -> WGS 84 ellipsoidal [m] (e.g.
     :meth:`~skyroute.stages.geoid.HeightReference.ellipsoidal_m`).  InputError when the
     dataset has no chosen plan or no exact trajectory."""
     from pyproj import Transformer
 
-    from skyroute.stages.planning.strategic import trajectory_from_dataset
-
     if int(plan_ds.attrs.get("chosen_level", -1)) < 0:
         raise InputError("no flyable plan: there is no trajectory to make an operational intent of")
-    tr = trajectory_from_dataset(plan_ds)
+    tr = plan_path(plan_ds)
     if tr is None:
-        raise InputError("the plan dataset has no exact trajectory (traj_* variables); re-run the plan stage")
+        raise InputError("the plan dataset has no trajectory (traj_* variables or samples); re-run the plan stage")
     traj, t0 = tr
     crs = plan_ds.attrs["crs"]
     to_ll = Transformer.from_crs(crs, 4326, always_xy=True)

@@ -18,6 +18,10 @@ Landing sites (:func:`landing_sites`)
   so that the distance is exact whenever one site lies in the grid): they set the distance
   near the edges.
 
+A city without any (a user's DSM or CityJSON): :func:`open_ground_sites` derives candidate
+sites from the maps (no obstacle within the vehicle's radius, not no-fly, the lowest risk level
+present, one per 100 m block) for ``skyroute fleet --missions``, which says so.
+
 Distance and cost (:func:`landing_cost`)
 ----------------------------------------
 ``landing_distance_m`` [m]: horizontal distance from each cell centre to the nearest site,
@@ -171,6 +175,41 @@ def landing_sites(grid: Grid, osm_path: str | Path | None = None, geojson: str |
     mask = grid.dataarray(_burn_sites(grid, [s.geometry for s in sites]), "landing_site", units="1",
                           long_name="cell touched by a landing site")
     return LandingSites(tuple(sites), mask)
+
+
+#: Side [m] of the blocks in which :func:`open_ground_sites` keeps one candidate site.
+OPEN_GROUND_SPACING_M = 100.0
+#: A cell is open ground when its clearance floor is at most this [m] above terrain + r_p.
+OPEN_GROUND_TOLERANCE_M = 0.5
+
+
+def open_ground_sites(*, terrain: np.ndarray, surface: np.ndarray, obstacle_floor: np.ndarray,
+                      risk_level: np.ndarray, nofly: np.ndarray, grid: Grid, radius_m: float,
+                      spacing_m: float = OPEN_GROUND_SPACING_M, max_level: int = 4
+                      ) -> tuple[np.ndarray, np.ndarray, int | None]:
+    """Candidate landing sites derived from open ground, for a city without any (``skyroute
+    fleet --missions``): cells not no-fly, with nothing on them (``surface <= terrain``) and no
+    obstacle within the vehicle's radius ``radius_m`` [m] (the clearance floor at most
+    :data:`OPEN_GROUND_TOLERANCE_M` above ``terrain + radius_m``), at the lowest risk level
+    present among them (<= ``max_level``: parks and open land before industrial ground before
+    streets; never critical or forbidden sites); in each ``spacing_m`` block the one whose
+    floor is lowest above its ground.  Returns ``(x, y, level)`` [m] (map coordinates of the
+    cell centres; ``level`` None when no cell qualifies)."""
+    open_ = (~np.asarray(nofly, bool) & np.isfinite(obstacle_floor)
+             & (np.asarray(surface) <= np.asarray(terrain) + 1e-6)
+             & (np.asarray(obstacle_floor) <= np.asarray(terrain) + radius_m + OPEN_GROUND_TOLERANCE_M)
+             & (np.asarray(risk_level) <= max_level))
+    if not open_.any():
+        return np.zeros(0), np.zeros(0), None
+    level = int(np.asarray(risk_level)[open_].min())
+    ok = open_ & (np.asarray(risk_level) == level)
+    rows, cols = np.nonzero(ok)
+    margin = (np.asarray(obstacle_floor) - np.asarray(terrain))[rows, cols]
+    k = max(int(round(spacing_m / grid.resolution_m)), 1)
+    block = (rows // k) * (grid.nx // k + 1) + cols // k
+    order = np.lexsort((cols, rows, margin, block))
+    first = order[np.r_[True, np.diff(block[order]) != 0]]
+    return grid.x[cols[first]], grid.y[rows[first]], level
 
 
 def landing_cost(grid: Grid, sites: LandingSites | list[LandingSite],

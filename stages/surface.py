@@ -20,11 +20,13 @@ which is conservative for collision and occlusion.
 CityJSON (1.0 / 1.1 / 2.0, LoD1 or LoD2, Building and BuildingPart): every upper surface
 (``RoofSurface`` / ``OuterCeilingSurface`` / ``OuterFloorSurface``, or for LoD1 without semantics
 every face whose normal points up) is a roof face.  Terrain: a ``TINRelief``, where the file has
-one, is the ground (each cell the TIN's maximum over the cell, the same rasterisation as roofs;
-conservative for altitude floors); otherwise each building's ``TerrainHeight`` attribute
-(preferred: some LoD2 models put the ground surface at z = 0) or its ``GroundSurface`` heights,
-interpolated linearly on the points' Delaunay triangles, each cell the maximum over the cell
-(nearest point outside their hull): :func:`terrain_from_points`.
+one, is the ground (``terrain``: the TIN's maximum over the cell, the same rasterisation as roofs,
+``terrain_min`` its minimum; where it covers a cell only in part, combined with the buildings'
+ground); otherwise, per Building with its BuildingParts, the ``TerrainHeight`` attribute
+(preferred: some LoD2 models put the ground surface at z = 0) or its *lowest* ``GroundSurface``
+(the bottom of a part standing on another part is not ground), interpolated linearly on the
+points' Delaunay triangles, each cell the maximum (``terrain``) / minimum (``terrain_min``) over
+the cell (nearest point outside their hull): :func:`terrain_from_points`.
 
 Rasterisation (conservative: a cell's value holds for every point of the cell)
 -----------------------------------------------------------------------------
@@ -53,15 +55,17 @@ scanline fill) stays for land use, where a cell takes the class at its centre.
 
 DEM and DSM rasters (``data.terrain``, ``data.surface``)
 -------------------------------------------------------
-Both are read by window at their native resolution (a GeoTIFF, a VRT or a list of tiles) and
-resampled to the grid by the footprint max (:func:`~skyroute.stages.grid.footprint_resample`:
-every source pixel overlapping the cell counts, in any CRS), never bilinearly: ``surface`` is
-the highest point of the DSM over the cell (and of the buildings: surface = max of both);
-``terrain`` the highest ground over the cell (minimum-AGL floors) and ``terrain_min`` the lowest
-(maximum-AGL ceilings).  NoData: each connected region inside the extent takes the highest height
-on its rim (DSM ``nodata: fill-max``, the default; ``fill-nearest``; ``error``); a DEM's holes take
-the highest rim height for ``terrain`` and the lowest for ``terrain_min``; regions touching the
-raster's edge are outside its extent, and AOI cells outside the extent are an error saying so.
+Both are read by window at their native resolution (a GeoTIFF, a VRT or a list of tiles), never
+bilinearly.  A DSM is resampled by the footprint max (:func:`~skyroute.stages.grid.footprint_resample`:
+every source pixel overlapping the cell counts, in any CRS): ``surface`` is the highest point of
+the DSM over the cell (and of the buildings: surface = max of both).  A DEM is a set of samples of
+a continuous surface (:func:`terrain_from_dem`, :func:`patch_resample`): ``terrain`` (minimum-AGL
+floors) is the highest and ``terrain_min`` (maximum-AGL ceilings) the lowest sample of every
+lattice square touching the cell.  NoData: each connected region inside the extent, also one
+touching the raster's edge, takes the highest height on its rim within the raster (DSM
+``nodata: fill-max``, the default; ``fill-nearest``; ``error``), with a warning giving the share of
+the AOI filled; a DEM's regions take the highest rim height for ``terrain`` and the lowest for
+``terrain_min``; AOI cells outside the extent are an error giving the ``aoi.bounds`` that fit.
 A DSM without a DEM: the ground is the grey opening of the DSM (:func:`ground_from_dsm`, square
 window ``ground_window_m``, default 60 m, wider than the largest building), said in the attrs
 (``ground_source``) and as a stage warning; ``dsm_building`` marks cells whose every DSM pixel is
@@ -94,8 +98,10 @@ from skyroute.stages.grid import (
     Grid,
     coverage_problem,
     fill_holes,
+    filled_share,
     footprint_resample,
     read_window_holes,
+    regions_in_aoi,
 )
 from skyroute.stages.osm import read_osm
 
@@ -149,6 +155,8 @@ class BuildingRaster:
     sources: np.ndarray
     absolute: bool  # True: ``top`` is an absolute height; False: height above ground
     terrain: np.ndarray | None = None
+    terrain_min: np.ndarray | None = None   # the TIN's minimum over each cell
+    tin_full: np.ndarray | None = None      # cells the TIN covers whole
 
 
 # --------------------------------------------------------------------------- polygon-over-cell maxima
@@ -386,28 +394,49 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
     V, faces = b.vertices_m, b.faces
     roof_i = np.flatnonzero(b.is_roof)
     top, index = polygon_max([[V[np.asarray(r)] for r in faces[i]] for i in roof_i], grid, b.owner[roof_i])
-    tin = None
+    tin = tin_min = tin_full = None
     if b.tin_faces:
-        tin, _ = polygon_max([[V[np.asarray(r)] for r in f] for f in b.tin_faces], grid)
+        polys = [[V[np.asarray(r)] for r in f] for f in b.tin_faces]
+        tin, _ = polygon_max(polys, grid)
+        tin_min = -polygon_max([[P * np.array([1.0, 1.0, -1.0]) for P in poly] for poly in polys], grid)[0]
+        tin_full = _covered_cells(polys, grid) & np.isfinite(tin)
     raster = BuildingRaster(top, index, np.arange(len(b.ids), dtype=np.int64), b.roof_top_m(),
-                            np.asarray(["cityjson:" + i for i in b.ids]), absolute=True, terrain=tin)
+                            np.asarray(["cityjson:" + i for i in b.ids]), absolute=True, terrain=tin,
+                            terrain_min=tin_min, tin_full=tin_full)
     return raster, b.ground_points()
 
 
+def _covered_cells(polys, grid: Grid) -> np.ndarray:
+    """Cells whose closed square lies within the union of ``polys`` (outer rings, map x, y [m]):
+    every cell the complement (the grid's box minus the union) does not touch."""
+    r = grid.resolution_m
+    x0, y0, x1, y1 = grid.bounds
+    union = shapely.union_all([shapely.Polygon(np.asarray(p[0])[:, :2]) for p in polys])
+    rest = shapely.box(x0 - r, y0 - r, x1 + r, y1 + r).difference(union)
+    parts = [g for g in getattr(rest, "geoms", [rest]) if g.geom_type == "Polygon" and not g.is_empty]
+    if not parts:
+        return np.ones(grid.shape, bool)
+    rings = [[np.column_stack([np.asarray(ring.coords)[:-1, :2], np.zeros(len(ring.coords) - 1)])
+              for ring in (g.exterior, *g.interiors)] for g in parts]
+    _, index = polygon_max(rings, grid)
+    return index < 0
+
+
 def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None = None, *,
-                        lowest: bool = False) -> np.ndarray:
+                        lowest: bool = False, tin_full: np.ndarray | None = None) -> np.ndarray:
     """Terrain [m] from scattered ground points ``(n, 3)``: linear on their Delaunay triangles, each
     cell the maximum of that surface over the cell (:func:`polygon_max`; conservative for floors,
     like the surface); cells outside the points' hull take the nearest point's height.
     ``lowest``: the minimum over each cell instead (for maximum-AGL ceilings; the same kernel on
     the negated heights, exact for the linear interpolation).
 
-    ``tin`` (CityJSON ``TINRelief``, :attr:`BuildingRaster.terrain`): where finite, it replaces
-    the interpolation (the TIN's maximum over the cell; ignored with ``lowest``, where the TIN's
-    vertices, which are among ``points``, are interpolated on their own Delaunay triangles)."""
+    ``tin`` (CityJSON ``TINRelief``: its maximum over each cell, :attr:`BuildingRaster.terrain`,
+    or with ``lowest`` its minimum, :attr:`BuildingRaster.terrain_min`): the ground where it
+    covers the cell whole (``tin_full``; every cell it touches when None); a cell it covers in
+    part takes the higher (``lowest``: the lower) of the TIN and the interpolation."""
     if lowest:
         pts = np.asarray(points, np.float64).reshape(-1, 3) * np.array([1.0, 1.0, -1.0])
-        return -terrain_from_points(pts, grid)
+        return -terrain_from_points(pts, grid, None if tin is None else -np.asarray(tin), tin_full=tin_full)
     out = np.zeros(grid.shape)
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     if len(pts):
@@ -432,24 +461,102 @@ def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None =
             r, c = np.nonzero(miss)
             out[r, c] = NearestNDInterpolator(pts[:, :2], pts[:, 2])(grid.x[c], grid.y[r])
     if tin is not None:
-        out = np.where(np.isfinite(tin), tin, out)
+        has = np.isfinite(tin)
+        full = has if tin_full is None else has & tin_full
+        out = np.where(full, tin, np.where(has, np.fmax(tin, out), out))
     return out
 
 
-def terrain_from_dem(path: str | Path | list, grid: Grid, *, key: str = "data.terrain") -> tuple[np.ndarray, np.ndarray]:
-    """A DEM (GeoTIFF, VRT or list of tiles) on ``grid`` [m] as two bounds of the ground over
-    each cell: ``(max, min)`` over every DEM pixel overlapping the cell's footprint
-    (:func:`~skyroute.stages.grid.footprint_resample`; the max for minimum-AGL floors, the min
-    for maximum-AGL ceilings).  NoData holes inside the DEM's extent take the highest (for the
-    max) / lowest (for the min) valid height on their rim; AOI cells outside the extent are an
-    error that says so (``key`` names the scenario entry)."""
-    win, holes = read_window_holes(path, grid, what="terrain")
+def dem_sample_offset_px(path) -> tuple[float, str]:
+    """Where the samples of a DEM sit, in pixels from the corner of the pixel the geotransform
+    gives, and a text for the attrs: GDAL's geotransform always describes pixel areas and moves a
+    ``PixelIsPoint`` tie point by half a pixel (RFC 33), so the samples sit at the pixel centres
+    (0.5) for ``AREA_OR_POINT=Area`` and ``Point`` alike -- unless GDAL is told to ignore that
+    (``GTIFF_POINT_GEO_IGNORE=TRUE``): then the samples of a ``Point`` raster sit at the corners
+    (0.0)."""
+    import os
+
+    import rasterio
+    from rasterio.env import get_gdal_config
+
+    first = path[0] if isinstance(path, (list, tuple)) else path
+    with rasterio.open(first) as src:
+        aop = str(src.tags().get("AREA_OR_POINT") or "Area")
+    ignore = str(get_gdal_config("GTIFF_POINT_GEO_IGNORE") or os.environ.get("GTIFF_POINT_GEO_IGNORE", "")).upper()
+    if aop.lower() == "point" and ignore in ("TRUE", "YES", "ON", "1"):
+        return 0.0, "samples at the pixel corners (AREA_OR_POINT=Point read with GTIFF_POINT_GEO_IGNORE)"
+    return 0.5, f"samples at the pixel centres (AREA_OR_POINT={aop})"
+
+
+def patch_resample(values: np.ndarray, transform, crs, grid: Grid, how: str = "max", offset_px: float = 0.5
+                   ) -> np.ndarray:
+    """A sampled surface (``values``: samples of a continuous surface, NaN where none, at
+    ``transform * (j + offset_px, i + offset_px)``) on ``grid`` [m]: ``how="max"`` gives each cell
+    the highest sample of every lattice square (four neighbouring samples) that overlaps the cell,
+    ``"min"`` the lowest.  Any surface that stays between the lowest and the highest sample of
+    each lattice square (bilinear, either triangulation of the square, nearest sample, ...)
+    therefore lies within ``[min, max]`` at every point of the cell.  NaN samples take the value
+    of the nearest sample first (the surface is extended as a constant beyond the outer samples:
+    callers refuse cells outside the data's extent)."""
+    if how not in ("max", "min"):
+        raise InputError(f"patch resampling {how!r} must be 'max' or 'min'")
+    v = np.asarray(values, dtype=np.float64)
+    nan = np.isnan(v)
+    if nan.all():
+        return np.full(grid.shape, np.nan)
+    if nan.any():
+        from scipy.ndimage import distance_transform_edt
+
+        _, (ri, ci) = distance_transform_edt(nan, return_indices=True)
+        v = v[ri, ci]
+    v = np.pad(v, 1, mode="edge")
+    red = np.maximum if how == "max" else np.minimum
+    sq = red(red(v[:-1, :-1], v[1:, :-1]), red(v[:-1, 1:], v[1:, 1:]))
+    from affine import Affine
+
+    return footprint_resample(sq, transform * Affine.translation(offset_px - 1.0, offset_px - 1.0), crs, grid, how)
+
+
+@dataclass(frozen=True)
+class DemRaster:
+    """A DEM on the grid: ``terrain`` / ``terrain_min`` [m] (highest / lowest sample of every
+    lattice square touching the cell), ``notes`` for the attrs and ``warnings``."""
+
+    terrain: np.ndarray
+    terrain_min: np.ndarray
+    notes: str
+    warnings: tuple[str, ...] = ()
+
+
+def terrain_from_dem(path: str | Path | list, grid: Grid, *, key: str = "data.terrain") -> DemRaster:
+    """A DEM (GeoTIFF, VRT or list of tiles) on ``grid`` [m], read as the continuous surface
+    through its samples (not as flat-topped squares): ``terrain`` is the highest sample of every
+    lattice square (four neighbouring samples) that overlaps the cell (minimum-AGL floors), and
+    ``terrain_min`` the lowest (maximum-AGL ceilings), :func:`patch_resample`; between two samples
+    the ground can be as high as the higher of them.  The samples sit at the pixel centres, or at
+    the corners for a ``Point`` raster GDAL reads without its half-pixel shift
+    (:func:`dem_sample_offset_px`).  NoData regions inside the DEM's extent (also those touching
+    its edge) take the highest (for ``terrain``) / lowest (for ``terrain_min``) valid height on
+    their rim, with a warning giving the share of the AOI filled; AOI cells outside the extent
+    are an error that says which ``aoi.bounds`` fit (``key`` names the scenario entry)."""
+    win, holes = read_window_holes(path, grid, what="terrain DEM")
     msg = coverage_problem(win, holes, grid, what="terrain DEM", key=key)
     if msg:
         raise DataError(msg)
-    hi = footprint_resample(fill_holes(win, holes, "fill-max"), win.transform, win.crs, grid, "max")
-    lo = footprint_resample(fill_holes(win, holes, "fill-min"), win.transform, win.crs, grid, "min")
-    return hi, lo
+    off, reading = dem_sample_offset_px(path)
+    hi = patch_resample(fill_holes(win, holes, "fill-max"), win.transform, win.crs, grid, "max", off)
+    lo = patch_resample(fill_holes(win, holes, "fill-min"), win.transform, win.crs, grid, "min", off)
+    share = filled_share(win, holes, grid)
+    warns = []
+    if share > 0:
+        n, n_edge = regions_in_aoi(win, holes, grid)
+        warns.append(f"{key}: {n} NoData region(s) of the DEM ({n_edge} touching its edge) "
+                     f"cover {100 * share:.2f} % of the AOI's cells: filled with the highest height on each region's "
+                     "rim within the DEM for terrain (the lowest for terrain_min); give a DEM without holes for a "
+                     "surveyed ground")
+    notes = (f"DEM (data.terrain) read as the surface through its samples ({reading}): terrain = the highest, "
+             "terrain_min = the lowest sample of every lattice square touching the cell")
+    return DemRaster(hi, lo, notes, tuple(warns))
 
 
 #: Default side [m] of the square window of the grey opening that derives the ground from a DSM.
@@ -471,6 +578,7 @@ class DsmRaster:
     building: np.ndarray | None
     n_holes: int
     notes: str
+    warnings: tuple[str, ...] = ()
 
 
 def ground_from_dsm(dsm: np.ndarray, pixel_m: float, window_m: float = GROUND_WINDOW_M) -> np.ndarray:
@@ -512,9 +620,16 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
     filled = fill_holes(win, holes, nodata if nodata != "error" else "fill-max")
     surface = footprint_resample(filled, win.transform, win.crs, grid, "max")
     surface_min = footprint_resample(filled, win.transform, win.crs, grid, "min")
-    notes = f"NoData holes inside the extent: {holes.n_interior} ({nodata})"
+    n, n_edge = regions_in_aoi(win, holes, grid)
+    notes = f"NoData regions filled under the AOI: {n} ({nodata}, {n_edge} touching the raster's edge)"
+    share = filled_share(win, holes, grid)
+    how = ("the highest height on each region's rim within the raster" if nodata == "fill-max"
+           else "the nearest valid pixel")
+    warns = (f"{key}: {n} NoData region(s) of the DSM ({n_edge} touching its edge) cover "
+             f"{100 * share:.2f} % of the AOI's cells: filled with {how} ({key}.nodata: {nodata}; the other choices: "
+             f"{', '.join(p for p in NODATA_POLICIES if p != nodata)})",) if share > 0 else ()
     if not derive_ground:
-        return DsmRaster(surface, surface_min, None, None, None, holes.n_interior, notes)
+        return DsmRaster(surface, surface_min, None, None, None, n, notes, warns)
     px = abs(win.transform.a)
     ok = np.isfinite(filled)
     g_src = ground_from_dsm(filled, px, ground_window_m)
@@ -525,7 +640,7 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
     notes += (f"; ground derived from the DSM by a grey opening with a {ground_window_m:g} m square window "
               f"({int(np.ceil(ground_window_m / px)) | 1} px of {px:g} m); buildings: more than "
               f"{building_threshold_m:g} m above it over the whole cell (tall vegetation is not told apart)")
-    return DsmRaster(surface, surface_min, ground, ground_min, building, holes.n_interior, notes)
+    return DsmRaster(surface, surface_min, ground, ground_min, building, n, notes, warns)
 
 
 def burn_obstacles(surface: np.ndarray, terrain: np.ndarray, grid: Grid, obstacles) -> np.ndarray:
@@ -586,11 +701,13 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
     if surface_path is not None:
         dsm = dsm_on_grid(surface_path, grid, nodata=surface_nodata, derive_ground=terrain_path is None,
                           ground_window_m=ground_window_m, building_threshold_m=building_threshold_m)
-    warns: list[str] = []
+    warns: list[str] = list(dsm.warnings) if dsm is not None else []
     if terrain_path is not None:
-        terrain, terrain_min = terrain_from_dem(terrain_path, grid)
+        dem = terrain_from_dem(terrain_path, grid)
+        terrain, terrain_min = dem.terrain, dem.terrain_min
+        warns.extend(dem.warnings)
         datum = vertical_datum or "EGM96 geoid"
-        ground_src = "DEM (data.terrain), max / min over each cell"
+        ground_src = dem.notes
     elif dsm is not None:
         terrain, terrain_min = dsm.ground, dsm.ground_min
         datum = surface_datum
@@ -599,10 +716,16 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
                      f"{ground_window_m:g} m window; AGL limits, landing and the risk map's buildings use it; "
                      "give data.terrain for a surveyed ground")
     elif len(ground_pts):
-        terrain = terrain_from_points(ground_pts, grid, braster.terrain)
-        terrain_min = terrain_from_points(ground_pts, grid, lowest=True)
+        terrain = terrain_from_points(ground_pts, grid, braster.terrain, tin_full=braster.tin_full)
+        terrain_min = terrain_from_points(ground_pts, grid, braster.terrain_min, lowest=True, tin_full=braster.tin_full)
+        # both bounds come from the same surfaces; the min also guards the one corner case where two
+        # Delaunay triangulations of cocircular points differ (lowering terrain_min is safe for ceilings)
+        terrain_min = np.minimum(terrain_min, terrain)
         datum = vertical_datum or "source data heights (CityJSON; NAP for Dutch data)"
-        ground_src = "CityJSON ground points, interpolated"
+        ground_src = ("CityJSON TINRelief (max / min over each cell), building ground surfaces where it does not "
+                      "reach" if braster.terrain is not None else
+                      "CityJSON ground: the lowest ground surface of each building (its parts included), "
+                      "interpolated")
     else:
         terrain = np.zeros(grid.shape)
         terrain_min = terrain

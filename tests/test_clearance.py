@@ -216,9 +216,10 @@ def test_bad_input(srtm_patch):
 
 
 def test_agl_floor_and_ceiling_hold_at_every_point_of_the_cell():
-    """The minimum-AGL floor uses the highest DEM pixel under the cell, the maximum-AGL ceiling
-    the lowest: at random points inside cells (misaligned 45 m grid on the 30 m SRTM), the
-    ground under the point (its DEM pixel) is <= floor - min_agl and >= ceiling - max_agl."""
+    """The minimum-AGL floor uses the highest DEM sample whose patch touches the cell, the
+    maximum-AGL ceiling the lowest: at random points inside cells (misaligned 45 m grid on the
+    30 m SRTM), the ground under the point (its DEM pixel, and the bilinear surface through the
+    four samples around it) is <= floor - min_agl and >= ceiling - max_agl."""
     import rasterio
 
     from skyroute.pipeline.settings import catalog_dir
@@ -238,10 +239,19 @@ def test_agl_floor_and_ceiling_hold_at_every_point_of_the_cell():
     y = g.y1 - (r + rng.uniform(0, 1, n)) * g.resolution_m
     col, row = ~T * (x, y)
     ground = dem[np.floor(row).astype(int), np.floor(col).astype(int)]
-    assert np.all(ab["floor_m"].values[r, c] - 30.0 >= ground - 1e-4)
-    assert np.all(ab["ceiling_m"].values[r, c] - 120.0 <= ground + 1e-4)
-    # both bounds are tight: some point of each cell sits on them (max / min over the cell)
-    assert np.isclose(ab["floor_m"].values[r, c] - 30.0, ground, atol=1e-3).mean() > 0.1
+    u, w = col - 0.5, row - 0.5                     # samples at the pixel centres
+    j, i = np.floor(u).astype(int), np.floor(w).astype(int)
+    fu, fw = u - j, w - i
+    four = np.stack([dem[i, j], dem[i, j + 1], dem[i + 1, j], dem[i + 1, j + 1]])
+    bil = (dem[i, j] * (1 - fu) * (1 - fw) + dem[i, j + 1] * fu * (1 - fw) + dem[i + 1, j] * (1 - fu) * fw
+           + dem[i + 1, j + 1] * fu * fw)
+    for g_ in (ground, bil):
+        assert np.all(ab["floor_m"].values[r, c] - 30.0 >= g_ - 1e-4)
+        assert np.all(ab["ceiling_m"].values[r, c] - 120.0 <= g_ + 1e-4)
+    # both bounds are tight: at some points of the cells they are the highest / lowest of the four
+    # samples around the point (the patch max / min over the cell)
+    assert np.isclose(ab["floor_m"].values[r, c] - 30.0, four.max(axis=0), atol=1e-3).mean() > 0.1
+    assert np.isclose(ab["ceiling_m"].values[r, c] - 120.0, four.min(axis=0), atol=1e-3).mean() > 0.1
     # a centre-sampled (or bilinear) ground would not hold: it is above some point's ground by metres
     centre = dem[np.floor((~T * (g.x[c], g.y[r]))[1]).astype(int), np.floor((~T * (g.x[c], g.y[r]))[0]).astype(int)]
     assert (ground - centre).max() > 5.0

@@ -19,7 +19,7 @@ from skyroute.pipeline.cli import main
 from skyroute.pipeline.settings import GroundReference, load_scenario
 from skyroute.stages.vehicle import load_vehicle
 
-GROUND = ["--ground-m", "10"]
+GROUND: list[str] = []   # helsinki-medical has its own data.ground (issue 24): no flag needed
 A = {"x": 385747.35, "y": 6672213.62, "alt_agl_m": 60}
 B = {"x": 385969.55, "y": 6672495.29, "alt_agl_m": 60}
 C = {"x": 385990.82, "y": 6672586.58, "alt_agl_m": 60}
@@ -183,6 +183,17 @@ def test_trajectories_keep_separation_and_stay_in_their_intents(drawn):
             w = (t_ns >= a) & (t_ns <= b)
             inside[w] |= shapely.contains_xy(poly, g.x_m.to_numpy()[w], g.y_m.to_numpy()[w])
         assert inside.all(), m
+
+
+def test_default_scenario_fleet_of_20_needs_no_flag(tmp_path, cache_dir):
+    """`skyroute fleet helsinki-medical --missions 20 --seed 1` exits 0 with no extra flag: the
+    scenario's own data.ground gives the intents their absolute heights (issue 24; the other
+    city scenarios: tests/test_inspect.py)."""
+    res = CliRunner().invoke(main, ["fleet", "helsinki-medical", "--missions", "20", "--seed", "1", "--out",
+                                    str(tmp_path / "o"), "--cache-dir", str(cache_dir), "-q"])
+    assert res.exit_code == 0, res.output
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["fleet"]["counts"]["accepted"] >= 1 and s["fleet"]["conflicts_independent_check"] == 0
 
 
 def test_fleet_png(drawn):

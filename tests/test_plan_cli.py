@@ -41,11 +41,12 @@ def test_plan_summary_line_and_json(planned):
     s = json.loads((out / "summary.json").read_text())
     assert s["schema_version"] == 1 and s["command"] == "plan" and isinstance(s["warnings"], list)
     assert sorted(s["files"]) == sorted(p.name for p in out.iterdir())
-    # pilot exports: helsinki-medical is on flat local ground without data.ground: no absolute
-    # heights, so no plan.kml / intent.json, and a note (not a warning) naming the setting
-    assert s["exports"]["files"] == ["plan.gpkg", "plan.plan"]
-    assert len(s["exports"]["notes"]) == 1 and "data.ground" in s["exports"]["notes"][0]
-    assert not any("exports" in w for w in s["warnings"])
+    # pilot exports: helsinki-medical has a sourced data.ground (issue 24): every pilot file, the
+    # QGroundControl home at that height above mean sea level, no "not written" warning
+    assert s["exports"]["files"] == ["intent.json", "plan.gpkg", "plan.kml", "plan.plan"]
+    assert s["exports"]["notes"] == [] and not any("not written" in w for w in s["warnings"])
+    home = json.loads((out / "plan.plan").read_text())["mission"]["plannedHomePosition"]
+    assert home[2] == pytest.approx(load_scenario("helsinki-medical").data.ground.height_m, abs=1e-6)
     p = s["plan"]
     row = next(r for r in csv.DictReader((out / "candidates.csv").open()) if r["chosen"] == "true")
     assert p["status"] == "flyable" and p["reasons"] == [] and p["label"] == row["label"]

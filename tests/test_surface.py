@@ -120,25 +120,30 @@ def test_rotterdam_roofs_match_cityjson():
     assert float(ds["surface"].max()) == pytest.approx(V[:, 2].max(), abs=0.01)
 
 
-def _box_oracle(src, T, grid, how="max"):
+def _box_oracle(src, T, grid, how="max", width_px=1.0):
     """Independent footprint max/min for a north-up source on the grid's CRS: pixel j spans
     [T.c + j a, T.c + (j + 1) a]; it counts for a cell when the two intervals overlap (> 1e-6 m)
-    on both axes."""
+    on both axes.  ``width_px=2``: the sample at the centre of pixel j counts for every cell its
+    surface patch [centre - a, centre + a] (the four lattice squares around it) overlaps."""
     sy, sx = src.shape
-    xl = T.c + np.arange(sx) * T.a
-    yt = T.f + np.arange(sy) * T.e
+    xl = T.c + (np.arange(sx) + 0.5 - width_px / 2) * T.a
+    yt = T.f + (np.arange(sy) + 0.5 - width_px / 2) * T.e
     out = np.full(grid.shape, np.nan)
     r = grid.resolution_m
     red = np.max if how == "max" else np.min
-    cols = [(xl + T.a > grid.x0 + j * r + 1e-6) & (xl < grid.x0 + (j + 1) * r - 1e-6) for j in range(grid.nx)]
+    cols = [(xl + width_px * T.a > grid.x0 + j * r + 1e-6) & (xl < grid.x0 + (j + 1) * r - 1e-6)
+            for j in range(grid.nx)]
     for i in range(grid.ny):
         Y1 = grid.y1 - i * r
-        line = red(src[(yt > Y1 - r + 1e-6) & (yt + T.e < Y1 - 1e-6)], axis=0)
+        line = red(src[(yt > Y1 - r + 1e-6) & (yt + width_px * T.e < Y1 - 1e-6)], axis=0)
         out[i] = [red(line[c]) for c in cols]
     return out
 
 
-def test_dem_is_the_max_and_min_over_each_cell():
+def test_dem_is_the_max_and_min_of_the_samples_whose_patch_touches_each_cell():
+    """A DEM is read as the surface through its samples: a cell's terrain is the highest sample
+    whose patch (the four lattice squares around it) overlaps the cell, terrain_min the lowest;
+    the footprint reading (flat-topped squares) is never above it."""
     path = CATALOG_DATA / "srtm_bigtujunga30m_utm11.tif"
     with rasterio.open(path) as src:
         b = src.bounds
@@ -148,11 +153,14 @@ def test_dem_is_the_max_and_min_over_each_cell():
     for res, dx in ((30.0, 7.3), (45.0, 0.0), (12.5, 3.1)):
         grid = Grid.from_bounds(crs, b.left + 3000 + dx, b.bottom + 3000 + dx, b.left + 4500, b.bottom + 4000, res)
         ds = build_surface(grid, terrain_path=path, vertical_datum="EGM96 geoid")
-        hi, lo = _box_oracle(dem, T, grid, "max"), _box_oracle(dem, T, grid, "min")
+        hi, lo = _box_oracle(dem, T, grid, "max", 2.0), _box_oracle(dem, T, grid, "min", 2.0)
         np.testing.assert_array_equal(ds["terrain"].values, hi.astype(np.float32))
         np.testing.assert_array_equal(ds["terrain_min"].values, lo.astype(np.float32))
-        np.testing.assert_array_equal(warp_to_grid(path, grid, what="terrain", resampling="min"), lo)
+        box_lo = _box_oracle(dem, T, grid, "min")
+        np.testing.assert_array_equal(warp_to_grid(path, grid, what="terrain", resampling="min"), box_lo)
+        assert np.all(hi >= _box_oracle(dem, T, grid, "max")) and np.all(lo <= box_lo)
         assert (hi - lo).max() > 5.0   # mountains: the two bounds differ
+    assert "samples at the pixel centres" in ds.attrs["ground_source"]
     assert ds.attrs["vertical_datum"] == "EGM96 geoid"
     assert ds["surface"].rio.crs.to_epsg() == 32611
 
@@ -217,7 +225,7 @@ def test_dsm_holes_are_filled_with_their_rim_max_then_footprint_max(tmp_path):
         assert float(ds["surface"].max()) == 41.0                # the mast survives every resolution
         assert np.all(ds["surface"].values >= _box_oracle(z, DSM_T, grid) - 1e-5)  # above the true DSM
     assert ds.attrs["vertical_datum"] == "NAP"
-    assert "NoData holes inside the extent: 2 (fill-max)" in ds.attrs["dsm"]
+    assert "NoData regions filled under the AOI: 2 (fill-max, 0 touching the raster's edge)" in ds.attrs["dsm"]
 
 
 def test_dsm_tiles_and_vrt_read_like_one_file(tmp_path):
@@ -265,11 +273,20 @@ def test_dsm_tiles_and_vrt_read_like_one_file(tmp_path):
 def test_dsm_nodata_policies_and_extent_messages(tmp_path):
     z = _true_dsm()
     path = _write_dsm(tmp_path / "dsm.tif", z)
-    with pytest.raises(DataError, match=r"data.surface: 2 NoData hole\(s\) inside the raster's extent cover .* nodata is 'error'"):
+    with pytest.raises(DataError, match=r"data.surface: 2 NoData region\(s\) inside the raster's extent \(0 touching "
+                       r"its edge\) cover .* data.surface.nodata is 'error'; set data.surface.nodata to fill-max .* or "
+                       r"fill-nearest"):
         build_surface(_dsm_grid(1.0), surface_path=path, surface_datum="NAP", surface_nodata="error")
-    # the AOI reaching over the NoData strip on the file's edge: outside the extent, not a hole
-    with pytest.raises(DataError, match=r"data.surface: covers only 9\d\.\d % of the AOI: \d+ cells are outside the raster's extent"):
-        build_surface(Grid.from_bounds("EPSG:28992", 92040, 437020, 92100, 437120, 1.0), surface_path=path,
+    # the AOI reaching over the NoData strip on the file's edge: inside the extent, filled from its rim
+    ds = build_surface(Grid.from_bounds("EPSG:28992", 92040, 437020, 92100, 437120, 1.0), surface_path=path,
+                       surface_datum="NAP")
+    assert np.isfinite(ds["surface"].values).all()
+    assert any("1 NoData region(s) of the DSM (1 touching its edge)" in w and "fill-nearest, error" in w
+               for w in json.loads(ds.attrs["warnings"]))
+    # the AOI reaching past the raster's extent: refused with the aoi.bounds that fit
+    with pytest.raises(DataError, match=r"data.surface: covers only 9\d\.\d % of the AOI: \d+ cells are outside the "
+                       r"raster's extent; set aoi.bounds to \[92040, 437020, 92120, 437120\] \(with aoi.crs EPSG:28992\)"):
+        build_surface(Grid.from_bounds("EPSG:28992", 92040, 437020, 92125, 437120, 1.0), surface_path=path,
                       surface_datum="NAP")
     with pytest.raises(DataError, match="covers only"):
         build_surface(Grid.from_bounds("EPSG:28992", 91990, 437020, 92050, 437100, 1.0), surface_path=path,
@@ -287,7 +304,7 @@ def test_dsm_nodata_policies_and_extent_messages(tmp_path):
         raw = src.read(1, masked=True).filled(np.nan).astype(float)
     valid = np.argwhere(np.isfinite(raw))
     hole_px = np.argwhere(holes.interior)
-    assert len(hole_px) == 10 * 15 + 15 * 30
+    assert len(hole_px) == 10 * 15 + 15 * 30 + 3 * 40   # the strip on the edge too
     for i, j in hole_px[::23]:
         d = np.hypot(valid[:, 0] - (i + r0), valid[:, 1] - (j + c0))
         best = valid[np.abs(d - d.min()) < 1e-9]
@@ -449,7 +466,7 @@ def test_plan_on_my_own_dsm_from_a_scenario_yaml(tmp_path):
         assert roofs.sum() > 100
         lv = env["risk_level"].values
         assert np.all(lv[roofs] == 3) and np.all(lv[~roofs] == 4)
-        assert "ground is derived from the DSM" in json.loads(surf.attrs["warnings"])[0]
+        assert any("ground is derived from the DSM" in w for w in json.loads(surf.attrs["warnings"]))
 
 
 def test_dsm_scenario_errors(tmp_path):

@@ -1,0 +1,568 @@
+"""``skyroute inspect``: what skyroute will make of a data file or a scenario, in seconds.
+
+:func:`inspect_target` takes a DSM / DEM (GeoTIFF, VRT), a CityJSON file, an OSM extract or a
+scenario (catalog name or YAML) and returns an :class:`Inspection`: one row per fact (CRS and
+vertical datum, extent against the AOI, how cells are read, NoData share and how it will be
+filled, height range, buildings and parts, ground source, absolute heights and the pilot files
+they allow, landing sites) and every problem as one ``error:`` / ``warning:`` line naming the
+YAML key to change.  Nothing heavy is computed: rasters are read over the AOI only (decimated
+beyond :data:`MAX_PIXELS`), no stage runs and no map is rasterised at the scenario's
+resolution.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from skyroute.pipeline.errors import ScenarioError, SkyrouteError
+
+__all__ = ["MAX_PIXELS", "Inspection", "format_inspection", "inspect_target"]
+
+#: Rasters larger than this over the AOI are read decimated (the NoData share is then estimated).
+MAX_PIXELS = 16_000_000
+
+RASTER_SUFFIXES = (".tif", ".tiff", ".vrt", ".gtiff", ".img", ".asc")
+
+
+@dataclass
+class Inspection:
+    """What :func:`inspect_target` found: ``target`` and its ``kind`` (``dsm-or-dem``,
+    ``cityjson``, ``osm``, ``scenario``), ``facts`` (ordered label -> text), ``data`` (the same
+    as numbers and lists, for ``--json``) and ``problems`` (``(level, key, message)``)."""
+
+    target: str
+    kind: str
+    facts: dict[str, str] = field(default_factory=dict)
+    data: dict[str, Any] = field(default_factory=dict)
+    problems: list[tuple[str, str, str]] = field(default_factory=list)
+
+    def error(self, key: str, message: str) -> None:
+        self.problems.append(("error", key, message))
+
+    def warning(self, key: str, message: str) -> None:
+        self.problems.append(("warning", key, message))
+
+    @property
+    def ok(self) -> bool:
+        return not any(level == "error" for level, _, _ in self.problems)
+
+    def to_json(self) -> dict:
+        return {"target": self.target, "kind": self.kind, "facts": self.facts, **self.data,
+                "problems": [{"level": lv, "key": k, "message": m} for lv, k, m in self.problems]}
+
+
+def format_inspection(ins: Inspection) -> str:
+    """The one-screen text: facts, then one ``error:`` / ``warning:`` line per problem."""
+    width = max((len(k) for k in ins.facts), default=0)
+    lines = [f"skyroute inspect {ins.target} ({ins.kind})"]
+    lines += [f"  {k:<{width}}  {v}" for k, v in ins.facts.items()]
+    lines += [f"{lv}: {k}: {m}" if k else f"{lv}: {m}" for lv, k, m in ins.problems]
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------ rasters
+def _crs_text(crs) -> str:
+    if crs is None:
+        return "none"
+    epsg = crs.to_epsg()
+    name = crs.name if hasattr(crs, "name") else str(crs)
+    return f"EPSG:{epsg} ({name})" if epsg else name
+
+
+def _raster(ins: Inspection, paths: list[Path], grid, *, role: str, key: str, datum: str | None,
+            nodata: str = "fill-max") -> dict | None:
+    """Facts of a DSM (``role="surface"``) or DEM (``role="terrain"``) over ``grid`` (None: the
+    file's own extent)."""
+    import rasterio
+    import rasterio.warp
+    from pyproj import CRS
+
+    from skyroute.stages.grid import (
+        Grid,
+        SourceWindow,
+        coverage_problem,
+        filled_share,
+        find_holes,
+        regions_in_aoi,
+    )
+
+    for p in paths:
+        if not p.is_file():
+            ins.error(f"{key}.path", f"file not found: {p}")
+            return None
+    try:
+        srcs = [rasterio.open(p) for p in paths]
+    except rasterio.errors.RasterioIOError as exc:
+        ins.error(f"{key}.path", f"cannot read the raster: {exc}")
+        return None
+    try:
+        s0 = srcs[0]
+        crs = CRS.from_user_input(s0.crs) if s0.crs else None
+        left = min(s.bounds.left for s in srcs)
+        right = max(s.bounds.right for s in srcs)
+        bottom = min(s.bounds.bottom for s in srcs)
+        top = max(s.bounds.top for s in srcs)
+        aop = str(s0.tags().get("AREA_OR_POINT") or "Area")
+        units = s0.units[0] if s0.units and s0.units[0] else ""
+        px = abs(s0.transform.a)
+        ins.facts["file"] = (f"{', '.join(p.name for p in paths)}: {s0.driver}, "
+                             f"{sum(s.width for s in srcs) if len(srcs) > 1 else s0.width} x {s0.height} px of "
+                             f"{px:g} x {abs(s0.transform.e):g}, {s0.dtypes[0]}, nodata {s0.nodata}")
+        ins.facts["CRS"] = _crs_text(crs)
+        if crs is None:
+            ins.error(f"{key}.path", "the raster has no CRS; assign one (gdal_edit.py -a_srs EPSG:...)")
+            return None
+        vdat = _raster_vertical_datum(s0)
+        ins.facts["vertical datum"] = (datum if datum else "not given") + (
+            f" (the file says: {vdat})" if vdat else " (the file names none)")
+        if datum is None and role == "surface":
+            ins.warning(f"{key}.vertical_datum", "give the datum of the DSM's heights (e.g. 'NAP', 'EGM96 geoid'): "
+                        "it is required")
+        ins.facts["extent"] = (f"x {left:.1f}..{right:.1f}, y {bottom:.1f}..{top:.1f} [m] "
+                               f"({(right - left) / 1e3:.2f} x {(top - bottom) / 1e3:.2f} km)")
+        ins.data[f"{role}_extent"] = [left, bottom, right, top]
+        if units and units not in ("m", "metre", "meter", "metres"):
+            ins.warning(f"{key}.path", f"band units are {units!r}; skyroute reads heights in metres")
+    finally:
+        for s in srcs:
+            s.close()
+    if grid is None:
+        r = max(px, 1.0)
+        grid = Grid.from_bounds(crs, left, bottom, right, top, r, inward=True)
+    dsm = "DSM: each cell the highest pixel of its footprint (flat-topped pixels)"
+    dem = ("DEM: the surface through its samples; terrain = the highest, terrain_min = the lowest sample of every "
+           "lattice square touching the cell")
+    reading = dsm if role == "surface" else dem if role == "terrain" else f"as data.surface, {dsm}; as data.terrain, {dem}"
+    if role != "surface":
+        from skyroute.stages.surface import dem_sample_offset_px
+
+        _, where = dem_sample_offset_px(paths if len(paths) > 1 else paths[0])
+        reading += f" ({where})"
+    ins.facts["reading"] = reading + (f"; AREA_OR_POINT={aop}" if role == "surface" else "")
+    # the window under the AOI (decimated beyond MAX_PIXELS)
+    b = rasterio.warp.transform_bounds(grid.crs, crs, *grid.bounds, densify_pts=21)
+    if b[0] >= right or b[2] <= left or b[1] >= top or b[3] <= bottom:
+        ins.error("aoi.bounds", f"the AOI does not intersect the {role} raster (extent x {left:.0f}..{right:.0f}, "
+                  f"y {bottom:.0f}..{top:.0f} in {_crs_text(crs)}); fix aoi or {key}.path")
+        return None
+    n_px = (b[2] - b[0]) * (b[3] - b[1]) / px ** 2
+    step = max(int(np.ceil(np.sqrt(n_px / MAX_PIXELS))), 1)
+    if step == 1:
+        from skyroute.stages.grid import read_window
+
+        win = read_window(paths if len(paths) > 1 else paths[0], grid, what=f"{role} raster", margin_px=2)
+    else:
+        win = _decimated_window(paths, grid, step)
+        ins.facts["reading"] += f" [inspected every {step} px]"
+    holes = find_holes(win)
+    vals = win.values[np.isfinite(win.values)]
+    if vals.size:
+        ins.facts["heights"] = f"{vals.min():.2f} .. {vals.max():.2f} m"
+        ins.data[f"{role}_heights_m"] = [float(vals.min()), float(vals.max())]
+    under = np.isnan(win.values) & win.inside
+    share_px = float(under.sum() / max(int(win.inside.sum()), 1))     # of the pixels inside the extent read
+    share_cells = filled_share(win, holes, grid) if step == 1 else share_px
+    n, n_edge = regions_in_aoi(win, holes, grid) if step == 1 else (holes.n_interior, holes.n_edge)
+    how = {"fill-max": "each region the highest height on its rim within the raster",
+           "fill-nearest": "each pixel the nearest valid pixel", "error": "refused (nodata: error)"}[nodata]
+    if role == "terrain":
+        how = "each region the highest height on its rim for terrain, the lowest for terrain_min"
+    ins.facts["NoData"] = (f"{100 * share_px:.2f} % of the pixels around the AOI, {n} region(s) under it "
+                           f"({n_edge} touching the raster's edge): {how}" if n else "none under the AOI")
+    ins.data[f"{role}_nodata"] = {"share_of_pixels": share_px, "share_of_cells": share_cells, "regions": n,
+                                  "regions_touching_edge": n_edge, "fill": nodata if role == "surface" else "fill-max"}
+    if n and share_cells > 0:
+        if role == "surface" and nodata == "error":
+            ins.error(f"{key}.nodata", f"{n} NoData region(s) cover {100 * share_cells:.2f} % of the AOI and nodata is "
+                      "'error'; set it to fill-max (each region the highest height on its rim) or fill-nearest")
+        else:
+            ins.warning(f"{key}.nodata" if role == "surface" else f"{key}.path",
+                        f"{n} NoData region(s) cover {100 * share_cells:.2f} % of the AOI's cells: filled ({how})"
+                        + ("; the choices: fill-max, fill-nearest, error" if role == "surface" else ""))
+    if step == 1:
+        msg = coverage_problem(win, holes, grid, what=f"{role} raster", key=key)
+        if msg:
+            ins.error("aoi.bounds", msg.split(": ", 1)[1])
+    elif not isinstance(win, SourceWindow):   # pragma: no cover - _decimated_window returns one
+        pass
+    return {"crs": crs, "grid": grid, "extent": (left, bottom, right, top)}
+
+
+def _decimated_window(paths: list[Path], grid, step: int):
+    """:class:`~skyroute.stages.grid.SourceWindow` of the first tile over the AOI, every ``step``
+    pixels (nearest), for an estimate of the NoData share of very large rasters."""
+    import rasterio
+    import rasterio.warp
+    import rasterio.windows
+    from affine import Affine
+    from pyproj import CRS
+
+    from skyroute.stages.grid import SourceWindow
+
+    with rasterio.open(paths[0]) as s:
+        b = rasterio.warp.transform_bounds(grid.crs, s.crs, *grid.bounds, densify_pts=21)
+        w = rasterio.windows.from_bounds(*b, transform=s.transform).round_offsets().round_lengths()
+        w = w.intersection(rasterio.windows.Window(0, 0, s.width, s.height))
+        shape = (max(int(w.height // step), 1), max(int(w.width // step), 1))
+        a = s.read(1, window=w, out_shape=shape, masked=True)
+        vals = np.where(np.ma.getmaskarray(a), np.nan, np.ma.getdata(a).astype(float))
+        t = s.window_transform(w) * Affine.scale(w.width / shape[1], w.height / shape[0])
+        return SourceWindow(vals, np.ones(vals.shape, bool), t, CRS.from_user_input(s.crs), False)
+
+
+def _raster_vertical_datum(src) -> str | None:
+    """The vertical datum a raster names (a compound CRS's vertical part), else None."""
+    try:
+        from pyproj import CRS
+
+        crs = CRS.from_user_input(src.crs)
+        if crs.is_compound and len(crs.sub_crs_list) > 1:
+            return crs.sub_crs_list[1].name
+    except Exception:  # noqa: BLE001 - an odd CRS only hides this hint
+        return None
+    return None
+
+
+# ------------------------------------------------------------------------------ CityJSON
+def _cityjson(ins: Inspection, path: Path, grid, key: str) -> dict | None:
+    from pyproj import CRS, Transformer
+
+    from skyroute.stages.cityjson import cityjson_crs, read_cityjson, surface_rings, vertices_in
+
+    try:
+        cj = read_cityjson(path)
+        crs = cityjson_crs(cj)
+    except SkyrouteError as exc:
+        ins.error(f"{key}.path", str(exc))
+        return None
+    ref = str((cj.get("metadata") or {}).get("referenceSystem", ""))
+    vdat = None
+    try:
+        import re
+
+        m = re.search(r"EPSG[:/]+(?:[0-9.]*/)?(?:0/)?:?(\d+)", ref)
+        full = CRS.from_epsg(int(m.group(1))) if m else None
+        if full is not None and full.is_compound and len(full.sub_crs_list) > 1:
+            vdat = full.sub_crs_list[1].name
+    except Exception:  # noqa: BLE001
+        vdat = None
+    V = vertices_in(cj)
+    objs = cj["CityObjects"]
+    kinds: dict[str, int] = {}
+    for o in objs.values():
+        kinds[o.get("type", "?")] = kinds.get(o.get("type", "?"), 0) + 1
+    n_b, n_p = kinds.get("Building", 0), kinds.get("BuildingPart", 0)
+    has_tin = kinds.get("TINRelief", 0) > 0
+    lods: set[str] = set()
+    n_ground = n_th = 0
+    stacked = 0
+    ground_by_root: dict[str, list[tuple[float, float]]] = {}
+    for oid, o in objs.items():
+        if o.get("type") not in ("Building", "BuildingPart"):
+            continue
+        if (o.get("attributes") or {}).get("TerrainHeight") is not None:
+            n_th += 1
+        root = oid
+        seen = {oid}
+        ps = o.get("parents") or []
+        while ps and ps[0] not in seen:
+            root = ps[0]
+            seen.add(root)
+            ps = (objs.get(root) or {}).get("parents") or []
+        for g in o.get("geometry") or []:
+            lods.add(str(g.get("lod")))
+            for rings, st in surface_rings(g):
+                if st == "GroundSurface" and len(rings[0]) >= 3:
+                    z = V[np.asarray(rings[0]), 2]
+                    ground_by_root.setdefault(root, []).append((float(z.min()), float(z.max())))
+                    n_ground += 1
+    from skyroute.stages.cityjson import GROUND_TOLERANCE_M
+
+    for faces in ground_by_root.values():
+        lo = min(faces)
+        stacked += sum(1 for f in faces if f[0] > lo[1] + GROUND_TOLERANCE_M)
+    ins.facts["file"] = f"{path.name}: CityJSON {cj.get('version', '?')}, {len(V)} vertices, LoD {', '.join(sorted(lods))}"
+    ins.facts["CRS"] = _crs_text(crs)
+    ins.facts["vertical datum"] = vdat or "not named by referenceSystem (heights as in the file)"
+    if len(V):
+        x0, y0, x1, y1 = V[:, 0].min(), V[:, 1].min(), V[:, 0].max(), V[:, 1].max()
+        ins.facts["extent"] = f"x {x0:.1f}..{x1:.1f}, y {y0:.1f}..{y1:.1f} [m] in the file's CRS"
+        ins.facts["heights"] = f"{V[:, 2].min():.2f} .. {V[:, 2].max():.2f} m"
+        ins.data["cityjson_extent"] = [float(x0), float(y0), float(x1), float(y1)]
+        ins.data["cityjson_heights_m"] = [float(V[:, 2].min()), float(V[:, 2].max())]
+        if grid is not None:
+            t = Transformer.from_crs(crs, grid.crs, always_xy=True)
+            gx, gy = t.transform(V[:, 0], V[:, 1])
+            gb = grid.bounds
+            inside = (gx >= gb[0]) & (gx <= gb[2]) & (gy >= gb[1]) & (gy <= gb[3])
+            if not inside.any():
+                ins.error("aoi.bounds", f"the AOI does not reach any vertex of {path.name}; move aoi.bounds onto "
+                          f"x {x0:.0f}..{x1:.0f}, y {y0:.0f}..{y1:.0f} ({_crs_text(crs)})")
+    ins.facts["reading"] = ("roof faces: each cell the face's maximum over its part in the cell; ground likewise "
+                            "(max for terrain, min for terrain_min)")
+    ins.facts["buildings"] = (f"{n_b} Building, {n_p} BuildingPart, {n_ground} GroundSurface faces"
+                              + (f", {stacked} ground surface(s) of parts standing on other parts (not ground)"
+                                 if stacked else "") + (f", TerrainHeight on {n_th}" if n_th else ""))
+    ground = ("TINRelief (max / min over each cell), the buildings' lowest ground surfaces where it does not reach"
+              if has_tin else "TerrainHeight attributes" if n_th else
+              "the lowest ground surface of each building (its parts included), interpolated"
+              if n_ground else "none in the file: flat 0 m")
+    ins.facts["ground"] = ground
+    ins.data["cityjson"] = {"buildings": n_b, "building_parts": n_p, "ground_surfaces": n_ground,
+                            "stacked_part_grounds": stacked, "tin_relief": has_tin, "terrain_height": n_th,
+                            "vertical_datum": vdat}
+    if not (has_tin or n_th or n_ground):
+        ins.warning("data.terrain", "the CityJSON holds no ground (no TINRelief, GroundSurface or TerrainHeight): "
+                    "roof heights are taken above a flat 0 m; give data.terrain (a DEM in the same datum)")
+    return {"crs": crs, "vertical_datum": vdat}
+
+
+# ------------------------------------------------------------------------------ OSM
+def _osm(ins: Inspection, path: Path, grid, key: str, landing: bool = True) -> dict | None:
+    from skyroute.stages.osm import read_osm
+
+    if not path.is_file():
+        ins.error(f"{key}.path", f"file not found: {path}")
+        return None
+    try:
+        feats = read_osm(path, keys=["building", "building:part", "ele"])
+    except SkyrouteError as exc:
+        ins.error(f"{key}.path", str(exc))
+        return None
+    import shapely
+
+    box = None
+    if grid is not None:
+        x0, y0, x1, y1 = grid.bounds
+        from pyproj import Transformer
+
+        lon, lat = Transformer.from_crs(grid.crs, 4326, always_xy=True).transform([x0, x1, x1, x0], [y0, y0, y1, y1])
+        box = shapely.Polygon(list(zip(lon, lat, strict=True)))
+    bld = [f for f in feats if f.kind == "area" and ("building" in f.tags or "building:part" in f.tags)
+           and (box is None or f.geometry.intersects(box))]
+    n_h = sum(1 for f in bld if "height" in f.tags)
+    n_l = sum(1 for f in bld if "building:levels" in f.tags and "height" not in f.tags)
+    ele = [float(f.tags["ele"]) for f in feats if "ele" in f.tags and _is_float(f.tags["ele"])
+           and f.kind == "node" and (box is None or f.geometry.intersects(box))]
+    ins.facts["file"] = f"{path.name}: OpenStreetMap extract"
+    ins.facts["CRS"] = "EPSG:4326 (WGS 84 lon/lat); the grid is the UTM zone of the AOI unless aoi.crs names one"
+    ins.facts["vertical datum"] = "local ground (flat 0 m): building heights above the ground"
+    ins.facts["buildings"] = (f"{len(bld)} building areas in the AOI: {n_h} with height, {n_l} with levels only, "
+                              f"{len(bld) - n_h - n_l} with a default height by type")
+    ins.facts["ground"] = "flat 0 m (OSM has no terrain)" + (
+        f"; {len(ele)} OSM ele points in the AOI span {min(ele):.1f}..{max(ele):.1f} m (EGM96)" if ele else "")
+    ins.data["osm"] = {"buildings": len(bld), "with_height": n_h, "with_levels": n_l,
+                       "ele_points": len(ele), "ele_range_m": [min(ele), max(ele)] if ele else None}
+    if grid is not None and not bld:
+        ins.error("aoi.bounds", f"the AOI does not intersect any building of {path.name}; check aoi.bounds")
+    return {"ele": ele}
+
+
+def _is_float(t: str) -> bool:
+    try:
+        float(t)
+        return True
+    except ValueError:
+        return False
+
+
+def _landing(ins: Inspection, sc) -> None:
+    """Landing sites of a scenario: counted on a coarse copy of its grid (no rasterising at
+    the scenario's resolution)."""
+    from skyroute.stages.grid import Grid
+    from skyroute.stages.landing import landing_sites
+
+    d = sc.data
+    g = sc.grid
+    osm = None
+    for p in (d.landuse, d.buildings.path if d.buildings else None):
+        if p is not None and not str(p).lower().endswith(".json"):
+            osm = osm or p
+    coarse = Grid.from_bounds(g.crs, *g.bounds, max(g.resolution_m, 25.0))
+    if d.landing_sites is None and (osm is None or not d.osm_landing_sites):
+        ins.facts["landing sites"] = ("none (no data.landing_sites, no OSM extract): `skyroute fleet --missions` "
+                                      "derives candidate sites from open ground (no obstacle within r_p, lowest risk "
+                                      "level)")
+        ins.data["landing_sites"] = {"count": 0, "kinds": {}}
+        return
+    try:
+        sites = landing_sites(coarse, osm_path=osm if d.osm_landing_sites else None, geojson=d.landing_sites,
+                              tag_table=d.risk_tags)
+        n = len(sites)
+        kinds: dict[str, int] = {}
+        for s in sites:
+            kinds[s.kind] = kinds.get(s.kind, 0) + 1
+    except SkyrouteError as exc:
+        ins.error("data.landing_sites", str(exc))
+        return
+    if n:
+        ins.facts["landing sites"] = f"{n}: " + ", ".join(f"{v} {k}" for k, v in sorted(kinds.items()))
+    else:
+        ins.facts["landing sites"] = ("none: `skyroute fleet --missions` derives candidate sites from open ground "
+                                      "(no obstacle within r_p, lowest risk level); give data.landing_sites "
+                                      "(a GeoJSON) for real ones")
+        ins.warning("data.landing_sites", "no landing sites: the landing cost term is uniform and contingency "
+                    "landing has nowhere to go; give a GeoJSON of sites")
+    ins.data["landing_sites"] = {"count": n, "kinds": kinds if n else {}}
+
+
+# ------------------------------------------------------------------------------ scenario
+def _surface_datum(sc, cj: dict | None) -> str:
+    d = sc.data
+    if d.terrain is not None:
+        return d.terrain.vertical_datum
+    if d.surface is not None:
+        return d.surface.vertical_datum
+    if d.buildings is not None and d.buildings.format == "cityjson":
+        return (cj or {}).get("vertical_datum") or "source data heights (CityJSON; NAP for Dutch data)"
+    return "local ground (flat terrain, heights above ground level)"
+
+
+def _absolute(ins: Inspection, sc, cj: dict | None) -> None:
+    from skyroute.stages.geoid import datum_kind, find_geoid_grid, height_reference
+
+    datum = _surface_datum(sc, cj)
+    g = sc.data.ground
+    try:
+        ref = height_reference(datum, g.height_m if g else None, g.vertical_datum if g else None)
+        kind = datum_kind(ref.datum)
+        if kind in ("EGM96", "EGM2008"):
+            find_geoid_grid(kind)
+        if kind != "EGM96":
+            find_geoid_grid("EGM96")      # KML / QGroundControl heights are above EGM96
+        why = None
+    except SkyrouteError as exc:
+        why = str(exc)
+    sigma = bool(sc.data.almanacs)
+    files = {"plan.plan": "home altitude above mean sea level" if why is None else "home altitude 0 m",
+             "plan.gpkg": "yes", "plan.kml": "yes" if why is None else "no",
+             "intent.json": "yes" if why is None and sigma else "no"}
+    src = (f"data.ground: {g.height_m:g} m in {g.vertical_datum}" if g else f"the surface datum ({datum})")
+    ins.facts["absolute heights"] = (f"{'yes' if why is None else 'no'} ({src}); pilot files: "
+                                     + ", ".join(f"{k} {v}" for k, v in files.items()))
+    ins.data["absolute_heights"] = {"available": why is None, "why_not": why, "surface_datum": datum,
+                                    "pilot_files": files}
+    if why is not None:
+        ins.warning("data.ground", f"plan.kml and intent.json will not be written, plan.plan gets home altitude "
+                    f"0 m: {why}")
+    elif not sigma:
+        ins.warning("data.almanacs", "intent.json will not be written: no GNSS almanac, so no predicted navigation "
+                    "error to size its volumes")
+    if g is not None and datum_kind(datum) == "local":
+        ins.warning("data.ground", f"the ground is one flat plane at {g.height_m:g} m ({g.vertical_datum}): buildings "
+                    "on higher ground are modelled too low by the ground's rise and AGL limits hold above the plane; "
+                    "give data.terrain (a DEM) for real relief")
+
+
+def _scenario(ins: Inspection, sc) -> None:
+    d = sc.data
+    g = sc.grid
+    ins.facts["scenario"] = f"{sc.name}" + (f" ({sc.source_path})" if sc.source_path else "")
+    ins.facts["AOI"] = (f"{g.crs_wkt if g.crs_wkt.startswith('EPSG') else 'custom CRS'}: x {g.bounds[0]:.1f}.."
+                        f"{g.bounds[2]:.1f}, y {g.bounds[1]:.1f}..{g.bounds[3]:.1f}; grid {g.nx} x {g.ny} cells of "
+                        f"{g.resolution_m:g} m ({g.nx * g.ny / 1e6:.2f} M cells)")
+    ins.data["grid"] = {"crs": g.crs_wkt, "bounds": list(g.bounds), "nx": g.nx, "ny": g.ny,
+                        "resolution_m": g.resolution_m}
+    if sc.aoi.bounds is not None and tuple(g.bounds) != tuple(float(v) for v in sc.aoi.bounds):
+        ins.facts["AOI"] += " (aoi.bounds snapped inward to the resolution lattice)"
+    sub: dict[str, dict] = {}
+    cj = None
+    for role, key, src in (("surface", "data.surface", d.surface), ("terrain", "data.terrain", d.terrain)):
+        if src is None:
+            continue
+        part = Inspection(str(src.path), role)
+        paths = [Path(p) for p in (src.paths if role == "surface" else (src.path,))]
+        _raster(part, paths, g, role=role, key=key, datum=src.vertical_datum,
+                nodata=getattr(src, "nodata", "fill-max"))
+        _merge(ins, part, role)
+        sub[role] = part.data
+    if d.buildings is not None:
+        part = Inspection(str(d.buildings.path), d.buildings.format)
+        if d.buildings.format == "cityjson":
+            cj = _cityjson(part, Path(d.buildings.path), g, "data.buildings")
+        else:
+            _osm(part, Path(d.buildings.path), g, "data.buildings")
+        _merge(ins, part, "buildings")
+    ground = ("DEM (data.terrain), the surface through its samples" if d.terrain is not None else
+              "derived from the DSM by a grey opening (no DEM)" if d.surface is not None else
+              ins.facts.get("buildings: ground", "flat 0 m") if cj is not None else
+              "flat 0 m: heights above local ground")
+    ins.facts["ground source"] = ground
+    if d.terrain is None and d.surface is not None:
+        ins.warning("data.terrain", f"no DEM: the ground is derived from the DSM by a grey opening with a "
+                    f"{d.surface.ground_window_m:g} m window (data.surface.ground_window_m); give data.terrain for a "
+                    "surveyed ground")
+    _absolute(ins, sc, cj)
+    _landing(ins, sc)
+
+
+def _merge(ins: Inspection, part: Inspection, prefix: str) -> None:
+    for k, v in part.facts.items():
+        ins.facts[f"{prefix}: {k}"] = v
+    ins.data.update(part.data)
+    ins.problems.extend(part.problems)
+
+
+def _is_scenario(target: str) -> bool:
+    p = Path(target)
+    if p.suffix.lower() in (".yaml", ".yml"):
+        return True
+    from skyroute.pipeline.settings import scenario_paths
+
+    return not p.exists() and target in scenario_paths()
+
+
+def inspect_target(target: str | Path) -> Inspection:
+    """Inspect a data file (DSM / DEM raster, CityJSON, OSM extract) or a scenario (catalog name
+    or YAML); see the module docstring.  A scenario that does not validate gives its problems as
+    errors (each with its YAML key)."""
+    t = str(target)
+    if _is_scenario(t):
+        from skyroute.pipeline.settings import load_scenario
+
+        ins = Inspection(t, "scenario")
+        try:
+            sc = load_scenario(t)
+        except ScenarioError as exc:
+            for p in exc.problems:
+                key, _, msg = p.partition(": ")
+                ins.error(key, msg or p)
+            return ins
+        _scenario(ins, sc)
+        return ins
+    p = Path(t)
+    if not p.exists():
+        from skyroute.pipeline.errors import InputError
+
+        raise InputError(f"{t} is neither a file nor a catalog scenario; give a DSM / DEM GeoTIFF or VRT, a CityJSON "
+                         "file, an OSM extract or a scenario (name or YAML)")
+    name = p.name.lower()
+    if name.endswith(RASTER_SUFFIXES):
+        ins = Inspection(t, "raster (DSM or DEM)")
+        _raster(ins, [p], None, role="raster", key="data.surface or data.terrain", datum=None)
+        ins.facts["use as"] = ("data.surface: {path, vertical_datum} (a DSM: buildings and trees, footprint max) or "
+                               "data.terrain: {path, vertical_datum} (a DEM: bare ground, read through its samples)")
+        return ins
+    if name.endswith((".json", ".city.json", ".jsonl")):
+        ins = Inspection(t, "cityjson")
+        _cityjson(ins, p, None, "data.buildings")
+        ins.facts["use as"] = "data.buildings: {path, format: cityjson}"
+        return ins
+    if name.endswith((".osm.pbf", ".pbf", ".osm", ".osm.bz2")):
+        ins = Inspection(t, "osm")
+        _osm(ins, p, None, "data.buildings")
+        ins.facts["use as"] = "data.buildings: {path, format: osm}, data.landuse: path; data.ground for absolute heights"
+        return ins
+    from skyroute.pipeline.errors import InputError
+
+    raise InputError(f"{t}: unknown file type; skyroute inspects GeoTIFF / VRT rasters, CityJSON (.json), OSM "
+                     "extracts (.osm.pbf, .osm) and scenarios (.yaml)")
+
+
+def inspection_json(ins: Inspection) -> str:
+    return json.dumps(ins.to_json(), indent=1, allow_nan=False, default=str)

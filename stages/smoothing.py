@@ -339,6 +339,16 @@ class CornerTrajectory(_Kinematics):
                 out[arc] = (v0[arc] ** 2 / Ra)[:, None] * (-sp * e1[arc] + cp * e2[arc])
         return out
 
+    @classmethod
+    def at_rest(cls, point_xyz_m) -> CornerTrajectory:
+        """A vehicle at rest at ``point_xyz_m`` (3,) [m]: a trajectory of duration 0 (give it a
+        :meth:`with_hold` to hover there)."""
+        p = np.asarray(point_xyz_m, float).reshape(3)
+        return cls(phase_t0_s=np.zeros(1), kind=np.array([_LINE], np.int8), origin=p[None].copy(),
+                   e1=np.array([[1.0, 0.0, 0.0]]), e2=np.zeros((1, 3)), s0=np.zeros(1), v0=np.zeros(1),
+                   a=np.zeros(1), radius_m=np.zeros(1), duration_s=0.0, piece_t_s=np.zeros(1), waypoints=p[None].copy(),
+                   corner_kind=(), corner_reason=())
+
     def with_hold(self, hold_s: float) -> CornerTrajectory:
         """The same trajectory followed by a hover of ``hold_s`` [s] (> 0) at its end point: one
         more line phase at speed 0 (acceleration 0) and one more piece.  The trajectory ends

@@ -63,7 +63,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from skyroute.stages.base import InputError, PlanningError
-from skyroute.stages.smoothing import turn_and_stop
+from skyroute.stages.smoothing import CornerTrajectory, turn_and_stop
 from skyroute.stages.tactical.conflict import IntruderTracks, first_conflict, min_separation
 
 __all__ = ["CLEAR_FACTOR", "DISTANCE_FACTORS", "EscapeDecision", "EscapeOption", "HOLD_LOOKAHEAD_S", "MAX_ESCAPES",
@@ -263,8 +263,9 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
     # the braking bases: straight ahead, and along the plan when it turns within d_b
     pre_path, nb = rp.braking_point(chain, v0)
     pb_path = pre_path[-1]
-    bases = [("", np.stack([p0, p0 + d_b * e]), np.array([max(v0, 1e-3)]))]
-    if pre_path.shape[0] > 2:
+    at_rest = v0 <= 1e-6                     # already holding: no braking, moves start from rest
+    bases = [("", p0[None], np.zeros(0))] if at_rest else [("", np.stack([p0, p0 + d_b * e]), np.array([v0]))]
+    if pre_path.shape[0] > 2 and not at_rest:
         bases.append(("path ", pre_path, np.maximum(speeds[: pre_path.shape[0] - 1], 1e-3)))
     zones = [z for z in rp.known.zones if z.end_s > t0_s]
     from skyroute.stages.tactical.replay import _first_in_zone
@@ -273,11 +274,14 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
     for bname, base, bsp in bases:
         pb = base[-1]
         for kind, E in _targets(pb, e_h, sep_m, tan_ramp):
-            if kind == "hover":
+            if kind == "hover" and at_rest:    # stay where it is
+                candidates.append((bname + kind, np.stack([p0, p0]), np.array([cruise]), (), E,
+                                   CornerTrajectory.at_rest(p0)))
+            elif kind == "hover":
                 candidates.append((bname + kind, base, bsp, (), E, None))
             else:
                 candidates.append((bname + kind, np.concatenate([base, E[None]]), np.concatenate([bsp, [cruise]]),
-                                   (base.shape[0] - 1,), E, None))
+                                   (base.shape[0] - 1,) if base.shape[0] > 1 else (), E, None))
     v_dash = float(rp.veh.max_airspeed_mps)  # corner_trajectory caps it by the airspeed in the wind
     for fac in DASH_FACTORS:                 # straight on, as fast as the limits allow, then brake
         E = p0 + fac * sep_m * e

@@ -47,6 +47,7 @@ FIGURES: tuple[tuple[str, str, str], ...] = (
     ("fly", "fly_top.png", "Flown trajectory, top view, with the intruders and no-fly zones (seed 001 Fig. 9)"),
     ("fly", "fly_profile.png", "Flown trajectory, vertical view"),
     ("fly", "fly_speed.png", "Ground speed along the flight"),
+    ("fly", "fly_daa.png", "Detect-and-avoid alerts per known intruder (DO-365 levels scaled to the separation)"),
     ("navsim", "navsim_errors.png", "Navigation errors of the proposed and weak filters"),
     ("navsim", "navsim_bubble.png", "Safety bubble r = k sigma + surface uncertainty along the path"),
     ("navsim", "navsim_pl.png", "Protection levels (solution separation) along the path"),
@@ -264,7 +265,7 @@ def _candidates_section(plan_dir: Path | None) -> str:
             f"candidate with minimum f. From {escape((plan_dir / 'candidates.csv').name)}.</p>" + table)
 
 
-LEVELS = ("1", "2", "3", "landing")
+LEVELS = ("1", "2", "3", "landing", "escape")
 
 
 def _tactical_section(fly_dir: Path | None, fly: dict[str, Any] | None) -> str:
@@ -285,17 +286,18 @@ def _tactical_section(fly_dir: Path | None, fly: dict[str, Any] | None) -> str:
         first = next(iter(levels.values()))
         chosen = next((lv for lv, r in levels.items() if r["chosen"] == "true"), "")
         head = [rep, first["event"], first["t_event_s"], first["t_coll_s"]]
-        t3.append(head + [("f " + levels[lv]["f_m"] if levels[lv]["flyable"] == "true" else "not flyable")
-                          if lv in levels else "-" for lv in LEVELS] + [chosen])
+        t3.append(head + [first.get("alert", "")] + [("f " + levels[lv]["f_m"] if levels[lv]["flyable"] == "true"
+                                                       else "not flyable") if lv in levels else "-" for lv in LEVELS]
+                  + [chosen])
         t5.append(head[:2] + [levels[lv]["compute_s"] if lv in levels else "-" for lv in LEVELS]
                   + [first["update_s"], levels[chosen]["added_flight_time_s"] if chosen else ""])
     out.append("<h3>Replanning levels (Table 3 layout)</h3><p>Per replanning, each level's cost f = w_l C_l + "
                "w_e C_e [m] when flyable; the chosen level has the minimum f.</p>"
-               + _table(["replanning", "event", "t_event [s]", "t_coll [s]", "level 1", "level 2", "level 3", "landing",
-                         "chosen"], t3, text_cols=(1,), cls="tactical"))
+               + _table(["replanning", "event", "t_event [s]", "t_coll [s]", "DAA alert", "level 1", "level 2",
+                         "level 3", "landing", "escape", "chosen"], t3, text_cols=(1, 4), cls="tactical"))
     out.append("<h3>Computation times (Table 5 layout)</h3>"
                + _table(["replanning", "event", "level 1 [s]", "level 2 [s]", "level 3 [s]", "landing [s]",
-                         "update [s]", "added flight time [s]"], t5, text_cols=(1,)))
+                         "escape [s]", "update [s]", "added flight time [s]"], t5, text_cols=(1,)))
     reasons = [[r["replanning"], r["level"], r["reasons"]] for r in rows if r["reasons"]]
     if reasons:
         out.append("<details><summary>Why each level was (not) chosen</summary>"
@@ -306,6 +308,12 @@ def _tactical_section(fly_dir: Path | None, fly: dict[str, Any] | None) -> str:
         out.append("<h3>Minimum separation to each intruder (brute force on the flown trajectory)</h3>"
                    + _table(["intruder", "kind", "min distance [m]", "required [m]", "margin [m]", "at t [s]"], rows,
                             text_cols=(0, 1)))
+    if fly and fly.get("unavoidable_losses"):
+        rows = [[u.get("intruder", ""), _num(u.get("t_s")), _num(u.get("predicted_margin_m",
+                                                                        u.get("predicted_min_m"))), u.get("why", "")]
+                for u in fly["unavoidable_losses"]]
+        out.append("<h3>Losses of separation the flight had to accept</h3>"
+                   + _table(["intruder", "decided at [s]", "predicted margin [m]", "why"], rows, text_cols=(0, 3)))
     return "".join(out)
 
 

@@ -222,10 +222,10 @@ def test_report_of_a_fly_folder_has_tables_3_and_5(runs, tmp_path):
     assert {"report.html", "fly.html"} <= set(doc["files"]) and (d / "fly.html").is_file()
     text = (d / "report.html").read_text()
     t3 = _parse(d / "report.html").tables["tactical"]
-    assert t3[0] == ["replanning", "event", "t_event [s]", "t_coll [s]", "level 1", "level 2", "level 3", "landing",
-                     "chosen"]
-    assert t3[1] == ["0", "intruder x", "10.000", "43.878", "f 1995.3", "f 2203.5", "-", "-", "1"]
-    assert t3[2] == ["1", "nofly <police>", "65.000", "10.688", "not flyable", "-", "-", "f 110.0", "landing"]
+    assert t3[0] == ["replanning", "event", "t_event [s]", "t_coll [s]", "DAA alert", "level 1", "level 2",
+                     "level 3", "landing", "escape", "chosen"]
+    assert t3[1] == ["0", "intruder x", "10.000", "43.878", "", "f 1995.3", "f 2203.5", "-", "-", "-", "1"]
+    assert t3[2] == ["1", "nofly <police>", "65.000", "10.688", "", "not flyable", "-", "-", "f 110.0", "-", "landing"]
     assert "nofly &lt;police&gt;" in text and "<police>" not in text
     assert "fly.html" in text and "Flight replay: outcome landed" in text
 

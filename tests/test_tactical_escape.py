@@ -475,4 +475,5 @@ def test_a_loss_no_manoeuvre_can_avoid_is_declared_and_proved(synthetic):
                                    VEH.max_acceleration_mps2) is not None
     sec = flight_section(log)
     assert sec["separation_lost"] and sec["unavoidable_losses"][0]["predicted_margin_m"] < 0
+    assert sec["unavoidable_losses"][0]["flown_margin_m"] == pytest.approx(margin)
     assert any(a.level == "escape" and a.chosen and "UNAVOIDABLE" in a.reasons for a in log.attempts)

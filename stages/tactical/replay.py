@@ -1171,6 +1171,15 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
     log.dense_zones = list(r.dense_zone_log)
     log.escapes = list(r.escape_log)
     log.losses = list(r.losses)
+    if log.losses:          # what was flown, by brute force, beside what was predicted
+        from skyroute.stages.tactical.encounters import flown_losses
+
+        flown = flown_losses(log)
+        for loss in log.losses:
+            loss["flown_margin_m"] = flown.get(loss["intruder"], math.nan)
+            for a in log.attempts:
+                if a.replanning == loss["replanning"] and a.level == "escape":
+                    a.reasons += f"; flown minimum separation margin {loss['flown_margin_m']:+.1f} m"
     log.warnings = r.warnings
     log.grid = grid
     last = r.world          # the maps at the end of the flight (new obstacles, GNSS outages included)

@@ -46,8 +46,10 @@ class EncounterCase:
 
 @dataclass
 class EncounterOutcome:
-    """One encounter flown: the outcome, the smallest brute-force separation margin [m]
-    (``inf`` without intruders), ``lost`` (margin < 0), ``declared_unavoidable`` (the replay
+    """One encounter flown: the outcome, the smallest brute-force separation margin [m] from the
+    time each intruder was known (``inf`` without intruders), ``lost`` (that margin < 0: a known
+    conflict the flight did not avoid), ``unknown_loss`` (a loss before the intruder was reported:
+    a replanned path met it earlier than the plan would have), ``declared_unavoidable`` (the replay
     accepted a predicted loss), the chosen levels, ``escapes`` (how many), ``decision_s`` (the
     compute time [s] of each level 2 and 3 and each escape decision; fixed-wing: each escape
     choice) and the FlightLog (fixed-wing: the LocalResult)."""
@@ -60,6 +62,7 @@ class EncounterOutcome:
     escapes: int
     decision_s: list
     log: object
+    unknown_loss: bool = False
 
 
 def encounter_case(scenario, *, cache=None, method: str | None = None) -> EncounterCase:
@@ -138,11 +141,12 @@ def fly_encounter(case: EncounterCase, enc, *, method: str = "levels", seed: int
                  events=events, strategic_intruders=[], vehicle=case.vehicle, params=params,
                  start_time_utc=case.start_time_utc, dop_threshold=case.dop_threshold, scenario=case.name,
                  crs_wkt=case.crs_wkt, vertical_datum=case.vertical_datum)
-    margins = flown_losses(log)
-    margin = min(margins.values(), default=math.inf)
+    margin = min(flown_losses(log, known_only=True).values(), default=math.inf)
+    before = min(flown_losses(log).values(), default=math.inf) < 0 <= margin
     chosen = [a.level for a in log.attempts if a.chosen]
     return EncounterOutcome(log.outcome, margin, margin < 0, bool(log.losses), chosen, len(log.escapes),
-                            [float(a.compute_s) for a in log.attempts if a.level in ("2", "3", "escape")], log)
+                            [float(a.compute_s) for a in log.attempts if a.level in ("2", "3", "escape")], log,
+                            before)
 
 
 def _fly_fixedwing(case: EncounterCase, enc) -> EncounterOutcome:

@@ -96,10 +96,12 @@ def encounter_events(enc: Encounter, plan_traj, plan_t0_s: float) -> list:
             for t_known, it, via in encounter_intruders(enc, plan_traj, plan_t0_s)]
 
 
-def flown_losses(log, step_s: float = 0.05) -> dict[str, float]:
+def flown_losses(log, step_s: float = 0.05, known_only: bool = False) -> dict[str, float]:
     """Per intruder of a FlightLog, the smallest distance minus the required separation [m]
     (r_p + r_i + d_c) over the flight, by brute force every ``step_s`` [s] (both linear between
-    their samples); negative = a loss of separation."""
+    their samples); negative = a loss of separation.  ``known_only``: only from the time the
+    ownship knew of the intruder (a replanned path may meet an intruder before anyone reports
+    it: no replay can avoid what it does not know)."""
     t, p = log.flown()
     out: dict[str, float] = {}
     if t.size < 2:
@@ -109,6 +111,8 @@ def flown_losses(log, step_s: float = 0.05) -> dict[str, float]:
     for it in log.intruders:
         ti, xi = np.asarray(it.t_s, float), np.asarray(it.xyz_m, float)
         live = (tt >= ti[0]) & (tt <= ti[-1])
+        if known_only:
+            live &= tt >= float(getattr(it, "known_from_s", -math.inf))
         if not live.any():
             continue
         q = np.column_stack([np.interp(tt[live], ti, xi[:, k]) for k in range(3)])

@@ -48,10 +48,14 @@ whole escape, :func:`~skyroute.stages.tactical.conflict.min_separation`), ranked
 predicted minimum separation margin ``min_i (d_i - S_i)`` (largest first; ties: the order
 above, the smallest manoeuvre first), and the best ones go through the same STEP III, validator,
 navigation filter, battery and exact separation check as every replan (at most
-:data:`MAX_FULL_CHECKS`).  The first that passes is flown (part ``escape``).  When none keeps the
-separation (the intruder is too fast or known too late: physically unavoidable with these
-manoeuvres) the valid option with the largest margin is flown and the loss is reported with the
-predicted minimum separation and why.
+:data:`MAX_FULL_CHECKS`, or :data:`MAX_FULL_CHECKS_IF_NONE` while none is acceptable).  The
+first that passes is flown (part ``escape``).  Otherwise, in this order: the best one that keeps
+the separation and fails only the navigation budget (sigma_p above dp_max: flown as a *degraded
+navigation* escape, said in tactical.csv and the warnings: a known collision is worse than a
+navigation excursion; the maps, the hard limits and the validator still hold); the best valid
+one that does not keep the separation (the intruder is too fast or known too late: physically
+unavoidable with these manoeuvres: the loss is reported with the predicted minimum separation
+and why); the best one failing both.
 """
 
 from __future__ import annotations
@@ -81,7 +85,9 @@ TURN_ANGLES_DEG = (45.0, 90.0, 135.0)   # turns at once (tightest radius), then 
 RESUME_STEP_S = 0.5             # [s] step of the search for the end of a hold
 RESUME_FACTOR = 1.25            # the route resumed after a hold keeps this many separations (its smoothing differs)
 HOLD_LOOKAHEAD_S = 15.0         # [s] a hold is checked as lasting this much longer (it ends only when replaced)
-MAX_FULL_CHECKS = 6             # options that go through the full STEP III per decision
+MAX_FULL_CHECKS = 6             # options that go through the full STEP III per decision ...
+MAX_FULL_CHECKS_IF_NONE = 14    # ... or more while none is acceptable
+NAVIGATION_PREFIX = "navigation error sigma_p"
 SEPARATION_PREFIX = "separation from intruder"
 
 
@@ -344,8 +350,10 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
         dec.compute_s = time.perf_counter() - wall
         return dec
     budget = rp.budget_J(t0_s, problem)
-    best_effort = None
-    for opt in ranked[:MAX_FULL_CHECKS]:
+    tiers: dict[int, EscapeOption] = {}
+    for n_checked, opt in enumerate(ranked):
+        if n_checked >= MAX_FULL_CHECKS and (tiers or n_checked >= MAX_FULL_CHECKS_IF_NONE):
+            break
         try:
             cand = rp.finish(problem, opt.chain, opt.speeds, t0_s, v0, f"{label} {opt.kind}", budget,
                              stop_at=opt.stop_at, hold_until_s=opt.hold_until_s, trajectory=opt.trajectory,
@@ -357,11 +365,14 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
         if cand.flyable:
             dec.chosen = opt
             break
+        sep = [r for r in cand.reasons if r.startswith(SEPARATION_PREFIX)]
         other = [r for r in cand.reasons if not r.startswith(SEPARATION_PREFIX)]
+        nav_only = all(r.startswith(NAVIGATION_PREFIX) for r in other)
         opt.why = "; ".join(cand.reasons[:2])
-        if not other and best_effort is None:
-            best_effort = opt                 # valid but for the separation: the best loss
-    if dec.chosen is None:
-        dec.chosen = best_effort
+        tier = 1 if (not sep and nav_only) else 2 if not other else 3 if nav_only else None
+        if tier is not None:
+            tiers.setdefault(tier, opt)
+    if dec.chosen is None and tiers:
+        dec.chosen = tiers[min(tiers)]
     dec.compute_s = time.perf_counter() - wall
     return dec

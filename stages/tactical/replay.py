@@ -593,11 +593,18 @@ class _Replay:
             self.outcome = "failed"
             self.reason = f"{why}; {tried + '; ' if tried else ''}{head}"
             return "failed"
+        from skyroute.stages.tactical.escape import NAVIGATION_PREFIX, SEPARATION_PREFIX
+
         cand = opt.candidate
         self.n_escapes += 1
-        keeps = bool(cand.flyable)
+        keeps = not any(r.startswith(SEPARATION_PREFIX) for r in cand.reasons)
+        degraded = [r for r in cand.reasons if r.startswith(NAVIGATION_PREFIX)]
         verdict = (f"escape {opt.kind}: predicted minimum separation margin {opt.margin_m:+.1f} m"
                    if math.isfinite(opt.margin_m) else f"escape {opt.kind}")
+        if degraded:
+            verdict += (f"; DEGRADED NAVIGATION accepted to avoid a known loss of separation: {degraded[0]} "
+                        "(no escape within the navigation budget)")
+            self.warnings.append(f"escape at t = {t0:.1f} s flown with degraded navigation: {degraded[0]}")
         if not keeps:
             loss = {"replanning": k, "event": ev.label, "t_s": t0, "intruder": opt.intruder,
                     "predicted_margin_m": opt.margin_m,
@@ -606,13 +613,15 @@ class _Replay:
                     "options": dec.summary(6)}
             self.losses.append(loss)
             verdict += f"; UNAVOIDABLE: {loss['why']}"
-        self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "escape", keeps, cand.C_l, cand.C_e, cand.f,
+        self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "escape", bool(cand.flyable), cand.C_l, cand.C_e,
+                                          cand.f,
                                           cand.max_sigma_p_m, dec.compute_s, update_s, math.nan, True,
                                           f"{why}; {'reflex: ' if reflex else ''}{verdict}; hold at "
                                           f"({opt.target_xyz_m[0]:.0f}, {opt.target_xyz_m[1]:.0f}, "
                                           f"{opt.target_xyz_m[2]:.0f}) until t = {float(cand.t_s[-1]):.1f} s"))
         self.escape_log.append({"replanning": k, "t_s": t0, "kind": opt.kind, "reflex": reflex,
                                 "margin_m": opt.margin_m, "keeps_separation": keeps,
+                                "degraded_navigation": bool(degraded),
                                 "hold_until_s": float(cand.t_s[-1]), "compute_s": dec.compute_s,
                                 "options": len(dec.options)})
         chain, speeds = opt.rejoin

@@ -89,8 +89,8 @@ def encounter_intruders(enc: Encounter, plan_traj, plan_t0_s: float, *, before_s
 
 
 def encounter_events(enc: Encounter, plan_traj, plan_t0_s: float) -> list:
-    """The replay's :class:`~skyroute.stages.tactical.replay.TacticalEvent` of ``enc``."""
-    from skyroute.stages.tactical.replay import TacticalEvent
+    """The replay's :class:`~skyroute.stages.tactical.events.TacticalEvent` of ``enc``."""
+    from skyroute.stages.tactical.events import TacticalEvent
 
     return [TacticalEvent(max(t_known, 0.0), "intruder", f"intruder {it.id} ({via})", intruder=it)
             for t_known, it, via in encounter_intruders(enc, plan_traj, plan_t0_s)]

@@ -69,8 +69,10 @@ import numpy as np
 from skyroute.stages.base import InputError, PlanningError
 from skyroute.stages.smoothing import CornerTrajectory, turn_and_stop
 from skyroute.stages.tactical.conflict import IntruderTracks, first_conflict, min_separation
+from skyroute.stages.tactical.events import TacticalEvent, event_record, first_in_zone
+from skyroute.stages.tactical.log import LevelAttempt
 
-__all__ = ["CLEAR_FACTOR", "DISTANCE_FACTORS", "EscapeDecision", "EscapeOption", "HOLD_LOOKAHEAD_S", "MAX_ESCAPES",
+__all__ = ["CLEAR_FACTOR", "DISTANCE_FACTORS", "EscapeDecision", "EscapeOption", "Escapes", "HOLD_LOOKAHEAD_S", "MAX_ESCAPES",
            "MAX_HOLD_S", "MIN_HOLD_S", "clear_time", "plan_escape", "resume_time"]
 
 CLEAR_FACTOR = 2.0              # the hold ends once every known intruder stays this many separations away
@@ -242,7 +244,7 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
 
     wall = time.perf_counter()
     dec = EscapeDecision(float(t0_s))
-    min_hold = MIN_HOLD_S * 2.0 ** min(rp.n_escapes, 6)     # each further escape of a flight waits longer
+    min_hold = MIN_HOLD_S * 2.0 ** min(rp.escapes.n, 6)     # each further escape of a flight waits longer
     chain, speeds, _lead, v0 = rp.rest_chain(t0_s)
     p0 = chain[0]
     vel = rp.tl.velocity(t0_s)
@@ -274,8 +276,6 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
     if pre_path.shape[0] > 2 and not at_rest:
         bases.append(("path ", pre_path, np.maximum(speeds[: pre_path.shape[0] - 1], 1e-3)))
     zones = [z for z in rp.known.zones if z.end_s > t0_s]
-    from skyroute.stages.tactical.replay import _first_in_zone
-
     candidates = []                          # (kind, chain, speeds, stop_at, target, turn trajectory)
     for bname, base, bsp in bases:
         pb = base[-1]
@@ -332,7 +332,7 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
             k = int(np.argmin(ok))
             opt.why = f"static bounds at t = {t[k]:.1f} s: {problem.explain_invalid(pts[k])}"
             continue
-        hit = next((z for z in zones if _first_in_zone(t, pts, z, rp.veh.r_p_m) >= 0), None)
+        hit = next((z for z in zones if first_in_zone(t, pts, z, rp.veh.r_p_m) >= 0), None)
         if hit is not None:
             opt.why = f"inside the temporary no-fly zone {hit.id!r}"
             continue
@@ -376,3 +376,111 @@ def plan_escape(rp, t0_s: float, *, full: bool = True, label: str = "escape") ->
         dec.chosen = tiers[min(tiers)]
     dec.compute_s = time.perf_counter() - wall
     return dec
+
+
+class Escapes:
+    """The escape behaviour of a replay (:class:`~skyroute.stages.tactical.replay._Replay`): it
+    owns its state -- ``n`` escapes flown, ``log`` (one dict per escape decision) and
+    ``losses`` (the predicted losses of separation the flight had to accept) -- and acts on the
+    replay ``rp`` through its public interface (timeline, knowledge, STEP III, attempts)."""
+
+    def __init__(self):
+        self.n = 0
+        self.log: list[dict] = []
+        self.losses: list[dict] = []
+
+    def available(self, rp, t0: float) -> bool:
+        """Whether an escape from ``t0`` [s] keeps the separation from every known intruder
+        (the screen of :func:`~skyroute.stages.tactical.escape.plan_escape`)."""
+        if t0 >= rp.tl.t_end_s and rp.tl.segments[-1].part != "escape":
+            return True
+        dec = plan_escape(rp, t0, full=False)
+        return dec.chosen is not None and dec.chosen.keeps_separation
+
+    def last_resort(self, rp, k: int, ev, t_e: float, t0: float, t_coll: float, update_s: float,
+                    why: str, tried: str, reflex: bool = False) -> str:
+        """After levels 1-3 and the landing found nothing (or as a reflex): the escape of
+        :mod:`.escape` from ``t0`` [s], hold, then replan (a ``resume`` event); when no escape
+        is valid the vehicle keeps its plan and the flight fails.  Returns the event outcome."""
+        t0 = rp.effective_time(t0)
+        dec = None
+        holding = rp.tl.segments[-1].part == "escape"        # hovering at the end of the timeline
+        if rp.p.escape and self.n < MAX_ESCAPES and (t0 < rp.tl.t_end_s or holding):
+            dec = plan_escape(rp, t0)
+        opt = dec.chosen if dec is not None else None
+        if opt is None or opt.candidate is None:
+            if dec is None:
+                head = ("escapes are off" if not rp.p.escape else
+                        f"{self.n} escapes flown already" if self.n >= MAX_ESCAPES else
+                        "the flight ends before an escape could start")
+            else:
+                head = "no escape is valid: " + dec.summary()
+            rp.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "escape", False, math.nan, math.nan,
+                                              math.nan, math.nan, dec.compute_s if dec else 0.0, update_s, math.nan,
+                                              True, f"{why}; {head}; the vehicle keeps its plan"))
+            rp.outcome = "failed"
+            rp.reason = f"{why}; {tried + '; ' if tried else ''}{head}"
+            return "failed"
+        cand = opt.candidate
+        self.n += 1
+        keeps = not any(r.startswith(SEPARATION_PREFIX) for r in cand.reasons)
+        degraded = [r for r in cand.reasons if r.startswith(NAVIGATION_PREFIX)]
+        verdict = (f"escape {opt.kind}: predicted minimum separation margin {opt.margin_m:+.1f} m"
+                   if math.isfinite(opt.margin_m) else f"escape {opt.kind}")
+        if degraded:
+            verdict += (f"; DEGRADED NAVIGATION accepted to avoid a known loss of separation: {degraded[0]} "
+                        "(no escape within the navigation budget)")
+            rp.warnings.append(f"escape at t = {t0:.1f} s flown with degraded navigation: {degraded[0]}")
+        if not keeps:
+            loss = {"replanning": k, "event": ev.label, "t_s": t0, "intruder": opt.intruder,
+                    "predicted_margin_m": opt.margin_m,
+                    "why": (f"no manoeuvre keeps the separation: the best, {opt.kind}, still comes "
+                            f"{-opt.margin_m:.1f} m inside it (the intruder is too fast or known too late)"),
+                    "options": dec.summary(6)}
+            self.losses.append(loss)
+            verdict += f"; UNAVOIDABLE: {loss['why']}"
+        rp.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "escape", bool(cand.flyable), cand.C_l, cand.C_e,
+                                          cand.f,
+                                          cand.max_sigma_p_m, dec.compute_s, update_s, math.nan, True,
+                                          f"{why}; {'reflex: ' if reflex else ''}{verdict}; hold at "
+                                          f"({opt.target_xyz_m[0]:.0f}, {opt.target_xyz_m[1]:.0f}, "
+                                          f"{opt.target_xyz_m[2]:.0f}) until t = {float(cand.t_s[-1]):.1f} s"))
+        self.log.append({"replanning": k, "t_s": t0, "kind": opt.kind, "reflex": reflex,
+                                "margin_m": opt.margin_m, "keeps_separation": keeps,
+                                "degraded_navigation": bool(degraded),
+                                "hold_until_s": float(cand.t_s[-1]), "compute_s": dec.compute_s,
+                                "options": len(dec.options)})
+        chain, speeds = opt.rejoin
+        rp.follow(cand, t0, "escape", k, then=(chain, speeds))
+        t_res = float(cand.t_s[-1])
+        rp.push(TacticalEvent(max(t_res - rp.p.t_rep_s, t0), "resume", f"resume after escape {k}"),
+                  max(t_res - rp.p.t_rep_s, t0))
+        if rp.outcome == "failed":
+            rp.outcome, rp.reason = "goal", ""
+        return f"escape {opt.kind}" + ("" if keeps else " (unavoidable loss of separation)")
+
+    def resume(self, rp, ev, t_e: float) -> bool:
+        """The hold of an escape ends: replan from it (the rest of the old plan as it is, then
+        levels 2 and 3, the landing, another escape).  False when the flight ends here."""
+        seg = rp.tl.segments[-1]
+        t_end = rp.tl.t_end_s
+        if (seg.part != "escape" or seg.then_chain is None or t_e > t_end + 1e-9
+                or ev.label != f"resume after escape {seg.replanning}"):     # a later escape replaced it
+            rp.event_log.append(event_record(ev, t_e, math.inf, "superseded"))
+            return True
+        k = rp.n_replan
+        rp.n_replan += 1
+        cause = f"the hold of {ev.label.removeprefix('resume after ')} ends"
+        best = rp.replan(k, ev, t_e, t_end, math.inf, 0.0, cause, None, resume=True)
+        if best is not None:
+            rp.event_log.append(event_record(ev, t_e, math.inf, f"replanned {best}", cause))
+            return True
+        why = f"no plan from the hold ({cause})"
+        ok, tried = rp.land(k, ev, t_e, t_end, math.inf, 0.0, why)
+        outcome = "landing" if ok else self.last_resort(rp, k, ev, t_e, t_end, math.inf, 0.0, why, tried)
+        rp.event_log.append(event_record(ev, t_e, math.inf, outcome, cause))
+        if outcome == "failed":
+            rp.reason = f"holding at the escape point: {rp.reason}"
+            return False
+        return True
+

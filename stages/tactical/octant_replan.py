@@ -43,6 +43,7 @@ import time
 import numpy as np
 
 from skyroute.stages.tactical.conflict import first_conflict
+from skyroute.stages.tactical.events import first_in_zone
 from skyroute.stages.tactical.log import LevelAttempt, NoFlyZone
 from skyroute.stages.tactical.octant import (
     _chord,
@@ -52,13 +53,31 @@ from skyroute.stages.tactical.octant import (
     pocket_directions,
     rank_octants,
 )
+from skyroute.stages.tactical.timeline import along
 from skyroute.stages.tactical.zones import ZoneTracker
 
-__all__ = ["intruder_state", "octant_replan", "update_zones", "zone_potential"]
+__all__ = ["OctantZones", "intruder_state", "octant_replan", "update_zones", "zone_potential"]
 
 ESCAPE_FACTORS = (2.0, 4.0, 6.0)      # escape distances D in units of the separation
 MAX_DIRECTIONS = 6                    # escape directions tried (octants, then pockets)
 PERIPHERY_GROWTH = (1.0, 1.5, 2.0, 3.0)   # P_r factors tried when no escape is valid
+
+
+class OctantZones:
+    """The octant method's state in a replay (it owns it; the replay holds one): the zone
+    ``tracker`` (:class:`~skyroute.stages.tactical.zones.ZoneTracker`, made at the first
+    determination), the active dense ``zones`` (temporary obstacles), their definitions ``log``
+    (``FlightLog.dense_zones``), the intruders ``ids`` of the last determination, and the zones'
+    potential ``field`` (:class:`~skyroute.stages.tactical.zone_field.ZoneField`) with the world
+    ``field_world`` it was computed on."""
+
+    def __init__(self):
+        self.tracker: ZoneTracker | None = None
+        self.zones: list[NoFlyZone] = []
+        self.log: list[dict] = []
+        self.ids: tuple[str, ...] | None = None
+        self.field = None
+        self.field_world = None
 
 
 def intruder_state(intr, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
@@ -75,26 +94,26 @@ def intruder_state(intr, t_s: float) -> tuple[np.ndarray, np.ndarray] | None:
 
 def update_zones(rp, t_s: float) -> None:
     """Zone determination at ``t_s`` for the replay ``rp`` (module docstring)."""
-    g = rp._grid()
-    if rp.zone_tracker is None:
+    g = rp.grid()
+    if rp.octant.tracker is None:
         ws = (g.x0, g.x0 + g.nx * g.resolution_m, g.y1 - g.ny * g.resolution_m, g.y1)
-        rp.zone_tracker = ZoneTracker(ws, period_s=rp.p.zone_period_s)
+        rp.octant.tracker = ZoneTracker(ws, period_s=rp.p.zone_period_s)
     live = [(i.id, s) for i in rp.known.intruders() if (s := intruder_state(i, t_s)) is not None]
     xyz = np.array([s[0] for _, s in live]).reshape(-1, 3)
     vel = np.array([s[1] for _, s in live]).reshape(-1, 3)
     own = rp.tl.sample(t_s)
     ids = tuple(sorted(i for i, _ in live))
-    part, changed = rp.zone_tracker.update(t_s, own[:2], rp.goal[:2], xyz, vel, force=ids != rp.zone_ids)
-    rp.zone_ids = ids
+    part, changed = rp.octant.tracker.update(t_s, own[:2], rp.goal[:2], xyz, vel, force=ids != rp.octant.ids)
+    rp.octant.ids = ids
     if not changed:
         return
     T = rp.p.zone_period_s
-    rp.dense_zones = [NoFlyZone(f"dense-{b.bits}", b.polygon_xy, -1e9, 1e9, float(t_s), float(t_s) + T)
+    rp.octant.zones = [NoFlyZone(f"dense-{b.bits}", b.polygon_xy, -1e9, 1e9, float(t_s), float(t_s) + T)
                       for b in part.boxes]
     entry = {"t_s": float(t_s), "r": int(part.r), "dense": list(part.dense), "ok": bool(part.ok),
              "reason": part.reason, "n_intruders": int(xyz.shape[0]),
              "boxes_m": [[b.x_min_m, b.x_max_m, b.y_min_m, b.y_max_m] for b in part.boxes]}
-    rp.dense_zone_log.append(entry)
+    rp.octant.log.append(entry)
     if rp.p.zone_potential:
         entry.update(zone_potential(rp, t_s, part.boxes))
 
@@ -175,8 +194,6 @@ def octant_replan(rp, k: int, ev, t_e: float, t_eff0: float, t_v: float, t_coll:
 def _escape(rp, t_eff: float, P_r: float, detail, cause: str) -> dict:
     """The escapes from ``t_eff`` (module docstring): ``{"chosen": (candidate, name, D) or
     None, "n_ok", "tried", "head"}``."""
-    from skyroute.stages.tactical.replay import _along, _first_in_zone
-
     p = rp.p
     chain, speeds, _lead, v0 = rp.rest_chain(t_eff)
     own = chain[0]
@@ -212,8 +229,8 @@ def _escape(rp, t_eff: float, P_r: float, detail, cause: str) -> dict:
     pockets.sort(key=lambda x: (x[0], x[1]))
     dirs += [("pocket", d) for _, _, d in pockets]
     dirs = dirs[:MAX_DIRECTIONS]
-    d_enc = _along(chain, np.asarray(detail.own_xyz_m, float))
-    zones = [z for z in rp.dense_zones if z.end_s > t_eff and _first_in_zone(np.array([t_eff]), own[None], z,
+    d_enc = along(chain, np.asarray(detail.own_xyz_m, float))
+    zones = [z for z in rp.octant.zones if z.end_s > t_eff and first_in_zone(np.array([t_eff]), own[None], z,
                                                                               rp.veh.r_p_m) < 0]
     tried: list[str] = []
     chosen = None
@@ -225,7 +242,7 @@ def _escape(rp, t_eff: float, P_r: float, detail, cause: str) -> dict:
             def tail(pre, nb, t_b, e=e, D=D):
                 pb = pre[-1]
                 E = pb + D * e
-                s_r = max(d_enc, _along(chain, pb)) + D
+                s_r = max(d_enc, along(chain, pb)) + D
                 R, j = _point_at(chain, s_r)
                 while j < chain.shape[0] and abs(R[2] - E[2]) > tan_el * float(np.hypot(*(R - E)[:2])):
                     s_r += 0.25 * D                  # rejoin farther: the leg back within the angle
@@ -237,7 +254,7 @@ def _escape(rp, t_eff: float, P_r: float, detail, cause: str) -> dict:
                 cand, why = rp.via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, "octant", budget)
             if cand is not None and cand.flyable and zones:
                 for z in zones:
-                    kz = _first_in_zone(cand.t_s, cand.xyz_m, z, rp.veh.r_p_m)
+                    kz = first_in_zone(cand.t_s, cand.xyz_m, z, rp.veh.r_p_m)
                     if kz >= 0:
                         cand.reasons.append(f"inside the dense zone {z.id!r} at t = {cand.t_s[kz]:.1f} s")
                         cand.flyable = False
@@ -266,7 +283,6 @@ def zone_potential(rp, t_s: float, boxes) -> dict:
     Returns what to add to the zone definition's log entry: ``potential`` ("", "full",
     "incremental"), ``potential_s`` [s], ``reroute`` (what happened to the plan)."""
     from skyroute.stages.base import InputError, PlanningError
-    from skyroute.stages.tactical.replay import _first_in_zone
     from skyroute.stages.tactical.zone_field import ZoneField
 
     out = {"potential": "", "potential_s": 0.0, "reroute": ""}
@@ -276,21 +292,21 @@ def zone_potential(rp, t_s: float, boxes) -> dict:
         return out
     own = rp.tl.sample(t_eff)
     r_p = rp.veh.r_p_m
-    zones = [z for z in rp.dense_zones if z.end_s > t_eff and _first_in_zone(np.array([t_eff]), own[None], z, r_p) < 0]
+    zones = [z for z in rp.octant.zones if z.end_s > t_eff and first_in_zone(np.array([t_eff]), own[None], z, r_p) < 0]
     keep = {z.id for z in zones}
     boxes = tuple(b for b in boxes if f"dense-{b.bits}" in keep)     # a zone holding the vehicle cannot be avoided
     t_p, pts = rp.tl.samples(t_eff, rp.p.tick_s)
-    entries = [(float(t_p[kz]), z) for z in zones if (kz := _first_in_zone(t_p, pts, z, r_p)) >= 0]
+    entries = [(float(t_p[kz]), z) for z in zones if (kz := first_in_zone(t_p, pts, z, r_p)) >= 0]
     t_hit, hit = min(entries, key=lambda e: e[0]) if entries else (math.inf, None)
-    zf = rp.zone_field
+    zf = rp.octant.field
     t0 = time.perf_counter()
     try:
-        if zf is None or rp.zone_field_world is not rp.world or not zf.covers(own):
+        if zf is None or rp.octant.field_world is not rp.world or not zf.covers(own):
             if hit is None:
                 out["reroute"] = "the plan meets no dense zone"
                 return out
             zf = ZoneField.build(rp.problem(own, rp.goal, zones_from_s=math.inf), boxes)
-            rp.zone_field, rp.zone_field_world = zf, rp.world
+            rp.octant.field, rp.octant.field_world = zf, rp.world
             out["potential"] = "full"
         elif zf.set_zones(boxes):
             out["potential"] = "incremental"
@@ -316,7 +332,7 @@ def zone_potential(rp, t_s: float, boxes) -> dict:
         cand, why = rp.via_braking(chain, speeds, v0, t_eff, tail, lambda pb: problem, "potential", budget)
     if cand is not None and cand.flyable:
         for z in zones:
-            kz = _first_in_zone(cand.t_s, cand.xyz_m, z, r_p)
+            kz = first_in_zone(cand.t_s, cand.xyz_m, z, r_p)
             if kz >= 0:
                 cand.flyable = False
                 why = f"inside the dense zone {z.id!r} at t = {cand.t_s[kz]:.1f} s"

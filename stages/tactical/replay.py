@@ -70,6 +70,7 @@ from skyroute.stages.planning.step3 import (
 from skyroute.stages.smoothing import KinematicLimits
 from skyroute.stages.tactical.conflict import IntruderTracks, first_conflict
 from skyroute.stages.tactical.daa import alert_of
+from skyroute.stages.tactical.events import TacticalEvent, event_record, first_in_zone
 from skyroute.stages.tactical.log import (
     FlightLog,
     FlownPart,
@@ -77,7 +78,7 @@ from skyroute.stages.tactical.log import (
     LevelAttempt,
     NoFlyZone,
 )
-from skyroute.stages.tactical.timeline import Segment, Timeline, chain_of, line_phase_at
+from skyroute.stages.tactical.timeline import Segment, Timeline, along, chain_of, line_phase_at
 from skyroute.stages.traffic import Intruder, build_occupancy
 from skyroute.stages.vehicle import VehicleProfile
 
@@ -165,26 +166,6 @@ class FlyParams:
     def bubble(self) -> tuple[float, float] | None:
         """``(k, surface_uncertainty_m)`` of the safety bubble, or None (fixed r_p)."""
         return None if self.bubble_k is None else (float(self.bubble_k), float(self.surface_uncertainty_m))
-
-
-@dataclass(frozen=True)
-class TacticalEvent:
-    """One event, in the map CRS with heights in the surface datum.
-
-    ``kind``: intruder, intruder_update, wind, gnss, nofly, obstacle; ``t_s`` [s]: when it
-    happens; ``label``: e.g. ``"intruder tac-1"``.  ``intruder``: the declared track (intruder
-    kinds); ``zone``: the temporary no-fly zone (nofly); map-changing kinds (wind, gnss,
-    obstacle) are applied by the ``world_at`` callback of :func:`replay`."""
-
-    t_s: float
-    kind: str
-    label: str
-    intruder: Intruder | None = None
-    zone: NoFlyZone | None = None
-
-    @property
-    def changes_maps(self) -> bool:
-        return self.kind in ("wind", "gnss", "obstacle")
 
 
 @dataclass
@@ -291,15 +272,12 @@ class _Replay:
         self.warnings: list[str] = []
         self._zone_masks: dict[str, np.ndarray] = {}
         self._grid_obj = None
-        self.zone_tracker = None              # the octant method's zone partitioning (octant_replan)
-        self.dense_zones: list[NoFlyZone] = []
-        self.dense_zone_log: list[dict] = []
-        self.zone_ids: tuple[str, ...] | None = None   # intruders of the last zone determination
-        self.zone_field = None                # the dense zones' potential field (octant_replan.zone_potential)
-        self.zone_field_world = None          # the world it was computed on
-        self.n_escapes = 0                    # escapes of last resort flown (escape.plan_escape)
-        self.escape_log: list[dict] = []      # one entry per escape decision
-        self.losses: list[dict] = []          # predicted losses of separation the flight had to accept
+        from skyroute.stages.tactical.octant_replan import OctantZones
+
+        self.octant = OctantZones()           # the octant method's zones and their potential field
+        from skyroute.stages.tactical.escape import Escapes
+
+        self.escapes = Escapes()              # the escape of last resort, its decisions and accepted losses
         self._queue: list = []                # pending events (known time, event time, order, event)
         self._seq = 0
 
@@ -344,7 +322,7 @@ class _Replay:
         zones = [z for z in self.known.zones if z.end_s > t_from_s]
         if not zones:
             return None
-        g = self._grid()
+        g = self.grid()
         m = np.zeros(g.shape, bool)
         for z in zones:
             zm = self._zone_masks.get(z.id)
@@ -371,7 +349,7 @@ class _Replay:
                     m[rr, cc] = True
         return m
 
-    def _grid(self):
+    def grid(self):
         if self._grid_obj is None:
             from skyroute.stages.grid import Grid
 
@@ -414,7 +392,7 @@ class _Replay:
             if t_s[k] < best[0]:
                 best = (float(t_s[k]), f"static bounds at t = {t_s[k]:.1f} s: {problem.explain_invalid(p[k])}", None)
         for z in self.known.zones:
-            k = _first_in_zone(t_s, p, z, self.veh.r_p_m)
+            k = first_in_zone(t_s, p, z, self.veh.r_p_m)
             if k >= 0 and t_s[k] < best[0]:
                 best = (float(t_s[k]), f"inside the temporary no-fly zone {z.id!r} at t = {t_s[k]:.1f} s", z)
         v = np.gradient(p, t_s, axis=0) if t_s.size > 2 else np.diff(p, axis=0) / np.diff(t_s)[:, None]
@@ -450,11 +428,11 @@ class _Replay:
             t_e, _t, _n, ev = heapq.heappop(self._queue)
             control.check()
             if ev.kind == "resume":
-                if not self.resume(ev, t_e):
+                if not self.escapes.resume(self, ev, t_e):
                     return
                 continue
             if t_e >= self.tl.t_end_s:
-                self.event_log.append(_ev(ev, t_e, math.inf, "after the flight ended"))
+                self.event_log.append(event_record(ev, t_e, math.inf, "after the flight ended"))
                 continue
             t0 = time.perf_counter()
             batch = [ev]
@@ -467,13 +445,13 @@ class _Replay:
 
                     update_zones(self, t_e)
             for e in batch[1:]:
-                self.event_log.append(_ev(e, t_e, math.inf, f"known with {ev.label}"))
+                self.event_log.append(event_record(e, t_e, math.inf, f"known with {ev.label}"))
             update_s = time.perf_counter() - t0
             t_s, pts = self.rest_samples(t_e)
             prob = self.problem(self.tl.sample(t_e), self.goal, zones_from_s=math.inf)   # zones: checked in time
             t_v, cause, detail = self.first_violation(t_s, pts, prob)
             if not math.isfinite(t_v):
-                self.event_log.append(_ev(ev, t_e, math.inf, "no conflict"))
+                self.event_log.append(event_record(ev, t_e, math.inf, "no conflict"))
                 continue
             t_coll = t_v - t_e
             k = self.n_replan
@@ -483,24 +461,24 @@ class _Replay:
             if t_coll <= p.t_rep_s:
                 why = f"t_coll {t_coll:.2f} s <= t_rep {p.t_rep_s:g} s ({cause})"
                 ok, tried = self.land(k, ev, t_e, t_e, t_coll, update_s, why)
-                outcome = "landing" if ok else self.last_resort(k, ev, t_e, t_e + p.escape_latency_s, t_coll,
+                outcome = "landing" if ok else self.escapes.last_resort(self, k, ev, t_e, t_e + p.escape_latency_s, t_coll,
                                                                  update_s, why, tried)
                 self._tag(k, alert)
-                self.event_log.append(_ev(ev, t_e, t_coll, outcome, cause))
+                self.event_log.append(event_record(ev, t_e, t_coll, outcome, cause))
                 if outcome == "failed":
                     return
                 continue
             t_eff = self.effective_time(t_e + p.t_rep_s)
             if (p.escape and intruder_conflict and t_eff < self.tl.t_end_s
-                    and not self.escape_available(t_eff)):
+                    and not self.escapes.available(self, t_eff)):
                 # waiting t_rep for a plan would leave no escape that keeps the separation:
                 # escape now (a reflex), replan from the hold
                 t_now = self.effective_time(t_e + p.escape_latency_s)
                 why = (f"no escape would keep the separation after waiting t_rep {p.t_rep_s:g} s for a plan "
                        f"({cause})")
-                outcome = self.last_resort(k, ev, t_e, t_now, t_coll, update_s, why, "", reflex=True)
+                outcome = self.escapes.last_resort(self, k, ev, t_e, t_now, t_coll, update_s, why, "", reflex=True)
                 self._tag(k, alert)
-                self.event_log.append(_ev(ev, t_e, t_coll, outcome, cause))
+                self.event_log.append(event_record(ev, t_e, t_coll, outcome, cause))
                 if outcome == "failed":
                     return
                 continue
@@ -513,14 +491,14 @@ class _Replay:
             if best is None:
                 why = f"no level found a valid plan ({cause})"
                 ok, tried = self.land(k, ev, t_e, t_eff, t_coll, update_s, why)
-                outcome = "landing" if ok else self.last_resort(k, ev, t_e, t_eff, t_coll, update_s, why, tried)
+                outcome = "landing" if ok else self.escapes.last_resort(self, k, ev, t_e, t_eff, t_coll, update_s, why, tried)
                 self._tag(k, alert)
-                self.event_log.append(_ev(ev, t_e, t_coll, outcome, cause))
+                self.event_log.append(event_record(ev, t_e, t_coll, outcome, cause))
                 if outcome == "failed":
                     return
                 continue
             self._tag(k, alert)
-            self.event_log.append(_ev(ev, t_e, t_coll, f"replanned {best}", cause))
+            self.event_log.append(event_record(ev, t_e, t_coll, f"replanned {best}", cause))
 
     def rest_samples(self, t_from: float) -> tuple[np.ndarray, np.ndarray]:
         """The plan from ``t_from`` [s] sampled every tick; a plan that ends in an escape's hold
@@ -555,108 +533,6 @@ class _Replay:
         for a in self.attempts:
             if a.replanning == k:
                 a.intruder, a.t_los_s, a.alert = alert["intruder"], alert["t_los_s"], alert["alert"]
-
-    # -------------------------------------------------------------- escapes
-    def escape_available(self, t0: float) -> bool:
-        """Whether an escape from ``t0`` [s] keeps the separation from every known intruder
-        (the screen of :func:`~skyroute.stages.tactical.escape.plan_escape`)."""
-        from skyroute.stages.tactical.escape import plan_escape
-
-        if t0 >= self.tl.t_end_s and self.tl.segments[-1].part != "escape":
-            return True
-        dec = plan_escape(self, t0, full=False)
-        return dec.chosen is not None and dec.chosen.keeps_separation
-
-    def last_resort(self, k: int, ev: TacticalEvent, t_e: float, t0: float, t_coll: float, update_s: float,
-                    why: str, tried: str, reflex: bool = False) -> str:
-        """After levels 1-3 and the landing found nothing (or as a reflex): the escape of
-        :mod:`.escape` from ``t0`` [s], hold, then replan (a ``resume`` event); when no escape
-        is valid the vehicle keeps its plan and the flight fails.  Returns the event outcome."""
-        from skyroute.stages.tactical.escape import MAX_ESCAPES, plan_escape
-
-        t0 = self.effective_time(t0)
-        dec = None
-        holding = self.tl.segments[-1].part == "escape"        # hovering at the end of the timeline
-        if self.p.escape and self.n_escapes < MAX_ESCAPES and (t0 < self.tl.t_end_s or holding):
-            dec = plan_escape(self, t0)
-        opt = dec.chosen if dec is not None else None
-        if opt is None or opt.candidate is None:
-            if dec is None:
-                head = ("escapes are off" if not self.p.escape else
-                        f"{self.n_escapes} escapes flown already" if self.n_escapes >= MAX_ESCAPES else
-                        "the flight ends before an escape could start")
-            else:
-                head = "no escape is valid: " + dec.summary()
-            self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "escape", False, math.nan, math.nan,
-                                              math.nan, math.nan, dec.compute_s if dec else 0.0, update_s, math.nan,
-                                              True, f"{why}; {head}; the vehicle keeps its plan"))
-            self.outcome = "failed"
-            self.reason = f"{why}; {tried + '; ' if tried else ''}{head}"
-            return "failed"
-        from skyroute.stages.tactical.escape import NAVIGATION_PREFIX, SEPARATION_PREFIX
-
-        cand = opt.candidate
-        self.n_escapes += 1
-        keeps = not any(r.startswith(SEPARATION_PREFIX) for r in cand.reasons)
-        degraded = [r for r in cand.reasons if r.startswith(NAVIGATION_PREFIX)]
-        verdict = (f"escape {opt.kind}: predicted minimum separation margin {opt.margin_m:+.1f} m"
-                   if math.isfinite(opt.margin_m) else f"escape {opt.kind}")
-        if degraded:
-            verdict += (f"; DEGRADED NAVIGATION accepted to avoid a known loss of separation: {degraded[0]} "
-                        "(no escape within the navigation budget)")
-            self.warnings.append(f"escape at t = {t0:.1f} s flown with degraded navigation: {degraded[0]}")
-        if not keeps:
-            loss = {"replanning": k, "event": ev.label, "t_s": t0, "intruder": opt.intruder,
-                    "predicted_margin_m": opt.margin_m,
-                    "why": (f"no manoeuvre keeps the separation: the best, {opt.kind}, still comes "
-                            f"{-opt.margin_m:.1f} m inside it (the intruder is too fast or known too late)"),
-                    "options": dec.summary(6)}
-            self.losses.append(loss)
-            verdict += f"; UNAVOIDABLE: {loss['why']}"
-        self.attempts.append(LevelAttempt(k, ev.label, ev.t_s, t_coll, "escape", bool(cand.flyable), cand.C_l, cand.C_e,
-                                          cand.f,
-                                          cand.max_sigma_p_m, dec.compute_s, update_s, math.nan, True,
-                                          f"{why}; {'reflex: ' if reflex else ''}{verdict}; hold at "
-                                          f"({opt.target_xyz_m[0]:.0f}, {opt.target_xyz_m[1]:.0f}, "
-                                          f"{opt.target_xyz_m[2]:.0f}) until t = {float(cand.t_s[-1]):.1f} s"))
-        self.escape_log.append({"replanning": k, "t_s": t0, "kind": opt.kind, "reflex": reflex,
-                                "margin_m": opt.margin_m, "keeps_separation": keeps,
-                                "degraded_navigation": bool(degraded),
-                                "hold_until_s": float(cand.t_s[-1]), "compute_s": dec.compute_s,
-                                "options": len(dec.options)})
-        chain, speeds = opt.rejoin
-        self.follow(cand, t0, "escape", k, then=(chain, speeds))
-        t_res = float(cand.t_s[-1])
-        self.push(TacticalEvent(max(t_res - self.p.t_rep_s, t0), "resume", f"resume after escape {k}"),
-                  max(t_res - self.p.t_rep_s, t0))
-        if self.outcome == "failed":
-            self.outcome, self.reason = "goal", ""
-        return f"escape {opt.kind}" + ("" if keeps else " (unavoidable loss of separation)")
-
-    def resume(self, ev: TacticalEvent, t_e: float) -> bool:
-        """The hold of an escape ends: replan from it (the rest of the old plan as it is, then
-        levels 2 and 3, the landing, another escape).  False when the flight ends here."""
-        seg = self.tl.segments[-1]
-        t_end = self.tl.t_end_s
-        if (seg.part != "escape" or seg.then_chain is None or t_e > t_end + 1e-9
-                or ev.label != f"resume after escape {seg.replanning}"):     # a later escape replaced it
-            self.event_log.append(_ev(ev, t_e, math.inf, "superseded"))
-            return True
-        k = self.n_replan
-        self.n_replan += 1
-        cause = f"the hold of {ev.label.removeprefix('resume after ')} ends"
-        best = self.replan(k, ev, t_e, t_end, math.inf, 0.0, cause, None, resume=True)
-        if best is not None:
-            self.event_log.append(_ev(ev, t_e, math.inf, f"replanned {best}", cause))
-            return True
-        why = f"no plan from the hold ({cause})"
-        ok, tried = self.land(k, ev, t_e, t_end, math.inf, 0.0, why)
-        outcome = "landing" if ok else self.last_resort(k, ev, t_e, t_end, math.inf, 0.0, why, tried)
-        self.event_log.append(_ev(ev, t_e, math.inf, outcome, cause))
-        if outcome == "failed":
-            self.reason = f"holding at the escape point: {self.reason}"
-            return False
-        return True
 
     def apply(self, ev: TacticalEvent, t_e: float) -> None:
         if ev.kind == "intruder" or ev.kind == "intruder_update":
@@ -805,7 +681,7 @@ class _Replay:
             if c is not None:
                 cand.reasons.append(f"separation from intruder {c.id!r}: {c.distance_m:.1f} m at t = {c.t_cpa_s:.1f} s")
             for z in self.known.zones:
-                k = _first_in_zone(cand.t_s, cand.xyz_m, z, self.veh.r_p_m)
+                k = first_in_zone(cand.t_s, cand.xyz_m, z, self.veh.r_p_m)
                 if k >= 0:
                     cand.reasons.append(f"inside the temporary no-fly zone {z.id!r} at t = {cand.t_s[k]:.1f} s")
             cand.flyable = not cand.reasons
@@ -827,7 +703,7 @@ class _Replay:
             if c is not None:
                 return f"separation from intruder {c.id!r}: {c.distance_m:.1f} m at t = {c.t_cpa_s:.1f} s"
         for z in self.known.zones:
-            k = _first_in_zone(t, pts, z, self.veh.r_p_m)
+            k = first_in_zone(t, pts, z, self.veh.r_p_m)
             if k >= 0:
                 return f"inside the temporary no-fly zone {z.id!r} at t = {t[k]:.1f} s"
         return ""
@@ -890,7 +766,7 @@ class _Replay:
             legs = np.linalg.norm(np.diff(chain, axis=0), axis=1)
             cum = np.concatenate([[0.0], np.cumsum(legs)])
             # arc length of the encounter point along the chain: nearest point on the chain
-            d_enc = _along(chain, pe)
+            d_enc = along(chain, pe)
             n_slow = int(np.searchsorted(cum, d_enc, side="left"))
             n_slow = min(max(n_slow, 1), legs.size)
             fails = []
@@ -1050,7 +926,7 @@ class _Replay:
         env = self.world.environment
         if env is None or "site_x" not in env.coords:
             return []
-        g = self._grid()
+        g = self.grid()
         site = np.asarray(env["landing_site"].values, bool)
         top = np.asarray(self.world.surface["surface"].values, float)     # the ground or the flat roof
         floor = np.asarray(self.world.clearance["min_altitude_m"].values, float)
@@ -1091,39 +967,6 @@ def _dedupe(chain, speeds, stop_at=()):
         stop_at = tuple(int(new_index[i]) for i in stop_at)
         chain, speeds, lengths = chain[keep], speeds[keep[1:]], lengths[keep[1:]]
     return chain, speeds, lengths, tuple(stop_at)
-
-
-def _ev(ev: TacticalEvent, t_known: float, t_coll: float, outcome: str, cause: str = "") -> dict:
-    return {"t_s": ev.t_s, "kind": ev.kind, "label": ev.label, "t_known_s": t_known, "t_coll_s": t_coll,
-            "outcome": outcome, "cause": cause}
-
-
-def _along(chain: np.ndarray, q: np.ndarray) -> float:
-    """Arc length [m] along ``chain`` of the point of it nearest to ``q``."""
-    a, b = chain[:-1], chain[1:]
-    ab = b - a
-    L2 = np.einsum("ij,ij->i", ab, ab)
-    s = np.clip(np.einsum("ij,ij->i", q - a, ab) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
-    d = np.linalg.norm(a + s[:, None] * ab - q, axis=1)
-    i = int(np.argmin(d))
-    cum = np.concatenate([[0.0], np.cumsum(np.sqrt(L2))])
-    return float(cum[i] + s[i] * math.sqrt(L2[i]))
-
-
-def _first_in_zone(t_s: np.ndarray, p: np.ndarray, z: NoFlyZone, r_m: float) -> int:
-    """Index of the first sample inside zone ``z`` (polygon and band widened by ``r_m``)
-    while it is active, or -1."""
-    from matplotlib.path import Path as MplPath
-
-    act = (t_s >= z.start_s) & (t_s <= z.end_s) & (p[:, 2] >= z.z_min_m - r_m) & (p[:, 2] <= z.z_max_m + r_m)
-    if not act.any():
-        return -1
-    from shapely.geometry import Polygon
-
-    poly = Polygon(z.polygon_xy).buffer(r_m)
-    path = MplPath(np.asarray(poly.exterior.coords))
-    inside = path.contains_points(p[:, :2]) & act
-    return int(np.argmax(inside)) if inside.any() else -1
 
 
 # ------------------------------------------------------------------ public entry
@@ -1177,9 +1020,9 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
                       "clearance_radius_m": params.clearance_radius_m}
     log.compile_s = compile_s
     log.method = params.method
-    log.dense_zones = list(r.dense_zone_log)
-    log.escapes = list(r.escape_log)
-    log.losses = list(r.losses)
+    log.dense_zones = list(r.octant.log)
+    log.escapes = list(r.escapes.log)
+    log.losses = list(r.escapes.losses)
     if log.losses:          # what was flown, by brute force, beside what was predicted
         from skyroute.stages.tactical.encounters import flown_losses
 

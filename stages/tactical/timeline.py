@@ -20,7 +20,7 @@ import numpy as np
 from skyroute.stages.base import InputError
 from skyroute.stages.smoothing import CornerTrajectory
 
-__all__ = ["Segment", "Timeline", "chain_of", "line_phase_at"]
+__all__ = ["Segment", "Timeline", "along", "chain_of", "line_phase_at"]
 
 _LINE = 0
 
@@ -180,3 +180,15 @@ def chain_of(traj: CornerTrajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray
         s = s[ok]
         leg_of = new_of_leg[np.minimum(leg_of, ok.size - 1)]
     return v, s, leg_of
+
+
+def along(chain: np.ndarray, q: np.ndarray) -> float:
+    """Arc length [m] along ``chain`` of the point of it nearest to ``q``."""
+    a, b = chain[:-1], chain[1:]
+    ab = b - a
+    L2 = np.einsum("ij,ij->i", ab, ab)
+    s = np.clip(np.einsum("ij,ij->i", q - a, ab) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
+    d = np.linalg.norm(a + s[:, None] * ab - q, axis=1)
+    i = int(np.argmin(d))
+    cum = np.concatenate([[0.0], np.cumsum(np.sqrt(L2))])
+    return float(cum[i] + s[i] * math.sqrt(L2[i]))

@@ -79,7 +79,7 @@ def fly_fixedwing(sc: Scenario, *, cache: Cache | None = None, scheduler: str = 
                   tick_s: float | None = None, seed: int | None = None, result=None):
     """Plan (cached) and fly the fixed-wing scenario ``sc`` with seed 002's local planner.
     Returns a :class:`~skyroute.pipeline.fly.FlyResult` (no map updates)."""
-    from skyroute.pipeline.fly import FlyResult, tactical_events
+    from skyroute.pipeline.fly_common import FlyResult, tactical_events
     from skyroute.stages.base import PlanningError
     from skyroute.stages.planning.step3 import wind_sampler
     from skyroute.stages.planning.strategic import plan_from_dataset

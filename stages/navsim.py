@@ -95,6 +95,7 @@ import xarray as xr
 from skyroute.stages import navigation as nav
 from skyroute.stages.base import InputError
 from skyroute.stages.dop import dop_table
+from skyroute.stages.sboa import bubble_radius_m
 from skyroute.stages.vehicle import ImuSpec, VehicleProfile
 
 GPS_RANGE_M = 2.02e7
@@ -305,7 +306,7 @@ def flight_geometry(problem, sky: xr.Dataset, surface_2d, t_s, xyz_m, start_time
     :func:`skyroute.stages.planning.step3.line_of_sight` (nearest sky epoch, exact visibility
     heights); ``received_ok`` is the sky's ``above_mask`` at the same epoch (above the
     elevation mask, visible or hidden).  ``cache``: as for ``line_of_sight``."""
-    from skyroute.stages.planning.step3 import line_of_sight, sky_times_s
+    from skyroute.stages.sky_visibility import line_of_sight, sky_times_s
 
     if "above_mask" not in sky:
         raise InputError("sky dataset lacks 'above_mask': build it with skyroute.stages.almanac.sky_geometry")
@@ -596,11 +597,4 @@ def gaussian_containment(cov_m2, k: float = 3.0, nodes: int = 48) -> np.ndarray:
 __all__ = ["BIAS_DISTRIBUTIONS", "FILTERS", "GPS_RANGE_M", "NavsimParams", "bubble_radius_m", "containment", "error_cdf",
            "flight_geometry", "gaussian_containment", "pdop_of", "proposed_beats_weak", "simulate"]
 
-
-def bubble_radius_m(sigma_m, k: float, surface_uncertainty_m: float = 0.0) -> np.ndarray:
-    """Safety bubble radius r_phi = k sigma + the surface model's uncertainty [m] (seed 003
-    Fig. 11: sigma = sqrt(sigma_x^2 + sigma_y^2 + sigma_z^2) of the filter)."""
-    if not (k > 0 and surface_uncertainty_m >= 0):
-        raise InputError(f"k = {k} must be > 0 and surface_uncertainty_m = {surface_uncertainty_m} >= 0 [m]")
-    return k * np.asarray(sigma_m, float) + float(surface_uncertainty_m)
 

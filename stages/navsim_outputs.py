@@ -19,7 +19,8 @@ import numpy as np
 import xarray as xr
 
 from skyroute.stages.integrity import pl_containment
-from skyroute.stages.navsim import FILTERS, bubble_radius_m, containment, proposed_beats_weak
+from skyroute.stages.navsim import FILTERS, containment, proposed_beats_weak
+from skyroute.stages.sboa import bubble_radius_m
 
 __all__ = ["NAVSIM_COLUMNS", "navsim_section", "protection_level_section", "write_navsim"]
 

@@ -46,11 +46,18 @@ import numpy as np
 
 from skyroute.stages.base import InputError
 from skyroute.stages.navigation import DEFAULT_UERE_M, navigation_error
-from skyroute.stages.navsim import bubble_radius_m
 from skyroute.stages.vehicle import ImuSpec, VehicleProfile
 
 ISOTROPIC_PDOP = math.sqrt(1.5)
 BOUNDED_DOPS = ("PDOP", "GDOP")
+
+
+def bubble_radius_m(sigma_m, k: float, surface_uncertainty_m: float = 0.0) -> np.ndarray:
+    """Safety bubble radius r_phi = k sigma + the surface model's uncertainty [m] (seed 003
+    Fig. 11: sigma = sqrt(sigma_x^2 + sigma_y^2 + sigma_z^2) of the filter)."""
+    if not (k > 0 and surface_uncertainty_m >= 0):
+        raise InputError(f"k = {k} must be > 0 and surface_uncertainty_m = {surface_uncertainty_m} >= 0 [m]")
+    return k * np.asarray(sigma_m, float) + float(surface_uncertainty_m)
 
 
 def isotropic_los() -> np.ndarray:

@@ -72,13 +72,9 @@ from skyroute.stages.planning.fw_kernels import (
 )
 from skyroute.stages.planning.kinds import FIXED_WING_PLANNERS, check_planner_vehicle
 from skyroute.stages.planning.problem import PlanningProblem
-from skyroute.stages.planning.step3 import (
-    Candidate,
-    empty_candidate,
-    navigation_along,
-    wind_sampler,
-)
+from skyroute.stages.planning.step3 import Candidate, empty_candidate, wind_sampler
 from skyroute.stages.planning.validate import validate_plan
+from skyroute.stages.sky_visibility import navigation_along
 from skyroute.stages.vehicle import G0, FixedWingProfile, load_vehicle
 
 _MODES = {"astar-fw": MODE_DISTANCE, "eeastar": MODE_EEASTAR, "energy-optimal": MODE_OPTIMAL}

@@ -277,7 +277,7 @@ def _bubble_figure(cand: Candidate, k: float, surface_uncertainty_m: float, r_p_
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from skyroute.stages.navsim import bubble_radius_m
+    from skyroute.stages.sboa import bubble_radius_m
 
     t = np.asarray(cand.t_s, float)
     r_phi = bubble_radius_m(np.asarray(cand.sigma_p_m, float), k, surface_uncertainty_m)

@@ -560,7 +560,7 @@ class _Replay:
         sky = self.world.satellites
         if sky is None:
             return
-        from skyroute.stages.planning.step3 import line_of_sight, sky_times_s
+        from skyroute.stages.sky_visibility import line_of_sight, sky_times_s
 
         ts = sky_times_s(sky, self.start_time_utc)
         horizon = self.tl.t_end_s + 3600.0
@@ -627,7 +627,7 @@ class _Replay:
         sky = self.world.satellites
         if sky is None:
             return
-        from skyroute.stages.planning.step3 import navigation_along
+        from skyroute.stages.sky_visibility import navigation_along
 
         seg = self.tl.segments[0]
         tau = seg.traj.sample_times(STRATEGIC_SAMPLE_DT_S)

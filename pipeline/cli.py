@@ -64,7 +64,10 @@ def _exit_if_no_plan(plan: dict | None) -> None:
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """Python warnings as one clean ``warning: <text>`` line (no source line, no category)."""
+    from skyroute.pipeline.outputs import note_printed_warning
+
     text = " ".join(str(message).split())
+    note_printed_warning(text)
     print(f"warning: {text}", file=file or sys.stderr, flush=True)
 
 
@@ -93,6 +96,9 @@ def main(verbose: int) -> None:
       skyroute run rotterdam-canyon --out out/rotterdam
       skyroute cache ls                       show cached stage outputs
     """
+    from skyroute.pipeline.outputs import PRINTED_WARNINGS
+
+    PRINTED_WARNINGS.clear()                    # one command's warnings (a Python session may run several)
     _setup_logging(verbose)
 
 

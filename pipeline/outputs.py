@@ -213,15 +213,26 @@ def relative_files(out_dir: Path, paths) -> list[str]:
     return [Path(os.path.relpath(os.path.abspath(p), base)).as_posix() for p in paths]
 
 
+PRINTED_WARNINGS: list[str] = []     # every `warning: ...` line the CLI printed in this process
+
+
+def note_printed_warning(text: str) -> None:
+    """Record a warning the CLI printed on stderr, so the folder's summary.json lists it too."""
+    if text not in PRINTED_WARNINGS:
+        PRINTED_WARNINGS.append(text)
+
+
 def write_summary(out_dir: Path, command: str, files: list[str], warnings: list[str],
                   sections: dict[str, Any]) -> dict[str, Any]:
     """Write ``out_dir/summary.json``: ``schema_version``, ``command``, ``files`` (every file
-    written, paths relative to ``out_dir``, ``summary.json`` included), ``warnings`` and the
-    command's own ``sections``; return the document."""
+    written, paths relative to ``out_dir``, ``summary.json`` included), ``warnings`` (the given
+    ones, then every other warning the CLI printed on stderr in this process) and the command's
+    own ``sections``; return the document."""
     out_dir = Path(out_dir)
     rel = sorted({Path(f).as_posix() for f in files} | {"summary.json"})
+    warns = list(dict.fromkeys([*warnings, *PRINTED_WARNINGS]))
     doc = {"schema_version": SUMMARY_SCHEMA_VERSION, "command": command, "files": rel,
-           "warnings": list(warnings), **sections}
+           "warnings": warns, **sections}
     out_dir.mkdir(parents=True, exist_ok=True)
     tmp = out_dir / ".summary.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1, allow_nan=False))

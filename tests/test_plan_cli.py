@@ -107,6 +107,24 @@ def test_geojson_is_wgs84_with_stated_datum(planned):
     wp = list(csv.DictReader((planned / "out" / "waypoints.csv").open()))
     x, y = Transformer.from_crs(4326, 32635, always_xy=True).transform(lon[0], lat[0])
     assert abs(x - float(wp[0]["x_m"])) < 0.01 and abs(y - float(wp[0]["y_m"])) < 0.01
+    # the piece boundaries: one time per point, increasing, on the written trajectory's times
+    pieces = next(f for f in feats if f["geometry"]["type"] == "MultiPoint")
+    n = len(pieces["geometry"]["coordinates"])
+    assert n > 2 and len(pieces["properties"]["t_s"]) == n == len(pieces["properties"]["times_utc"])
+    tk = np.asarray(pieces["properties"]["t_s"])
+    assert np.all(np.diff(tk) > 0) and tk[-1] == pytest.approx(float(wp[-1]["t_s"]), abs=1e-6)
+
+
+def test_summary_lists_the_warnings_printed_on_stderr(planned):
+    """The almanac's unhealthy-satellite warning is printed on stderr by the CLI and listed in
+    summary.json (issue 25), once, and not carried into the next command's summary."""
+    doc = json.loads((planned / "out" / "summary.json").read_text())
+    unhealthy = [w for w in doc["warnings"] if "unhealthy satellites excluded" in w]
+    assert len(unhealthy) == 1
+    from skyroute.pipeline.outputs import PRINTED_WARNINGS
+
+    res = CliRunner().invoke(main, ["scenarios"])
+    assert res.exit_code == 0 and PRINTED_WARNINGS == []
 
 
 def test_weights_override_replans_only_the_plan(planned):

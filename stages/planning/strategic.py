@@ -519,6 +519,8 @@ def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]
                           waypoints=ds["waypoints"].values, step2_status=str(row["status"].values), **kw)
             tr = trajectory_from_dataset(ds)
             c.trajectory = tr[0] if tr is not None else None
+            if tr is not None:              # the piece durations: one time per piece boundary
+                c.segment_times_s = np.asarray(tr[0].segment_times_s, float)
         else:
             c = Candidate(str(row["label"].values), None if np.isnan(d) else d, z, np.zeros((0, 3)), z, z, z,
                           np.zeros(0, int), flyable=bool(row["flyable"]), reasons=reasons,

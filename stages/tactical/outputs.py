@@ -548,10 +548,15 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
                                                                           log.coverage_floor_m))
         if surf is not None:
             h = surf - terr if terr is not None else surf
-            lab = "height above terrain [m]" if terr is not None else f"surface height [m] ({log.vertical_datum})"
-            im = ax.imshow(h, extent=ext, cmap="Greys", interpolation="nearest", alpha=0.7, origin="upper")
-            fig.colorbar(im, ax=ax, shrink=0.6, location="bottom", pad=0.01, aspect=40).set_label(
-                "surface (buildings), " + lab)
+            if terr is not None and float(np.nanmax(h)) < 0.5:
+                # no buildings (a DEM only, e.g. the fixed-wing scenarios): the terrain itself
+                im = ax.imshow(terr, extent=ext, cmap="terrain", interpolation="nearest", alpha=0.8, origin="upper")
+                label = f"terrain height [m] ({log.vertical_datum})"
+            else:
+                lab = "height above terrain [m]" if terr is not None else f"surface height [m] ({log.vertical_datum})"
+                im = ax.imshow(h, extent=ext, cmap="Greys", interpolation="nearest", alpha=0.7, origin="upper")
+                label = "surface (buildings), " + lab
+            fig.colorbar(im, ax=ax, shrink=0.6, location="bottom", pad=0.01, aspect=40).set_label(label)
         if fl is not None:
             fin = np.isfinite(fl)
             if (~fin).any():

@@ -288,10 +288,18 @@ def remove_path(path: Path) -> None:
 
 
 def _copy_store(src: Path, dst: Path) -> None:
-    """Copy a zarr store (atomically: a partial copy never takes the final name)."""
+    """Copy a zarr store (atomically: a partial copy never takes the final name), with its
+    metadata consolidated so ``xr.open_zarr`` reads the copy without a warning."""
+    import warnings
+
+    import zarr
+
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(src, tmp)
+    with warnings.catch_warnings():       # "consolidated metadata is not part of the Zarr v3 spec" (yet)
+        warnings.simplefilter("ignore")
+        zarr.consolidate_metadata(str(tmp))
     remove_path(dst)
     os.rename(tmp, dst)
 

@@ -98,6 +98,13 @@ def test_run_default_scenario_writes_outputs(runner, tmp_path):
         assert src.read(1).max() == pytest.approx(70.0)
     assert (out / "figures" / "surface.png").stat().st_size > 10_000
     assert (out / "datasets" / "surface.zarr").resolve().is_dir()
+    import warnings
+
+    import xarray as xr
+
+    with warnings.catch_warnings():          # the exported copies open without the unconsolidated warning
+        warnings.simplefilter("error")
+        assert float(xr.open_zarr(out / "datasets" / "surface.zarr")["surface"].max()) == pytest.approx(70.0)
     res2 = runner.invoke(main, args)
     assert res2.exit_code == 0
     summary2 = json.loads((out / "summary.json").read_text())

@@ -340,9 +340,12 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     folder written by `skyroute run`, `plan`, `fly` or `navsim`: the scenario, the outcome (or
     why no plan flies), maps, the chosen path, the candidates' costs, tactical events, the
     navigation Monte Carlo, stage timings and cache hits, data attribution.  A plan, fly or
-    navsim folder without maps gets them first (RUN_DIR/figures/: surface, risk / landing /
-    wind / no-fly panel, coverage floors per D_j; its scenario's map stages, from the cache);
-    a fly folder without its interactive map gets one (fly.html)."""
+    navsim folder without maps gets them in the page (surface, risk / landing / wind / no-fly
+    panel, coverage floors per D_j, drawn from its scenario's map stages in the cache; nothing
+    is written into RUN_DIR but the report itself); a fly folder without its interactive map
+    gets one (fly.html)."""
+    import tempfile
+
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.report import (
         add_to_summary,
@@ -352,13 +355,16 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     )
 
     added = []
-    if not no_maps:
-        added += draw_missing_maps(run_dir, Cache(cache_dir))
     fly_map = write_fly_map(run_dir)
     if fly_map is not None:
         added.append(fly_map)
-    path = build_report(run_dir, out_path)
-    add_to_summary(run_dir, [path, *added])
+    with tempfile.TemporaryDirectory(prefix="skyroute-report-") as tmp:
+        drawn = [] if no_maps else draw_missing_maps(run_dir, Cache(cache_dir), into=Path(tmp))
+        path = build_report(run_dir, out_path, maps_dir=Path(tmp) if drawn else None)
+    if path.resolve().parent == Path(run_dir).resolve():
+        add_to_summary(run_dir, [path, *added])
+    elif added:
+        add_to_summary(run_dir, added)
     click.echo(str(path))
 
 

@@ -378,16 +378,19 @@ def read_summary(run_dir: Path) -> dict[str, Any]:
     return doc
 
 
-def report_html(run_dir: Path, page_dir: Path | None = None) -> str:
+def report_html(run_dir: Path, page_dir: Path | None = None, maps_dir: Path | None = None) -> str:
     """The report page of the folder ``run_dir`` (written by ``skyroute run``, ``plan``, ``fly``,
     ``navsim``, ``fleet``, ``compare``, ``maps`` or ``coverage``: the kind is ``summary.json``'s ``command``);
     ``page_dir``: where the page will be (its links to the map pages are relative to it;
-    default ``run_dir``)."""
+    default ``run_dir``); ``maps_dir``: where the scenario maps' ``figures/`` are when the folder
+    has none of its own (:func:`draw_missing_maps` into a temporary folder)."""
     run_dir = Path(run_dir)
     page_dir = run_dir if page_dir is None else Path(page_dir)
     doc = read_summary(run_dir)
     command = str(doc.get("command", ""))
     folders = _folders(run_dir, command)
+    if maps_dir is not None:
+        folders["maps"] = Path(maps_dir)
     if command == "run" and (run_dir / "fly" / "summary.json").is_file():
         fly_doc = json.loads((run_dir / "fly" / "summary.json").read_text())
     else:
@@ -425,12 +428,12 @@ def report_html(run_dir: Path, page_dir: Path | None = None) -> str:
     return PAGE.substitute(title=escape(title), body="\n".join(b for b in body if b), n_images=n_img)
 
 
-def build_report(run_dir: Path, out: Path | None = None) -> Path:
+def build_report(run_dir: Path, out: Path | None = None, maps_dir: Path | None = None) -> Path:
     """Write :func:`report_html` of ``run_dir`` to ``out`` (default ``run_dir/report.html``)
     atomically; return the path."""
     run_dir = Path(run_dir)
     out = Path(out) if out is not None else run_dir / REPORT_NAME
-    html = report_html(run_dir, out.parent)
+    html = report_html(run_dir, out.parent, maps_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp")
     tmp.write_text(html, encoding="utf-8")
@@ -479,11 +482,13 @@ def add_to_summary(run_dir: Path, paths: list[Path]) -> None:
 MAP_STAGES = ("surface", "environment", "wind", "clearance", "traffic", "coverage")
 
 
-def draw_missing_maps(run_dir: Path, cache) -> list[Path]:
+def draw_missing_maps(run_dir: Path, cache, into: Path | None = None) -> list[Path]:
     """Draw the scenario maps (``figures/surface.png``, ``figures/maps.png``,
-    ``figures/coverage_<KIND>.png``) into a ``plan``, ``fly`` or ``navsim`` folder that has no
+    ``figures/coverage_<KIND>.png``) of a ``plan``, ``fly`` or ``navsim`` folder that has no
     ``figures/*.png`` yet, from its scenario's map stages (``cache``: a
-    :class:`~skyroute.pipeline.cache.Cache`; stages missing from it are computed).  The scenario
+    :class:`~skyroute.pipeline.cache.Cache`; stages missing from it are computed), into
+    ``into/figures/`` (default: the folder itself; ``skyroute report`` draws them into a
+    temporary folder and only embeds them, so the folder is left as it was).  The scenario
     is the summary's ``scenario_path`` (else its catalog name); nothing is drawn (empty list)
     when it cannot be loaded or is no longer the folder's scenario."""
     from skyroute.pipeline.errors import SkyrouteError
@@ -508,8 +513,8 @@ def draw_missing_maps(run_dir: Path, cache) -> list[Path]:
     from skyroute.pipeline.maps import plot_maps_panel
     from skyroute.pipeline.outputs import plot_surface
 
-    fig_dir = run_dir / "figures"
-    fig_dir.mkdir(exist_ok=True)
+    fig_dir = (run_dir if into is None else Path(into)) / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
     out = [plot_surface(result, fig_dir / "surface.png")]
     if "environment" in result.datasets:
         out.append(plot_maps_panel(result, fig_dir / "maps.png"))

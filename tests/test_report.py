@@ -302,8 +302,8 @@ def test_report_out_elsewhere_links_back(runs, tmp_path):
 
 
 def test_report_of_a_plan_folder_draws_its_maps(runs):
-    """A plan folder has 3 figures of its own; `skyroute report` draws the scenario's maps into
-    it (figures/, from the cache) and lists them in summary.json."""
+    """A plan folder has 3 figures of its own; `skyroute report` draws the scenario's maps (from
+    the cache) into the page only: the folder gets report.html and nothing else (issue 25)."""
     out = runs / "plan"
     r = CliRunner()
     res = r.invoke(main, ["plan", str(runs / "small.yaml"), "--out", str(out), "--cache-dir", str(runs / "c"), "-q"])
@@ -313,8 +313,8 @@ def test_report_of_a_plan_folder_draws_its_maps(runs):
     assert res.exit_code == 0, res.output
     doc = json.loads((out / "summary.json").read_text())
     assert doc["scenario_path"] == str((runs / "small.yaml").resolve())
-    drawn = {"figures/surface.png", "figures/maps.png", "figures/coverage_PDOP.png", "report.html"}
-    assert drawn <= set(doc["files"]) and all((out / f).is_file() for f in doc["files"])
+    assert "report.html" in doc["files"] and all((out / f).is_file() for f in doc["files"])
+    assert not (out / "figures").exists() and not any("figures/" in f for f in doc["files"])
     text = (out / "report.html").read_text()
     assert text.count('<img src="data:image/png;base64,') == 7   # 3 maps + top, profile, sigma_p, bubble
     assert 'alt="bubble.png"' in text

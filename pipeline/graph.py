@@ -31,6 +31,7 @@ import logging
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
@@ -458,6 +459,15 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                     raise DatasetError(f"output of stage {st.name!r}", problems)
                 out.attrs.update({"skyroute_stage": st.name, "skyroute_key": key,
                                   "skyroute_version": SKYROUTE_VERSION})
+                not_cacheable = out.attrs.get("skyroute_not_cacheable")
+                if not_cacheable:     # e.g. a planner stopped by its wall-clock safety net: load-dependent
+                    log.warning("stage=%s key=%s not cached: %s", st.name, key, not_cacheable)
+                    warnings.warn(f"stage {st.name}: not cached: {not_cacheable} (the result depends on the "
+                                  "machine's load; a later run computes it again)", RuntimeWarning, stacklevel=2)
+                    result.datasets[st.name] = out
+                    result.records.append(StageRecord(st.name, key, False, time.perf_counter() - t0, ""))
+                    _run_prechecks(prechecks, todo, scenario, result.datasets)
+                    continue
                 entry = cache.write(st.name, key, out, {
                     "scenario": scenario.name, "code_version": code_version,
                     "inputs": {d: keys.get(d, "absent") for d in (*st.inputs, *st.optional_inputs)},

@@ -7,7 +7,15 @@ One process-wide flag.  :func:`request_cancel` sets it (the signal handlers of
 raises :class:`Interrupted` (a ``KeyboardInterrupt``) once it is set.  Compiled kernels cannot
 see a Python event, so they poll a small numpy array instead: :class:`StopFlag` hands one out
 (registered here, so a cancel request sets it too) and can also set it when a wall-clock
-deadline passes (the planners' time caps).
+deadline passes (the planners' safety caps).
+
+The work clock
+--------------
+:func:`work_clock` is ``time.perf_counter()`` less every second this process spent compiling
+numba kernels (a ``numba:compile`` event listener, installed on first use): a deadline on it
+never counts JIT compilation, so a cold process gets the same budget as a warm one.  The
+planners stop on counted work; their wall-clock caps (and :class:`StopFlag`'s deadline) are a
+safety net read on this clock.
 
 Signals reach Python code only when the main thread runs bytecode; while it waits inside a
 compiled call that releases the GIL, :func:`signal_handlers` still sees the signal at once: the
@@ -28,16 +36,18 @@ one line on stderr when it is.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator
 
 import numpy as np
 
 __all__ = ["Interrupted", "StopFlag", "cancelled", "check", "exit_code", "mark_reported", "note", "progress",
-           "progress_enabled", "request_cancel", "reset", "signal_handlers", "signal_received"]
+           "progress_enabled", "request_cancel", "reset", "signal_handlers", "signal_received", "work_clock"]
 
 RUNNING, CANCELLED, DEADLINE = 0, 1, 2   # states of a StopFlag array (element 0)
 
@@ -92,17 +102,83 @@ def reset() -> None:
     _signum = None
 
 
+# --------------------------------------------------------------------------- the work clock
+_compile_s = [0.0]                   # seconds of finished compilations (all threads)
+_compiling: dict[int, float] = {}    # thread id -> perf_counter() at the start of its outermost compile
+_compile_depth: dict[int, int] = {}
+_listener_installed = [False]
+
+
+def _install_compile_listener() -> None:
+    with _lock:
+        if _listener_installed[0]:
+            return
+        _listener_installed[0] = True
+    from numba.core import event
+
+    class _CompileTimer(event.Listener):
+        """Sums the wall time of the outermost ``numba:compile`` events of each thread."""
+
+        def on_start(self, ev) -> None:
+            tid = threading.get_ident()
+            with _lock:
+                d = _compile_depth.get(tid, 0)
+                if d == 0:
+                    _compiling[tid] = time.perf_counter()
+                _compile_depth[tid] = d + 1
+
+        def on_end(self, ev) -> None:
+            tid = threading.get_ident()
+            with _lock:
+                d = _compile_depth.get(tid, 1) - 1
+                _compile_depth[tid] = d
+                if d == 0:
+                    _compile_s[0] += time.perf_counter() - _compiling.pop(tid, time.perf_counter())
+
+    event.register("numba:compile", _CompileTimer())
+
+
+def compile_seconds() -> float:
+    """Seconds [s] this process has spent compiling numba kernels since the work clock was first
+    read (compilations still running included)."""
+    _install_compile_listener()
+    now = time.perf_counter()
+    with _lock:
+        return _compile_s[0] + sum(now - t for t in _compiling.values())
+
+
+def work_clock() -> float:
+    """``time.perf_counter()`` [s] less the time spent compiling numba kernels: the clock of every
+    planner deadline (JIT compilation never counts against a budget)."""
+    _install_compile_listener()
+    return time.perf_counter() - compile_seconds()
+
+
 class StopFlag:
     """A one-element int8 array for compiled kernels to poll: 0 running, 1 cancelled (a cancel
-    request), 2 the wall-clock ``deadline_s`` [s from creation] passed.  Use as a context
-    manager (registers it and starts / stops the deadline timer)."""
+    request), 2 the ``deadline_s`` [s from creation, on the :func:`work_clock`: compilation
+    does not count] passed.  Use as a context manager (registers it and starts / stops the
+    deadline timer)."""
 
     def __init__(self, deadline_s: float | None = None):
         self.array = np.zeros(1, dtype=np.int8)
         self.deadline_s = deadline_s
         self._timer: threading.Timer | None = None
+        self._end = math.inf
+        self._closed = False
+
+    def _arm(self, delay_s: float) -> None:
+        if self._closed:
+            return
+        self._timer = threading.Timer(delay_s, self._expire)
+        self._timer.daemon = True
+        self._timer.start()
 
     def _expire(self) -> None:
+        left = self._end - work_clock()
+        if left > 1e-3:            # a compilation ran meanwhile: the deadline moved on
+            self._arm(left)
+            return
         if self.array[0] == RUNNING:
             self.array[0] = DEADLINE
 
@@ -113,14 +189,14 @@ class StopFlag:
             self.array[0] = CANCELLED
         if self.deadline_s is not None and np.isfinite(self.deadline_s):
             if self.deadline_s <= 0:
-                self._expire()
+                self.array[0] = DEADLINE if self.array[0] == RUNNING else self.array[0]
             else:
-                self._timer = threading.Timer(self.deadline_s, self._expire)
-                self._timer.daemon = True
-                self._timer.start()
+                self._end = work_clock() + self.deadline_s
+                self._arm(self.deadline_s)
         return self
 
     def __exit__(self, *exc) -> None:
+        self._closed = True
         if self._timer is not None:
             self._timer.cancel()
         with _lock:

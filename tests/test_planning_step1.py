@@ -439,3 +439,101 @@ def test_bound_memo_computes_once_and_stays_bounded():
         t.join()
     assert all(v == float(i % 10) ** 2 for i, v in results.items())
     assert len(memo) <= memo.limit + 1                                  # cleared when full
+
+
+# ------------------------------------------------------------------ reproducible budgets (issue 23)
+
+
+def _burn_cpus(n: int):
+    """``n`` processes that burn a CPU each until killed."""
+    import subprocess
+    import sys
+
+    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
+
+
+@pytest.mark.parametrize("planner,budget", [("astar", 5.0), ("bitstar", 0.25), ("potential", 5.0)])
+def test_same_plan_bit_for_bit_on_an_idle_and_a_cpu_loaded_machine(planner, budget):
+    """Every planner stops on counted work: planned once alone and once beside CPU-burning
+    processes (one per core and one more), the plan is the same to the last bit, and neither
+    run reached the wall-clock safety net."""
+    import os
+
+    pr = make_problem(wind=(3.0, -1.0, 0.0))
+    idle = plan_step1(pr, planner, budget, seed=3)
+    burners = _burn_cpus((os.cpu_count() or 2) + 1)
+    try:
+        loaded = plan_step1(pr, planner, budget, seed=3)
+    finally:
+        for p in burners:
+            p.kill()
+            p.wait()
+    assert idle.solved and loaded.solved
+    assert idle.info.get("stopped_by") != "time" and loaded.info.get("stopped_by") != "time"
+    np.testing.assert_array_equal(idle.waypoints, loaded.waypoints)
+    assert idle.f == loaded.f
+
+
+def test_work_clock_and_stop_flag_do_not_count_jit_compilation():
+    """A deadline on the work clock excludes numba compilation: a StopFlag of 0.05 s around the
+    first call of a new kernel (compiling it takes far longer) is not expired after it, and does
+    expire once 0.05 s of work have passed."""
+    import time
+
+    import numba
+
+    from skyroute.stages import control
+
+    @numba.njit(cache=False)
+    def _fresh_kernel(a):      # a new function: compiled on its first call (~0.1-1 s)
+        s = 0.0
+        for i in range(a.size):
+            s += math.sqrt(abs(a[i])) * math.sin(a[i])
+        return s
+
+    w0, c0 = time.perf_counter(), control.compile_seconds()
+    with control.StopFlag(0.05) as stop:
+        _fresh_kernel(np.arange(10.0))
+        compiled_s = control.compile_seconds() - c0
+        assert compiled_s > 0.05 and not stop.expired, (compiled_s, time.perf_counter() - w0)
+        time.sleep(0.3)
+        assert stop.expired
+    assert control.work_clock() - control.work_clock() <= 0.0
+
+
+def test_a_plan_that_hit_its_wall_clock_safety_net_is_never_cached(monkeypatch):
+    """A level stopped by the wall-clock safety net is flagged in the plan, said in its warnings,
+    and the plan dataset carries ``skyroute_not_cacheable``: the pipeline keeps it in memory
+    only (a later run computes it again)."""
+    import skyroute.stages.planning.step1 as step1_mod
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.graph import REGISTRY, Stage, register, run_pipeline
+    from skyroute.pipeline.model import FrozenModel
+    from skyroute.pipeline.settings import load_scenario
+    from skyroute.stages.planning.strategic import plan_to_dataset
+
+    g, _ = _surface()
+    ds, clearance, coverage = _plan_inputs([np.full(g.shape, 5.0)], [3.0])
+    monkeypatch.setattr(step1_mod, "LEVEL_CAP_FACTOR", 0.0)    # every level's cap is 0 s: always hit
+    plan = _strategic(ds, clearance, coverage)
+    assert plan.wallclock_capped and any("wall-clock cap" in w for w in plan.warnings)
+    out = plan_to_dataset(plan, "EPSG:32635", "EGM96", "2020-01-03T10:00:00Z")
+    assert "wall-clock safety cap" in out.attrs["skyroute_not_cacheable"]
+
+    class _S(FrozenModel):
+        n: int = 1
+
+    register(Stage("capped_plan", lambda *, settings: out, lambda sc: _S(), inputs=()))
+    try:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as d:
+            cache = Cache(d)
+            sc = load_scenario("helsinki-medical")
+            with pytest.warns(RuntimeWarning, match="not cached"):
+                r = run_pipeline(sc, cache=cache, targets=["capped_plan"])
+            assert [(x.name, x.cache_hit, x.path) for x in r.records] == [("capped_plan", False, "")]
+            assert cache.entries() == []
+            assert r["capped_plan"].attrs["skyroute_not_cacheable"]
+    finally:
+        REGISTRY.pop("capped_plan", None)

@@ -157,10 +157,10 @@ class _BitStarSetup:
         t0 = time.perf_counter()
         planner = self.planner
         n = int(max_iterations) if max_iterations is not None else None
-        deadline = t0 + float(time_budget_s)
+        deadline = control.work_clock() + float(time_budget_s)   # safety net; JIT excluded
 
         def stop() -> bool:   # iteration count, wall-clock cap, cancel request
-            return ((n is not None and planner.numIterations() >= n) or time.perf_counter() > deadline
+            return ((n is not None and planner.numIterations() >= n) or control.work_clock() > deadline
                     or control.cancelled())
 
         self._ptc = ob.PlannerTerminationCondition(stop)

@@ -111,11 +111,11 @@ def plan_bitstar_dubins(problem: PlanningProblem, time_budget_s: float = 10.0, s
     planner.setProblemDefinition(pdef)
     planner.setup()
     t0 = time.perf_counter()
-    deadline = t0 + float(time_budget_s)
+    deadline = control.work_clock() + float(time_budget_s)   # safety net; JIT excluded
     n = None if max_iterations is None else int(max_iterations)
 
     def stop() -> bool:
-        return ((n is not None and planner.numIterations() >= n) or time.perf_counter() > deadline
+        return ((n is not None and planner.numIterations() >= n) or control.work_clock() > deadline
                 or control.cancelled())
 
     ptc = ob.PlannerTerminationCondition(stop)

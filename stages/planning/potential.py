@@ -605,6 +605,7 @@ def plan_potential(problem: PlanningProblem, voxel_m: float | None = None, dz_m:
     ``voxel_path`` (flat indices of the gradient motion), ``valid`` (every chain segment a
     valid motion), ``compute_s``, ``stopped_by`` ("" or "time")."""
     t0 = time.perf_counter()
+    w0 = control.work_clock()        # the safety cap's clock (JIT compilation excluded)
     if vertical_weight is None:
         vertical_weight = 1.0 / math.tan(math.radians(problem.vehicle.max_flight_path_angle_deg))
     res = {"waypoints": None, "reason": "", "field": None, "voxel_path": None, "valid": False, "stopped_by": ""}
@@ -624,7 +625,7 @@ def plan_potential(problem: PlanningProblem, voxel_m: float | None = None, dz_m:
         return res
     try:
         pf = potential_field(vm, gl, [s], off_skeleton_weight=off_skeleton_weight, vertical_weight=vertical_weight,
-                             time_limit_s=time_limit_s - (time.perf_counter() - t0), until=s)
+                             time_limit_s=time_limit_s - (control.work_clock() - w0), until=s)
     except TimeoutError as exc:
         res["reason"], res["stopped_by"] = f"{problem.label}: {exc}", "time"
         res["compute_s"] = time.perf_counter() - t0

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from skyroute.stages import control
 from skyroute.stages.base import InputError, UnknownNameError
 from skyroute.stages.planning.grid_planner import STEP_CELLS, EdgeCache, plan_grid, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
@@ -38,19 +39,21 @@ from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 PLANNERS = ("bitstar", "astar", "potential", "eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
 # the last three are the fixed-wing planners (seed 002), solved by
 # skyroute.stages.planning.fixedwing (plan_strategic dispatches them; plan_step1 refuses them)
-# BIT* is stopped by an iteration count (reproducible run to run: same scenario + seed, same
-# plan); the count stands for the time budget at this rate, measured on the Helsinki default
-# scenario (2 m grid, real wind): 48-60 k iterations in 5 s on an idle core, 4.6 k/s on a
-# loaded one.  The wall clock still caps a run at BITSTAR_TIME_CAP_FACTOR x the budget (a run
-# stopped by that cap is reported in info["tries"][i]["stopped_by"] == "time").
+# Every planner stops on counted work, so the same scenario and seed give the same plan on an
+# idle or a loaded machine: A* on its expansions (``max_expansions``) and the refinement on its
+# segment evaluations (RELAX_MAX_SEGMENTS), BIT* on an iteration count, the potential field when
+# its wave reaches the start, STEP II on its RRT iterations.  BIT*'s count stands for the time
+# budget at BITSTAR_ITERATIONS_PER_S, measured on the Helsinki default scenario (2 m grid, real
+# wind): 48-60 k iterations in 5 s on an idle core, 4.6 k/s on a loaded one.
 BITSTAR_ITERATIONS_PER_S = 8000.0
-BITSTAR_TIME_CAP_FACTOR = 4.0
-# Every planner's level (all energy tries and the refinement) is bounded by a wall-clock cap of
-# LEVEL_CAP_FACTOR x the budget: A* stops there with no path ("budget exhausted") or with the
-# path refined so far; BIT* with its best solution.  Normal runs end well inside the cap (the
-# benchmark prints the level times against it), so the cap is a safety net that a result
-# reports when it was hit (info["stopped_by"] == "time").
-LEVEL_CAP_FACTOR = BITSTAR_TIME_CAP_FACTOR
+# The wall clock is only a safety net: every level (all energy tries and the refinement) stops at
+# WALLCLOCK_CAP_FACTOR x the budget on the work clock (:func:`skyroute.stages.control.work_clock`:
+# numba compilation never counts).  Normal runs end far inside it (a loaded 2-core machine runs
+# BIT* at about half the reference rate); a result that hit it says so (info["stopped_by"] ==
+# "time", a plan warning) and the plan stage never caches it (its result depends on the load).
+WALLCLOCK_CAP_FACTOR = 10.0
+BITSTAR_TIME_CAP_FACTOR = WALLCLOCK_CAP_FACTOR
+LEVEL_CAP_FACTOR = WALLCLOCK_CAP_FACTOR
 
 
 @dataclass
@@ -103,7 +106,7 @@ def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, se
                 deadline: float = math.inf, z_anchor_m: float | None = None,
                 edge_cache: EdgeCache | None = None) -> tuple[np.ndarray | None, dict]:
     """One plan; ``deadline``: ``time.perf_counter()`` value at which the level's cap ends."""
-    left = deadline - time.perf_counter()
+    left = deadline - control.work_clock()
     if planner == "potential":          # seed 004 III-B: numerical potential field (deterministic)
         from skyroute.stages.planning.potential import plan_potential
 
@@ -130,9 +133,8 @@ def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, se
     wp = r["waypoints"]
     info = {k: v for k, v in r.items() if k != "waypoints"}
     if wp is not None and refine:
-        t = time.perf_counter()
-        wp = refine_path(problem, wp, time_limit_s=deadline - t)
-        if time.perf_counter() > deadline:
+        wp = refine_path(problem, wp, time_limit_s=deadline - control.work_clock())
+        if control.work_clock() > deadline:
             info["refine_stopped_by"] = "time"
     return wp, info
 
@@ -182,7 +184,7 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
         raise InputError(f"max_tries {max_tries} must be >= 1 (N_t)")
     t0 = time.perf_counter()
     cap_s = LEVEL_CAP_FACTOR * float(time_budget_s)
-    deadline = t0 + cap_s
+    deadline = control.work_clock() + cap_s          # the safety net (JIT compilation excluded)
     why = problem.endpoint_problem()
     if why:
         return _empty(problem, planner, "no_solution", why, t0)
@@ -193,7 +195,7 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
     best = None
     info: dict = {"tries": []}
     for attempt in range(int(max_tries)):
-        if attempt > 0 and time.perf_counter() >= deadline:
+        if attempt > 0 and control.work_clock() >= deadline:
             info["stopped_by"] = "time"
             break
         prob = problem if attempt == 0 else problem.with_weights(w)
@@ -235,5 +237,5 @@ def step1_all_levels(problems: list[PlanningProblem], planner: str = "astar", ti
     return [plan_step1(p, planner, time_budget_s, seed, max_tries, **kwargs) for p in problems]
 
 
-__all__ = ["BITSTAR_ITERATIONS_PER_S", "LEVEL_CAP_FACTOR", "PLANNERS", "Step1Result", "bitstar_iterations", "plan_step1",
+__all__ = ["BITSTAR_ITERATIONS_PER_S", "LEVEL_CAP_FACTOR", "WALLCLOCK_CAP_FACTOR", "PLANNERS", "Step1Result", "bitstar_iterations", "plan_step1",
            "step1_all_levels"]

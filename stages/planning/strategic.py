@@ -71,6 +71,15 @@ class StrategicPlan:
     def reason(self) -> str:
         return "" if self.chosen is not None else explain_no_plan(self.candidates)
 
+    @property
+    def wallclock_capped(self) -> list[str]:
+        """The labels of the levels whose STEP I or STEP II stopped at its wall-clock safety cap:
+        their result depends on the machine's load, so the plan must not be cached."""
+        out = [s1.label for s1 in self.step1 if s1.info.get("stopped_by") == "time"]
+        out += [s1.label for s1, s2 in zip(self.step1, self.step2, strict=False)
+                if s2 is not None and "wall-clock cap" in s2.reason]
+        return list(dict.fromkeys(out))
+
 
 def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Dataset | None,
                    clearance: xr.Dataset, coverage: xr.Dataset | None, satellites: xr.Dataset | None,
@@ -446,6 +455,9 @@ def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_ut
                      "start_time_utc": pd.Timestamp(start_time_utc).isoformat(), "compute_s": plan.compute_s,
                      "reason": plan.reason, "title": "skyroute strategic plan",
                      "warnings": json.dumps(list(plan.warnings))})
+    if plan.wallclock_capped:      # a load-dependent result: the pipeline never caches it
+        ds.attrs["skyroute_not_cacheable"] = ("the planner stopped at its wall-clock safety cap on "
+                                              + ", ".join(plan.wallclock_capped))
     if plan.chosen is not None:
         c = plan.chosen
         ds = ds.assign_coords(sample=np.arange(c.t_s.size))

@@ -128,7 +128,7 @@ class Cache:
         final = self.path_for(stage, key)
         tmp = self.tmp_dir / f"{stage}-{key}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
         try:
-            ds = _prepare_for_zarr(ds)
+            ds = prepare_for_zarr(ds)
             tmp.mkdir(parents=True)
             delayed = ds.to_zarr(tmp / "data.zarr", mode="w", compute=False, consolidated=False)
             if compute is None:
@@ -262,7 +262,7 @@ def _fsync_dir(path: Path) -> None:
         pass
 
 
-def _prepare_for_zarr(ds: xr.Dataset) -> xr.Dataset:
+def prepare_for_zarr(ds: xr.Dataset) -> xr.Dataset:
     """Drop encodings inherited from other stores and make string arrays zarr-friendly."""
     ds = ds.copy()
     for name in list(ds.variables):

@@ -49,8 +49,9 @@ class SkyrouteGroup(click.Group):
 
 
 def _report_warnings(warnings: list[str]) -> None:
-    for w in warnings:
-        click.echo(f"warning: {w}", err=True)
+    from skyroute.pipeline.outputs import report_warnings
+
+    report_warnings(warnings)
 
 
 def _exit_if_no_plan(plan: dict | None) -> None:
@@ -182,8 +183,8 @@ def _run_fly(sc, result, out_dir: Path, scheduler: str, quiet: bool) -> dict | N
     """``skyroute run`` of a scenario with events: the flight replay into ``DIR/fly/`` (its
     own summary.json); returns the files and the section for the run's summary.  Not done
     when the strategic plan is not flyable (the run then exits 3 for that)."""
-    from skyroute.pipeline.cli_fly import write_fly_folder
     from skyroute.pipeline.fly import fly_scenario
+    from skyroute.pipeline.fly_outputs import write_fly_folder
 
     if int(result["plan"].attrs.get("chosen_level", -1)) < 0:
         return None
@@ -192,30 +193,6 @@ def _run_fly(sc, result, out_dir: Path, scheduler: str, quiet: bool) -> dict | N
     section = write_fly_folder(fr, fly_dir)
     doc = json.loads((fly_dir / "summary.json").read_text())
     return {"files": [f"fly/{f}" for f in doc["files"]], "section": section}
-
-
-def write_folder_summary(out_dir: Path, command: str, result, files, sections: dict) -> dict:
-    """summary.json of a folder-writing command (files relative to ``out_dir``, stage warnings
-    printed on stderr), removing the files an earlier summary listed that were not rewritten."""
-    from skyroute.pipeline.outputs import (
-        previous_summary,
-        relative_files,
-        remove_stale,
-        stage_warnings,
-        write_summary,
-    )
-
-    rel = relative_files(out_dir, files)
-    remove_stale(Path(out_dir), previous_summary(Path(out_dir)), rel, command)
-    warnings = stage_warnings(result) + [n for n in (sections.get("exports") or {}).get("notes", [])]
-    _report_warnings(warnings)
-    sc = result.scenario
-    return write_summary(out_dir, command, rel, warnings, {
-        "scenario": sc.name,
-        "scenario_path": None if sc.source_path is None else str(Path(sc.source_path).resolve()),
-        "stages": [{"name": r.name, "key": r.key, "cache_hit": r.cache_hit, "seconds": round(r.seconds, 4)}
-                   for r in result.records],
-        "seconds": result.seconds, **sections})
 
 
 @main.command("maps")
@@ -246,7 +223,7 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
                           progress=not quiet and sys.stderr.isatty())
     files = write_map_geotiffs(result, out_dir)
     files.append(plot_maps_panel(result, out_dir / "maps.png"))
-    write_folder_summary(out_dir, "maps", result, files, {"maps": {"stages": targets}})
+    _folder_summary(out_dir, "maps", result, files, {"maps": {"stages": targets}})
     for f in files:
         click.echo(str(f))
 
@@ -319,7 +296,7 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
     from skyroute.pipeline.plan_exports import exports_section
 
     exports = exports_section(result, relative_files(out_dir, list(files.values())), out_dir)
-    write_folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan, "exports": exports})
+    _folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan, "exports": exports})
     for f in files.values():
         click.echo(str(f))
     if plan["status"] == "flyable":
@@ -394,7 +371,7 @@ def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) ->
                           progress=not quiet and sys.stderr.isatty())
     cov = result["coverage"].load()
     files = write_coverage_outputs(cov, out_dir)
-    write_folder_summary(out_dir, "coverage", result, files, {"coverage": {
+    _folder_summary(out_dir, "coverage", result, files, {"coverage": {
         "dop_kind": str(cov.attrs.get("dop_kind", "")),
         "thresholds": [float(t) for t in cov["coverage_floor"]["threshold"].values]}})
     for f in files:
@@ -495,3 +472,9 @@ _register_plugins()
 
 if __name__ == "__main__":  # pragma: no cover
     main()
+
+
+def _folder_summary(*args, **kwargs) -> dict:
+    from skyroute.pipeline.outputs import write_folder_summary
+
+    return write_folder_summary(*args, **kwargs)

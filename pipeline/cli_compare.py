@@ -27,9 +27,8 @@ def compare_command(scenario, planners, out_dir, cache_dir, scheduler, quiet) ->
     compute time, flyable, or why not) and compare.png (every path, top view and profiles).
     Planners that do not apply to the scenario are listed with the reason."""
     from skyroute.pipeline.cache import Cache
-    from skyroute.pipeline.cli import write_folder_summary
     from skyroute.pipeline.compare import compare_planners, json_safe, write_compare
-    from skyroute.pipeline.outputs import ensure_writable_dir
+    from skyroute.pipeline.outputs import ensure_writable_dir, write_folder_summary
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, PLANNERS, load_scenario
     from skyroute.stages.planning.kinds import planners_for
 

@@ -45,7 +45,6 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
     --max-delay-min) or rejected, and may preempt lower-priority missions (re-planned). Writes
     fleet.csv, intents/<mission>.json, fleet.geojson, tracks.csv, fleet.png and summary.json."""
     from skyroute.pipeline.cache import Cache
-    from skyroute.pipeline.cli import write_folder_summary
     from skyroute.pipeline.errors import InputError
     from skyroute.pipeline.fleet import (
         FleetFileError,
@@ -58,7 +57,7 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
         write_fleet,
     )
     from skyroute.pipeline.graph import scheduler_context
-    from skyroute.pipeline.outputs import ensure_writable_dir
+    from skyroute.pipeline.outputs import ensure_writable_dir, write_folder_summary
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, GroundReference, load_scenario
 
     if (fleet_file is None) == (missions is None):

@@ -33,9 +33,8 @@ def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, schedul
     the digital morphing map: the coverage floor per epoch over the flight (morphing.zarr) and
     a GIF of it under the moving vehicle."""
     from skyroute.pipeline.cache import Cache
-    from skyroute.pipeline.cli import write_folder_summary
     from skyroute.pipeline.navsim import navsim_scenario, write_morphing
-    from skyroute.pipeline.outputs import ensure_writable_dir
+    from skyroute.pipeline.outputs import ensure_writable_dir, write_folder_summary
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
     from skyroute.stages.navsim_outputs import navsim_section, write_navsim
 

@@ -304,6 +304,24 @@ def _copy_store(src: Path, dst: Path) -> None:
     os.rename(tmp, dst)
 
 
+def _write_store(ds, dst: Path) -> None:
+    """Write an in-memory dataset as a consolidated zarr store (atomically, as :func:`_copy_store`)."""
+    import warnings
+
+    import zarr
+
+    from skyroute.pipeline.cache import prepare_for_zarr
+
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    prepare_for_zarr(ds).to_zarr(tmp, mode="w", consolidated=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        zarr.consolidate_metadata(str(tmp))
+    remove_path(dst)
+    os.rename(tmp, dst)
+
+
 def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", link: bool = False,
                       extra: dict[str, Any] | None = None, also_files: tuple[str, ...] = ()) -> dict[str, Any]:
     """Write copies of the cached zarr datasets (symlinks into the cache with ``link``), GeoTIFFs,
@@ -326,17 +344,26 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
     output_keys: dict[str, str] = {}
     files: list[str] = []
 
+    uncached = {r.name for r in result.records if not r.path}   # load-dependent results kept in memory only
+
     def produce(rel: str, stage: str | tuple[str, ...], make) -> None:
-        key = keys[stage] if isinstance(stage, str) else "+".join(keys[s] for s in stage)
+        stages = (stage,) if isinstance(stage, str) else tuple(stage)
+        key = "+".join(keys[s] for s in stages)
+        reusable = not uncached.intersection(stages)
         path = out_dir / rel
-        if not (prev_keys.get(rel) == key and path.is_file()):
+        if not (reusable and prev_keys.get(rel) == key and path.is_file()):
             make(path)
-        output_keys[rel] = key
+        output_keys[rel] = key if reusable else ""
         files.append(rel)
 
     for rec in result.records:
         rel = f"datasets/{rec.name}.zarr"
         dst = out_dir / rel
+        if not rec.path:                   # not cached: written from memory, never reused by key
+            _write_store(result[rec.name], dst)
+            output_keys[rel] = ""
+            files.append(rel)
+            continue
         src = Path(rec.path) / "data.zarr"
         if link:
             remove_path(dst)
@@ -403,3 +430,27 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
     }
     export_notes = list((sections.get("exports") or {}).get("notes", []))   # a pilot file not written
     return write_summary(out_dir, command, files, stage_warnings(result) + export_notes, sections)
+
+
+def report_warnings(warnings: list[str]) -> None:
+    """Each warning as one ``warning: <text>`` line on stderr."""
+    import click
+
+    for w in warnings:
+        click.echo(f"warning: {w}", err=True)
+
+
+def write_folder_summary(out_dir: Path, command: str, result, files, sections: dict) -> dict:
+    """summary.json of a folder-writing command (files relative to ``out_dir``, stage warnings
+    printed on stderr), removing the files an earlier summary listed that were not rewritten."""
+    rel = relative_files(out_dir, files)
+    remove_stale(Path(out_dir), previous_summary(Path(out_dir)), rel, command)
+    warnings = stage_warnings(result) + [n for n in (sections.get("exports") or {}).get("notes", [])]
+    report_warnings(warnings)
+    sc = result.scenario
+    return write_summary(out_dir, command, rel, warnings, {
+        "scenario": sc.name,
+        "scenario_path": None if sc.source_path is None else str(Path(sc.source_path).resolve()),
+        "stages": [{"name": r.name, "key": r.key, "cache_hit": r.cache_hit, "seconds": round(r.seconds, 4)}
+                   for r in result.records],
+        "seconds": result.seconds, **sections})

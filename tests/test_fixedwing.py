@@ -377,7 +377,7 @@ def test_bitstar_dubins_is_a_flyable_curve():
 def test_bitstar_dubins_written_plan_is_flyable():
     """`--planner bitstar-dubins`: the curve is written as it is (no fillets) with the loiter,
     validated like the lattice plans; f is its length (the shortest-curve objective)."""
-    from skyroute.stages.planning.fixedwing import dubins_result
+    from skyroute.stages.planning.bitstar_dubins import dubins_result
 
     check_planner_vehicle("bitstar-dubins", "skywalker-x8", PLANNERS)
     with pytest.raises(InputError, match="fixed-wing"):

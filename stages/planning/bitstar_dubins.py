@@ -30,9 +30,10 @@ from ompl import util as ou
 from skyroute.stages import control
 from skyroute.stages.base import InputError
 from skyroute.stages.planning.bitstar import StateValidity
+from skyroute.stages.planning.fixedwing import FwPlanResult, _vehicle, path_energy, turn_radius_m
 from skyroute.stages.planning.problem import PlanningProblem
 
-__all__ = ["plan_bitstar_dubins"]
+__all__ = ["DUBINS_ITERATIONS_PER_S", "dubins_result", "plan_bitstar_dubins"]
 
 
 class _Length(ob.OptimizationObjective):
@@ -69,8 +70,6 @@ def plan_bitstar_dubins(problem: PlanningProblem, time_budget_s: float = 10.0, s
     (m, 3) [m] the curve sampled every ``spacing_m`` (default: half a cell, at most R / 10) or None,
     ``length_m`` (3-D, of the samples), ``energy_J`` (seed 002), ``turn_radius_m``,
     ``max_pitch_deg``, ``compute_s``, ``iterations``."""
-    from skyroute.stages.planning.fixedwing import _vehicle, path_energy, turn_radius_m
-
     if not time_budget_s > 0:
         raise InputError(f"time budget {time_budget_s} s must be > 0")
     veh = _vehicle(problem)
@@ -135,3 +134,31 @@ def plan_bitstar_dubins(problem: PlanningProblem, time_budget_s: float = 10.0, s
     out.update(xyz_m=xyz, length_m=float(np.linalg.norm(np.diff(xyz, axis=0), axis=1).sum()),
                energy_J=path_energy(problem, xyz)["energy_J"])
     return out
+
+
+DUBINS_ITERATIONS_PER_S = 100.0   # bitstar-dubins: BIT* iterations per second of planner.time_budget_s
+
+
+def dubins_result(problem: PlanningProblem, time_budget_s: float, seed: int = 0,
+                  time_limit_s: float | None = None) -> FwPlanResult:
+    """``bitstar-dubins`` as a :class:`FwPlanResult`: BIT* on the Dubins-airplane space
+    (:func:`plan_bitstar_dubins`) for
+    ``ceil(DUBINS_ITERATIONS_PER_S x time_budget_s)`` iterations (``time_limit_s`` [s]: the
+    wall-clock cap); ``waypoints`` is the sampled curve (``info["continuous"]``: the written
+    plan takes it as it is, no fillets), ``energy_J`` its seed-002 energy."""
+    t0 = time.perf_counter()
+    why = problem.endpoint_problem()
+    if why:
+        return FwPlanResult(None, math.nan, math.nan, math.nan, 0, 0.0, "no_solution", why, "bitstar-dubins")
+    n = max(1, math.ceil(DUBINS_ITERATIONS_PER_S * float(time_budget_s)))
+    cap = float(time_limit_s) if time_limit_s else 4.0 * float(time_budget_s) + 10.0
+    r = plan_bitstar_dubins(problem, cap, seed=seed, max_iterations=n)
+    info = {"turn_radius_m": r["turn_radius_m"], "max_pitch_deg": r["max_pitch_deg"], "iterations": r["iterations"],
+            "continuous": True, "stopped_by": "time" if (not r["solved"] and r["iterations"] < n) else "completed"}
+    if not r["solved"]:
+        return FwPlanResult(None, math.nan, math.nan, math.nan, r["iterations"], time.perf_counter() - t0,
+                            "no_solution", f"{problem.label}: bitstar-dubins found no curve in {r['iterations']} "
+                            "iterations", "bitstar-dubins", info)
+    pe = path_energy(problem, r["xyz_m"])
+    return FwPlanResult(r["xyz_m"], pe["energy_J"], pe["length_m"], pe["time_s"], r["iterations"],
+                        time.perf_counter() - t0, "solved", "", "bitstar-dubins", {**info, **pe})

@@ -460,36 +460,6 @@ def fixedwing_candidate(problem: PlanningProblem, result: FwPlanResult, *, label
     return cand
 
 
-DUBINS_ITERATIONS_PER_S = 100.0   # bitstar-dubins: BIT* iterations per second of planner.time_budget_s
-
-
-def dubins_result(problem: PlanningProblem, time_budget_s: float, seed: int = 0,
-                  time_limit_s: float | None = None) -> FwPlanResult:
-    """``bitstar-dubins`` as a :class:`FwPlanResult`: BIT* on the Dubins-airplane space
-    (:func:`~skyroute.stages.planning.bitstar_dubins.plan_bitstar_dubins`) for
-    ``ceil(DUBINS_ITERATIONS_PER_S x time_budget_s)`` iterations (``time_limit_s`` [s]: the
-    wall-clock cap); ``waypoints`` is the sampled curve (``info["continuous"]``: the written
-    plan takes it as it is, no fillets), ``energy_J`` its seed-002 energy."""
-    from skyroute.stages.planning.bitstar_dubins import plan_bitstar_dubins
-
-    t0 = time.perf_counter()
-    why = problem.endpoint_problem()
-    if why:
-        return FwPlanResult(None, math.nan, math.nan, math.nan, 0, 0.0, "no_solution", why, "bitstar-dubins")
-    n = max(1, math.ceil(DUBINS_ITERATIONS_PER_S * float(time_budget_s)))
-    cap = float(time_limit_s) if time_limit_s else 4.0 * float(time_budget_s) + 10.0
-    r = plan_bitstar_dubins(problem, cap, seed=seed, max_iterations=n)
-    info = {"turn_radius_m": r["turn_radius_m"], "max_pitch_deg": r["max_pitch_deg"], "iterations": r["iterations"],
-            "continuous": True, "stopped_by": "time" if (not r["solved"] and r["iterations"] < n) else "completed"}
-    if not r["solved"]:
-        return FwPlanResult(None, math.nan, math.nan, math.nan, r["iterations"], time.perf_counter() - t0,
-                            "no_solution", f"{problem.label}: bitstar-dubins found no curve in {r['iterations']} "
-                            "iterations", "bitstar-dubins", info)
-    pe = path_energy(problem, r["xyz_m"])
-    return FwPlanResult(r["xyz_m"], pe["energy_J"], pe["length_m"], pe["time_s"], r["iterations"],
-                        time.perf_counter() - t0, "solved", "", "bitstar-dubins", {**info, **pe})
-
-
-__all__ = ["DUBINS_ITERATIONS_PER_S", "FIXED_WING_PLANNERS", "dubins_result", "FW_DZ_M", "FW_STEP_CELLS", "FwPlanResult", "check_planner_vehicle", "fillet_path",
+__all__ = ["FIXED_WING_PLANNERS", "FW_DZ_M", "FW_STEP_CELLS", "FwPlanResult", "check_planner_vehicle", "fillet_path",
            "fixedwing_candidate", "loiter_circle", "make_fw_lattice", "max_wind_mps", "path_energy", "plan_fixedwing",
            "turn_radius_m"]

@@ -273,11 +273,7 @@ def _plan_fixedwing_levels(problems: list[PlanningProblem], levels, planner: str
     validation; no STEP II (deconfliction) and no STEP III smoothing.  ``bitstar-dubins``: BIT*
     on the Dubins-airplane space (:mod:`~skyroute.stages.planning.bitstar_dubins`, its
     iterations ``DUBINS_ITERATIONS_PER_S x time_budget_s``), written as its sampled curve."""
-    from skyroute.stages.planning.fixedwing import (
-        dubins_result,
-        fixedwing_candidate,
-        plan_fixedwing,
-    )
+    from skyroute.stages.planning.fixedwing import fixedwing_candidate, plan_fixedwing
 
     plan = StrategicPlan(None, [])
     cap = LEVEL_CAP_FACTOR * time_budget_s
@@ -290,6 +286,8 @@ def _plan_fixedwing_levels(problems: list[PlanningProblem], levels, planner: str
             s1, s2, cand = _relabel(done[j], problems[j], problem)
         else:
             if planner == "bitstar-dubins":
+                from skyroute.stages.planning.bitstar_dubins import dubins_result
+
                 r = dubins_result(problem, time_budget_s, seed, cap)
             else:
                 r = plan_fixedwing(problem, planner, step_cells=step_cells, time_limit_s=cap)

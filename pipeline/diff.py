@@ -8,7 +8,8 @@ have it:
   summary records (fly: ``t_rep_s``, ``tick_s``, ``seed``, ``dop_threshold``, ``clearance``,
   ``tactical_method``; navsim: ``runs``, ``seed``, ``source``, ``surface_uncertainty_m``);
 * ``plan``: the chosen plan (status, label, DOP level, f and its terms [m], length [m],
-  energy [Wh], flight time [s], clearance radius [m]);
+  energy [Wh], flight time [s], clearance radius [m]) and how it was made (``provenance``:
+  planner, seed, weights, budget, counted budgets, vehicle, skyroute version);
 * ``candidates``: per coverage level (``candidates.csv`` row label) its flyability, costs [m],
   energy [Wh], flight time [s], max sigma_p [m] and whether it was chosen;
 * ``stages``: stage cache keys (a changed key = the stage's code, settings or inputs
@@ -51,6 +52,8 @@ _TIMING = {"seconds", "compute_s", "compute_time_s", "update_s", "compile_s", "c
 
 _PLAN_KEYS = ("status", "label", "dop_threshold", "f_m", "C_l_m", "C_r_m", "C_d_m", "C_e_m", "length_m", "energy_Wh",
               "flight_time_s", "clearance_radius_m")
+_PROVENANCE_KEYS = ("planner", "seed", "time_budget_s", "max_tries", "step_cells", "vehicle", "vehicle_profile_hash",
+                    "skyroute_version")
 _FLY_SETTINGS = ("t_rep_s", "tick_s", "seed", "dop_threshold", "clearance", "tactical_method")
 _FLY_KEYS = ("outcome", "reason", "n_replannings", "flight_time_s", "length_m", "energy_Wh")
 _NAVSIM_SETTINGS = ("runs", "seed", "source", "surface_uncertainty_m")
@@ -227,6 +230,13 @@ def _plan(a: dict, b: dict) -> list[Change]:
     ra, rb = a.get("reasons") or [], b.get("reasons") or []
     if ra != rb:
         out.append(Change("plan", "reasons", " | ".join(ra), " | ".join(rb)))
+    pa, pb = a.get("provenance"), b.get("provenance")      # how each plan was made
+    if isinstance(pa, dict) and isinstance(pb, dict):
+        _compare_keys(out, "plan", pa, pb, _PROVENANCE_KEYS, "provenance.")
+        if [float(w) for w in pa.get("weights", [])] != [float(w) for w in pb.get("weights", [])]:
+            out.append(Change("plan", "provenance.weights", pa.get("weights"), pb.get("weights")))
+        _compare_keys(out, "plan", pa.get("budgets") or {}, pb.get("budgets") or {},
+                      sorted({*(pa.get("budgets") or {}), *(pb.get("budgets") or {})}), "provenance.budgets.")
     return out
 
 

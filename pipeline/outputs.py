@@ -84,7 +84,8 @@ def write_plan_outputs(result: RunResult, out_dir: Path, map_page: bool = True) 
     files = write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
                        ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
                        terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
-                       cost_label="ground risk cost (normalised, 0-1) [-]", bubble=_bubble_params(result.scenario))
+                       cost_label="ground risk cost (normalised, 0-1) [-]", bubble=_bubble_params(result.scenario),
+                       provenance=plan_provenance_of(ds))
     if chosen is not None:
         from skyroute.pipeline.plan_exports import write_pilot_exports
 
@@ -164,6 +165,12 @@ def _num(v: Any, nd: int = 3) -> float | None:
     return round(v, nd) if np.isfinite(v) else None
 
 
+def plan_provenance_of(ds) -> dict[str, Any] | None:
+    """The plan stage's ``provenance`` attribute (planner, seed, weights, budgets, version), or None."""
+    raw = ds.attrs.get("provenance")
+    return json.loads(raw) if raw else None
+
+
 def plan_section(ds) -> dict[str, Any]:
     """The ``plan`` section of ``summary.json`` from the plan stage's dataset:
     ``status`` (``flyable`` | ``no_flyable_plan``), the chosen candidate's ``label``,
@@ -195,6 +202,9 @@ def plan_section(ds) -> dict[str, Any]:
         if not reasons and why:
             reasons = [why]
     sec["reasons"] = reasons
+    prov = plan_provenance_of(ds)
+    if prov:
+        sec["provenance"] = prov
     return sec
 
 

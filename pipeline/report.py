@@ -213,6 +213,15 @@ def _outcome_section(doc: dict[str, Any]) -> str:
             items = "".join(f"<li>{escape(str(r))}</li>" for r in reasons)
             parts.append('<div class="outcome bad" id="no-flyable-plan"><p><b>No flyable plan.</b> '
                          f"Why, per coverage level:</p><ul>{items}</ul></div>")
+        prov = plan.get("provenance")
+        if isinstance(prov, dict):
+            budgets = ", ".join(f"{k} {v:g}" if isinstance(v, (int, float)) else f"{k} {v}"
+                                for k, v in (prov.get("budgets") or {}).items())
+            line = (f"Made by planner {prov.get('planner')} (seed {prov.get('seed')}, weights w_l, w_r, w_d, w_e = "
+                    f"{', '.join(f'{float(w):g}' for w in prov.get('weights', []))}, budget "
+                    f"{prov.get('time_budget_s')} s; counted budgets: {budgets or '-'}) for vehicle "
+                    f"{prov.get('vehicle')}, skyroute {prov.get('skyroute_version')}.")
+            parts.append(f'<p class="provenance" id="plan-provenance">{escape(line)}</p>')
     fly = doc.get("fly")
     if fly is not None:
         line = (f"Flight replay: outcome {fly.get('outcome')}"

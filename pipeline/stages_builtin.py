@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
 
 import xarray as xr
 
-from skyroute.pipeline.graph import Stage, register
+from skyroute.pipeline.graph import SKYROUTE_VERSION, Stage, register
 from skyroute.pipeline.model import FrozenModel
 from skyroute.pipeline.settings import Obstacle, Scenario
 from skyroute.stages.grid import Grid
@@ -469,8 +471,35 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
     if isinstance(settings, PlanSboaSettings):
         kw.update(sboa_levels(settings, surface, environment, coverage))
     plan = plan_strategic(surface, environment, wind, clearance, coverage, satellites, traffic, **kw)
-    return plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),
-                           settings.start_time_utc)
+    ds = plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),
+                         settings.start_time_utc)
+    ds.attrs["provenance"] = json.dumps(plan_provenance(settings))
+    return ds
+
+
+def plan_provenance(s: PlanSettings) -> dict:
+    """How a plan was made (summary.json, plan.geojson, candidates.csv, report.html, ``skyroute
+    diff``): ``planner``, ``seed``, ``weights`` (w_l, w_r, w_d, w_e), ``time_budget_s`` [s],
+    ``max_tries``, ``step_cells``, the counted ``budgets`` the planner stops on and its
+    wall-clock safety cap [s], the ``vehicle`` and a hash of its profile, ``skyroute_version``."""
+    from skyroute.pipeline.model import stable_hash
+    from skyroute.stages.planning.grid_planner import ASTAR_MAX_EXPANSIONS, RELAX_MAX_SEGMENTS
+    from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, bitstar_iterations
+
+    budgets: dict = {"wallclock_safety_cap_s": LEVEL_CAP_FACTOR * s.time_budget_s}
+    if s.planner == "astar":
+        budgets["max_expansions"] = ASTAR_MAX_EXPANSIONS
+        budgets["refine_max_segment_evaluations"] = RELAX_MAX_SEGMENTS
+    if s.planner == "bitstar":
+        budgets["bitstar_iterations"] = bitstar_iterations(s.time_budget_s)
+    if s.planner == "bitstar-dubins":
+        from skyroute.stages.planning.bitstar_dubins import DUBINS_ITERATIONS_PER_S
+
+        budgets["bitstar_iterations"] = max(1, math.ceil(DUBINS_ITERATIONS_PER_S * s.time_budget_s))
+    return {"planner": s.planner, "seed": int(s.seed), "weights": [float(w) for w in s.weights],
+            "time_budget_s": float(s.time_budget_s), "max_tries": int(s.max_tries), "step_cells": int(s.step_cells),
+            "budgets": budgets, "vehicle": s.vehicle, "vehicle_profile_hash": stable_hash(s.vehicle_profile),
+            "skyroute_version": SKYROUTE_VERSION}
 
 
 def plan_arguments(s: PlanSettings, surface: xr.Dataset) -> dict:

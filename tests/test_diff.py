@@ -256,3 +256,43 @@ def test_same_run_twice_has_no_differences(tmp_path):
     assert set(maps) == {"clearance.min_altitude_m"}
     assert maps["clearance.min_altitude_m"].delta == pytest.approx(1.25)
     assert maps["clearance.min_altitude_m"].note.startswith("1 of ")
+
+
+def test_outputs_say_how_the_plan_was_made_and_diff_shows_a_planner_change(tmp_path):
+    """Provenance (issue 25): summary.json, plan.geojson, candidates.csv and report.html record
+    the planner, seed, weights, budgets and version; `skyroute diff` of an A* and a BIT* plan of
+    the same scenario reports the planner (and its counted budgets) as changed."""
+    import csv
+
+    p = scenario_paths()["helsinki-medical"]
+    raw = json.loads(json.dumps(yaml.safe_load(p.read_text()), default=str)
+                     .replace("../data/", str(p.parent.parent / "data") + "/"))
+    raw["aoi"] = {"bounds_lonlat": [24.9370, 60.1636, 24.9440, 60.1725], "resolution_m": 8.0}
+    raw["gnss"] = {"elevation_mask_deg": 5, "dop_kind": "PDOP", "dop_thresholds": [4], "window_min": 2, "step_min": 1}
+    raw.pop("traffic", None)
+    yml = tmp_path / "small.yaml"
+    yml.write_text(yaml.safe_dump(raw))
+    runner = CliRunner()
+    cache = str(tmp_path / "cache")
+    for out, extra in (("A", []), ("B", ["--planner", "bitstar", "--seed", "7"])):
+        r = runner.invoke(main, ["plan", str(yml), "--out", str(tmp_path / out), "--cache-dir", cache, "-q", *extra])
+        assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "B" / "summary.json").read_text())
+    prov = doc["plan"]["provenance"]
+    assert prov["planner"] == "bitstar" and prov["seed"] == 7 and len(prov["weights"]) == 4
+    assert prov["budgets"]["bitstar_iterations"] > 0 and prov["skyroute_version"]
+    gj = json.loads((tmp_path / "B" / "plan.geojson").read_text())
+    assert gj["features"][0]["properties"]["provenance"] == prov
+    rows = list(csv.DictReader((tmp_path / "B" / "candidates.csv").open()))
+    assert rows and all(r["planner"] == "bitstar" and r["seed"] == "7" for r in rows)
+    a = json.loads((tmp_path / "A" / "summary.json").read_text())["plan"]["provenance"]
+    assert a["planner"] == "astar" and a["budgets"]["max_expansions"] > 0
+    res = diff_folders(tmp_path / "A", tmp_path / "B")
+    plan = _items(res, "plan")
+    assert plan["provenance.planner"].a == "astar" and plan["provenance.planner"].b == "bitstar"
+    assert "provenance.seed" in plan and "provenance.budgets.bitstar_iterations" in plan
+    assert "provenance.planner" in format_diff(res)
+    from skyroute.pipeline.report import report_html
+
+    html = report_html(tmp_path / "B")
+    assert 'id="plan-provenance"' in html and "planner bitstar (seed 7" in html

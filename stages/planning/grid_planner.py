@@ -397,9 +397,10 @@ class EdgeCache:
 
 
 _NO_EDGES = np.empty((0, _OFFS.shape[0]))
+ASTAR_MAX_EXPANSIONS = 50_000_000   # A*'s counted budget: it stops after that many node expansions (no path)
 
 
-def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = 50_000_000,
+def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = ASTAR_MAX_EXPANSIONS,
           heuristic: str = "dijkstra2d", h2: np.ndarray | None = None, time_limit_s: float | None = None,
           edge_cache: EdgeCache | None = None) -> dict:
     """A* from start to goal on ``lattice``.  Returns ``waypoints`` (k, 3) or None, ``f`` (the
@@ -565,7 +566,7 @@ def shared_heuristic(loosest: PlanningProblem, step_cells: int = STEP_CELLS, dz_
 
 
 def plan_grid(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: float | None = None,
-              refine: bool = True, max_expansions: int = 50_000_000, heuristic: str = "dijkstra2d",
+              refine: bool = True, max_expansions: int = ASTAR_MAX_EXPANSIONS, heuristic: str = "dijkstra2d",
               h2: np.ndarray | None = None, time_limit_s: float = math.inf, z_anchor_m: float | None = None,
               edge_cache: EdgeCache | None = None) -> dict:
     """A* on the lattice then (optionally) :func:`refine_path`, within ``time_limit_s`` [s] wall
@@ -590,5 +591,5 @@ def plan_grid(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: floa
             "compute_s": time.perf_counter() - t0, "stopped_by": stopped}
 
 
-__all__ = ["STEP_CELLS", "EdgeCache", "Lattice", "astar", "heuristic_2d", "make_lattice", "plan_grid", "refine_path",
+__all__ = ["ASTAR_MAX_EXPANSIONS", "STEP_CELLS", "EdgeCache", "Lattice", "astar", "heuristic_2d", "make_lattice", "plan_grid", "refine_path",
            "relax_vertices", "shared_heuristic", "shortcut", "vertical_rates"]

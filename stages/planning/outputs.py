@@ -34,11 +34,13 @@ from skyroute.stages.figures import add_map_furniture
 from skyroute.stages.grid import Grid
 from skyroute.stages.planning.step3 import Candidate, utc_of
 
-__all__ = ["write_plan", "plan_geojson", "CANDIDATE_COLUMNS", "WAYPOINT_COLUMNS"]
+__all__ = ["write_plan", "plan_geojson", "CANDIDATE_COLUMNS", "PROVENANCE_COLUMNS", "WAYPOINT_COLUMNS"]
 
 WAYPOINT_COLUMNS = ("t_utc", "t_s", "x_m", "y_m", "z_m", "lon", "lat", "alt_agl_m", "sigma_p_m")
 CANDIDATE_COLUMNS = ("label", "dop_threshold", "C_l_m", "C_r_m", "C_d_m", "C_e_m", "f_m", "flyable",
                      "max_sigma_p_m", "energy_Wh", "flight_time_s", "compute_time_s", "chosen", "reasons")
+# appended to candidates.csv when the plan's provenance is known (the plan stage records it)
+PROVENANCE_COLUMNS = ("planner", "seed", "weights", "time_budget_s", "skyroute_version")
 
 
 def crs_of(grid_or_crs) -> tuple[CRS, Grid | None]:
@@ -55,8 +57,11 @@ def _num(v: float) -> float | None:
     return None if v is None or not math.isfinite(float(v)) else float(v)
 
 
-def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_datum: str) -> dict:
-    """The RFC 7946 FeatureCollection of ``candidate`` (see module docstring)."""
+def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_datum: str,
+                 provenance: dict | None = None) -> dict:
+    """The RFC 7946 FeatureCollection of ``candidate`` (see module docstring); ``provenance``
+    (how the plan was made: planner, seed, weights, budgets, version) goes into feature 0's
+    properties."""
     if candidate.xyz_m.shape[0] < 2:
         raise InputError(f"candidate {candidate.label!r} has no trajectory to write")
     crs, _ = crs_of(grid_or_crs)
@@ -87,6 +92,8 @@ def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_dat
         "max_sigma_p_m": _num(candidate.max_sigma_p_m), "energy_Wh": _num(candidate.energy_Wh),
         "flight_time_s": _num(candidate.flight_time_s),
     }
+    if provenance:
+        props["provenance"] = provenance
     features = [{"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords}, "properties": props}]
     wp = np.asarray(candidate.waypoints, float)
     if wp.shape[0]:
@@ -123,8 +130,11 @@ def _fmt(v, nd=3) -> str:
 def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or_crs, out_dir, start_time_utc,
                vertical_datum: str, *, surface_m=None, terrain_m=None, floor_m=None, cost_m=None,
                cost_label: str = "cost [-]",
-               figures: bool = True, bubble: tuple[float, float, float] | None = None) -> dict[str, Path]:
+               figures: bool = True, bubble: tuple[float, float, float] | None = None,
+               provenance: dict | None = None) -> dict[str, Path]:
     """Write ``plan.geojson``, ``waypoints.csv``, ``candidates.csv`` and the figures to ``out_dir``.
+    ``provenance``: how the plan was made (the plan stage's ``provenance`` attribute): in
+    plan.geojson's properties and as the :data:`PROVENANCE_COLUMNS` of candidates.csv.
 
     ``candidate``: the chosen one (:func:`~skyroute.stages.planning.step3.choose`) or None (no
     flyable plan: only ``candidates.csv`` is written, with every reason).  ``grid_or_crs``: the
@@ -151,11 +161,17 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
     if any(math.isfinite(r) for r in radii):   # safety bubble levels (sboa)
         cols = (*cols, "clearance_radius_m")
         rows = [[*row, _fmt(r, 2)] for row, r in zip(rows, radii, strict=True)]
+    if provenance:
+        cols = (*cols, *PROVENANCE_COLUMNS)
+        prov = [provenance.get("planner", ""), provenance.get("seed", ""),
+                ";".join(f"{float(w):g}" for w in provenance.get("weights", ())),
+                provenance.get("time_budget_s", ""), provenance.get("skyroute_version", "")]
+        rows = [[*row, *prov] for row in rows]
     files["candidates.csv"] = out / "candidates.csv"
     write_csv(files["candidates.csv"], cols, rows)
     if candidate is None:
         return files
-    gj = plan_geojson(candidate, grid_or_crs, start_time_utc, vertical_datum)
+    gj = plan_geojson(candidate, grid_or_crs, start_time_utc, vertical_datum, provenance)
     files["plan.geojson"] = out / "plan.geojson"
     files["plan.geojson"].write_text(json.dumps(gj, indent=1, allow_nan=False))
     tr = Transformer.from_crs(crs, 4326, always_xy=True)

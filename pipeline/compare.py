@@ -31,7 +31,10 @@ __all__ = ["CLEARANCE_WINDOW_M", "COLUMNS", "CompareRow", "compare_planners", "j
 CLEARANCE_WINDOW_M = 50.0     # clearances above this are reported as this (the brute-force window)
 COLUMNS = ("planner", "flyable", "label", "dop_threshold", "f_m", "C_l_m", "C_r_m", "C_d_m", "C_e_m", "length_m",
            "energy_Wh", "flight_time_s", "min_clearance_m", "mean_clearance_m", "max_sigma_p_m", "compute_s",
-           "reason")
+           "reason", "plan_cached")
+# compute_s [s]: the wall time of the planner's plan stage (all levels, which run in parallel and
+# may share a solution: never the sum of the per-level times); plan_cached: true when that plan
+# was read from the stage cache (compute_s is then the time it took when it was computed)
 
 
 @dataclass
@@ -46,17 +49,19 @@ class CompareRow:
 
 
 def _row(planner: str, result) -> CompareRow:
+    """The compare.csv row of ``planner`` from its run (see :data:`COLUMNS`)."""
     from skyroute.stages.grid import Grid
     from skyroute.stages.planning.strategic import plan_from_dataset
     from skyroute.stages.planning.validate import surface_clearance_m
 
     ds = result["plan"].load()
     chosen, cands = plan_from_dataset(ds)
-    compute_s = float(np.nansum(ds["compute_time_s"].values)) if "compute_time_s" in ds else math.nan
+    compute_s = float(ds.attrs.get("compute_s", math.nan))
+    cached = next((bool(r.cache_hit) for r in result.records if r.name == "plan"), False)
     if chosen is None:
         why = str(ds.attrs.get("reason", "")) or "; ".join(f"{c.label}: {'; '.join(c.reasons)}" for c in cands)
         return CompareRow(planner, {"planner": planner, "flyable": False, "compute_s": compute_s,
-                                    "reason": why or "no flyable plan"})
+                                    "reason": why or "no flyable plan", "plan_cached": cached})
     surf = result["surface"]["surface"]
     grid = Grid.from_dataarray(surf)
     xyz = np.asarray(chosen.xyz_m, float)
@@ -70,7 +75,7 @@ def _row(planner: str, result) -> CompareRow:
          "min_clearance_m": float(d.min()), "mean_clearance_m": float(d.mean()),
          "max_sigma_p_m": (float(np.nanmax(chosen.sigma_p_m)) if np.isfinite(chosen.sigma_p_m).any()
                            else math.nan),         # NaN: no GNSS data (e.g. no almanac)
-         "compute_s": compute_s, "reason": ""}
+         "compute_s": compute_s, "reason": "", "plan_cached": cached}
     return CompareRow(planner, v, xyz)
 
 

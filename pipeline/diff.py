@@ -47,7 +47,7 @@ __all__ = ["SECTIONS", "Change", "DiffResult", "diff_folders", "format_diff", "r
 SECTIONS = ("scenario", "plan", "candidates", "stages", "fly", "navsim", "compare", "maps", "files")
 
 # keys never compared (wall-clock timings, cache bookkeeping)
-_TIMING = {"seconds", "compute_s", "compute_time_s", "update_s", "compile_s", "cache_hits", "cache_hit", "path",
+_TIMING = {"seconds", "compute_s", "compute_time_s", "plan_cached", "update_s", "compile_s", "cache_hits", "cache_hit", "path",
            "created_utc"}
 
 _PLAN_KEYS = ("status", "label", "dop_threshold", "f_m", "C_l_m", "C_r_m", "C_d_m", "C_e_m", "length_m", "energy_Wh",

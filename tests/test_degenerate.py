@@ -140,10 +140,13 @@ def test_weights_on_degenerate_terms_only_are_an_error(bare):
         check_cost_terms((0, 0, 0, 1), degenerate_cost_terms(env))
     with pytest.raises(InputError, match="weights are all zero"):   # the existing check comes first
         check_cost_terms((0, 0, 0, 0), deg)
-    # a meaningful term among the weighted ones: warnings only, one per degenerate term
+    # a meaningful term among the weighted ones: warnings only, one per degenerate WEIGHTED term
+    # (C_d is degenerate too but weighted 0: it does not enter f, no warning; issue 25)
     w = check_cost_terms((0, 1, 0, 1), deg)
-    assert len(w) == 2 and w[0].startswith("plan: the risk cost C_r (w_r = 1) carries no information")
-    assert "landing cost C_d (w_d = 0)" in w[1] and "add data.landing_sites" in w[1]
+    assert len(w) == 1 and w[0].startswith("plan: the risk cost C_r (w_r = 1) carries no information")
+    w = check_cost_terms((1, 1, 0.5, 0), deg)
+    assert len(w) == 2 and "landing cost C_d (w_d = 0.5)" in w[1] and "add data.landing_sites" in w[1]
+    assert check_cost_terms((1, 0, 0, 0), deg) == []
     assert check_cost_terms((1, 0, 0, 0), {}) == []
 
 

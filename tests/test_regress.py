@@ -105,6 +105,14 @@ def test_regress_end_to_end(tmp_path):
     assert abs(float(row["length_m"]) - figs["plan.length_m"]) < 1e-3
     sc = load_scenario("helsinki-medical")
     rows, maps = compare_planners(sc, ["astar"], cache=cache)
+    # compute_s is the plan stage's wall time (not a sum over the levels, which run in parallel
+    # and share solutions), and the row says the plan came from the cache
+    from skyroute.pipeline.runner import run_scenario
+
+    plan_ds = run_scenario(sc, cache=cache, targets=["plan"])["plan"]
+    assert float(row["compute_s"]) == pytest.approx(float(plan_ds.attrs["compute_s"]), abs=1e-3)
+    assert float(row["compute_s"]) <= float(np.nansum(plan_ds["compute_time_s"].values)) + 1e-3
+    assert row["plan_cached"] == "true" and rows[0].values["plan_cached"] is True
     surf = maps["surface"]["surface"]
     x, y, s = surf["x"].values, surf["y"].values, np.asarray(surf.values, float)
     h = abs(x[1] - x[0]) / 2

@@ -106,7 +106,8 @@ def _join(items: list[str], word: str = "and") -> str:
 
 
 def check_cost_terms(weights, degenerate: dict[str, str]) -> list[str]:
-    """Warnings (one per degenerate term, weighted or not) for eq. 11 weights
+    """Warnings (one per degenerate term with a non-zero weight: a term weighted 0 does not
+    enter f, so its map is not worth a warning) for eq. 11 weights
     ``(w_l, w_r, w_d, w_e)``; raises :class:`DegenerateCostError` when every non-zero weight
     is on a degenerate term (``w_l = 0``); bad weights raise InputError first."""
     w = dict(zip(("C_l", "C_r", "C_d", "C_e"), check_weights(weights), strict=True))
@@ -122,7 +123,7 @@ def check_cost_terms(weights, degenerate: dict[str, str]) -> list[str]:
             f"or set {'/'.join(useful)}")
     warnings = []
     for k in ("C_r", "C_d", "C_e"):
-        if k in degenerate:
+        if k in degenerate and w[k] > 0:
             wname, what, source = TERMS[k]
             warnings.append(f"plan: the {what} cost {k} ({wname} = {w[k]:g}) carries no information: "
                             f"{degenerate[k]}; add {source} to make it meaningful")

@@ -403,21 +403,25 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         plan_key = f"{keys['plan']}+{export_key(result)}"   # the pilot exports also read data.ground
         old = [f for f in prev_files if f.startswith("plan/")]
         # (a folder written before plan.html existed gets its plan files rewritten once)
-        if (prev_keys.get("plan/") == plan_key and old and all((out_dir / f).is_file() for f in old)
-                and "plan/plan.html" in old):
+        reused = ("plan" not in uncached and prev_keys.get("plan/") == plan_key and old
+                  and all((out_dir / f).is_file() for f in old) and "plan/plan.html" in old)
+        if reused:
             plan_files = old
         else:
             written = write_plan_outputs(result, out_dir / "plan")
             plan_files = [Path(p).relative_to(out_dir).as_posix() for p in written.values()]
-        output_keys["plan/"] = plan_key
+        output_keys["plan/"] = plan_key if "plan" not in uncached else ""
         files.extend(plan_files)
         # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
         from dask.local import get_sync
 
         sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
-        from skyroute.pipeline.plan_exports import exports_section
+        if reused and isinstance(previous.get("exports"), dict):   # same plan, same exports: same section
+            sections["exports"] = previous["exports"]
+        else:
+            from skyroute.pipeline.plan_exports import exports_section
 
-        sections["exports"] = exports_section(result, [f for f in plan_files if f.startswith("plan/")], out_dir)
+            sections["exports"] = exports_section(result, [f for f in plan_files if f.startswith("plan/")], out_dir)
     files.extend(also_files)
     if extra is not None:
         files.extend(extra["files"])

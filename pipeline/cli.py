@@ -17,6 +17,7 @@ from pathlib import Path
 import click
 
 from skyroute.pipeline.errors import SkyrouteError
+from skyroute.stages.planning.registry import PLANNERS, planner_help
 
 _T0 = time.perf_counter()     # the command's wall clock starts when the CLI is imported
 
@@ -239,9 +240,8 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
               help="Output folder (default: ./skyroute-out/SCENARIO/plan).")
 @click.option("--weights", default=None, metavar="W_L,W_R,W_D,W_E",
               help="Cost weights of eq. 11: length, risk, landing, energy (overrides planner.weights).")
-@click.option("--planner", "planner_name", default=None, help="STEP I planner: astar, bitstar or potential; fixed-wing: eeastar, astar-fw, energy-optimal or "
-              "bitstar-dubins "
-              "(overrides planner.name).")
+@click.option("--planner", "planner_name", default=None, metavar="|".join(PLANNERS),
+              help=f"STEP I planner ({planner_help()}; overrides planner.name).")
 @click.option("--seed", type=int, default=None, help="Random seed of BIT* and the RRT (overrides planner.seed).")
 @click.option("--time-budget", "time_budget_s", type=float, default=None,
               help="BIT* time per coverage level [s] (overrides planner.time_budget_s).")

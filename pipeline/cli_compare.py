@@ -9,12 +9,13 @@ from pathlib import Path
 import click
 
 from skyroute.pipeline.cli import SCHEDULER_HELP
+from skyroute.stages.planning.registry import planner_help
 
 
 @click.command("compare")
 @click.argument("scenario", required=False, default=None)
 @click.option("--planners", default=None,
-              help="Comma-separated planner names (default: every planner that fits the vehicle).")
+              help=f"Comma-separated planner names ({planner_help()}; default: every planner that fits the vehicle).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/compare).")
 @click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,

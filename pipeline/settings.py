@@ -316,7 +316,7 @@ class TrafficSettings(FrozenModel):
     time_margin_s: NonNegFloat = 5.0
 
 
-PLANNERS = ("astar", "bitstar", "potential", "eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
+from skyroute.stages.planning.registry import PLANNERS  # noqa: E402  (the one list of planners)
 
 
 class PlannerSettings(FrozenModel):

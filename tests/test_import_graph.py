@@ -131,3 +131,26 @@ def test_stages_never_import_pipeline():
     bad = sorted((m, t) for m, ts in g.items() if m.startswith("skyroute.stages") for t in ts
                  if t.startswith("skyroute.pipeline"))
     assert bad == []
+
+
+def test_planner_names_come_from_one_registry():
+    """Issue 25: the CLI's --planner choices, the scenario validation, STEP I, compare and the
+    vehicle-kind check all read stages/planning/registry.py."""
+    from skyroute.pipeline import compare, settings
+    from skyroute.pipeline.cli import main
+    from skyroute.stages.planning import kinds, registry, step1
+
+    plan_cmd = main.commands["plan"]
+    opt = next(p for p in plan_cmd.params if p.name == "planner_name")   # validated with one error: line
+    assert tuple(opt.metavar.split("|")) == registry.PLANNERS
+    assert registry.planner_help() in opt.help
+    assert registry.planner_help() in next(p for p in main.commands["compare"].params if p.name == "planners").help
+    assert settings.PLANNERS is registry.PLANNERS and step1.PLANNERS is registry.PLANNERS
+    assert compare.PLANNERS is registry.PLANNERS and kinds.FIXED_WING_PLANNERS is registry.FIXED_WING_PLANNERS
+    assert set(registry.FIXED_WING_PLANNERS) | set(registry.ROTORCRAFT_PLANNERS) == set(registry.PLANNERS)
+    for p in registry.REGISTRY.values():          # every solver named in the table exists
+        mod, fn = p.solver.split(":")
+        assert callable(getattr(__import__(mod, fromlist=[fn]), fn)), p.solver
+    # the scenario validation refuses a name the registry does not have, naming the registry's
+    with __import__("pytest").raises(Exception, match="known planners: " + ", ".join(registry.PLANNERS)):
+        settings.parse_planner({"name": "warp-drive"})

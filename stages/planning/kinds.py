@@ -9,16 +9,14 @@ fixed-wing aircraft (``kind: fixed-wing``) the seed 002 lattice planners of
 from __future__ import annotations
 
 from skyroute.stages.base import InputError
+from skyroute.stages.planning.registry import FIXED_WING_PLANNERS, PLANNERS
 from skyroute.stages.vehicle import FixedWingProfile, load_vehicle
 
-FIXED_WING_PLANNERS = ("eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
 
-
-def check_planner_vehicle(planner: str, vehicle, known: tuple[str, ...]) -> None:
+def check_planner_vehicle(planner: str, vehicle, known: tuple[str, ...] = PLANNERS) -> None:
     """InputError when ``planner`` does not fit the kind of ``vehicle`` (a profile, catalog name
-    or YAML path), naming the planners that do out of ``known`` (the caller's planner list:
-    :data:`skyroute.stages.planning.step1.PLANNERS` or the scenario settings' list; no import
-    here, so the scenario checks do not pull the planners into every stage's code closure)."""
+    or YAML path), naming the planners that do out of ``known`` (default: the
+    :mod:`~skyroute.stages.planning.registry`)."""
     veh = load_vehicle(vehicle)
     if isinstance(veh, FixedWingProfile):
         if planner not in FIXED_WING_PLANNERS:
@@ -30,7 +28,7 @@ def check_planner_vehicle(planner: str, vehicle, known: tuple[str, ...]) -> None
                          f"use one of {', '.join(rotor)}")
 
 
-def planners_for(vehicle, known: tuple[str, ...]) -> list[str]:
+def planners_for(vehicle, known: tuple[str, ...] = PLANNERS) -> list[str]:
     """The planners of ``known`` that fit the kind of ``vehicle``, in order."""
     fixed = isinstance(load_vehicle(vehicle), FixedWingProfile)
     return [p for p in known if (p in FIXED_WING_PLANNERS) == fixed]

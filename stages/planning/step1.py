@@ -36,9 +36,10 @@ from skyroute.stages.base import InputError, UnknownNameError
 from skyroute.stages.planning.grid_planner import STEP_CELLS, EdgeCache, plan_grid, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 
-PLANNERS = ("bitstar", "astar", "potential", "eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
-# the last three are the fixed-wing planners (seed 002), solved by
+# the one list of planners; the fixed-wing ones (seed 002) are solved by
 # skyroute.stages.planning.fixedwing (plan_strategic dispatches them; plan_step1 refuses them)
+from skyroute.stages.planning.registry import PLANNERS
+
 # Every planner stops on counted work, so the same scenario and seed give the same plan on an
 # idle or a loaded machine: A* on its expansions (``max_expansions``) and the refinement on its
 # segment evaluations (RELAX_MAX_SEGMENTS), BIT* on an iteration count, the potential field when

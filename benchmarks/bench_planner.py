@@ -35,7 +35,6 @@ from skyroute.pipeline.runner import run_scenario
 from skyroute.pipeline.settings import load_scenario
 from skyroute.pipeline.stages_builtin import _plan_settings
 from skyroute.stages.planning.problem import build_problem, xyz_from_agl
-from skyroute.stages.planning.strategic import plan_strategic
 
 MAPS = ["surface", "environment", "clearance", "wind", "coverage", "satellites", "traffic"]
 
@@ -90,12 +89,12 @@ def long_mission(sc, d, s, inset_m: float = 150.0, agl: float = 60.0):
 
 def run_plan(d: dict, s, **kw):
     from skyroute.pipeline.stages_builtin import plan_arguments
+    from skyroute.stages.planning.request import Maps, PlanRequest, plan
 
-    args = {**plan_arguments(s, d["surface"]), **kw}
+    request = PlanRequest.of(**{**plan_arguments(s, d["surface"]), **kw})
     t = time.perf_counter()
-    plan = plan_strategic(d["surface"], d["environment"], d["wind"], d["clearance"], d["coverage"],
-                          d["satellites"], d["traffic"], **args)
-    return plan, time.perf_counter() - t
+    result = plan(Maps.from_datasets(d), request)
+    return result, time.perf_counter() - t
 
 
 def _fmt(values, nd=0) -> str:

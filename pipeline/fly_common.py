@@ -12,11 +12,11 @@ import xarray as xr
 
 from skyroute.pipeline.runner import RunResult
 from skyroute.pipeline.settings import Scenario
+from skyroute.stages.planning.request import (
+    PLANNER_STAGES as MAP_STAGES,  # the maps a planner reads (one list)
+)
 
 __all__ = ["MAP_STAGES", "FlyResult", "tactical_events"]
-
-
-MAP_STAGES = ("surface", "environment", "clearance", "wind", "coverage", "satellites")
 
 
 @dataclass

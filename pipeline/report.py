@@ -488,7 +488,7 @@ def add_to_summary(run_dir: Path, paths: list[Path]) -> None:
     tmp.replace(run_dir / "summary.json")
 
 
-MAP_STAGES = ("surface", "environment", "wind", "clearance", "traffic", "coverage")
+DRAWN_STAGES = ("surface", "environment", "wind", "clearance", "traffic", "coverage")   # the maps a report draws
 
 
 def draw_missing_maps(run_dir: Path, cache, into: Path | None = None) -> list[Path]:
@@ -516,7 +516,7 @@ def draw_missing_maps(run_dir: Path, cache, into: Path | None = None) -> list[Pa
         return []
     if sc.name != doc.get("scenario"):
         return []
-    targets = [s.name for s in stages_for(sc) if s.name in MAP_STAGES]
+    targets = [s.name for s in stages_for(sc) if s.name in DRAWN_STAGES]
     result = run_scenario(sc, cache=cache, targets=targets, progress=False)
     from skyroute.pipeline.cli_coverage import plot_coverage
     from skyroute.pipeline.maps import plot_maps_panel

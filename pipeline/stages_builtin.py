@@ -465,12 +465,19 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
                coverage: xr.Dataset | None, satellites: xr.Dataset | None, traffic: xr.Dataset | None, *,
                settings: PlanSettings) -> xr.Dataset:
     """Strategic plan (seed 000 III): STEP I-III for every coverage level and the choice."""
-    from skyroute.stages.planning.strategic import plan_strategic, plan_to_dataset
+    from skyroute.stages.planning.request import Maps, PlanRequest
+    from skyroute.stages.planning.request import plan as make_plan
+    from skyroute.stages.planning.strategic import plan_to_dataset
 
     kw = plan_arguments(settings, surface)
+    extra = {}
     if isinstance(settings, PlanSboaSettings):
-        kw.update(sboa_levels(settings, surface, environment, coverage))
-    plan = plan_strategic(surface, environment, wind, clearance, coverage, satellites, traffic, **kw)
+        sb = sboa_levels(settings, surface, environment, coverage)
+        extra["clearance_by_level"] = sb["clearance_by_level"]
+        kw["bubble"] = sb["bubble"]
+    maps = Maps(surface=surface, clearance=clearance, environment=environment, wind=wind, coverage=coverage,
+                satellites=satellites, traffic=traffic, **extra)
+    plan = make_plan(maps, PlanRequest.of(**kw))
     ds = plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),
                          settings.start_time_utc)
     ds.attrs["provenance"] = json.dumps(plan_provenance(settings))
@@ -506,10 +513,12 @@ def plan_arguments(s: PlanSettings, surface: xr.Dataset) -> dict:
     """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_strategic` for
     these settings (one place: the plan stage and the benchmarks call it)."""
     from skyroute.stages.traffic import intruders_for
+    from skyroute.stages.vehicle import vehicle_from_dict
 
     intr = intruders_for(s.intruders, surface) if s.intruders else None
+    # the vehicle travels as its profile (the content the cache key hashed), never reloaded by name
     return dict(start_xy=s.start_xy, start_agl_m=s.start_agl_m, goal_xy=s.goal_xy, goal_agl_m=s.goal_agl_m,
-                start_time_utc=s.start_time_utc, vehicle=s.vehicle, weights=s.weights, planner=s.planner,
+                start_time_utc=s.start_time_utc, vehicle=vehicle_from_dict(s.vehicle_profile), weights=s.weights, planner=s.planner,
                 time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, step_cells=s.step_cells,
                 min_agl_m=s.min_agl_m, max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m,
                 dt_c_s=s.dt_c_s, uere_m=s.uere_m, battery_reserve_pct=s.battery_reserve_pct)

@@ -537,3 +537,39 @@ def test_a_plan_that_hit_its_wall_clock_safety_net_is_never_cached(monkeypatch):
             assert r["capped_plan"].attrs["skyroute_not_cacheable"]
     finally:
         REGISTRY.pop("capped_plan", None)
+
+
+def test_plan_request_gives_the_plan_of_the_keyword_call_and_resolves_the_vehicle_once(tmp_path):
+    """Issue 25: plan(Maps, PlanRequest) is plan_strategic with the same arguments (same chain,
+    same f); the request holds the vehicle profile (a YAML path is read once, when the request
+    is made: editing the file afterwards does not change the request) and hashes it by content."""
+    import shutil
+
+    from skyroute.stages.planning.request import Maps, PlanRequest, plan
+
+    g, _ = _surface()
+    ds, clearance, coverage = _plan_inputs([np.full(g.shape, 5.0)], [3.0])
+    ref = _strategic(ds, clearance, coverage)
+    maps = Maps.from_datasets({"surface": ds, "clearance": clearance, "coverage": coverage})
+    req = PlanRequest.of(start_xy=(10, 50), start_agl_m=20.0, goal_xy=(190, 50), goal_agl_m=20.0,
+                         start_time_utc="2020-01-03T10:00:00Z", vehicle="dji-m300-rtk", planner="astar",
+                         min_agl_m=0.0, max_agl_m=80.0, step_cells=4)
+    got = plan(maps, req)
+    assert ref.step1[0].solved
+    np.testing.assert_array_equal(got.step1[0].waypoints, ref.step1[0].waypoints)
+    assert got.candidates[0].f == ref.candidates[0].f and got.reason == ref.reason
+    from skyroute.stages.vehicle import _catalog_dir
+
+    yml = tmp_path / "m300.yaml"
+    shutil.copy(str(_catalog_dir().joinpath("dji-m300-rtk.yaml")), yml)
+    r1 = PlanRequest.of(**{**{k: getattr(req, k) for k in ("start_xy", "start_agl_m", "goal_xy", "goal_agl_m",
+                                                             "start_time_utc")}, "vehicle": yml})
+    h = r1.vehicle_hash()
+    assert h == req.vehicle_hash()                       # same content, same hash
+    yml.write_text(yml.read_text().replace("mass_kg: 6.3", "mass_kg: 9.9"))
+    assert r1.vehicle_hash() == h and r1.vehicle.airframe.mass_kg == req.vehicle.airframe.mass_kg  # resolved once
+    r2 = PlanRequest.of(**{k: getattr(r1, k) for k in ("start_xy", "start_agl_m", "goal_xy", "goal_agl_m",
+                                                        "start_time_utc")}, vehicle=yml)
+    assert r2.vehicle_hash() != h and r2.vehicle.airframe.mass_kg == 9.9
+    with pytest.raises(InputError, match="lack clearance"):
+        Maps.from_datasets({"surface": ds})

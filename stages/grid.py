@@ -23,7 +23,24 @@ from skyroute.stages.base import CRSError, DataError, InputError
 
 
 def resolve_crs(crs: str | int | CRS) -> CRS:
-    """A :class:`pyproj.CRS` from ``"EPSG:32635"``, ``32635``, WKT or PROJ text."""
+    """A :class:`pyproj.CRS` from ``"EPSG:32635"``, ``32635``, WKT or PROJ text.
+
+    Parameters
+    ----------
+    crs : str, int or pyproj.CRS
+        Anything :meth:`pyproj.CRS.from_user_input` accepts: ``"EPSG:32635"``, an EPSG code,
+        WKT or PROJ text, or a CRS.
+
+    Returns
+    -------
+    pyproj.CRS
+        The resolved CRS.
+
+    Raises
+    ------
+    CRSError
+        When pyproj cannot resolve ``crs`` (the message suggests an EPSG code).
+    """
     try:
         return CRS.from_user_input(crs)
     except Exception as exc:  # pyproj raises CRSError subclasses of several kinds
@@ -31,7 +48,20 @@ def resolve_crs(crs: str | int | CRS) -> CRS:
 
 
 def utm_zone(lon_deg: float, lat_deg: float) -> int:
-    """UTM zone number of (lon, lat) [deg], with the Norway (32V) and Svalbard (31X-37X) exceptions."""
+    """UTM zone number of (lon, lat) [deg], with the Norway (32V) and Svalbard (31X-37X) exceptions.
+
+    Parameters
+    ----------
+    lon_deg : float
+        Longitude [deg]; any value, wrapped to [-180, 180).
+    lat_deg : float
+        Latitude [deg].
+
+    Returns
+    -------
+    int
+        Zone number, 1..60.
+    """
     lon = (float(lon_deg) + 180.0) % 360.0 - 180.0
     zone = int((lon + 180.0) // 6.0) + 1
     if 56.0 <= lat_deg < 64.0 and 3.0 <= lon < 12.0:
@@ -44,7 +74,26 @@ def utm_zone(lon_deg: float, lat_deg: float) -> int:
 
 
 def utm_crs_for(lon_deg: float, lat_deg: float) -> CRS:
-    """The WGS 84 / UTM zone CRS (EPSG 326zz north, 327zz south) that contains (lon, lat) [deg]."""
+    """The WGS 84 / UTM zone CRS (EPSG 326zz north, 327zz south) that contains (lon, lat) [deg].
+
+    Parameters
+    ----------
+    lon_deg : float
+        Longitude [deg].
+    lat_deg : float
+        Latitude [deg]; must lie in the UTM range -80..84.
+
+    Returns
+    -------
+    pyproj.CRS
+        The UTM CRS of the zone :func:`utm_zone` gives (northern zone for ``lat_deg >= 0``).
+
+    Raises
+    ------
+    CRSError
+        When ``lat_deg`` is outside -80..84 (name a CRS in ``aoi.crs`` instead, e.g. a polar
+        stereographic EPSG:3413).
+    """
     if not (-80.0 <= lat_deg <= 84.0):
         raise CRSError(f"latitude {lat_deg} deg is outside the UTM range -80..84; name a CRS in aoi.crs "
                        "(e.g. a polar stereographic EPSG:3413)")
@@ -60,8 +109,30 @@ def _crs_text(crs: CRS) -> str:
 
 @dataclass(frozen=True)
 class Grid:
-    """A north-up grid: ``nx`` x ``ny`` square cells of ``resolution_m`` [m] whose outer
-    corner is (``x0``, ``y1``) (west, north edge) in ``crs``."""
+    """A north-up grid: ``nx`` x ``ny`` square cells of ``resolution_m`` [m].
+
+    Its outer corner is (``x0``, ``y1``) (west, north edge) in ``crs``.
+
+    Parameters
+    ----------
+    crs_wkt : str
+        The CRS as ``EPSG:nnnn`` when it has an EPSG code, else its WKT (a canonical, hashable
+        text); :attr:`crs` gives the :class:`pyproj.CRS`.
+    x0 : float
+        Map x of the west edge [m].
+    y1 : float
+        Map y of the north edge [m].
+    nx : int
+        Number of columns (cells along x).
+    ny : int
+        Number of rows (cells along y); rasters of the grid have shape ``(ny, nx)``.
+    resolution_m : float
+        Cell side [m].
+
+    See Also
+    --------
+    Grid.from_bounds, Grid.from_dataarray
+    """
 
     crs_wkt: str
     x0: float
@@ -73,10 +144,37 @@ class Grid:
     @classmethod
     def from_bounds(cls, crs: CRS | str, xmin: float, ymin: float, xmax: float, ymax: float,
                     resolution_m: float, *, inward: bool = False, key: str = "aoi.bounds") -> Grid:
-        """The grid of cells on the lattice of multiples of ``resolution_m`` [m] that covers the
-        bounds (``inward=False``: the cells touching them, the grid may reach up to one cell
-        beyond) or that lies within them (``inward=True``: the grid never extends past the bounds;
-        an InputError naming ``key`` when not one whole cell fits)."""
+        """The grid of cells on the lattice of multiples of ``resolution_m`` [m] that covers the bounds.
+
+        With ``inward=False``: the cells touching the bounds (the grid may reach up to one cell
+        beyond); with ``inward=True``: the cells that lie within them (the grid never extends past
+        the bounds).
+
+        Parameters
+        ----------
+        crs : pyproj.CRS or str
+            CRS of the bounds and of the grid (see :func:`resolve_crs`).
+        xmin, ymin, xmax, ymax : float
+            Bounds in map coordinates [m]; need ``xmin < xmax`` and ``ymin < ymax``.
+        resolution_m : float
+            Cell side [m], positive.
+        inward : bool, default False
+            Snap the bounds inward (True) or outward (False) to the lattice.
+        key : str, default "aoi.bounds"
+            The settings key named in the error when ``inward=True`` and no whole cell fits.
+
+        Returns
+        -------
+        Grid
+
+        Raises
+        ------
+        InputError
+            When ``resolution_m`` is not positive, the bounds are empty, or (``inward=True``) not
+            one whole cell fits (the message names ``key``).
+        CRSError
+            When ``crs`` cannot be resolved.
+        """
         if not resolution_m > 0:
             raise InputError(f"resolution {resolution_m} m must be positive (e.g. 2.0)")
         if not (xmax > xmin and ymax > ymin):
@@ -100,69 +198,177 @@ class Grid:
 
     @property
     def crs(self) -> CRS:
+        """The grid's CRS as a :class:`pyproj.CRS`.
+        """
         return CRS.from_user_input(self.crs_wkt)
 
     @property
     def shape(self) -> tuple[int, int]:
+        """Raster shape ``(ny, nx)``.
+        """
         return (self.ny, self.nx)
 
     @property
     def transform(self) -> Affine:
+        """Affine transform from (col, row) to map (x, y) [m] (north-up, origin at (``x0``, ``y1``)).
+        """
         return Affine(self.resolution_m, 0.0, self.x0, 0.0, -self.resolution_m, self.y1)
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
+        """Grid extent ``(xmin, ymin, xmax, ymax)`` [m] in map coordinates (cell edges).
+        """
         r = self.resolution_m
         return (self.x0, self.y1 - self.ny * r, self.x0 + self.nx * r, self.y1)
 
     @property
     def x(self) -> np.ndarray:
+        """Map x of the cell centres [m], ascending, shape ``(nx,)``.
+        """
         return self.x0 + (np.arange(self.nx) + 0.5) * self.resolution_m
 
     @property
     def y(self) -> np.ndarray:
+        """Map y of the cell centres [m], descending, shape ``(ny,)``.
+        """
         return self.y1 - (np.arange(self.ny) + 0.5) * self.resolution_m
 
     def coords(self) -> dict[str, xr.DataArray]:
+        """CF-annotated ``y`` and ``x`` cell-centre coordinates [m] for a raster of this grid.
+
+        Returns
+        -------
+        dict of str to xarray.DataArray
+            ``{"y": (ny,), "x": (nx,)}`` with ``units``, ``standard_name`` and ``axis`` attributes.
+        """
         return {
             "y": xr.DataArray(self.y, dims="y", attrs={"units": "m", "standard_name": "projection_y_coordinate", "axis": "Y"}),
             "x": xr.DataArray(self.x, dims="x", attrs={"units": "m", "standard_name": "projection_x_coordinate", "axis": "X"}),
         }
 
     def dataarray(self, values: np.ndarray, name: str, **attrs) -> xr.DataArray:
-        """Wrap a ``(ny, nx)`` array as a raster of this grid with CRS and attrs."""
+        """Wrap a ``(ny, nx)`` array as a raster of this grid with CRS and attrs.
+
+        Parameters
+        ----------
+        values : numpy.ndarray
+            Values, shape ``(ny, nx)``.
+        name : str
+            Name of the DataArray.
+        **attrs
+            Attributes of the DataArray (e.g. ``units``, ``vertical_datum``).
+
+        Returns
+        -------
+        xarray.DataArray
+            Dims ``("y", "x")`` with :meth:`coords` and the CRS written (``da.rio.crs``).
+        """
         da = xr.DataArray(values, dims=("y", "x"), coords=self.coords(), name=name, attrs=attrs)
         return da.rio.write_crs(self.crs)
 
     def index_of(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-        """(row, col) of the cells containing map points (x, y) [m]; may fall outside the grid."""
+        """(row, col) of the cells containing map points (x, y) [m]; may fall outside the grid.
+
+        Parameters
+        ----------
+        x, y : float or numpy.ndarray
+            Map coordinates [m] in the grid's CRS.
+
+        Returns
+        -------
+        row, col : numpy.ndarray of int64
+            Cell indices, not clipped (negative or >= ``ny``/``nx`` outside the grid).
+        """
         col = np.floor((np.asarray(x) - self.x0) / self.resolution_m).astype(np.int64)
         row = np.floor((self.y1 - np.asarray(y)) / self.resolution_m).astype(np.int64)
         return row, col
 
     def cell_of(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
-        """(row, col) of the cells containing map points (x, y) [m], clipped to the grid (a point
-        outside takes the nearest edge cell)."""
+        """(row, col) of the cells containing map points (x, y) [m], clipped to the grid.
+
+        A point outside takes the nearest edge cell.
+
+        Parameters
+        ----------
+        x, y : float or numpy.ndarray
+            Map coordinates [m] in the grid's CRS.
+
+        Returns
+        -------
+        row, col : numpy.ndarray of int64
+            Cell indices in ``0..ny-1`` and ``0..nx-1``.
+        """
         row, col = self.index_of(x, y)
         return np.clip(row, 0, self.ny - 1), np.clip(col, 0, self.nx - 1)
 
     def contains(self, x: float, y: float) -> bool:
+        """Whether map point (x, y) [m] lies within :attr:`bounds` (edges included).
+
+        Parameters
+        ----------
+        x, y : float
+            Map coordinates [m].
+
+        Returns
+        -------
+        bool
+        """
         xmin, ymin, xmax, ymax = self.bounds
         return bool(xmin <= x <= xmax and ymin <= y <= ymax)
 
     def to_lonlat(self, x, y):
-        """Map (x, y) [m] to WGS 84 (lon, lat) [deg]."""
+        """Map (x, y) [m] to WGS 84 (lon, lat) [deg].
+
+        Parameters
+        ----------
+        x, y : float or array_like
+            Map coordinates [m] in the grid's CRS.
+
+        Returns
+        -------
+        lon, lat : float or numpy.ndarray
+            WGS 84 longitude and latitude [deg].
+        """
         t = Transformer.from_crs(self.crs, 4326, always_xy=True)
         return t.transform(x, y)
 
     def from_lonlat(self, lon, lat):
-        """WGS 84 (lon, lat) [deg] to map (x, y) [m]."""
+        """WGS 84 (lon, lat) [deg] to map (x, y) [m].
+
+        Parameters
+        ----------
+        lon, lat : float or array_like
+            WGS 84 longitude and latitude [deg].
+
+        Returns
+        -------
+        x, y : float or numpy.ndarray
+            Map coordinates [m] in the grid's CRS.
+        """
         t = Transformer.from_crs(4326, self.crs, always_xy=True)
         return t.transform(lon, lat)
 
     @classmethod
     def from_dataarray(cls, da: xr.DataArray | xr.Dataset) -> Grid:
-        """Recover the grid of a raster that follows the conventions above."""
+        """Recover the grid of a raster that follows the conventions above.
+
+        Parameters
+        ----------
+        da : xarray.DataArray or xarray.Dataset
+            A raster with ``x`` ascending, ``y`` descending, equal steps, at least 2 x 2 cells and a
+            CRS (``da.rio.crs``).
+
+        Returns
+        -------
+        Grid
+
+        Raises
+        ------
+        InputError
+            When the raster has fewer than 2 x 2 cells or is not north-up with square cells.
+        CRSError
+            When the raster carries no CRS.
+        """
         x = np.asarray(da["x"].values)
         y = np.asarray(da["y"].values)
         if x.size < 2 or y.size < 2:
@@ -179,16 +385,41 @@ class Grid:
 
 def warp_to_grid(path, grid: Grid, *, what: str, resampling: str = "bilinear",
                  require_overlap: bool = True) -> np.ndarray:
-    """Band 1 of a GeoTIFF reprojected to ``grid`` (float64; NaN outside the raster and at its
-    nodata).  ``what`` names the layer in error messages ("terrain", "risk GeoTIFF").
-    ``require_overlap``: a raster that does not intersect the grid is a :class:`DataError`.
+    """Band 1 of a GeoTIFF reprojected to ``grid`` (float64; NaN outside the raster and at its nodata).
 
     ``resampling="max"`` / ``"min"``: the max (min) over every source pixel whose footprint
     overlaps the target cell's footprint (:func:`footprint_resample`).  GDAL's
     ``Resampling.max`` (3.10) gives the same between grids of one CRS, but between rotated CRSs
     it misses pixels that overlap the target cell only partly and lowers obstacles
     (tests/test_grid.py).  A target cell touching a nodata pixel is NaN.  Surfaces and grounds
-    are resampled this way."""
+    are resampled this way.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The GeoTIFF (for ``"max"``/``"min"`` also a VRT or a list of tiles, see
+        :func:`read_window`).
+    grid : Grid
+        Target grid.
+    what : str
+        Names the layer in error messages ("terrain", "risk GeoTIFF").
+    resampling : str, default "bilinear"
+        ``"max"``, ``"min"`` or the name of a :class:`rasterio.warp.Resampling` method.
+    require_overlap : bool, default True
+        A raster that does not intersect the grid is a :class:`DataError`.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(ny, nx)`` of ``grid``, in the raster's units.
+
+    Raises
+    ------
+    DataError
+        When the file is missing or unreadable, or (``require_overlap``) does not intersect the grid.
+    CRSError
+        When the raster has no CRS.
+    """
     if resampling in ("max", "min"):
         win = read_window(path, grid, what=what, require_overlap=require_overlap)
         return footprint_resample(win.values, win.transform, win.crs, grid, how=resampling)
@@ -228,9 +459,27 @@ OVERLAP_EPS_M = 1e-6
 
 
 def pixel_corners(transform, shape: tuple[int, int], src_crs, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
-    """Map coordinates in ``grid``'s CRS of the ``(ny + 1, nx + 1)`` pixel corners of a raster
-    with affine ``transform`` and ``shape`` in ``src_crs`` (exact affine map in the same CRS,
-    pyproj otherwise; pixel edges are taken straight between their projected corners)."""
+    """Map coordinates in ``grid``'s CRS of the ``(ny + 1, nx + 1)`` pixel corners of a raster.
+
+    Exact affine map in the same CRS, pyproj otherwise; pixel edges are taken straight between
+    their projected corners.
+
+    Parameters
+    ----------
+    transform : affine.Affine
+        The raster's affine transform in ``src_crs``.
+    shape : tuple of int
+        The raster's shape ``(ny, nx)``.
+    src_crs : pyproj.CRS, str or int
+        The raster's CRS.
+    grid : Grid
+        The grid whose CRS the corners are mapped to.
+
+    Returns
+    -------
+    X, Y : numpy.ndarray
+        float64, shape ``(ny + 1, nx + 1)``: corner map coordinates [m] in ``grid``'s CRS.
+    """
     sy, sx = shape
     jj, ii = np.meshgrid(np.arange(sx + 1, dtype=np.float64), np.arange(sy + 1, dtype=np.float64))
     t = transform
@@ -244,16 +493,38 @@ def pixel_corners(transform, shape: tuple[int, int], src_crs, grid: Grid) -> tup
 
 
 def footprint_resample(values: np.ndarray, transform, src_crs, grid: Grid, how: str = "max") -> np.ndarray:
-    """Resample a raster (``values`` with NaN at nodata, affine ``transform`` in ``src_crs``) to
-    ``grid`` by the max (``how="max"``) or min over the footprint of every target cell: each
-    source pixel whose footprint overlaps the target cell's footprint (by more than
-    :data:`OVERLAP_EPS_M`) counts, whatever the two resolutions, alignments and CRSs.
+    """Resample a raster to ``grid`` by the max or min over the footprint of every target cell.
 
-    Returns float64 ``grid.shape``: NaN where a cell overlaps a NaN pixel or no pixel at all (a
-    cell only partly over the raster takes the part it overlaps: pad the raster with NaN, as
-    :func:`read_window` does, to have such cells NaN).
+    Each source pixel whose footprint overlaps the target cell's footprint (by more than
+    :data:`OVERLAP_EPS_M`) counts, whatever the two resolutions, alignments and CRSs.
     Conservative for obstacles (``max``: no point of the cell is higher than its value) and
-    for grounds under a ceiling (``min``)."""
+    for grounds under a ceiling (``min``).
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        Source raster, shape ``(sy, sx)``, NaN at nodata.
+    transform : affine.Affine
+        The source raster's affine transform in ``src_crs``.
+    src_crs : pyproj.CRS, str or int
+        The source raster's CRS.
+    grid : Grid
+        Target grid.
+    how : {"max", "min"}, default "max"
+        Reduction over the overlapping pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``grid.shape`` ``(ny, nx)``: NaN where a cell overlaps a NaN pixel or no
+        pixel at all (a cell only partly over the raster takes the part it overlaps: pad the
+        raster with NaN, as :func:`read_window` does, to have such cells NaN).
+
+    Raises
+    ------
+    InputError
+        When ``how`` is neither ``"max"`` nor ``"min"``.
+    """
     from skyroute.stages.grid_kernels import box_kernel, footprint_kernel
 
     if how not in ("max", "min"):
@@ -287,8 +558,21 @@ def footprint_resample(values: np.ndarray, transform, src_crs, grid: Grid, how: 
 
 @dataclass(frozen=True)
 class SourceWindow:
-    """Band 1 of a raster (one file, a VRT or a list of tiles) read over a window [float64, NaN
-    at nodata]; ``inside``: pixel lies within the data's extent (a tile's bounds)."""
+    """Band 1 of a raster (one file, a VRT or a list of tiles) read over a window.
+
+    Attributes
+    ----------
+    values : numpy.ndarray
+        float64, shape ``(h, w)``, NaN at nodata, in the raster's units.
+    inside : numpy.ndarray of bool
+        Shape ``(h, w)``: pixel lies within the data's extent (a tile's bounds).
+    transform : affine.Affine
+        Affine transform of the window in ``crs``.
+    crs : pyproj.CRS
+        The raster's CRS.
+    full : bool
+        The window holds the whole extent (no hole can reach beyond it).
+    """
 
     values: np.ndarray
     inside: np.ndarray
@@ -316,10 +600,38 @@ def _open_all(paths, what: str):
 
 
 def read_window(path, grid: Grid, *, what: str, margin_px: int = 32, require_overlap: bool = True) -> SourceWindow:
-    """Read band 1 of ``path`` (a GeoTIFF, a VRT, or a list of tiles sharing CRS and pixel size)
-    over the window that covers ``grid`` plus ``margin_px`` pixels, at the native resolution,
-    without resampling.  Nodata -> NaN; pixels outside every tile are NaN with ``inside`` False.
-    Overlapping tiles: the highest value wins."""
+    """Read band 1 of ``path`` over the window that covers ``grid`` plus ``margin_px`` pixels.
+
+    At the native resolution, without resampling.  Nodata -> NaN; pixels outside every tile
+    are NaN with ``inside`` False.  Overlapping tiles: the highest value wins.
+
+    Parameters
+    ----------
+    path : str, pathlib.Path or list of them
+        A GeoTIFF, a VRT, or a list of tiles sharing CRS, pixel size and pixel lattice; north-up.
+    grid : Grid
+        The grid the window must cover.
+    what : str
+        Names the layer in error messages.
+    margin_px : int, default 32
+        Pixels read beyond the grid's footprint (never more than one pixel beyond the whole
+        extent).
+    require_overlap : bool, default True
+        A raster that does not intersect the grid is a :class:`DataError`.
+
+    Returns
+    -------
+    SourceWindow
+
+    Raises
+    ------
+    DataError
+        When no file is given, a file is missing or unreadable, the raster is not north-up, the
+        tiles differ in CRS, pixel size, orientation or lattice, or (``require_overlap``) the
+        raster does not intersect the grid.
+    CRSError
+        When the raster has no CRS.
+    """
     from pathlib import Path
 
     import rasterio.warp
@@ -395,11 +707,22 @@ NODATA_POLICIES = ("fill-max", "fill-nearest", "error")
 
 @dataclass(frozen=True)
 class Holes:
-    """NoData regions of a :class:`SourceWindow` (pixels inside the data's extent without a
-    value): ``labels`` (0 = data), per label the rim max/min [m] (the highest / lowest valid
-    8-neighbour, within the extent), whether it touches the extent's edge (``outside``: a pixel
-    outside the extent, e.g. a lidar tile's border) and whether it touches the border of a partial
-    window (``at_border``: read more to know its whole rim)."""
+    """NoData regions of a :class:`SourceWindow` (pixels inside the data's extent without a value).
+
+    Attributes
+    ----------
+    labels : numpy.ndarray of int
+        Shape of the window ``(h, w)``: region label per pixel (0 = data).
+    rim_max, rim_min : numpy.ndarray of float
+        Per label ``(n + 1,)``: the highest / lowest valid 8-neighbour within the extent [m];
+        -inf / inf for a region without any valid rim.
+    outside : numpy.ndarray of bool
+        Per label: the region touches the extent's edge (a pixel outside the extent, e.g. a
+        lidar tile's border).
+    at_border : numpy.ndarray of bool
+        Per label: the region touches the border of a partial window (read more to know its
+        whole rim).
+    """
 
     labels: np.ndarray
     rim_max: np.ndarray
@@ -409,15 +732,19 @@ class Holes:
 
     @property
     def fillable(self) -> np.ndarray:
-        """Per label: the region has a valid rim, so it can be filled (label 0 excluded)."""
+        """Per label: the region has a valid rim, so it can be filled (label 0 excluded); ``(n + 1,)`` bool.
+        """
         ok = np.isfinite(self.rim_max)
         ok[0] = False
         return ok
 
     @property
     def interior(self) -> np.ndarray:
-        """Pixels of the NoData regions that are filled (every region with a valid rim, whether
-        it touches the extent's edge or not)."""
+        """Pixels of the NoData regions that are filled.
+
+        Every region with a valid rim, whether it touches the extent's edge or not; bool, shape of
+        the window.
+        """
         return self.fillable[self.labels]
 
     @property
@@ -432,9 +759,21 @@ class Holes:
 
 
 def find_holes(win: SourceWindow) -> Holes:
-    """Connected (8-neighbour) NoData regions inside the extent of ``win`` and their rims (see
-    :class:`Holes`).  A region touching the extent's edge is still inside the extent: it is filled
-    from its rim within the extent (a lidar tile's holes over water or at its border)."""
+    """Connected (8-neighbour) NoData regions inside the extent of ``win`` and their rims.
+
+    A region touching the extent's edge is still inside the extent: it is filled from its rim
+    within the extent (a lidar tile's holes over water or at its border).
+
+    Parameters
+    ----------
+    win : SourceWindow
+        The window read by :func:`read_window`.
+
+    Returns
+    -------
+    Holes
+        The labelled regions (see :class:`Holes`).
+    """
     from scipy import ndimage
 
     nan = np.isnan(win.values) & win.inside
@@ -451,9 +790,32 @@ def find_holes(win: SourceWindow) -> Holes:
 
 
 def read_window_holes(path, grid: Grid, *, what: str, margin_px: int = 32) -> tuple[SourceWindow, Holes]:
-    """:func:`read_window` (at least ``margin_px`` beyond the grid) grown until no NoData region
-    reaches the window's border inside the extent, so each region's rim is known whole; and its
-    :func:`find_holes`."""
+    """:func:`read_window` grown until each NoData region's rim is known whole; and its :func:`find_holes`.
+
+    The window starts at least ``margin_px`` beyond the grid and grows (x4) until no NoData
+    region reaches the window's border inside the extent.
+
+    Parameters
+    ----------
+    path : str, pathlib.Path or list of them
+        As in :func:`read_window`.
+    grid : Grid
+        The grid the window must cover.
+    what : str
+        Names the layer in error messages.
+    margin_px : int, default 32
+        Initial margin [px] (at least 1).
+
+    Returns
+    -------
+    win : SourceWindow
+    holes : Holes
+
+    Raises
+    ------
+    DataError, CRSError
+        As :func:`read_window`.
+    """
     margin = max(int(margin_px), 1)
     while True:
         win = read_window(path, grid, what=what, margin_px=margin)
@@ -464,11 +826,31 @@ def read_window_holes(path, grid: Grid, *, what: str, margin_px: int = 32) -> tu
 
 
 def fill_holes(win: SourceWindow, holes: Holes, how: str) -> np.ndarray:
-    """``win.values`` with every NoData region inside the extent filled (also those touching the
-    extent's edge): ``"fill-max"`` (the highest valid height on its rim within the extent),
-    ``"fill-min"`` (the lowest; for grounds under a ceiling) or ``"fill-nearest"`` (each pixel
-    the nearest valid pixel).  Pixels outside the extent (and regions without any valid rim)
-    stay NaN."""
+    """``win.values`` with every NoData region inside the extent filled (also those touching its edge).
+
+    Pixels outside the extent (and regions without any valid rim) stay NaN.
+
+    Parameters
+    ----------
+    win : SourceWindow
+        The window.
+    holes : Holes
+        Its NoData regions (:func:`find_holes`).
+    how : {"fill-max", "fill-min", "fill-nearest"}
+        ``"fill-max"``: the highest valid height on its rim within the extent; ``"fill-min"``:
+        the lowest (for grounds under a ceiling); ``"fill-nearest"``: each pixel the nearest
+        valid pixel.
+
+    Returns
+    -------
+    numpy.ndarray
+        A filled copy of ``win.values``, shape ``(h, w)``.
+
+    Raises
+    ------
+    InputError
+        When ``how`` is not a fill policy.
+    """
     v = win.values.copy()
     interior = holes.interior
     if not interior.any():
@@ -501,10 +883,32 @@ def _inside_box(win: SourceWindow, grid: Grid) -> tuple[float, float, float, flo
 
 def coverage_problem(win: SourceWindow, holes: Holes, grid: Grid, *, what: str, key: str,
                      holes_allowed: bool = True) -> str | None:
-    """The message for AOI cells the raster cannot give (None if every cell is covered): cells
-    outside the data's extent are refused with the ``aoi.bounds`` that would fit (the AOI within
-    the raster, in the grid's CRS); cells over NoData regions inside the extent are refused only
-    when ``holes_allowed`` is False (``nodata: error``)."""
+    """The message for AOI cells the raster cannot give (None if every cell is covered).
+
+    Cells outside the data's extent are refused with the ``aoi.bounds`` that would fit (the AOI
+    within the raster, in the grid's CRS); cells over NoData regions inside the extent are
+    refused only when ``holes_allowed`` is False (``nodata: error``).
+
+    Parameters
+    ----------
+    win : SourceWindow
+        The window read over the grid.
+    holes : Holes
+        Its NoData regions.
+    grid : Grid
+        The AOI grid.
+    what : str
+        Names the layer in the message.
+    key : str
+        The settings key the message starts with.
+    holes_allowed : bool, default True
+        NoData regions inside the extent are acceptable (they are filled).
+
+    Returns
+    -------
+    str or None
+        One error message saying what is wrong and how to fix it, or None.
+    """
     outside_px = np.isnan(win.values) & ~holes.interior
     out_cells = np.isnan(footprint_resample(np.where(outside_px, np.nan, 0.0), win.transform, win.crs, grid))
     if out_cells.any():
@@ -530,7 +934,24 @@ def coverage_problem(win: SourceWindow, holes: Holes, grid: Grid, *, what: str, 
 
 
 def regions_in_aoi(win: SourceWindow, holes: Holes, grid: Grid) -> tuple[int, int]:
-    """(filled NoData regions with a pixel under the AOI, how many of them touch the extent's edge)."""
+    """(filled NoData regions with a pixel under the AOI, how many of them touch the extent's edge).
+
+    Parameters
+    ----------
+    win : SourceWindow
+        The window.
+    holes : Holes
+        Its NoData regions.
+    grid : Grid
+        The AOI grid.
+
+    Returns
+    -------
+    n_regions : int
+        Filled NoData regions with a pixel under the AOI's bounding box.
+    n_edge : int
+        How many of them touch the extent's edge.
+    """
     from rasterio.warp import transform_bounds
 
     t = win.transform
@@ -543,7 +964,22 @@ def regions_in_aoi(win: SourceWindow, holes: Holes, grid: Grid) -> tuple[int, in
 
 
 def filled_share(win: SourceWindow, holes: Holes, grid: Grid) -> float:
-    """Share [0..1] of the AOI cells that overlap a filled NoData pixel."""
+    """Share [0..1] of the AOI cells that overlap a filled NoData pixel.
+
+    Parameters
+    ----------
+    win : SourceWindow
+        The window.
+    holes : Holes
+        Its NoData regions.
+    grid : Grid
+        The AOI grid.
+
+    Returns
+    -------
+    float
+        Share of the cells, 0..1.
+    """
     if not holes.interior.any():
         return 0.0
     return float(np.isnan(footprint_resample(np.where(holes.interior, np.nan, 0.0), win.transform, win.crs,
@@ -557,6 +993,21 @@ def ring_cells(xs: np.ndarray, ys: np.ndarray, offsets: np.ndarray, grid: Grid
     Rings are given flat: vertices ``xs[offsets[k]:offsets[k+1]]`` (map coordinates [m], not
     closed) form ring k.  A compiled scanline fill: millions of small polygons (CityJSON
     surfaces) in well under a second, where a Python loop over rasterio calls takes minutes.
+
+    Parameters
+    ----------
+    xs, ys : numpy.ndarray
+        Vertex map coordinates [m] in the grid's CRS, shape ``(n_vertices,)``.
+    offsets : numpy.ndarray of int
+        Shape ``(n_rings + 1,)``: ring k's vertices are ``offsets[k]:offsets[k+1]``.
+    grid : Grid
+        The grid whose cell centres are tested.
+
+    Returns
+    -------
+    ring, row, col : numpy.ndarray of int64
+        One entry per (ring, cell) pair, shape ``(n,)``; empty when ``offsets`` has fewer than
+        two entries.
     """
     xs = np.ascontiguousarray(xs, np.float64)
     ys = np.ascontiguousarray(ys, np.float64)

@@ -119,7 +119,19 @@ _NUM = re.compile(r"^\s*([0-9]*[.,]?[0-9]+)\s*(m|metres|meters|ft|feet|')?\s*$",
 
 
 def parse_height_m(text: str) -> float | None:
-    """A height tag in metres: ``"12"``, ``"12.5 m"``, ``"40 ft"``; None if unparsable."""
+    """A height tag in metres: ``"12"``, ``"12.5 m"``, ``"40 ft"``; None if unparsable.
+
+    Parameters
+    ----------
+    text : str
+        The tag value; units ``m``/``metres``/``meters`` (default) or ``ft``/``feet``/``'``; a
+        decimal comma is understood.
+
+    Returns
+    -------
+    float or None
+        The height [m], or None when ``text`` is empty or unparsable.
+    """
     m = _NUM.match(text or "")
     if not m:
         return None
@@ -129,7 +141,25 @@ def parse_height_m(text: str) -> float | None:
 
 
 def osm_building_height(tags: dict[str, str], storey_height_m: float = STOREY_HEIGHT_M) -> tuple[float, str]:
-    """(height [m], source) of an OSM building from its tags (see module docstring)."""
+    """(height [m], source) of an OSM building from its tags (see module docstring).
+
+    ``height``, else (``building:levels`` + ``roof:levels``) x ``storey_height_m``, else the default
+    for its ``building=*`` type in :data:`DEFAULT_HEIGHT_BY_TYPE_M`.
+
+    Parameters
+    ----------
+    tags : dict of str to str
+        The OSM tags of the building (or building part).
+    storey_height_m : float, default :data:`STOREY_HEIGHT_M`
+        Height of one storey [m].
+
+    Returns
+    -------
+    height_m : float
+        Building height above ground [m].
+    source : str
+        ``"height"``, ``"levels"`` or ``"default:<building type>"``.
+    """
     h = parse_height_m(tags.get("height", "")) if "height" in tags else None
     if h is not None and h > 0:
         return h, "height"
@@ -145,8 +175,29 @@ def osm_building_height(tags: dict[str, str], storey_height_m: float = STOREY_HE
 class BuildingRaster:
     """Rasterised buildings: ``top`` [m] (NaN where none), ``index`` (-1 where none) and a table.
 
-    ``terrain`` [m] (CityJSON with a ``TINRelief`` only): the TIN's maximum over each cell, NaN
-    where the TIN does not reach the cell; None otherwise."""
+    Attributes
+    ----------
+    top : numpy.ndarray
+        ``(ny, nx)``: highest building point over each cell [m], NaN where none.
+    index : numpy.ndarray of int32
+        ``(ny, nx)``: index into the building table, -1 where none.
+    ids : numpy.ndarray of int64
+        ``(n_buildings,)``: OSM id (CityJSON: index).
+    heights_m : numpy.ndarray
+        ``(n_buildings,)``: building height [m] (above ground for OSM, absolute roof top for
+        CityJSON).
+    sources : numpy.ndarray of str
+        ``(n_buildings,)``: where each height comes from.
+    absolute : bool
+        True: ``top`` is an absolute height; False: height above ground.
+    terrain : numpy.ndarray or None
+        CityJSON with a ``TINRelief`` only: the TIN's maximum over each cell [m], NaN where the
+        TIN does not reach the cell; None otherwise.
+    terrain_min : numpy.ndarray or None
+        The TIN's minimum over each cell [m].
+    tin_full : numpy.ndarray of bool or None
+        Cells the TIN covers whole.
+    """
 
     top: np.ndarray
     index: np.ndarray
@@ -302,16 +353,31 @@ def _polygon_max_kernel(xs, ys, zs, ring_off, poly_off, owner, x0, y1, res, top,
 
 
 def polygon_max(polygons, grid: Grid, owner=None) -> tuple[np.ndarray, np.ndarray]:
-    """Rasterise 3-D polygons conservatively: each cell of ``grid`` takes the highest point [m] of
-    every polygon over the cell's closed square (NaN where no polygon touches it) and the
-    ``owner`` (default: polygon number; -1 where none) of the polygon giving that maximum.
+    """Rasterise 3-D polygons conservatively: each cell takes the highest point [m] of every polygon over it.
 
-    ``polygons``: a sequence of polygons, each a sequence of rings (the first the outer one, then
-    holes), each ring an ``(n, 3)`` array of map x, y [m] and z [m] (not closed; a flat footprint
-    has a constant z).  Planes, deviations and the candidate points are described in
-    :func:`_polygon_max_kernel`; a compiled kernel visits each polygon's vertices, its edges'
-    grid-line crossings and its interior cell corners, so the cost grows with the polygons'
-    perimeter and area in cells, not with the grid.
+    Each cell of ``grid`` takes the highest point of every polygon over the cell's closed square
+    (NaN where no polygon touches it) and the ``owner`` of the polygon giving that maximum.
+    Planes, deviations and the candidate points are described in :func:`_polygon_max_kernel`; a
+    compiled kernel visits each polygon's vertices, its edges' grid-line crossings and its interior
+    cell corners, so the cost grows with the polygons' perimeter and area in cells, not with the
+    grid.
+
+    Parameters
+    ----------
+    polygons : sequence of sequence of array_like
+        Each polygon a sequence of rings (the first the outer one, then holes), each ring an
+        ``(n, 3)`` array of map x, y [m] and z [m] (not closed; a flat footprint has a constant z).
+    grid : Grid
+        The grid.
+    owner : array_like of int, optional
+        Per polygon, the value written to ``index``; default: the polygon number.
+
+    Returns
+    -------
+    top : numpy.ndarray
+        float64 ``(ny, nx)``: highest point over each cell [m], NaN where no polygon touches it.
+    index : numpy.ndarray of int32
+        ``(ny, nx)``: ``owner`` of the polygon giving ``top``, -1 where none.
     """
     rings = [np.asarray(r, np.float64).reshape(-1, 3) for poly in polygons for r in poly]
     if not rings:
@@ -345,8 +411,30 @@ def _to_grid_geoms(geoms, src_crs: CRS, grid: Grid):
 
 
 def osm_buildings(path: str | Path, grid: Grid, storey_height_m: float = STOREY_HEIGHT_M) -> BuildingRaster:
-    """Rasterise the building footprints of an OSM extract with their heights above ground
-    (every cell touched by a footprint, the highest building where several touch it)."""
+    """Rasterise the building footprints of an OSM extract with their heights above ground.
+
+    Every cell touched by a footprint takes its height, the highest building where several touch
+    it (:func:`polygon_max`); heights from :func:`osm_building_height`.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        OSM extract (WGS 84).
+    grid : Grid
+        The grid.
+    storey_height_m : float, default :data:`STOREY_HEIGHT_M`
+        Height of one storey [m].
+
+    Returns
+    -------
+    BuildingRaster
+        With ``absolute=False`` (heights above ground).
+
+    Raises
+    ------
+    DataError
+        When the OSM file is missing or unreadable.
+    """
     feats = [f for f in read_osm(path, keys=["building", "building:part"]) if f.kind == "area"]
     xmin, ymin, xmax, ymax = grid.bounds
     ids, hs, srcs, geoms = [], [], [], []
@@ -383,12 +471,31 @@ def _rasterize_flat(grid: Grid, geoms, heights, ids, sources, absolute: bool) ->
 
 
 def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np.ndarray]:
-    """Rasterise CityJSON Building/BuildingPart roofs (absolute heights [m]) on ``grid``: each cell
-    takes the highest point of every roof face over the cell (:func:`polygon_max`).
+    """Rasterise CityJSON Building/BuildingPart roofs (absolute heights [m]) on ``grid``.
 
-    Returns the raster and ground points ``(n, 3)`` (x, y, z in the grid CRS) for terrain; a
-    ``TINRelief`` gives ``raster.terrain`` (its maximum over each cell) and its vertices as ground
-    points as well.  Reading and face classification: :func:`skyroute.stages.cityjson.read_buildings`.
+    Each cell takes the highest point of every roof face over the cell (:func:`polygon_max`).
+    Reading and face classification: :func:`skyroute.stages.cityjson.read_buildings`.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        CityJSON file.
+    grid : Grid
+        The grid (the file's vertices are transformed to its CRS).
+
+    Returns
+    -------
+    raster : BuildingRaster
+        With ``absolute=True``; a ``TINRelief`` gives ``raster.terrain`` (its maximum over each
+        cell), ``raster.terrain_min`` and ``raster.tin_full``.
+    ground_points : numpy.ndarray
+        ``(n, 3)`` ground points (x, y, z [m] in the grid CRS) for terrain; a ``TINRelief``'s
+        vertices are among them.
+
+    Raises
+    ------
+    DataError
+        When the file is missing, not CityJSON, or has no readable reference system.
     """
     b = read_buildings(path, grid.crs, steep_nz=_STEEP_NZ)
     V, faces = b.vertices_m, b.faces
@@ -424,16 +531,34 @@ def _covered_cells(polys, grid: Grid) -> np.ndarray:
 
 def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None = None, *,
                         lowest: bool = False, tin_full: np.ndarray | None = None) -> np.ndarray:
-    """Terrain [m] from scattered ground points ``(n, 3)``: linear on their Delaunay triangles, each
-    cell the maximum of that surface over the cell (:func:`polygon_max`; conservative for floors,
-    like the surface); cells outside the points' hull take the nearest point's height.
-    ``lowest``: the minimum over each cell instead (for maximum-AGL ceilings; the same kernel on
-    the negated heights, exact for the linear interpolation).
+    """Terrain [m] from scattered ground points: linear on their Delaunay triangles, maximum over each cell.
 
-    ``tin`` (CityJSON ``TINRelief``: its maximum over each cell, :attr:`BuildingRaster.terrain`,
-    or with ``lowest`` its minimum, :attr:`BuildingRaster.terrain_min`): the ground where it
-    covers the cell whole (``tin_full``; every cell it touches when None); a cell it covers in
-    part takes the higher (``lowest``: the lower) of the TIN and the interpolation."""
+    Each cell the maximum of that surface over the cell (:func:`polygon_max`; conservative for
+    floors, like the surface); cells outside the points' hull take the nearest point's height.
+
+    Parameters
+    ----------
+    points : numpy.ndarray
+        ``(n, 3)`` ground points, map x, y [m] and height z [m].
+    grid : Grid
+        The grid.
+    tin : numpy.ndarray, optional
+        ``(ny, nx)``, CityJSON ``TINRelief``: its maximum over each cell,
+        :attr:`BuildingRaster.terrain`, or with ``lowest`` its minimum,
+        :attr:`BuildingRaster.terrain_min`: the ground where it covers the cell whole
+        (``tin_full``; every cell it touches when None); a cell it covers in part takes the higher
+        (``lowest``: the lower) of the TIN and the interpolation.
+    lowest : bool, default False
+        The minimum over each cell instead (for maximum-AGL ceilings; the same kernel on the
+        negated heights, exact for the linear interpolation).
+    tin_full : numpy.ndarray of bool, optional
+        ``(ny, nx)``: cells the TIN covers whole.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ``(ny, nx)`` terrain [m]; 0 everywhere when there are no points and no ``tin``.
+    """
     if lowest:
         pts = np.asarray(points, np.float64).reshape(-1, 3) * np.array([1.0, 1.0, -1.0])
         return -terrain_from_points(pts, grid, None if tin is None else -np.asarray(tin), tin_full=tin_full)
@@ -468,12 +593,25 @@ def terrain_from_points(points: np.ndarray, grid: Grid, tin: np.ndarray | None =
 
 
 def dem_sample_offset_px(path) -> tuple[float, str]:
-    """Where the samples of a DEM sit, in pixels from the corner of the pixel the geotransform
-    gives, and a text for the attrs: GDAL's geotransform always describes pixel areas and moves a
-    ``PixelIsPoint`` tie point by half a pixel (RFC 33), so the samples sit at the pixel centres
-    (0.5) for ``AREA_OR_POINT=Area`` and ``Point`` alike -- unless GDAL is told to ignore that
-    (``GTIFF_POINT_GEO_IGNORE=TRUE``): then the samples of a ``Point`` raster sit at the corners
-    (0.0)."""
+    """Where the samples of a DEM sit, in pixels from the corner of the pixel, and a text for the attrs.
+
+    GDAL's geotransform always describes pixel areas and moves a ``PixelIsPoint`` tie point by half
+    a pixel (RFC 33), so the samples sit at the pixel centres (0.5) for ``AREA_OR_POINT=Area`` and
+    ``Point`` alike -- unless GDAL is told to ignore that (``GTIFF_POINT_GEO_IGNORE=TRUE``): then
+    the samples of a ``Point`` raster sit at the corners (0.0).
+
+    Parameters
+    ----------
+    path : str, pathlib.Path or list of them
+        The DEM (for a list of tiles, the first is read).
+
+    Returns
+    -------
+    offset_px : float
+        0.5 (pixel centres) or 0.0 (corners) [px].
+    reading : str
+        How the samples were read, for the attrs.
+    """
     import os
 
     import rasterio
@@ -490,14 +628,41 @@ def dem_sample_offset_px(path) -> tuple[float, str]:
 
 def patch_resample(values: np.ndarray, transform, crs, grid: Grid, how: str = "max", offset_px: float = 0.5
                    ) -> np.ndarray:
-    """A sampled surface (``values``: samples of a continuous surface, NaN where none, at
-    ``transform * (j + offset_px, i + offset_px)``) on ``grid`` [m]: ``how="max"`` gives each cell
-    the highest sample of every lattice square (four neighbouring samples) that overlaps the cell,
-    ``"min"`` the lowest.  Any surface that stays between the lowest and the highest sample of
-    each lattice square (bilinear, either triangulation of the square, nearest sample, ...)
-    therefore lies within ``[min, max]`` at every point of the cell.  NaN samples take the value
-    of the nearest sample first (the surface is extended as a constant beyond the outer samples:
-    callers refuse cells outside the data's extent)."""
+    """A sampled surface on ``grid`` [m]: each cell the max (min) over the lattice squares touching it.
+
+    ``how="max"`` gives each cell the highest sample of every lattice square (four neighbouring
+    samples) that overlaps the cell, ``"min"`` the lowest.  Any surface that stays between the
+    lowest and the highest sample of each lattice square (bilinear, either triangulation of the
+    square, nearest sample, ...) therefore lies within ``[min, max]`` at every point of the cell.
+    NaN samples take the value of the nearest sample first (the surface is extended as a constant
+    beyond the outer samples: callers refuse cells outside the data's extent).
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        ``(sy, sx)`` samples of a continuous surface [m], NaN where none, at
+        ``transform * (j + offset_px, i + offset_px)``.
+    transform : affine.Affine
+        Affine transform of the sample raster in ``crs``.
+    crs : pyproj.CRS, str or int
+        CRS of the samples.
+    grid : Grid
+        Target grid.
+    how : {"max", "min"}, default "max"
+        Reduction.
+    offset_px : float, default 0.5
+        Sample position within its pixel [px] (:func:`dem_sample_offset_px`).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ``(ny, nx)`` [m]; all NaN when every sample is NaN.
+
+    Raises
+    ------
+    InputError
+        When ``how`` is neither ``"max"`` nor ``"min"``.
+    """
     if how not in ("max", "min"):
         raise InputError(f"patch resampling {how!r} must be 'max' or 'min'")
     v = np.asarray(values, dtype=np.float64)
@@ -519,8 +684,19 @@ def patch_resample(values: np.ndarray, transform, crs, grid: Grid, how: str = "m
 
 @dataclass(frozen=True)
 class DemRaster:
-    """A DEM on the grid: ``terrain`` / ``terrain_min`` [m] (highest / lowest sample of every
-    lattice square touching the cell), ``notes`` for the attrs and ``warnings``."""
+    """A DEM on the grid (see :func:`terrain_from_dem`).
+
+    Attributes
+    ----------
+    terrain : numpy.ndarray
+        ``(ny, nx)``: highest sample of every lattice square touching the cell [m].
+    terrain_min : numpy.ndarray
+        ``(ny, nx)``: lowest sample of every lattice square touching the cell [m].
+    notes : str
+        How the DEM was read, for the attrs.
+    warnings : tuple of str
+        Stage warnings (NoData regions filled).
+    """
 
     terrain: np.ndarray
     terrain_min: np.ndarray
@@ -529,16 +705,38 @@ class DemRaster:
 
 
 def terrain_from_dem(path: str | Path | list, grid: Grid, *, key: str = "data.terrain") -> DemRaster:
-    """A DEM (GeoTIFF, VRT or list of tiles) on ``grid`` [m], read as the continuous surface
-    through its samples (not as flat-topped squares): ``terrain`` is the highest sample of every
-    lattice square (four neighbouring samples) that overlaps the cell (minimum-AGL floors), and
-    ``terrain_min`` the lowest (maximum-AGL ceilings), :func:`patch_resample`; between two samples
-    the ground can be as high as the higher of them.  The samples sit at the pixel centres, or at
-    the corners for a ``Point`` raster GDAL reads without its half-pixel shift
-    (:func:`dem_sample_offset_px`).  NoData regions inside the DEM's extent (also those touching
-    its edge) take the highest (for ``terrain``) / lowest (for ``terrain_min``) valid height on
-    their rim, with a warning giving the share of the AOI filled; AOI cells outside the extent
-    are an error that says which ``aoi.bounds`` fit (``key`` names the scenario entry)."""
+    """A DEM (GeoTIFF, VRT or list of tiles) on ``grid`` [m], read as the continuous surface through its samples.
+
+    Not as flat-topped squares: ``terrain`` is the highest sample of every lattice square (four
+    neighbouring samples) that overlaps the cell (minimum-AGL floors), and ``terrain_min`` the
+    lowest (maximum-AGL ceilings), :func:`patch_resample`; between two samples the ground can be as
+    high as the higher of them.  The samples sit at the pixel centres, or at the corners for a
+    ``Point`` raster GDAL reads without its half-pixel shift (:func:`dem_sample_offset_px`).
+    NoData regions inside the DEM's extent (also those touching its edge) take the highest (for
+    ``terrain``) / lowest (for ``terrain_min``) valid height on their rim, with a warning giving
+    the share of the AOI filled.
+
+    Parameters
+    ----------
+    path : str, pathlib.Path or list
+        The DEM: a GeoTIFF, a VRT or a list of tiles.
+    grid : Grid
+        The grid.
+    key : str, default "data.terrain"
+        Names the scenario entry in messages.
+
+    Returns
+    -------
+    DemRaster
+
+    Raises
+    ------
+    DataError
+        When AOI cells are outside the DEM's extent (the message says which ``aoi.bounds`` fit),
+        or the file is missing or unreadable.
+    CRSError
+        When the DEM has no CRS.
+    """
     win, holes = read_window_holes(path, grid, what="terrain DEM")
     msg = coverage_problem(win, holes, grid, what="terrain DEM", key=key)
     if msg:
@@ -567,9 +765,26 @@ BUILDING_THRESHOLD_M = 2.5
 
 @dataclass(frozen=True)
 class DsmRaster:
-    """A DSM on the grid: ``surface`` (footprint max) [m]; ``ground`` / ``ground_min`` (footprint
-    max / min of the derived ground, None when not derived); ``building`` (every point of the cell
-    higher than ground + threshold); ``n_holes`` filled; ``notes`` for the attrs."""
+    """A DSM on the grid (see :func:`dsm_on_grid`).
+
+    Attributes
+    ----------
+    surface : numpy.ndarray
+        ``(ny, nx)``: footprint max of the DSM [m].
+    surface_min : numpy.ndarray
+        ``(ny, nx)``: footprint min of the DSM [m].
+    ground, ground_min : numpy.ndarray or None
+        ``(ny, nx)``: footprint max / min of the derived ground [m], None when not derived.
+    building : numpy.ndarray of bool or None
+        ``(ny, nx)``: every point of the cell higher than ground + threshold; None when the
+        ground is not derived.
+    n_holes : int
+        NoData regions filled (under the AOI).
+    notes : str
+        How the DSM was read, for the attrs.
+    warnings : tuple of str
+        Stage warnings (NoData regions filled).
+    """
 
     surface: np.ndarray
     surface_min: np.ndarray
@@ -582,12 +797,33 @@ class DsmRaster:
 
 
 def ground_from_dsm(dsm: np.ndarray, pixel_m: float, window_m: float = GROUND_WINDOW_M) -> np.ndarray:
-    """Bare ground [m] under a DSM (square pixels of ``pixel_m`` [m]; NaN pixels take no part and
-    stay NaN): the grey opening (erosion then dilation, :func:`scipy.ndimage.grey_erosion` /
-    ``grey_dilation``) with a square window of side ``window_m`` [m] (odd number of pixels).  Every object narrower than the window in some
-    direction (buildings, trees, masts) is removed; the result is never above the DSM.  Buildings
-    wider than the window stay (their roof is taken as ground), hill tops and ridges narrower than
-    the window are lowered by the opening."""
+    """Bare ground [m] under a DSM: its grey opening with a square window of side ``window_m`` [m].
+
+    Erosion then dilation (:func:`scipy.ndimage.grey_erosion` / ``grey_dilation``) with a square
+    window of an odd number of pixels.  Every object narrower than the window in some direction
+    (buildings, trees, masts) is removed; the result is never above the DSM.  Buildings wider than
+    the window stay (their roof is taken as ground), hill tops and ridges narrower than the window
+    are lowered by the opening.
+
+    Parameters
+    ----------
+    dsm : numpy.ndarray
+        2-D DSM [m], square pixels; NaN pixels take no part and stay NaN.
+    pixel_m : float
+        Pixel side [m].
+    window_m : float, default :data:`GROUND_WINDOW_M`
+        Window side [m], wider than the largest building.
+
+    Returns
+    -------
+    numpy.ndarray
+        The ground [m], same shape as ``dsm``.
+
+    Raises
+    ------
+    InputError
+        When ``window_m`` is not a positive finite number.
+    """
     if not (np.isfinite(window_m) and window_m > 0):
         raise InputError(f"ground window {window_m} m must be positive (wider than the largest building)")
     k = int(np.ceil(window_m / pixel_m)) | 1
@@ -605,12 +841,45 @@ def ground_from_dsm(dsm: np.ndarray, pixel_m: float, window_m: float = GROUND_WI
 def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bool = True,
                 ground_window_m: float = GROUND_WINDOW_M, building_threshold_m: float = BUILDING_THRESHOLD_M,
                 key: str = "data.surface") -> DsmRaster:
-    """A DSM (GeoTIFF, VRT or list of tiles, read by window at its native resolution) on ``grid``:
-    NoData holes inside the extent follow ``nodata`` (``fill-max``: each connected hole the
-    highest valid height on its rim; ``fill-nearest``; ``error``), then the max over every cell's
-    footprint; with ``derive_ground`` also the ground (:func:`ground_from_dsm`, then footprint max
-    and min) and the building mask (cells all of whose DSM pixels are more than
-    ``building_threshold_m`` above the derived ground); ``surface_min``: the DSM's footprint min."""
+    """A DSM (GeoTIFF, VRT or list of tiles, read by window at its native resolution) on ``grid``.
+
+    NoData holes inside the extent follow ``nodata``, then the max over every cell's footprint;
+    with ``derive_ground`` also the ground (:func:`ground_from_dsm`, then footprint max and min)
+    and the building mask (cells all of whose DSM pixels are more than ``building_threshold_m``
+    above the derived ground); ``surface_min``: the DSM's footprint min.
+
+    Parameters
+    ----------
+    path : str, pathlib.Path or list of them
+        The DSM: a GeoTIFF, a VRT or a list of tiles.
+    grid : Grid
+        The grid.
+    nodata : {"fill-max", "fill-nearest", "error"}, default "fill-max"
+        ``fill-max``: each connected hole the highest valid height on its rim; ``fill-nearest``:
+        each pixel the nearest valid one; ``error``: holes under the AOI are refused.
+    derive_ground : bool, default True
+        Derive the ground and the building mask from the DSM.
+    ground_window_m : float, default :data:`GROUND_WINDOW_M`
+        Window side of the grey opening [m].
+    building_threshold_m : float, default :data:`BUILDING_THRESHOLD_M`
+        Height above the derived ground from which a pixel counts as a building [m].
+    key : str, default "data.surface"
+        Names the scenario entry in messages.
+
+    Returns
+    -------
+    DsmRaster
+
+    Raises
+    ------
+    InputError
+        When ``nodata`` is not one of :data:`~skyroute.stages.grid.NODATA_POLICIES`.
+    DataError
+        When AOI cells are outside the DSM's extent, or over NoData with ``nodata="error"``, or
+        the file is missing or unreadable.
+    CRSError
+        When the DSM has no CRS.
+    """
     if nodata not in NODATA_POLICIES:
         raise InputError(f"{key}.nodata: {nodata!r} is not one of {', '.join(NODATA_POLICIES)}")
     win, holes = read_window_holes(path, grid, what="surface DSM")
@@ -646,13 +915,28 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
 def burn_obstacles(surface: np.ndarray, terrain: np.ndarray, grid: Grid, obstacles) -> np.ndarray:
     """The surface [m] with static obstacles (e.g. cranes) burnt in, conservatively.
 
-    ``obstacles``: a sequence of ``(polygon, height_agl_m)``, the polygon an ``(k, 2)`` array of
-    map x, y [m] (not closed), the height [m] above the ground.  Every cell whose closed square
-    the polygon touches (:func:`polygon_max`: a corner or an edge counts) takes
-    ``max(surface, top)`` with ``top`` = the highest ``terrain`` [m] (cell maxima) over all the
-    cells the polygon touches + ``height_agl_m``: a rigid structure may stand on the highest
-    ground under it.  ``surface`` and ``terrain``: ``grid.shape`` arrays; returns a new array
-    (float64)."""
+    Every cell whose closed square the polygon touches (:func:`polygon_max`: a corner or an edge
+    counts) takes ``max(surface, top)`` with ``top`` = the highest ``terrain`` [m] (cell maxima)
+    over all the cells the polygon touches + ``height_agl_m``: a rigid structure may stand on the
+    highest ground under it.  An obstacle outside the grid changes nothing.
+
+    Parameters
+    ----------
+    surface : numpy.ndarray
+        ``grid.shape`` ``(ny, nx)`` surface [m].
+    terrain : numpy.ndarray
+        ``grid.shape`` ``(ny, nx)`` terrain [m] (cell maxima).
+    grid : Grid
+        The grid.
+    obstacles : sequence of (array_like, float)
+        ``(polygon, height_agl_m)``: the polygon an ``(k, 2)`` array of map x, y [m] (not
+        closed), the height [m] above the ground.
+
+    Returns
+    -------
+    numpy.ndarray
+        A new float64 ``(ny, nx)`` array [m].
+    """
     out = np.array(surface, dtype=np.float64)
     terrain = np.asarray(terrain, dtype=np.float64)
     for polygon, height_agl_m in obstacles:
@@ -671,14 +955,55 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
                   vertical_datum: str | None = None, surface_path=None, surface_datum: str | None = None,
                   surface_nodata: str = "fill-max", ground_window_m: float = GROUND_WINDOW_M,
                   building_threshold_m: float = BUILDING_THRESHOLD_M) -> xr.Dataset:
-    """Digital surface model of ``grid`` from buildings (OSM or CityJSON), terrain (a DEM) and/or
-    a DSM (``surface_path``: GeoTIFF, VRT or list of tiles; heights in ``surface_datum``).
+    """Digital surface model of ``grid`` from buildings (OSM or CityJSON), terrain (a DEM) and/or a DSM.
 
-    Returns a Dataset with ``terrain`` (ground: max over the cell), ``terrain_min`` (ground: min
-    over the cell), ``surface`` (max of the DSM and the buildings over the cell), ``building_id``
-    and a building table; with a DSM also ``dsm_building``.  Ground: the DEM if given, else the
-    DSM's ground (:func:`ground_from_dsm`; said in the attrs and in ``warnings``), else CityJSON
-    ground points, else flat 0 m.  See the module docstring for the rules and the vertical datum.
+    Ground: the DEM if given, else the DSM's ground (:func:`ground_from_dsm`; said in the attrs and
+    in ``warnings``), else CityJSON ground points, else flat 0 m.  See the module docstring for the
+    rules and the vertical datum.
+
+    Parameters
+    ----------
+    grid : Grid
+        The scenario grid.
+    buildings_path : str or pathlib.Path, optional
+        OSM extract or CityJSON file.
+    buildings_format : {"osm", "cityjson"}, optional
+        Format of ``buildings_path`` (default OSM).
+    storey_height_m : float, default :data:`STOREY_HEIGHT_M`
+        Height of one storey for OSM ``building:levels`` [m].
+    terrain_path : str, pathlib.Path or list, optional
+        DEM: GeoTIFF, VRT or list of tiles.
+    vertical_datum : str, optional
+        Vertical datum of the DEM (default "EGM96 geoid" with a DEM).
+    surface_path : str, pathlib.Path or list, optional
+        DSM: GeoTIFF, VRT or list of tiles; heights in ``surface_datum``.
+    surface_datum : str, optional
+        Vertical datum of the DSM; required with ``surface_path`` and equal to
+        ``vertical_datum`` when both are given.
+    surface_nodata : str, default "fill-max"
+        NoData policy of the DSM (see :func:`dsm_on_grid`).
+    ground_window_m : float, default :data:`GROUND_WINDOW_M`
+        Window side of the grey opening deriving the ground from a DSM without DEM [m].
+    building_threshold_m : float, default :data:`BUILDING_THRESHOLD_M`
+        Height above ground from which a DSM cell counts as a building [m].
+
+    Returns
+    -------
+    xarray.Dataset
+        On ``grid``: ``terrain`` [m] (ground: max over the cell), ``terrain_min`` [m] (ground: min
+        over the cell), ``surface`` [m] (max of the DSM and the buildings over the cell),
+        ``building_id`` and a building table (``building_osm_id``, ``building_height_m``,
+        ``building_height_source``); with a DSM also ``dsm_building``.  Attrs: ``vertical_datum``,
+        ``ground_source``, ``warnings`` (JSON list) when any.
+
+    Raises
+    ------
+    InputError
+        When ``buildings_format`` is unknown, the two vertical datums differ, or a DSM comes without
+        ``surface_datum``.
+    DataError
+        When the AOI does not intersect any building of ``buildings_path``, or a raster does not
+        cover the AOI, or a file is missing or unreadable.
     """
     if buildings_format not in (None, "osm", "cityjson"):
         raise InputError(f"unknown buildings format {buildings_format!r}; use 'osm' or 'cityjson'")

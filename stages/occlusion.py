@@ -428,11 +428,11 @@ def _direction_geometry(az_grid_deg: float, el_deg: float, cell_m: float):
 
 def occluder_window(rows, cols, z_min_m: float, h_max_m: float, az_grid_deg: float, el_deg: float,
                     cell_m: float, shape: tuple[int, int]) -> tuple[int, int, int, int]:
-    """Bounds ``(r0, r1, c0, c1)`` (rows ``r0:r1``, columns ``c0:c1`` of a map of ``shape``) of
-    the cells that can decide whether points at altitudes >= ``z_min_m`` [m] in the cells
-    ``(rows, cols)`` see the satellite (grid azimuth / elevation [deg]) when every height of
-    the map is <= ``h_max_m`` [m].
+    """Bounds of the cells that can decide whether points of ``(rows, cols)`` see a satellite.
 
+    The window ``(r0, r1, c0, c1)`` (rows ``r0:r1``, columns ``c0:c1`` of a map of ``shape``)
+    holds the cells that can decide whether points at altitudes >= ``z_min_m`` [m] in the cells
+    ``(rows, cols)`` see the satellite when every height of the map is <= ``h_max_m`` [m].
     Every other cell requires less than ``z_min_m - kappa`` of these cells (``kappa`` the drop
     of the ray over one cell, > 0) in :func:`visibility_heights_numpy`'s bound (:func:`_scan_kernel`:
     a cell ``d`` columns toward the satellite requires at most ``h - kappa (d - 1)``, and the
@@ -440,7 +440,30 @@ def occluder_window(rows, cols, z_min_m: float, h_max_m: float, az_grid_deg: flo
     the lines that bracket its rays, which stay within 2 rows below them and
     ``2 + m (d + 1)`` rows above them).  So the visibility heights of ``(rows, cols)``
     computed on this window (with its ``origin``) are those of any larger window wherever
-    either is >= ``z_min_m`` -- the same visible / occluded decisions for those points."""
+    either is >= ``z_min_m`` -- the same visible / occluded decisions for those points.
+
+    Parameters
+    ----------
+    rows, cols : array_like of int
+        Cells of interest (row, column indices in the map).
+    z_min_m : float
+        Lowest altitude of interest [m]; not finite: the whole map.
+    h_max_m : float
+        Upper bound of every height of the map [m]; not finite: the whole map.
+    az_grid_deg : float
+        Satellite azimuth [deg] clockwise from grid north.
+    el_deg : float
+        Satellite elevation [deg], in (0, 90].
+    cell_m : float
+        Cell size [m].
+    shape : tuple of int
+        Map shape ``(ny, nx)``.
+
+    Returns
+    -------
+    r0, r1, c0, c1 : int
+        Window bounds (half-open), clipped to the map; ``(0, 0, 0, 0)`` for no cells.
+    """
     rows = np.asarray(rows)
     cols = np.asarray(cols)
     ny, nx = int(shape[0]), int(shape[1])
@@ -465,18 +488,43 @@ def occluder_window(rows, cols, z_min_m: float, h_max_m: float, az_grid_deg: flo
 def visibility_heights_numpy(surface_2d: np.ndarray, az_grid_deg, el_deg, cell_m: float, *,
                              origin: tuple[int, int] = (0, 0),
                              lines_per_cell: int = LINES_PER_CELL) -> np.ndarray:
-    """Conservative visibility heights [m] of ``n`` directions over a NaN-free 2-D surface [m]:
-    each cell's value is >= the exact prism value at every point of the cell.
+    """Conservative visibility heights [m] of ``n`` directions over a NaN-free 2-D surface [m].
 
-    ``surface_2d``: heights, row 0 = north edge, columns west to east (a north-up grid);
-    ``az_grid_deg``: azimuths [deg] clockwise from **grid** north; ``el_deg``: elevations
-    [deg], each in (0, 90]; ``cell_m``: cell size [m].  ``origin``: (row, col) of
-    ``surface_2d[0, 0]`` in a larger map, so that blocks of one map (dask) get bit-identical
-    results to the whole map.  Outside the array there is no obstacle.  ``lines_per_cell``
-    (1..8): scan lines per cell across the sweep; every value is conservative, more lines
-    are tighter (less over-estimation at lateral shadow edges) and slower.
-    Returns ``(n, ny, nx)`` float32.  Inputs are not validated beyond shapes: call
-    :func:`visibility_height` for checked use.
+    Each cell's value is >= the exact prism value at every point of the cell.  Outside the array
+    there is no obstacle.  Inputs are not validated beyond shapes: call :func:`visibility_height`
+    for checked use.
+
+    Parameters
+    ----------
+    surface_2d : numpy.ndarray
+        ``(ny, nx)`` heights [m], row 0 = north edge, columns west to east (a north-up grid).
+    az_grid_deg : float or array_like
+        Azimuths [deg] clockwise from **grid** north, scalar or ``(n,)``.
+    el_deg : float or array_like
+        Elevations [deg], each in (0, 90], same shape as ``az_grid_deg``.
+    cell_m : float
+        Cell size [m].
+    origin : tuple of int, default (0, 0)
+        (row, col) of ``surface_2d[0, 0]`` in a larger map, so that blocks of one map (dask) get
+        bit-identical results to the whole map.
+    lines_per_cell : int, default :data:`LINES_PER_CELL`
+        1..8: scan lines per cell across the sweep; every value is conservative, more lines are
+        tighter (less over-estimation at lateral shadow edges) and slower.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 ``(n, ny, nx)`` visibility heights [m].
+
+    Raises
+    ------
+    InputError
+        When ``surface_2d`` is not 2-D, ``az_grid_deg`` and ``el_deg`` are not scalars or 1-D of
+        equal length, or ``lines_per_cell`` is not an integer 1..8.
+
+    References
+    ----------
+    Seed 003, section II-B (the column scan this O(N) algorithm follows; see the module docstring).
     """
     h = np.ascontiguousarray(surface_2d, dtype=np.float32)
     if h.ndim != 2:
@@ -510,9 +558,31 @@ def visibility_heights_numpy(surface_2d: np.ndarray, az_grid_deg, el_deg, cell_m
 
 
 def shadow_halo_cells(surface_2d_or_da, min_el_deg: float, cell_m: float) -> int:
-    """Cells [-] a shadow can reach at most: ``(max h - min h) / tan(min elevation)`` in cells,
-    plus 4 cells of margin (the next column, the bracketing lines up to ~2.5 cells aside).  Only cells within this
-    distance can change a visibility height; the dask runner uses it as overlap depth."""
+    """Cells [-] a shadow can reach at most: ``(max h - min h) / tan(min elevation)`` in cells, plus 4.
+
+    The 4 cells of margin cover the next column and the bracketing lines up to ~2.5 cells aside.
+    Only cells within this distance can change a visibility height; the dask runner uses it as
+    overlap depth.
+
+    Parameters
+    ----------
+    surface_2d_or_da : numpy.ndarray, dask array or xarray.DataArray
+        ``(ny, nx)`` heights [m]; NaN ignored.
+    min_el_deg : float
+        Lowest satellite elevation [deg], in (0, 90].
+    cell_m : float
+        Cell size [m], positive.
+
+    Returns
+    -------
+    int
+        Halo width [cells].
+
+    Raises
+    ------
+    InputError
+        When ``min_el_deg`` is outside (0, 90] or ``cell_m`` is not positive.
+    """
     if not 0.0 < float(min_el_deg) <= 90.0:
         raise InputError(f"min elevation {min_el_deg} deg must be in (0, 90]")
     if not cell_m > 0:
@@ -551,12 +621,29 @@ def visibility_heights_dask(surface, az_grid_deg, el_deg, cell_m: float, *,
                             fill_nan: Literal["nearest"] | None = None):
     """Dask version of :func:`visibility_heights_numpy`: ``(n, ny, nx)`` float32 dask array.
 
-    Each block is computed with an overlap of :func:`shadow_halo_cells` cells (from the
-    data's max/min and the lowest elevation; computed eagerly) on every side, so results are
+    Each block is computed with an overlap of :func:`shadow_halo_cells` cells (from the data's
+    max/min and the lowest elevation; computed eagerly) on every side, so results are
     bit-identical to the unchunked runner.  Boundary: outside the map there is no obstacle
-    (``boundary="none"``: edge blocks get no padding).  Chunks smaller than the halo are
-    merged (rechunk) first (runner: :func:`skyroute.stages.overlap.overlap_map`).
-    ``fill_nan="nearest"`` fills NaN holes per overlapped block.
+    (``boundary="none"``: edge blocks get no padding).  Chunks smaller than the halo are merged
+    (rechunk) first (runner: :func:`skyroute.stages.overlap.overlap_map`).
+
+    Parameters
+    ----------
+    surface : dask.array.Array or numpy.ndarray
+        ``(ny, nx)`` heights [m] (a numpy array is wrapped in one dask chunk).
+    az_grid_deg : float or array_like
+        Azimuths [deg] clockwise from grid north, scalar or ``(n,)``.
+    el_deg : float or array_like
+        Elevations [deg] in (0, 90], same shape as ``az_grid_deg``.
+    cell_m : float
+        Cell size [m].
+    fill_nan : {"nearest", None}, optional
+        ``"nearest"`` fills NaN holes per overlapped block.
+
+    Returns
+    -------
+    dask.array.Array
+        float32 ``(n, ny, nx)`` visibility heights [m], lazy.
     """
     import dask.array as dsa
 
@@ -608,10 +695,27 @@ def _meridian_convergence_deg(grid: Grid) -> float:
 def grid_azimuth_deg(true_az_deg, grid: Grid | xr.DataArray):
     """Grid azimuth [deg, 0..360) of true (ENU) azimuths [deg] on a projected grid.
 
-    ``grid_az = true_az - gamma`` with ``gamma`` the PROJ meridian convergence [deg] at the
-    map centre (positive east of a UTM central meridian in the northern hemisphere, where
-    true north points west of grid north).  One value per map: over a few km in a UTM zone
-    ``gamma`` varies by < 0.05 deg.
+    ``grid_az = true_az - gamma`` with ``gamma`` the PROJ meridian convergence [deg] at the map
+    centre (positive east of a UTM central meridian in the northern hemisphere, where true north
+    points west of grid north).  One value per map: over a few km in a UTM zone ``gamma`` varies
+    by < 0.05 deg.
+
+    Parameters
+    ----------
+    true_az_deg : float or array_like
+        Azimuths [deg] clockwise from true north.
+    grid : Grid or xarray.DataArray
+        The grid (or a raster of it) in a projected CRS.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        Grid azimuths [deg] in [0, 360); a float for a scalar input.
+
+    Raises
+    ------
+    CRSError
+        When the grid's CRS is not projected.
     """
     if isinstance(grid, xr.DataArray):
         grid = Grid.from_dataarray(grid)
@@ -625,16 +729,46 @@ def visibility_height(surface: xr.DataArray, az_deg, el_deg, *,
                       fill_nan: Literal["nearest"] | None = None) -> xr.DataArray:
     """Visibility height [m] of satellite direction(s) over a surface model.
 
-    ``surface``: raster (y, x) of terrain + building heights [m] on a north-up projected
-    grid (see :mod:`skyroute.stages.grid`), numpy- or dask-backed (dask: blocks with a halo
-    from :func:`shadow_halo_cells`, identical results).  ``az_deg``: satellite azimuth(s)
-    [deg], clockwise from true north (``azimuth="true"``, converted with
-    :func:`grid_azimuth_deg`) or from grid north (``"grid"``); ``el_deg``: elevation(s) in
-    (0, 90] [deg].  Scalars give a (y, x) raster; 1-D arrays of length n give
-    (direction, y, x).  ``fill_nan``: ``None`` refuses NaN cells, ``"nearest"`` fills them
-    with the nearest valid height first (dask: within each block and its halo).  Returns
-    float32 heights in the surface's vertical datum, each a bound valid for every point of
-    its cell: at and above it the satellite is in line of sight from anywhere in the cell.
+    Each value is a bound valid for every point of its cell: at and above it the satellite is in
+    line of sight from anywhere in the cell.
+
+    Parameters
+    ----------
+    surface : xarray.DataArray
+        Raster ``(y, x)`` of terrain + building heights [m] on a north-up projected grid (see
+        :mod:`skyroute.stages.grid`), numpy- or dask-backed (dask: blocks with a halo from
+        :func:`shadow_halo_cells`, identical results).
+    az_deg : float or array_like
+        Satellite azimuth(s) [deg], clockwise from true north (``azimuth="true"``, converted with
+        :func:`grid_azimuth_deg`) or from grid north (``"grid"``); finite.
+    el_deg : float or array_like
+        Elevation(s) [deg] in (0, 90], same shape as ``az_deg``.
+    azimuth : {"true", "grid"}, default "true"
+        Reference of ``az_deg``.
+    fill_nan : {None, "nearest"}, optional
+        ``None`` refuses NaN cells, ``"nearest"`` fills them with the nearest valid height first
+        (dask: within each block and its halo).
+
+    Returns
+    -------
+    xarray.DataArray
+        float32 heights [m] in the surface's vertical datum, named ``visibility_height``:
+        ``(y, x)`` for scalars, ``(direction, y, x)`` for 1-D arrays of length n; coordinates
+        ``azimuth_deg``, ``grid_azimuth_deg``, ``elevation_deg``; the surface's CRS.
+
+    Raises
+    ------
+    InputError
+        When ``surface`` is not a numeric ``(y, x)`` DataArray on a north-up grid of square
+        cells, ``azimuth`` or ``fill_nan`` is not one of its values, the directions are not finite scalars or equal-length 1-D arrays,
+        an elevation is outside (0, 90], or the surface has NaN cells (``fill_nan=None``) or is
+        entirely NaN.
+    CRSError
+        When the surface carries no CRS, or (``azimuth="true"``) its CRS is not projected.
+
+    References
+    ----------
+    Seed 003, section II-B (the column scan this O(N) algorithm follows; see the module docstring).
     """
     if not isinstance(surface, xr.DataArray):
         raise InputError(f"surface must be an xarray.DataArray (y, x), got {type(surface).__name__}")

@@ -285,13 +285,34 @@ def coverage_floor_numpy(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg
                          cell_m: float, thresholds: np.ndarray, kind: int, mask_deg: float = 5.0,
                          visibility_fn: VisibilityFn | None = None,
                          origin: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """Worst-case (over epochs) lowest altitude [m] with DOP < thresholds[j], ``(J, ny, nx)``
-    float64, +inf where some epoch never gets there.
+    """Worst-case (over epochs) lowest altitude [m] with DOP < ``thresholds[j]``, one spatial block.
 
-    ``az_grid_deg``/``el_deg``: (time, sat) [deg], azimuth relative to grid north (DOP does not
-    depend on a rotation about the vertical).  ``thresholds`` ascending.  Visibility heights are
-    computed one epoch at a time (``visibility_fn``, default occlusion.visibility_heights_numpy;
-    ``origin``: (row, col) of the block in the whole map, for bit-identical blocks).
+    Visibility heights are computed one epoch at a time with ``visibility_fn``.
+
+    Parameters
+    ----------
+    surface_2d : numpy.ndarray
+        ``(ny, nx)`` NaN-free surface heights [m].
+    az_grid_deg, el_deg : numpy.ndarray
+        ``(time, sat)`` azimuth relative to grid north and elevation [deg] (DOP does not depend on
+        a rotation about the vertical); NaN = absent.
+    cell_m : float
+        Cell size [m].
+    thresholds : numpy.ndarray
+        ``(J,)`` DOP thresholds, ascending.
+    kind : int
+        DOP kind index (:func:`dop_kind_index`).
+    mask_deg : float, default 5.0
+        Elevation mask [deg].
+    visibility_fn : VisibilityFn, optional
+        Default :func:`skyroute.stages.occlusion.visibility_heights_numpy`.
+    origin : tuple of int, default (0, 0)
+        (row, col) of the block in the whole map, for bit-identical blocks.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ``(J, ny, nx)`` altitudes [m], +inf where some epoch never gets there.
     """
     return _floor_block(surface_2d, az_grid_deg, el_deg, cell_m, thresholds, kind, mask_deg,
                         visibility_fn, origin)
@@ -327,8 +348,33 @@ def dop_section_numpy(surface_2d: np.ndarray, az_grid_deg: np.ndarray, el_deg: n
                       cell_m: float, altitudes_m: np.ndarray, mask_deg: float = 5.0,
                       visibility_fn: VisibilityFn | None = None,
                       origin: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """``(time, altitude, 6, ny, nx)`` float32: n_visible, GDOP, PDOP, HDOP, VDOP, TDOP at
-    absolute altitudes [m] (conventions of :func:`_section_epoch_kernel`)."""
+    """``(time, altitude, 6, ny, nx)`` float32: n_visible, GDOP, PDOP, HDOP, VDOP, TDOP at absolute altitudes [m].
+
+    Conventions of :func:`_section_epoch_kernel`: DOP = +inf with < 4 satellites or a singular
+    geometry, NaN (and n_visible 0) below the surface.
+
+    Parameters
+    ----------
+    surface_2d : numpy.ndarray
+        ``(ny, nx)`` NaN-free surface heights [m].
+    az_grid_deg, el_deg : numpy.ndarray
+        ``(time, sat)`` azimuth relative to grid north and elevation [deg]; NaN = absent.
+    cell_m : float
+        Cell size [m].
+    altitudes_m : numpy.ndarray
+        ``(A,)`` section altitudes [m] in the surface's vertical datum, any order.
+    mask_deg : float, default 5.0
+        Elevation mask [deg].
+    visibility_fn : VisibilityFn, optional
+        Default :func:`skyroute.stages.occlusion.visibility_heights_numpy`.
+    origin : tuple of int, default (0, 0)
+        (row, col) of the block in the whole map, for bit-identical blocks.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 ``(time, A, 6, ny, nx)``.
+    """
     return _section_block(surface_2d, az_grid_deg, el_deg, cell_m, altitudes_m, mask_deg,
                           visibility_fn, origin)
 
@@ -502,8 +548,25 @@ def _window_attrs(meta: dict[str, Any], n_epochs: int) -> dict[str, Any]:
 
 
 def open_sky_dop(az_deg: Any, el_deg: Any, mask_deg: float = 5.0) -> np.ndarray:
-    """``(time, 5)`` GDOP, PDOP, HDOP, VDOP, TDOP with every satellite above the mask visible
-    (+inf: no fix)."""
+    """``(time, 5)`` GDOP, PDOP, HDOP, VDOP, TDOP with every satellite above the mask visible.
+
+    Parameters
+    ----------
+    az_deg, el_deg : array_like
+        ``(time, sat)`` (or ``(sat,)`` for one epoch) azimuth / elevation [deg]; NaN = absent.
+    mask_deg : float, default 5.0
+        Elevation mask [deg], 0..60.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(time, 5)`` DOPs [-] (+inf: no fix).
+
+    Raises
+    ------
+    InputError
+        When the shapes of ``az_deg`` and ``el_deg`` differ or ``mask_deg`` is outside 0..60.
+    """
     az, el, _ = as_time_sat(az_deg, el_deg)
     mask = check_mask(mask_deg)
     ok = np.isfinite(az) & np.isfinite(el) & (el >= mask) & (el > 0.0)
@@ -514,10 +577,27 @@ def column_dop_profile(visibility_height_m: Any, az_deg: Any, el_deg: Any,
                        mask_deg: float = 5.0) -> dict[str, np.ndarray]:
     """Exact DOP profile of one column for one epoch.
 
-    ``visibility_height_m`` (sat,) [m] (+inf/NaN = never visible), ``az_deg``/``el_deg`` (sat,).
-    Returns ``altitude_m`` (k,) breakpoints ascending (the distinct visibility heights),
-    ``n_visible`` (k,) and one (k,) array per DOP kind: the value for
-    ``altitude_m[i] <= z < altitude_m[i+1]`` (+inf with fewer than 4 satellites)."""
+    Parameters
+    ----------
+    visibility_height_m : array_like
+        ``(sat,)`` visibility heights [m] (+inf/NaN = never visible).
+    az_deg, el_deg : array_like
+        ``(sat,)`` azimuth / elevation [deg].
+    mask_deg : float, default 5.0
+        Elevation mask [deg], 0..60; satellites below it are not used.
+
+    Returns
+    -------
+    dict of str to numpy.ndarray
+        ``altitude_m`` (k,) breakpoints [m] ascending (the distinct visibility heights),
+        ``n_visible`` (k,) and one (k,) array per DOP kind (``GDOP`` ... ``TDOP``): the value for
+        ``altitude_m[i] <= z < altitude_m[i+1]`` (+inf with fewer than 4 satellites).
+
+    Raises
+    ------
+    InputError
+        When the three inputs differ in length or ``mask_deg`` is outside 0..60.
+    """
     h = np.asarray(visibility_height_m, dtype=np.float64).ravel()
     az = np.asarray(az_deg, dtype=np.float64).ravel()
     el = np.asarray(el_deg, dtype=np.float64).ravel()
@@ -538,9 +618,41 @@ def column_dop_profile(visibility_height_m: Any, az_deg: Any, el_deg: Any,
 
 def check_thresholds(thresholds, dop: str, el_deg: np.ndarray, mask_deg: float
                      ) -> tuple[int, float, np.ndarray, int]:
-    """Validate the coverage request: ``(DOP kind index, mask [deg], thresholds sorted without
-    duplicates, the most satellites above the mask at one epoch)``.  A threshold at or below the lowest DOP possible with the most satellites
-    above the mask at any epoch of ``el_deg`` (time, sat) can never be reached: InputError."""
+    """Validate the coverage request: DOP kind, mask, thresholds and the most satellites above the mask.
+
+    A threshold at or below the lowest DOP possible with the most satellites above the mask at
+    any epoch of ``el_deg`` can never be reached: InputError.
+
+    Parameters
+    ----------
+    thresholds : iterable of float
+        DOP thresholds D_j, finite, non-empty.
+    dop : str
+        DOP kind: ``"GDOP"``, ``"PDOP"``, ``"HDOP"``, ``"VDOP"`` or ``"TDOP"``.
+    el_deg : numpy.ndarray
+        ``(time, sat)`` elevations [deg]; NaN = absent.
+    mask_deg : float
+        Elevation mask [deg], 0..60.
+
+    Returns
+    -------
+    kind : int
+        DOP kind index.
+    mask_deg : float
+        The validated mask [deg].
+    thresholds : numpy.ndarray
+        Sorted, without duplicates.
+    n_max : int
+        The most satellites above the mask at one epoch.
+
+    Raises
+    ------
+    InputError
+        When the thresholds are empty or not finite, the smallest is at or below
+        :func:`dop_lower_bound` for ``n_max`` satellites, or ``mask_deg`` is outside 0..60.
+    UnknownNameError
+        When ``dop`` is not a DOP kind.
+    """
     kind = dop_kind_index(dop)
     kind_name = DOP_KINDS[kind]
     mask = check_mask(mask_deg)
@@ -568,37 +680,63 @@ def coverage_maps(surface: xr.DataArray, az_deg: Any, el_deg: Any, *,
                   visibility_fn: VisibilityFn | None = None) -> xr.Dataset:
     """GNSS coverage maps: per DOP threshold D_j, the altitude [m] above which DOP < D_j.
 
+    The worst case over epochs is taken: a cell is unflyable if any epoch fails.
+
     Parameters
     ----------
-    surface : (y, x) heights [m] of the obstacle surface (DSM: terrain + buildings) with CRS.
-        A dask-backed surface (or ``chunks``) is computed lazily block by block.
-    az_deg, el_deg : (time, sat) TRUE azimuth / elevation [deg] of the satellites at the epochs
-        of the window (NaN = absent), e.g. from ``almanac.sky_geometry``; DataArrays with a
-        ``time`` coordinate record the window in the attrs.
-    thresholds : DOP thresholds D_j (sorted ascending in the output).
-    dop : "GDOP", "PDOP" (default), "HDOP", "VDOP" or "TDOP".
-    floor_m, ceiling_m : altitude limits [m] in the surface's vertical datum (scalars or (y, x)
-        rasters; AGL limits are ``surface + 150``).  The coverage floor is raised to
-        ``floor_m``; cells whose floor lies above ``ceiling_m`` are unflyable.
-    mask_deg : elevation mask [deg]; satellites below it are never used.
-    chunks : block size [cells] for the dask runner (default: the surface's own chunks), or
+    surface : xarray.DataArray
+        ``(y, x)`` heights [m] of the obstacle surface (DSM: terrain + buildings) with CRS,
+        NaN-free, north-up with square cells.  A dask-backed surface (or ``chunks``) is computed
+        lazily block by block.
+    az_deg, el_deg : array_like or xarray.DataArray
+        ``(time, sat)`` TRUE azimuth / elevation [deg] of the satellites at the epochs of the
+        window (NaN = absent), e.g. from ``almanac.sky_geometry``; DataArrays with a ``time``
+        coordinate record the window in the attrs.
+    thresholds : sequence of float, default (2.0, 3.0, 4.0)
+        DOP thresholds D_j (sorted ascending in the output).
+    dop : str, default "PDOP"
+        "GDOP", "PDOP", "HDOP", "VDOP" or "TDOP".
+    floor_m, ceiling_m : float, numpy.ndarray or xarray.DataArray, optional
+        Altitude limits [m] in the surface's vertical datum (scalars or ``(y, x)`` rasters; AGL
+        limits are ``surface + 150``).  The coverage floor is raised to ``floor_m``; cells whose
+        floor lies above ``ceiling_m`` are unflyable.
+    mask_deg : float, default 5.0
+        Elevation mask [deg]; satellites below it are never used.
+    chunks : int, tuple of int, "auto" or None, optional
+        Block size [cells] for the dask runner (default: the surface's own chunks), or
         ``"auto"``: blocks of ``max(2048, 8 x halo)`` cells, shrunk to keep one block's working
         set near 1 GiB, split evenly along each axis (in two when both halves stay >= 1024
-        cells and 3 halos wide).  Each block is extended by
-        ``occlusion.shadow_halo_cells`` at the lowest satellite elevation used (~230 cells for
-        42 m of relief, 5 deg, 2 m cells): the visibility scan runs on the extended block, the
-        DOP kernel on the block's own cells only, so blocks much larger than the halo
-        (2000-4000 cells) keep the overlap cost small.  With fewer than 8 blocks there is one
-        task per (block, epoch) (reduced by a max over the epochs), so that 2+ workers stay
-        busy.  Memory per task: one epoch of (sat, y, x) float32 heights on the extended block
-        plus (threshold, y, x) float32; the numpy path (no chunks) holds that (float64
-        floors) for the whole map.
+        cells and 3 halos wide).  Each block is extended by ``occlusion.shadow_halo_cells`` at
+        the lowest satellite elevation used (~230 cells for 42 m of relief, 5 deg, 2 m cells):
+        the visibility scan runs on the extended block, the DOP kernel on the block's own cells
+        only, so blocks much larger than the halo (2000-4000 cells) keep the overlap cost small.
+        With fewer than 8 blocks there is one task per (block, epoch) (reduced by a max over the
+        epochs), so that 2+ workers stay busy.  Memory per task: one epoch of (sat, y, x)
+        float32 heights on the extended block plus (threshold, y, x) float32; the numpy path (no
+        chunks) holds that (float64 floors) for the whole map.
+    visibility_fn : VisibilityFn, optional
+        Default :func:`skyroute.stages.occlusion.visibility_heights_numpy`.
 
     Returns
     -------
-    Dataset with ``coverage_floor`` (threshold, y, x) float32 [m] (NaN where unflyable),
-    ``unflyable`` (threshold, y, x) bool, ``open_sky_dop`` (time) and the surface's CRS.
-    The worst case over epochs is taken: a cell is unflyable if any epoch fails.
+    xarray.Dataset
+        ``coverage_floor`` ``(threshold, y, x)`` float32 [m] (NaN where unflyable),
+        ``unflyable`` ``(threshold, y, x)`` bool, ``open_sky_dop`` ``(time)`` and the surface's
+        CRS.
+
+    Raises
+    ------
+    InputError
+        When the surface is not a NaN-free numeric 2-D ``(y, x)`` north-up raster of at least
+        2 x 2 square cells, the satellite arrays differ in shape, a threshold can never be
+        reached (see :func:`check_thresholds`), ``mask_deg`` is outside 0..60, a limit is neither
+        a scalar nor a raster of the surface's shape, or ``chunks`` is invalid.
+    UnknownNameError
+        When ``dop`` is not a DOP kind.
+
+    References
+    ----------
+    Seed 000 item 5; seed 001 item 5; seed 003 eqs. 15-19 (recorded in the ``references`` attr).
     """
     cell = _check_surface(surface)
     az, el, meta = as_time_sat(az_deg, el_deg)
@@ -693,12 +831,38 @@ def _section_array(surface: xr.DataArray, az: np.ndarray, el: np.ndarray, cell: 
 def dop_section(surface: xr.DataArray, az_deg: Any, el_deg: Any, altitudes_m: Any, *,
                 mask_deg: float = 5.0, chunks: Chunks = None,
                 visibility_fn: VisibilityFn | None = None) -> xr.Dataset:
-    """Number of visible satellites and DOPs on horizontal sections at absolute altitudes [m]
-    (surface vertical datum), per epoch.
+    """Number of visible satellites and DOPs on horizontal sections at absolute altitudes [m], per epoch.
 
-    Returns a Dataset on (time, altitude, y, x): ``n_visible`` (int16) and ``gdop``, ``pdop``,
-    ``hdop``, ``vdop``, ``tdop`` (float32; +inf with fewer than 4 visible satellites, NaN below
-    the surface).  Azimuths are TRUE azimuths [deg], (time, sat) as in :func:`coverage_maps`."""
+    Altitudes are in the surface's vertical datum.
+
+    Parameters
+    ----------
+    surface : xarray.DataArray
+        ``(y, x)`` NaN-free surface heights [m], as in :func:`coverage_maps`.
+    az_deg, el_deg : array_like or xarray.DataArray
+        ``(time, sat)`` TRUE azimuth / elevation [deg], as in :func:`coverage_maps`.
+    altitudes_m : float or array_like
+        ``(altitude,)`` section altitudes [m], finite, non-empty.
+    mask_deg : float, default 5.0
+        Elevation mask [deg].
+    chunks : int, tuple of int, "auto" or None, optional
+        Dask blocks, as in :func:`coverage_maps`.
+    visibility_fn : VisibilityFn, optional
+        Default :func:`skyroute.stages.occlusion.visibility_heights_numpy`.
+
+    Returns
+    -------
+    xarray.Dataset
+        On ``(time, altitude, y, x)``: ``n_visible`` (int16) and ``gdop``, ``pdop``, ``hdop``,
+        ``vdop``, ``tdop`` (float32; +inf with fewer than 4 visible satellites, NaN below the
+        surface).
+
+    Raises
+    ------
+    InputError
+        When the surface or the satellite arrays are invalid (as :func:`coverage_maps`), or
+        ``altitudes_m`` is empty, not 1-D or not finite.
+    """
     cell, az, el, meta, mask, alts = _prepare_sections(surface, az_deg, el_deg, altitudes_m,
                                                       mask_deg)
     arr = _section_array(surface, az, el, cell, alts, mask, chunks, visibility_fn)
@@ -726,11 +890,46 @@ def dop_volume(surface: xr.DataArray, az_deg: Any, el_deg: Any, z_m: Any, *,
                dop: str = "PDOP", reduce: str | None = "max", mask_deg: float = 5.0,
                chunks: Chunks = None,
                visibility_fn: VisibilityFn | None = None) -> xr.DataArray:
-    """3D DOP volume on (z, y, x) levels ``z_m`` [m] (the "digital morphing map" of seed 003:
-    its isosurface DOP = D is the coverage floor).
+    """3D DOP volume on ``(z, y, x)`` levels ``z_m`` [m] (the "digital morphing map" of seed 003).
 
-    ``reduce="max"`` (default) gives the worst case over the epochs, ``None`` keeps a leading
-    ``time`` dim.  +inf with fewer than 4 visible satellites, NaN below the surface."""
+    Its isosurface DOP = D is the coverage floor.
+
+    Parameters
+    ----------
+    surface : xarray.DataArray
+        ``(y, x)`` NaN-free surface heights [m], as in :func:`coverage_maps`.
+    az_deg, el_deg : array_like or xarray.DataArray
+        ``(time, sat)`` TRUE azimuth / elevation [deg], as in :func:`coverage_maps`.
+    z_m : float or array_like
+        ``(z,)`` levels [m] in the surface's vertical datum, finite, non-empty.
+    dop : str, default "PDOP"
+        DOP kind.
+    reduce : {"max", None}, default "max"
+        ``"max"`` gives the worst case over the epochs, ``None`` keeps a leading ``time`` dim.
+    mask_deg : float, default 5.0
+        Elevation mask [deg].
+    chunks : int, tuple of int, "auto" or None, optional
+        Dask blocks, as in :func:`coverage_maps`.
+    visibility_fn : VisibilityFn, optional
+        Default :func:`skyroute.stages.occlusion.visibility_heights_numpy`.
+
+    Returns
+    -------
+    xarray.DataArray
+        float32 ``(z, y, x)`` (or ``(time, z, y, x)``) DOP [-]: +inf with fewer than 4 visible
+        satellites, NaN below the surface.
+
+    Raises
+    ------
+    InputError
+        When ``reduce`` is invalid, or the inputs are (as :func:`dop_section`).
+    UnknownNameError
+        When ``dop`` is not a DOP kind.
+
+    References
+    ----------
+    Seed 003 (the digital morphing map).
+    """
     kind = dop_kind_index(dop)
     if reduce not in ("max", None):
         raise InputError(f"reduce must be 'max' or None, got {reduce!r}")
@@ -754,9 +953,38 @@ def dop_volume(surface: xr.DataArray, az_deg: Any, el_deg: Any, z_m: Any, *,
 def coverage_from_almanac(surface: xr.DataArray, almanac_paths: Any, start_utc: Any, *,
                           window_min: float = 20.0, step_min: float = 1.0,
                           mask_deg: float = 5.0, **kwargs: Any) -> xr.Dataset:
-    """:func:`coverage_maps` with the satellite geometry of an almanac over a time window,
-    seen from the centre of the surface (far satellites: one geometry for the whole map).
-    ``kwargs`` go to :func:`coverage_maps` (thresholds, dop, floor_m, ceiling_m, chunks)."""
+    """:func:`coverage_maps` with the satellite geometry of an almanac over a time window.
+
+    Seen from the centre of the surface (far satellites: one geometry for the whole map), at the
+    surface's median height.
+
+    Parameters
+    ----------
+    surface : xarray.DataArray
+        ``(y, x)`` surface heights [m] with CRS, as in :func:`coverage_maps`.
+    almanac_paths : str, pathlib.Path or list of them
+        The almanac file(s) (see :func:`skyroute.stages.almanac.sky_geometry`).
+    start_utc : str, datetime.datetime or numpy.datetime64
+        Start of the window [UTC] (anything :class:`numpy.datetime64` accepts).
+    window_min : float, default 20.0
+        Window length [min].
+    step_min : float, default 1.0
+        Epoch step [min].
+    mask_deg : float, default 5.0
+        Elevation mask [deg].
+    **kwargs
+        Go to :func:`coverage_maps` (thresholds, dop, floor_m, ceiling_m, chunks).
+
+    Returns
+    -------
+    xarray.Dataset
+        As :func:`coverage_maps`, with ``window_min`` and ``step_min`` attrs.
+
+    Raises
+    ------
+    InputError
+        When ``step_min <= 0`` or ``window_min < 0``, or as :func:`coverage_maps`.
+    """
     from skyroute.stages.almanac import sky_geometry
     from skyroute.stages.grid import Grid
 

@@ -58,7 +58,23 @@ STEP1_MEMO = 256         # STEP I results kept in an ``edge_cache`` dict
 
 @dataclass
 class StrategicPlan:
-    """Every level's STEP I-III outcome and the chosen candidate (None if none is flyable)."""
+    """Every level's STEP I-III outcome and the chosen candidate (None if none is flyable).
+
+    Attributes
+    ----------
+    chosen : Candidate or None
+        The flyable candidate with minimum f, None if none is flyable (:attr:`reason` says why).
+    candidates : list of Candidate
+        One per coverage level, in the order of the levels.
+    step1 : list of Step1Result
+        STEP I result per level.
+    step2 : list of Step2Result or None
+        STEP II result per level (None where STEP I failed, and for the fixed-wing planners).
+    compute_s : float
+        Wall time of the planning [s].
+    warnings : list of str
+        Degenerate cost terms, planner caps hit.
+    """
 
     chosen: Candidate | None
     candidates: list[Candidate]
@@ -69,6 +85,8 @@ class StrategicPlan:
 
     @property
     def reason(self) -> str:
+        """Why no candidate is flyable ("" when one is chosen).
+        """
         return "" if self.chosen is not None else explain_no_plan(self.candidates)
 
     @property
@@ -97,44 +115,121 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
                    step2_max_iter: int = STEP2_MAX_ITER) -> StrategicPlan:
     """Plan the mission for every coverage level of ``coverage`` (one level without GNSS data).
 
-    Levels with identical floor and coverage arrays are solved once.  With ``planner="astar"``
-    the levels share one A* heuristic (that of the loosest level, admissible for all: see
-    :func:`~skyroute.stages.planning.grid_planner.heuristic_2d`) and run in ``workers``
-    threads (default: the CPU count); the result does not depend on ``workers``.  Every
-    planner is deterministic: the same inputs and ``seed`` give the same plan (BIT* stops on
-    an iteration count, :func:`~skyroute.stages.planning.step1.bitstar_iterations`).
-    ``step_cells``: A* lattice step [cells]; ``max_iterations``: BIT* stop rule per level (see
-    :func:`~skyroute.stages.planning.step1.plan_step1`; 0 = wall clock, not reproducible).
-
-    Cost terms that are the same per metre everywhere are listed in ``warnings`` of the result;
-    weights that select only such terms raise
-    :class:`~skyroute.stages.base.DegenerateCostError` before any planning
+    STEP I (optimised polygonal chain), STEP II (deconfliction against known traffic) and STEP III
+    (corner smoothing and retiming, navigation-error check, eq. 15 costs) per level, then the
+    flyable candidate with minimum f.  Levels with identical floor and coverage arrays are solved
+    once.  With ``planner="astar"`` the levels share one A* heuristic (that of the loosest level,
+    admissible for all: see :func:`~skyroute.stages.planning.grid_planner.heuristic_2d`) and run in
+    ``workers`` threads; the result does not depend on ``workers``.  Every planner is
+    deterministic: the same inputs and ``seed`` give the same plan (BIT* stops on an iteration
+    count, :func:`~skyroute.stages.planning.step1.bitstar_iterations`).  Cost terms that are the
+    same per metre everywhere are listed in ``warnings`` of the result
     (:mod:`skyroute.stages.planning.degenerate`).
-    ``battery_reserve_pct`` [%]: energy kept in the battery (STEP I and III use the rest).
 
-    ``traffic``: the traffic stage's dataset or a :class:`~skyroute.stages.traffic.TrafficOccupancy`
-    (e.g. one holding other operators' intent volumes as prisms: ``skyroute fleet``).
+    Parameters
+    ----------
+    surface : xarray.Dataset
+        :func:`~skyroute.stages.surface.build_surface` output (``terrain``, ``terrain_min``,
+        ``surface`` [m]).
+    environment : xarray.Dataset or None
+        ``risk_cost`` and ``landing_cost`` maps [-] (None: both 0).
+    wind : xarray.Dataset or None
+        Wind on the grid (None: still air).
+    clearance : xarray.Dataset
+        ``min_altitude_m`` [m] (lowest safe altitude, ``(y, x)``) and optionally ``nofly``.
+    coverage : xarray.Dataset or None
+        :func:`~skyroute.stages.coverage.coverage_maps` output: one level per ``threshold``
+        (None: one level without GNSS constraint).
+    satellites : xarray.Dataset or None
+        Satellite geometry for the navigation error along the plan (None: it cannot be verified;
+        a rotorcraft candidate records that among its reasons, the fixed-wing planners warn).
+    traffic : xarray.Dataset, TrafficOccupancy or None
+        The traffic stage's dataset or a :class:`~skyroute.stages.traffic.TrafficOccupancy`
+        (e.g. one holding other operators' intent volumes as prisms: ``skyroute fleet``).
+    start_xy, goal_xy : tuple of float
+        Mission end points, map (x, y) [m] in the grid's CRS.
+    start_agl_m, goal_agl_m : float
+        Their altitudes above ground [m].
+    start_time_utc : str, datetime or numpy.datetime64
+        Departure time [UTC].
+    vehicle : str, VehicleProfile or FixedWingProfile, default "dji-m300-rtk"
+        Catalog name, YAML path or profile (:func:`~skyroute.stages.vehicle.load_vehicle`).
+    weights : sequence of 4 float, default (1.0, 1.0, 1.0, 1.0)
+        Cost weights (w_l, w_r, w_d, w_e) [-]: finite, >= 0, not all 0.
+    planner : str, default "astar"
+        Planner name (:mod:`~skyroute.stages.planning.registry`); must fit the vehicle's kind.
+    time_budget_s : float, default 5.0
+        Planning budget per level [s] (the wall-clock safety caps are multiples of it).
+    seed : int, default 0
+        Random seed (BIT*, STEP II).
+    max_tries : int, default 3
+        STEP I attempts per level (see :func:`~skyroute.stages.planning.step1.plan_step1`).
+    min_agl_m, max_agl_m : float, default 0.0, 120.0
+        Altitude limits above ground [m], ``0 <= min_agl_m < max_agl_m``.
+    dop_kind : str, default "PDOP"
+        DOP kind of the coverage levels.
+    intruders : list of Intruder, optional
+        Known traffic checked along the smoothed trajectory (STEP III).
+    d_c_m : float, default 0.0
+        Spatial margin of the fixed-wing traffic check [m] (the rotorcraft levels use that of
+        ``traffic``).
+    dt_c_s : float, default 0.0
+        Time margin of the fixed-wing traffic check [s].
+    uere_m : float, default 3.0
+        GNSS user equivalent range error [m] for the navigation error sigma_p.
+    workers : int, optional
+        Threads for the A* levels (default: the CPU count), >= 1.
+    step_cells : int, default :data:`~skyroute.stages.planning.grid_planner.STEP_CELLS`
+        A* lattice step [cells].
+    max_iterations : int, optional
+        BIT* stop rule per level (see :func:`~skyroute.stages.planning.step1.plan_step1`; 0 =
+        wall clock, not reproducible).
+    battery_reserve_pct : float, default 0.0
+        Energy kept in the battery [%] (STEP I and III use the rest).
+    clearance_by_level : mapping of float to xarray.Dataset, optional
+        Safety bubble (seed 003, :mod:`skyroute.stages.sboa`; default off): maps a DOP threshold
+        D_j to the clearance dataset of its radius r_j (used instead of ``clearance`` for that
+        level; its ``radius_m`` attribute is recorded in the candidate).
+    bubble : tuple of float, optional
+        Safety bubble ``(k, surface_uncertainty_m)`` (default off): STEP III re-checks every sample
+        at ``max(r_p, k sigma_p(t) + surface_uncertainty_m)`` [m] from the surface.
+    heuristic_cache : dict, optional
+        Kept by a caller that plans many missions on the SAME maps (``skyroute fleet``): the A*
+        heuristic table, which depends on the goal, the start altitude (the lattice's levels), the
+        levels, the vehicle, the weights and the lattice step only (given the maps), is reused for
+        a goal seen before (same result, less time).
+    edge_cache : dict, optional
+        Kept by such a caller too: the A* lattices of every mission are then aligned on
+        ``LATTICE_ANCHOR_M`` (instead of each start's altitude) so that missions share them, and
+        the costs of their edges are kept per level
+        (:class:`~skyroute.stages.planning.grid_planner.EdgeCache`) and reused: each search
+        returns what it would without the dict, on the anchored lattice.  The dict also keeps the
+        last ``STEP1_MEMO`` STEP I results (A*): STEP I does not depend on the departure time or
+        the traffic, so a mission planned again (a later departure) reuses its chain.
+    step2_max_iter : int, default :data:`~skyroute.stages.planning.deconflict.MAX_ITER`
+        K, the STEP II RRT's iterations (its reproducible stop rule).
 
-    Safety bubble (seed 003, :mod:`skyroute.stages.sboa`; both default to off):
-    ``clearance_by_level`` maps a DOP threshold D_j to the clearance dataset of its radius r_j
-    (used instead of ``clearance`` for that level; its ``radius_m`` attribute is recorded in the
-    candidate); ``bubble = (k, surface_uncertainty_m)`` makes STEP III re-check every sample at
-    ``max(r_p, k sigma_p(t) + surface_uncertainty_m)`` [m] from the surface.
+    Returns
+    -------
+    StrategicPlan
+        Every level's outcome and the chosen candidate (None, with :attr:`StrategicPlan.reason`,
+        when no level gives a flyable plan).
 
-    ``heuristic_cache``: a dict kept by a caller that plans many missions on the SAME maps
-    (``skyroute fleet``): the A* heuristic table, which depends on the goal, the start altitude
-    (the lattice's levels), the levels, the vehicle, the weights and the lattice step only
-    (given the maps), is reused for a goal seen before (same result, less time).
+    Raises
+    ------
+    DegenerateCostError
+        When the weights select only cost terms that are the same per metre everywhere (before
+        any planning).
+    InputError
+        When the weights, altitude limits or ``workers`` are invalid, the planner does not fit
+        the vehicle's kind, or a mission point is outside the grid.
+    UnknownNameError
+        When ``vehicle`` names no catalog vehicle.
 
-    ``edge_cache``: a dict kept by such a caller too: the A* lattices of every mission are then
-    aligned on ``LATTICE_ANCHOR_M`` (instead of each start's altitude) so that missions share
-    them, and the costs of their edges are kept per level
-    (:class:`~skyroute.stages.planning.grid_planner.EdgeCache`) and reused: each search returns
-    what it would without the dict, on the anchored lattice.  The dict also keeps the last
-    ``STEP1_MEMO`` STEP I results (A*): STEP I does not depend on the departure time or the
-    traffic, so a mission planned again (a later departure) reuses its chain.
-
-    ``step2_max_iter``: K, the STEP II RRT's iterations (its reproducible stop rule)."""
+    References
+    ----------
+    Seed 000 section III (STEP I-III); seed 003 (safety bubble).
+    """
     t0 = time.perf_counter()
     wind_map = wind.load() if wind is not None else None
     cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
@@ -433,7 +528,34 @@ _SCALARS = ("C_l", "C_r", "C_d", "C_e", "f", "max_sigma_p_m", "energy_J", "fligh
 
 
 def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_utc) -> xr.Dataset:
-    """The candidate table (dim ``level``) and the chosen trajectory (dim ``sample``)."""
+    """The candidate table (dim ``level``) and the chosen trajectory (dim ``sample``) as a Dataset.
+
+    So the plan is cached like every other stage output; :func:`plan_from_dataset` reads it back.
+
+    Parameters
+    ----------
+    plan : StrategicPlan
+        The plan.
+    crs : pyproj.CRS or str
+        CRS of the map coordinates (stored as text in the attrs).
+    vertical_datum : str
+        Vertical datum of the altitudes ``z_m``.
+    start_time_utc : str, datetime or numpy.datetime64
+        Departure time [UTC] (anything :class:`pandas.Timestamp` accepts).
+
+    Returns
+    -------
+    xarray.Dataset
+        Per ``level``: ``label``, ``dop_threshold``, the costs ``C_l``, ``C_r``, ``C_d``, ``C_e``,
+        ``f`` [m], ``max_sigma_p_m`` [m], ``energy_J`` [J], ``flight_time_s`` [s],
+        ``compute_time_s`` [s], ``flyable``, ``reasons``, ``status`` (and ``clearance_radius_m``
+        [m] with a safety bubble); for the chosen candidate per ``sample``: ``t_s`` [s], ``x_m``,
+        ``y_m``, ``z_m``, ``alt_agl_m`` [m], ``speed_mps`` [m/s], ``sigma_p_m`` [m],
+        ``n_visible``, its ``waypoints`` ``(waypoint, xyz)`` [m] and the exact trajectory
+        (:func:`trajectory_to_dataset`).  Attrs: ``chosen_level`` (-1: none), ``crs``,
+        ``vertical_datum``, ``start_time_utc``, ``compute_s``, ``reason``, ``warnings`` (JSON) and
+        ``skyroute_not_cacheable`` when a level stopped at its wall-clock cap.
+    """
     cands = plan.candidates
     ds = xr.Dataset(coords={"level": np.arange(len(cands))})
     ds["label"] = ("level", np.array([c.label for c in cands], dtype=object))
@@ -481,9 +603,22 @@ _TRAJ_VEC = ("origin", "e1", "e2")
 
 
 def trajectory_to_dataset(traj: CornerTrajectory, t0_s: float) -> xr.Dataset:
-    """The exact trajectory (its phases: :class:`~skyroute.stages.smoothing.CornerTrajectory`)
-    as ``traj_*`` variables (dims ``phase``, ``piece``), so a cached plan can be flown again
-    exactly (``skyroute fly``); ``traj_t0_s`` [s]: mission time of the trajectory's time 0."""
+    """The exact trajectory as ``traj_*`` variables (dims ``phase``, ``piece``).
+
+    Its phases (:class:`~skyroute.stages.smoothing.CornerTrajectory`), so a cached plan can be
+    flown again exactly (``skyroute fly``).
+
+    Parameters
+    ----------
+    traj : CornerTrajectory
+        The trajectory.
+    t0_s : float
+        Mission time of the trajectory's time 0 [s] (attr ``traj_t0_s``).
+
+    Returns
+    -------
+    xarray.Dataset
+    """
     ds = xr.Dataset(coords={"phase": np.arange(traj.phase_t0_s.size), "piece": np.arange(traj.piece_t_s.size)})
     for k, u in _TRAJ_PHASE.items():
         ds[f"traj_{k}"] = ("phase", np.asarray(getattr(traj, k)), {"units": u})
@@ -498,7 +633,18 @@ def trajectory_to_dataset(traj: CornerTrajectory, t0_s: float) -> xr.Dataset:
 
 
 def trajectory_from_dataset(ds: xr.Dataset) -> tuple[CornerTrajectory, float] | None:
-    """``(trajectory, t0_s)`` back from :func:`trajectory_to_dataset` (None if absent)."""
+    """``(trajectory, t0_s)`` back from :func:`trajectory_to_dataset` (None if absent).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A dataset holding the ``traj_*`` variables (e.g. a cached plan).
+
+    Returns
+    -------
+    tuple of (CornerTrajectory, float) or None
+        The trajectory and the mission time of its time 0 [s].
+    """
     if "traj_phase_t0_s" not in ds:
         return None
     kw = {k: np.asarray(ds[f"traj_{k}"].values) for k in (*_TRAJ_PHASE, *_TRAJ_VEC)}
@@ -512,7 +658,21 @@ def trajectory_from_dataset(ds: xr.Dataset) -> tuple[CornerTrajectory, float] | 
 
 
 def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]]:
-    """Candidates (without their polynomial) back from :func:`plan_to_dataset`."""
+    """Candidates (without their polynomial) back from :func:`plan_to_dataset`.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A dataset written by :func:`plan_to_dataset`.
+
+    Returns
+    -------
+    chosen : Candidate or None
+        The chosen candidate with its samples, waypoints and (when stored) exact trajectory;
+        None when no level was flyable.
+    candidates : list of Candidate
+        One per level; the others without samples.
+    """
     cands = []
     z = np.zeros(0)
     chosen_i = int(ds.attrs.get("chosen_level", -1))

@@ -59,10 +59,37 @@ LEVEL_CAP_FACTOR = WALLCLOCK_CAP_FACTOR
 
 @dataclass
 class Step1Result:
-    """One level's STEP I outcome.  ``waypoints`` (k, 3) [m] (None without a solution),
-    ``costs`` {C_l, C_r, C_d, C_e} [m], ``f`` (eq. 11 with the ORIGINAL weights), ``energy_J``,
-    ``time_s``, ``compute_s`` (wall clock of the whole level), ``status`` ("solved",
-    "no_solution", "energy_infeasible"), ``reason`` (why not solved, "" otherwise)."""
+    """One level's STEP I outcome.
+
+    Attributes
+    ----------
+    waypoints : numpy.ndarray or None
+        ``(k, 3)`` chain vertices (x, y, z) [m]; None without a solution.
+    costs : dict of str to float
+        ``{C_l, C_r, C_d, C_e}`` [m].
+    f : float
+        Cost (eq. 11) with the ORIGINAL weights [m]; inf without a solution.
+    energy_J : float
+        Energy the chain needs [J].
+    time_s : float
+        Flight time of the chain [s].
+    compute_s : float
+        Wall clock of the whole level [s].
+    status : str
+        ``"solved"``, ``"no_solution"`` or ``"energy_infeasible"``.
+    reason : str
+        Why not solved, ``""`` otherwise.
+    label : str
+        The level's label.
+    planner : str
+        The planner that solved it.
+    tries : int
+        Plans made (N_t tries at most).
+    weights_used : tuple of float
+        The weights (w_l, w_r, w_d, w_e) of the plan kept.
+    info : dict
+        Per-try details (``tries``) and ``stopped_by == "time"`` when a wall-clock cap was hit.
+    """
 
     waypoints: np.ndarray | None
     costs: dict
@@ -80,6 +107,8 @@ class Step1Result:
 
     @property
     def solved(self) -> bool:
+        """True when ``status == "solved"``.
+        """
         return self.status == "solved"
 
 
@@ -97,8 +126,18 @@ def _check(planner: str, time_budget_s: float) -> None:
 
 
 def bitstar_iterations(time_budget_s: float) -> int:
-    """The BIT* iteration count that stands for a budget of ``time_budget_s`` [s]:
-    ``ceil(BITSTAR_ITERATIONS_PER_S * time_budget_s)``."""
+    """The BIT* iteration count that stands for a budget of ``time_budget_s`` [s].
+
+    Parameters
+    ----------
+    time_budget_s : float
+        Planning budget [s].
+
+    Returns
+    -------
+    int
+        ``ceil(BITSTAR_ITERATIONS_PER_S * time_budget_s)``, at least 1.
+    """
     return max(1, math.ceil(BITSTAR_ITERATIONS_PER_S * float(time_budget_s)))
 
 
@@ -159,23 +198,60 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
                edge_cache: EdgeCache | None = None) -> Step1Result:
     """STEP I on one level: plan, check the energy, re-plan with larger w_l if needed.
 
-    ``planner``: one of :data:`PLANNERS`; ``time_budget_s`` [s] > 0: BIT*'s budget per try
-    (A* runs to completion); every level, all tries and refinement included, stops at the
-    wall-clock cap ``LEVEL_CAP_FACTOR * time_budget_s`` (A*: no path, reason "budget exhausted",
-    or the path refined so far; ``info["stopped_by"] == "time"`` says the cap was hit); ``seed``: BIT* random seed (OMPL seed = seed + 1, OMPL ignores 0);
-    ``max_iterations``: BIT* stops after that many iterations; None (default): after
-    :func:`bitstar_iterations` (``time_budget_s``) iterations, with a wall-clock cap of
-    ``BITSTAR_TIME_CAP_FACTOR * time_budget_s`` -- reproducible run to run; 0: wall clock only
-    (``time_budget_s``; the result depends on the machine's load).
-    ``refine``: shortcut + vertex relaxation of the chain (never increases f); ``step_cells``:
-    A* lattice step; ``h2``: precomputed A* heuristic table for the first try
-    (:func:`~skyroute.stages.planning.grid_planner.shared_heuristic`).
-    ``battery_reserve_pct`` [%]: the chain may use ``battery * (1 - reserve / 100)``.
-    A* only: ``z_anchor_m`` [m] the altitude its lattice levels are aligned on (default the
-    start's), ``edge_cache`` the :class:`~skyroute.stages.planning.grid_planner.EdgeCache` of
-    ``problem``'s maps, weights and vehicle, used by the first try (the later ones change the
-    weights).
-    Raises UnknownNameError / InputError for a bad planner / budget.
+    Every level, all tries and refinement included, stops at the wall-clock cap
+    ``LEVEL_CAP_FACTOR * time_budget_s`` (A*: no path, reason "budget exhausted", or the path
+    refined so far; ``info["stopped_by"] == "time"`` says the cap was hit).  A level whose start
+    or goal is not a valid state gives ``status="no_solution"`` and the reason.
+
+    Parameters
+    ----------
+    problem : PlanningProblem
+        One coverage level's problem.
+    planner : str, default "astar"
+        One of :data:`PLANNERS` (not a fixed-wing planner).
+    time_budget_s : float, default 5.0
+        BIT*'s budget per try [s], > 0 (A* runs to completion).
+    seed : int, default 0
+        BIT* random seed (OMPL seed = seed + 1, OMPL ignores 0); try ``i`` uses ``seed + i``.
+    max_tries : int, default 3
+        Plans in all (N_t), >= 1.
+    refine : bool, default True
+        Shortcut + vertex relaxation of the chain (never increases f).
+    step_cells : int, default :data:`~skyroute.stages.planning.grid_planner.STEP_CELLS`
+        A* lattice step [cells].
+    max_iterations : int, optional
+        BIT* stops after that many iterations; None (default): after :func:`bitstar_iterations`
+        (``time_budget_s``) iterations, with a wall-clock cap of
+        ``BITSTAR_TIME_CAP_FACTOR * time_budget_s`` -- reproducible run to run; 0: wall clock only
+        (``time_budget_s``; the result depends on the machine's load).
+    h2 : numpy.ndarray, optional
+        Precomputed A* heuristic table for the first try
+        (:func:`~skyroute.stages.planning.grid_planner.shared_heuristic`).
+    battery_reserve_pct : float, default 0.0
+        Reserve [%] in [0, 100): the chain may use ``battery * (1 - reserve / 100)``.
+    z_anchor_m : float, optional
+        A* only: the altitude [m] its lattice levels are aligned on (default the start's).
+    edge_cache : EdgeCache, optional
+        A* only: the :class:`~skyroute.stages.planning.grid_planner.EdgeCache` of ``problem``'s
+        maps, weights and vehicle, used by the first try (the later ones change the weights).
+
+    Returns
+    -------
+    Step1Result
+        ``status`` "solved", "no_solution" or "energy_infeasible" (with the numbers in
+        ``reason``).
+
+    Raises
+    ------
+    UnknownNameError
+        When ``planner`` is not one of :data:`PLANNERS`.
+    InputError
+        When ``time_budget_s`` is not a positive number, ``planner`` is a fixed-wing planner,
+        ``max_tries < 1`` or ``battery_reserve_pct`` is outside [0, 100).
+
+    References
+    ----------
+    Seed 000 section III-A (STEP I, energy feasibility III-A.3); seed 001 section 3.1.
     """
     _check(planner, time_budget_s)
     if planner in ("eeastar", "astar-fw", "energy-optimal"):
@@ -233,7 +309,33 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
 
 def step1_all_levels(problems: list[PlanningProblem], planner: str = "astar", time_budget_s: float = 5.0,
                      seed: int = 0, max_tries: int = 3, **kwargs) -> list[Step1Result]:
-    """:func:`plan_step1` on every coverage level (same planner, budget and seed per level)."""
+    """:func:`plan_step1` on every coverage level (same planner, budget and seed per level).
+
+    Parameters
+    ----------
+    problems : list of PlanningProblem
+        One per coverage level.
+    planner : str, default "astar"
+        One of :data:`PLANNERS`.
+    time_budget_s : float, default 5.0
+        Budget per level [s], > 0.
+    seed : int, default 0
+        Random seed.
+    max_tries : int, default 3
+        Plans per level (N_t).
+    **kwargs
+        Go to :func:`plan_step1`.
+
+    Returns
+    -------
+    list of Step1Result
+        One per level, in order.
+
+    Raises
+    ------
+    UnknownNameError, InputError
+        As :func:`plan_step1`.
+    """
     _check(planner, time_budget_s)
     return [plan_step1(p, planner, time_budget_s, seed, max_tries, **kwargs) for p in problems]
 

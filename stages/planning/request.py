@@ -29,11 +29,30 @@ PLANNER_STAGES = ("surface", "environment", "clearance", "wind", "coverage", "sa
 
 @dataclass(frozen=True)
 class Maps:
-    """The maps of one area: ``surface`` (terrain, surface [m]) and ``clearance``
-    (``min_altitude_m`` [m], ``nofly``) are required; ``environment`` (risk and landing cost),
-    ``wind`` (u, v, w [m/s]), ``coverage`` (``coverage_floor`` per DOP threshold [m]),
-    ``satellites`` (for STEP III's navigation error), ``traffic`` (known intruders' occupancy) and
-    ``clearance_by_level`` (the safety bubble's clearance per DOP threshold) are optional."""
+    """The maps of one area: the datasets a strategic planner reads.
+
+    ``surface`` and ``clearance`` are required, the others optional.  :data:`PLANNER_STAGES`
+    (``Maps.STAGES``) names the stages the pipeline's plan stage, fly and fleet load.
+
+    Parameters
+    ----------
+    surface : xarray.Dataset
+        Terrain, surface [m] (:func:`~skyroute.stages.surface.build_surface`).
+    clearance : xarray.Dataset
+        ``min_altitude_m`` [m], ``nofly``.
+    environment : xarray.Dataset, optional
+        Risk and landing cost.
+    wind : xarray.Dataset, optional
+        u, v, w [m/s].
+    coverage : xarray.Dataset, optional
+        ``coverage_floor`` per DOP threshold [m] (:func:`~skyroute.stages.coverage.coverage_maps`).
+    satellites : xarray.Dataset, optional
+        Satellite geometry, for STEP III's navigation error.
+    traffic : xarray.Dataset or TrafficOccupancy, optional
+        Known intruders' occupancy.
+    clearance_by_level : mapping of float to xarray.Dataset, optional
+        The safety bubble's clearance per DOP threshold.
+    """
 
     STAGES: ClassVar[tuple[str, ...]] = PLANNER_STAGES
 
@@ -48,8 +67,24 @@ class Maps:
 
     @classmethod
     def from_datasets(cls, datasets: Mapping[str, Any], **extra) -> Maps:
-        """From a mapping of stage name -> dataset (e.g. a pipeline RunResult's ``datasets``);
-        ``extra`` sets or overrides fields (``traffic``, ``clearance_by_level``, ``coverage``)."""
+        """Maps from a mapping of stage name -> dataset (e.g. a pipeline RunResult's ``datasets``).
+
+        Parameters
+        ----------
+        datasets : mapping of str to xarray.Dataset
+            Stage datasets by stage name; missing optional stages are None.
+        **extra
+            Set or override fields (``traffic``, ``clearance_by_level``, ``coverage``).
+
+        Returns
+        -------
+        Maps
+
+        Raises
+        ------
+        InputError
+            When ``surface`` or ``clearance`` is missing (run those stages first).
+        """
         kw = {f.name: datasets.get(f.name) for f in fields(cls) if f.name != "clearance_by_level"}
         kw.update(extra)
         missing = [k for k in ("surface", "clearance") if kw.get(k) is None]
@@ -63,13 +98,57 @@ class Maps:
 
 @dataclass(frozen=True)
 class PlanRequest:
-    """What to plan: endpoints (map CRS [m], heights above ground [m]), ``start_time_utc``, the
-    resolved ``vehicle`` profile, eq. 11 ``weights`` (w_l, w_r, w_d, w_e), the ``planner`` (a
-    name of :mod:`~skyroute.stages.planning.registry`), its ``time_budget_s`` [s], ``seed`` and
-    ``max_tries``, the altitude band [m AGL], ``dop_kind``, known ``intruders`` and their margins
-    (``d_c_m`` [m], ``dt_c_s`` [s]), ``uere_m`` [m], the A* ``step_cells``, BIT*'s
-    ``max_iterations``, ``battery_reserve_pct`` [%], the safety ``bubble`` (k, surface
-    uncertainty [m]), STEP II's ``step2_max_iter`` and the level ``workers``."""
+    """What to plan: mission, weights, limits, budgets, seed and the resolved vehicle profile.
+
+    Make one with :meth:`of`, which resolves the vehicle once; :meth:`kwargs` gives the keyword
+    arguments of :func:`~skyroute.stages.planning.strategic.plan_strategic`, where every field is
+    described further.
+
+    Parameters
+    ----------
+    start_xy, goal_xy : tuple of float
+        Endpoints, map (x, y) [m] in the maps' CRS.
+    start_agl_m, goal_agl_m : float
+        Their heights above ground [m].
+    start_time_utc : str
+        Departure time [UTC].
+    vehicle : VehicleProfile or FixedWingProfile
+        The resolved vehicle profile (hashed by content: :meth:`vehicle_hash`).
+    weights : tuple of 4 float, default (1.0, 1.0, 1.0, 1.0)
+        Eq. 11 weights (w_l, w_r, w_d, w_e) [-].
+    planner : str, default "astar"
+        A name of :mod:`~skyroute.stages.planning.registry`.
+    time_budget_s : float, default 5.0
+        The planner's budget [s].
+    seed : int, default 0
+        Random seed.
+    max_tries : int, default 3
+        STEP I tries per level (N_t).
+    min_agl_m, max_agl_m : float, default 0.0, 120.0
+        The altitude band [m AGL].
+    dop_kind : str, default "PDOP"
+        DOP kind of the coverage levels.
+    intruders : tuple of Intruder, default ()
+        Known intruders.
+    d_c_m : float, default 0.0
+        Their spatial margin [m].
+    dt_c_s : float, default 0.0
+        Their time margin [s].
+    uere_m : float, default 3.0
+        GNSS user equivalent range error [m].
+    step_cells : int, optional
+        The A* lattice step [cells] (None: plan_strategic's default).
+    max_iterations : int, optional
+        BIT*'s iteration stop rule.
+    battery_reserve_pct : float, default 0.0
+        Battery reserve [%].
+    bubble : tuple of float, optional
+        The safety bubble (k, surface uncertainty [m]).
+    step2_max_iter : int, optional
+        STEP II's iterations (None: plan_strategic's default).
+    workers : int, optional
+        Threads for the levels.
+    """
 
     start_xy: tuple[float, float]
     start_agl_m: float
@@ -98,21 +177,65 @@ class PlanRequest:
 
     @classmethod
     def of(cls, *, vehicle, **kw) -> PlanRequest:
-        """A request whose ``vehicle`` (a profile, catalog name or YAML path) is resolved now."""
+        """A request whose ``vehicle`` (a profile, catalog name or YAML path) is resolved now.
+
+        Parameters
+        ----------
+        vehicle : str, pathlib.Path, VehicleProfile or FixedWingProfile
+            Resolved with :func:`~skyroute.stages.vehicle.load_vehicle`.
+        **kw
+            The other fields of :class:`PlanRequest` (``intruders`` becomes a tuple).
+
+        Returns
+        -------
+        PlanRequest
+
+        Raises
+        ------
+        UnknownNameError
+            For an unknown vehicle name.
+        DataError
+            For an unreadable vehicle file.
+        ScenarioError
+            For an invalid vehicle file (every problem listed).
+        """
         kw["intruders"] = tuple(kw.get("intruders") or ())
         return cls(vehicle=load_vehicle(vehicle), **kw)
 
     def with_(self, **changes) -> PlanRequest:
-        """A copy with ``changes`` (e.g. another departure time or planner)."""
+        """A copy with ``changes`` (e.g. another departure time or planner).
+
+        Parameters
+        ----------
+        **changes
+            Fields to replace.
+
+        Returns
+        -------
+        PlanRequest
+        """
         return replace(self, **changes)
 
     def vehicle_hash(self) -> str:
-        """A hash of the vehicle profile's content (16 hex digits)."""
+        """A hash of the vehicle profile's content (16 hex digits).
+
+        Returns
+        -------
+        str
+            BLAKE2b (8 bytes) of the profile's sorted JSON, in hex.
+        """
         doc = json.dumps(self.vehicle.model_dump(mode="json"), sort_keys=True, default=str)
         return hashlib.blake2b(doc.encode(), digest_size=8).hexdigest()
 
     def kwargs(self) -> dict[str, Any]:
-        """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_strategic`."""
+        """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_strategic`.
+
+        Returns
+        -------
+        dict of str to object
+            Every field (``intruders`` as a list or None; ``step_cells`` and ``step2_max_iter``
+            left out when None, so plan_strategic's defaults apply).
+        """
         kw = {k: v for k, v in asdict(self).items() if k != "vehicle"}
         kw["vehicle"] = self.vehicle
         kw["intruders"] = list(self.intruders) or None
@@ -124,9 +247,32 @@ class PlanRequest:
 
 def plan(maps: Maps, request: PlanRequest, *, heuristic_cache: dict | None = None,
          edge_cache: dict | None = None):
-    """The strategic plan (STEP I-III on every coverage level, seed 000) of ``request`` on
-    ``maps``: a :class:`~skyroute.stages.planning.strategic.StrategicPlan`.  ``heuristic_cache``
-    / ``edge_cache``: dicts kept by a caller planning many missions on the same maps (fleet)."""
+    """The strategic plan (STEP I-III on every coverage level, seed 000) of ``request`` on ``maps``.
+
+    Parameters
+    ----------
+    maps : Maps
+        The datasets the planner reads.
+    request : PlanRequest
+        What to plan.
+    heuristic_cache, edge_cache : dict, optional
+        Dicts kept by a caller planning many missions on the same maps (fleet); see
+        :func:`~skyroute.stages.planning.strategic.plan_strategic`.
+
+    Returns
+    -------
+    StrategicPlan
+        A :class:`~skyroute.stages.planning.strategic.StrategicPlan`.
+
+    Raises
+    ------
+    DegenerateCostError, InputError
+        As :func:`~skyroute.stages.planning.strategic.plan_strategic`.
+
+    References
+    ----------
+    Seed 000 (the strategic planner, STEP I-III).
+    """
     from skyroute.stages.planning.strategic import plan_strategic
 
     return plan_strategic(maps.surface, maps.environment, maps.wind, maps.clearance, maps.coverage,

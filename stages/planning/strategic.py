@@ -221,10 +221,10 @@ def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr
         When the weights select only cost terms that are the same per metre everywhere (before
         any planning).
     InputError
-        When the weights, altitude limits or ``workers`` are invalid, the planner does not fit
-        the vehicle's kind, or a mission point is outside the grid.
+        When the weights, altitude limits, ``time_budget_s`` or ``workers`` are invalid, the
+        planner does not fit the vehicle's kind, or a mission point is outside the grid.
     UnknownNameError
-        When ``vehicle`` names no catalog vehicle.
+        When ``vehicle`` names no catalog vehicle or ``planner`` no planner.
 
     References
     ----------

@@ -760,9 +760,9 @@ def visibility_height(surface: xr.DataArray, az_deg, el_deg, *,
     ------
     InputError
         When ``surface`` is not a numeric ``(y, x)`` DataArray on a north-up grid of square
-        cells, ``azimuth`` or ``fill_nan`` is not one of its values, the directions are not finite scalars or equal-length 1-D arrays,
-        an elevation is outside (0, 90], or the surface has NaN cells (``fill_nan=None``) or is
-        entirely NaN.
+        cells, ``azimuth`` or ``fill_nan`` is not one of its values, the directions are not
+        finite scalars or equal-length 1-D arrays, an elevation is outside (0, 90], or the
+        surface has NaN cells (``fill_nan=None``) or is entirely NaN.
     CRSError
         When the surface carries no CRS, or (``azimuth="true"``) its CRS is not projected.
 

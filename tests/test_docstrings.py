@@ -8,7 +8,8 @@ module itself defines has a docstring with numpydoc sections, pvlib's style:
   ``Parameters`` section naming every argument, and one that returns something (a return
   annotation other than ``None``, or a ``return value`` statement) has a ``Returns`` section;
 * a class has a ``Parameters`` or ``Attributes`` section; for a dataclass it names every field;
-* a property has a docstring.
+* a property has a docstring;
+* no docstring line is longer than 120 characters.
 
 The docstrings are read from the source with ``ast`` (not imported), so the test checks this
 checkout whichever checkout of skyroute is installed.  Names imported from elsewhere (e.g.
@@ -151,14 +152,31 @@ def _public_defs(tree: ast.Module) -> list[ast.AST]:
             and (n.name in public if public is not None else not n.name.startswith("_"))]
 
 
+MAX_LINE = 120
+
+
+def _long_lines(node: ast.AST, lines: list[str], where: str) -> list[str]:
+    """Docstring source lines of ``node`` (and of its methods) longer than MAX_LINE."""
+    out = []
+    for n in ast.walk(node):
+        body = getattr(n, "body", None)
+        if isinstance(n, _Def | ast.ClassDef) and body and isinstance(body[0], ast.Expr) \
+                and isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str):
+            out += [f"{where}: docstring line {i} is {len(lines[i - 1])} > {MAX_LINE} characters"
+                    for i in range(body[0].lineno, body[0].end_lineno + 1) if len(lines[i - 1]) > MAX_LINE]
+    return out
+
+
 def problems_of(source: str, module: str = "<module>") -> tuple[list[str], int]:
     """(problems, number of public definitions checked) of a module's source."""
     tree = ast.parse(source)
+    lines = source.splitlines()
     defs = _public_defs(tree)
     problems: list[str] = []
     for node in defs:
         where = f"{module}:{node.name}"
         problems += _check_class(node, where) if isinstance(node, ast.ClassDef) else _check_function(node, where)
+        problems += _long_lines(node, lines, where)
     return problems, len(defs)
 
 
@@ -170,7 +188,7 @@ def test_public_docstrings_have_numpydoc_sections(module):
 
 
 BAD = '''
-__all__ = ["f", "g", "h", "C", "D"]
+__all__ = ["f", "g", "h", "k", "C", "D"]
 
 
 def f(x_m, y_m):
@@ -195,6 +213,10 @@ def g(x):
 
 def h():
     return None
+
+
+def k():
+    """LONG"""
 
 
 class C:
@@ -227,18 +249,19 @@ class D:
 
 def _private(x):
     return x
-'''
+'''.replace("LONG", "x" * 120)   # a 130-character docstring line
 
 
 def test_checker_finds_missing_sections():
     """The checker itself can fail: each defect of BAD is reported, nothing else."""
     problems, n = problems_of(BAD, "bad")
-    assert n == 5
+    assert n == 6
     assert sorted(problems) == sorted([
         "bad:f: Parameters does not name y_m",
         "bad:g: takes x but has no Parameters section",
         "bad:g: returns a value but has no Returns section",
         "bad:h: no docstring",
+        "bad:k: docstring line 30 is 130 > 120 characters",
         "bad:C: no Parameters or Attributes section",
         "bad:C.area: takes scale but has no Parameters section",
         "bad:D: Parameters/Attributes does not name b",

@@ -26,7 +26,7 @@ import shapely
 from skyroute.stages.base import InputError
 
 __all__ = ["MIN_AREA_M2", "FleetDecision", "Volume4", "VolumeIndex", "accept_fcfs", "conflicts_naive",
-           "volumes_intersect", "volumes_of_intent", "volumes_of_plan"]
+           "pairs_intersect", "volumes_intersect", "volumes_of_intent", "volumes_of_plan"]
 
 MIN_AREA_M2 = 1e-4
 
@@ -90,6 +90,20 @@ def _arrays(vols: Sequence[Volume4]) -> tuple[np.ndarray, np.ndarray]:
     polys = np.array([v.polygon for v in vols], dtype=object)
     iv = np.array([[v.alt_lower_m, v.alt_upper_m, v.t_start_s, v.t_end_s] for v in vols], float).reshape(-1, 4)
     return polys, iv
+
+
+def pairs_intersect(q: Sequence[Volume4], a: Sequence[Volume4], qidx, aidx,
+                    min_area_m2: float = MIN_AREA_M2) -> np.ndarray:
+    """Boolean mask over the candidate pairs ``(q[qidx[k]], a[aidx[k]])``: the exact 4-D test
+    of :func:`volumes_intersect` (altitude and time overlap, then the outlines' shared area >
+    ``min_area_m2`` [m^2]), vectorised.  The one exact test of the candidate pairs an index
+    (the STRtree here, the R*Tree of :mod:`skyroute.stages.airspace_store`) proposes."""
+    qidx, aidx = np.asarray(qidx, np.intp).ravel(), np.asarray(aidx, np.intp).ravel()
+    if not len(q) or not len(a) or not qidx.size:
+        return np.zeros(qidx.size, bool)
+    qp, qi = _arrays(q)
+    ap, ai = _arrays(a)
+    return _exact(qp, qi, ap, ai, qidx, aidx, min_area_m2)
 
 
 def _exact(qp, qi, ap, ai, qidx, aidx, min_area_m2) -> np.ndarray:

@@ -196,21 +196,22 @@ class AirspaceStore:
     @classmethod
     def create(cls, path: Path | str, crs, epoch_utc, *, replace: bool = False) -> AirspaceStore:
         """A new, empty airspace at ``path`` whose volumes are in the metric ``crs`` (anything
-        pyproj reads) with times in seconds after ``epoch_utc``; ``replace``: remove an existing
-        file (and its -wal / -shm) first, else InputError when it exists."""
+        pyproj reads) with times in seconds after ``epoch_utc``; ``replace``: replace an
+        existing file, else InputError when it exists.  Written under a temporary name and
+        renamed: a process killed meanwhile leaves no half-made file at ``path``."""
         from pyproj import CRS
 
         path = Path(path)
-        if path.exists():
-            if not replace:
-                raise InputError(f"airspace file {path} exists already")
-            for suffix in ("", "-wal", "-shm", "-journal"):
-                Path(str(path) + suffix).unlink(missing_ok=True)
-        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.exists() and not replace:
+            raise InputError(f"airspace file {path} exists already")
         c = CRS.from_user_input(crs)
         if not c.is_projected:
             raise InputError(f"an airspace needs a projected (metric) CRS, got {c.name}")
-        conn = cls._connect(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        for suffix in ("", "-wal", "-shm", "-journal"):
+            Path(str(tmp) + suffix).unlink(missing_ok=True)
+        conn = cls._connect(tmp)
         conn.execute("BEGIN IMMEDIATE")
         for stmt in _DDL.split(";"):
             if stmt.strip():
@@ -219,7 +220,11 @@ class AirspaceStore:
             ("schema_version", str(SCHEMA_VERSION)), ("crs", c.to_wkt()),
             ("epoch_utc", _utc(epoch_utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")), ("created_utc", _now_utc())])
         conn.execute("COMMIT")
-        return cls(path, conn)
+        conn.close()                       # checkpoints the WAL into the file (WAL mode stays set)
+        for suffix in ("-wal", "-shm", "-journal"):
+            Path(str(path) + suffix).unlink(missing_ok=True)
+        os.replace(tmp, path)
+        return cls(path, cls._connect(path))
 
     @classmethod
     def open_or_create(cls, path: Path | str, crs, epoch_utc) -> AirspaceStore:
@@ -348,7 +353,7 @@ class AirspaceStore:
             return []
         got = self._load_vids(vids)
         ex = set(exclude)
-        keep = np.array([got[int(v)][0] not in ex for v in vids], bool)
+        keep = np.array([int(v) in got and got[int(v)][0] not in ex for v in vids], bool)   # (orphan boxes: check())
         qidx, vids = qidx[keep], vids[keep]
         if not qidx.size:
             return []
@@ -511,7 +516,7 @@ class AirspaceStore:
                     continue
                 if (da0, da1) != (a0, a1):
                     out.append(f"intent {rec.id} volume {k}: document altitudes {da0}-{da1} m != stored {a0}-{a1} m")
-                if not (0 <= t0 - dt0 < 1.001e-3 and 0 <= dt1 - t1 < 1.001e-3):
+                if not (-1e-6 <= t0 - dt0 < 1.001e-3 and -1e-6 <= dt1 - t1 < 1.001e-3):
                     out.append(f"intent {rec.id} volume {k}: document times do not round the stored ones outwards "
                                "to the millisecond")
                 ring = np.asarray(poly.exterior.coords)[:-1]

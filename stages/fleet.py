@@ -17,6 +17,7 @@ test only for the pairs that pass the box, altitude and time filters.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -53,9 +54,8 @@ def volumes_of_intent(doc: dict, crs, start_time_utc) -> list[Volume4]:
     """The :class:`Volume4` list of an F3548 OperationalIntentDetails dict: vertices projected to
     the metric ``crs``, times in seconds after ``start_time_utc``."""
     import pandas as pd
-    from pyproj import Transformer
 
-    tr = Transformer.from_crs(4326, crs, always_xy=True)
+    tr = _from_lonlat(crs if isinstance(crs, str) else str(crs.to_wkt()) if hasattr(crs, "to_wkt") else crs)
     t0 = pd.Timestamp(start_time_utc)
     t0 = t0.tz_localize("UTC") if t0.tzinfo is None else t0.tz_convert("UTC")
     out = []
@@ -67,6 +67,13 @@ def volumes_of_intent(doc: dict, crs, start_time_utc) -> list[Volume4]:
                            (pd.Timestamp(v["time_start"]["value"]) - t0).total_seconds(),
                            (pd.Timestamp(v["time_end"]["value"]) - t0).total_seconds()))
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def _from_lonlat(crs):
+    from pyproj import Transformer
+
+    return Transformer.from_crs(4326, crs, always_xy=True)
 
 
 def volumes_of_plan(volumes: Sequence, t_offset_s: float = 0.0) -> list[Volume4]:

@@ -704,9 +704,26 @@ class _AirspaceLink:
         self.load(self.store.ids_in_box(x0, y0, x1, y1, t0 + self.shift, t1 + self.shift))
 
     def load(self, ids) -> None:
+        from skyroute.stages.fleet import Volume4
+
         ids = [m for m in ids if m not in self.state.accepted]
-        for m, vols in self.store.volumes(ids, t_shift_s=self.shift).items():
-            obst = [_obstacle(v, np.asarray(v.polygon.exterior.coords)[:-1], self.to_ll, self.ref) for v in vols]
+        got = self.store.volumes(ids, t_shift_s=self.shift)
+        if not got:
+            return
+        # _obstacle of every volume at once (elementwise: the same numbers as one at a time)
+        rings = [np.asarray(v.polygon.exterior.coords)[:-1] for vs in got.values() for v in vs]
+        xy = np.concatenate(rings)
+        lon, lat = self.to_ll.transform(xy[:, 0], xy[:, 1])
+        off = self.ref.ellipsoidal_m(np.asarray(lon), np.asarray(lat), np.zeros(len(xy)))
+        starts = np.cumsum([0] + [len(r) for r in rings[:-1]])
+        hi, lo = np.maximum.reduceat(off, starts), np.minimum.reduceat(off, starts)
+        k = 0
+        for m, vols in got.items():
+            obst = []
+            for v in vols:
+                obst.append(Volume4(v.polygon, v.alt_lower_m - float(hi[k]) - 0.01, v.alt_upper_m - float(lo[k]) + 0.01,
+                                    v.t_start_s, v.t_end_s))
+                k += 1
             self.state.add(Attempt(m, math.nan, True, volumes=vols, obstacles=obst), FIRM_PRIORITY)
             self.loaded += 1
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 from pathlib import Path
 
@@ -124,8 +125,8 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
     section["airspace"] = {**res.airspace, "conflicts_with_the_airspace": len(air_conf),
                            "conflicting_pairs": [list(c) for c in air_conf]}
     store.close()
-    if airspace_file is None:
-        files.append(out_dir / "airspace.sqlite")
+    if Path(os.path.abspath(store.path)).is_relative_to(os.path.abspath(out_dir)):   # listed: never removed as stale
+        files.append(Path(store.path))
     section.update({"default_dop_level": level, "scheduler": scheduler,
                     "source": str(fleet_file) if fleet_file else f"--missions {missions} --seed {seed}",
                     "window_min": window_min, "max_delay_min": max_delay_min, "delay_step_s": delay_step_s,

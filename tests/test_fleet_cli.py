@@ -533,6 +533,18 @@ def test_unknown_intent_and_changed_mission(airspace, tmp_path, cache_dir):
     assert res.exit_code == 2 and "k1 already decided in the airspace" in res.output
 
 
+def test_continue_the_default_airspace_of_a_folder(tmp_path, cache_dir):
+    """`fleet --airspace OUT/airspace.sqlite --out OUT` (the folder's own file) keeps the file
+    (summary.json lists it) and plans nothing twice."""
+    f = _yaml(tmp_path / "f.yaml", {"missions": KILL_FLEET["missions"][:2]})
+    out = tmp_path / "o"
+    _fleet(["--fleet", str(f), "--out", str(out)], cache_dir)
+    res = _fleet(["--fleet", str(f), "--out", str(out), "--airspace", str(out / "airspace.sqlite")], cache_dir)
+    assert "2 mission(s) already decided" in res.output
+    assert "airspace.sqlite" in json.loads((out / "summary.json").read_text())["files"]
+    assert len(json.loads(_air(["ls", str(out / "airspace.sqlite"), "--json"]).output)["intents"]) == 2
+
+
 def _child(args: list[str], pause_s: float) -> None:      # a forked `skyroute fleet --airspace` process
     import os
     import sys

@@ -137,6 +137,15 @@ def _utc(t) -> dt.datetime:
     return x.to_pydatetime()
 
 
+def _iso(text: str) -> dt.datetime:
+    """An RFC 3339 UTC time (``...Z``) as an aware datetime (fast path; others via pandas)."""
+    try:
+        x = dt.datetime.fromisoformat(str(text).replace("Z", "+00:00"))
+        return x if x.tzinfo is not None else x.replace(tzinfo=dt.UTC)
+    except ValueError:
+        return _utc(text)
+
+
 def _box(v: Volume4) -> tuple[float, ...]:
     x0, y0, x1, y1 = v.polygon.bounds
     return (x0, x1, y0, y1, v.alt_lower_m, v.alt_upper_m, v.t_start_s, v.t_end_s)
@@ -487,7 +496,17 @@ class AirspaceStore:
             if len(dvs) != rec.n_volumes:
                 out.append(f"intent {rec.id}: its F3548 document has {len(dvs)} volumes, expected {rec.n_volumes}")
                 continue
-            for r, dv in zip(rows, dvs, strict=True):
+            try:                          # the document's outlines in the store CRS, one transform per intent
+                verts = [dv["volume"]["outline_polygon"]["vertices"] for dv in dvs]
+                lng = [float(q["lng"]) for vx in verts for q in vx]
+                lat = [float(q["lat"]) for vx in verts for q in vx]
+                xs, ys = tr.transform(lng, lat)
+                cuts = np.cumsum([len(vx) for vx in verts])[:-1]
+                doc_xy = np.split(np.column_stack([xs, ys]), cuts)
+            except (KeyError, TypeError, ValueError) as exc:
+                out.append(f"intent {rec.id}: F3548 document unreadable ({exc})")
+                continue
+            for r, dv, pts in zip(rows, dvs, doc_xy, strict=True):
                 k, wkb, a0, a1, t0, t1 = r[:6]
                 box = r[6:]
                 try:
@@ -507,10 +526,8 @@ class AirspaceStore:
                 try:
                     da0 = float(dv["volume"]["altitude_lower"]["value"])
                     da1 = float(dv["volume"]["altitude_upper"]["value"])
-                    dt0 = (_utc(dv["time_start"]["value"]) - self.epoch_utc).total_seconds()
-                    dt1 = (_utc(dv["time_end"]["value"]) - self.epoch_utc).total_seconds()
-                    vx = dv["volume"]["outline_polygon"]["vertices"]
-                    x, y = tr.transform([p["lng"] for p in vx], [p["lat"] for p in vx])
+                    dt0 = (_iso(dv["time_start"]["value"]) - self.epoch_utc).total_seconds()
+                    dt1 = (_iso(dv["time_end"]["value"]) - self.epoch_utc).total_seconds()
                 except (KeyError, TypeError, ValueError) as exc:
                     out.append(f"intent {rec.id} volume {k}: F3548 document unreadable ({exc})")
                     continue
@@ -520,7 +537,6 @@ class AirspaceStore:
                     out.append(f"intent {rec.id} volume {k}: document times do not round the stored ones outwards "
                                "to the millisecond")
                 ring = np.asarray(poly.exterior.coords)[:-1]
-                pts = np.column_stack([x, y])
                 if pts.shape != ring.shape or not np.all(np.hypot(*(pts - ring).T) <= tol_m):
                     out.append(f"intent {rec.id} volume {k}: document outline differs from the stored one "
                                f"by more than {tol_m} m")

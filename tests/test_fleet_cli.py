@@ -533,6 +533,35 @@ def test_unknown_intent_and_changed_mission(airspace, tmp_path, cache_dir):
     assert res.exit_code == 2 and "k1 already decided in the airspace" in res.output
 
 
+def test_preemption_is_one_transaction_in_the_default_airspace(small):
+    """The small fleet's preemption (high preempts low, low re-planned or rejected): its
+    OUT/airspace.sqlite holds exactly the missions fleet.csv accepts, with their statuses, and
+    `airspace check` passes."""
+    tmp, _ = small
+    rows = {r["mission"]: r for r in _rows(tmp / "a")}
+    doc = json.loads(_air(["ls", str(tmp / "a" / "airspace.sqlite"), "--json"]).output)
+    assert {r["id"]: r["status"] for r in doc["intents"]} == {m: r["status"] for m, r in rows.items()
+                                                              if r["status"] != "rejected"}
+    assert set(doc["rejected_missions"]) == {m for m, r in rows.items() if r["status"] == "rejected"}
+    _air(["check", str(tmp / "a" / "airspace.sqlite")])
+
+
+def test_intents_of_an_earlier_run_are_not_preempted(tmp_path, cache_dir):
+    """A priority-1 mission on the route of a priority-0 intent accepted by an earlier run into
+    the airspace is planned around it (delayed or re-routed): the stored intent stays."""
+    low, high = FLEET["missions"][0], FLEET["missions"][1]
+    air = str(tmp_path / "air.sqlite")
+    _fleet(["--fleet", str(_yaml(tmp_path / "l.yaml", {"missions": [low]})), "--out", str(tmp_path / "l"),
+            "--airspace", air], cache_dir)
+    _fleet(["--fleet", str(_yaml(tmp_path / "h.yaml", {"missions": [high]})), "--out", str(tmp_path / "h"),
+            "--airspace", air], cache_dir)
+    (row,) = _rows(tmp_path / "h")
+    assert row["status"] in ("accepted", "delayed") and not row["preempted_by"]
+    doc = json.loads(_air(["ls", air, "--json"]).output)
+    assert {r["id"] for r in doc["intents"]} == {"low", "high"}
+    _air(["check", air])
+
+
 def test_continue_the_default_airspace_of_a_folder(tmp_path, cache_dir):
     """`fleet --airspace OUT/airspace.sqlite --out OUT` (the folder's own file) keeps the file
     (summary.json lists it) and plans nothing twice."""

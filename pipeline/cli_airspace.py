@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-FILE = click.Path(dir_okay=False, path_type=Path)
+FILE = click.Path(path_type=Path)   # checked by AirspaceStore.open: one `error:` line
 
 
 @click.group("airspace")

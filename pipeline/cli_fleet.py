@@ -37,7 +37,7 @@ from skyroute.pipeline.cli import SCHEDULER_HELP
 @click.option("--scheduler", default="threads", show_default=True,
               help=SCHEDULER_HELP + "; with distributed / tcp:// the missions are planned speculatively in parallel")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers of --scheduler distributed.")
-@click.option("--airspace", "airspace_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
+@click.option("--airspace", "airspace_file", type=click.Path(path_type=Path), default=None,
               help="Airspace file (SQLite, see `skyroute airspace`): plan against every intent already accepted there "
                    "and add this run's; missions already decided there are skipped (a killed run continues). Drawn "
                    "missions get ids s<SEED>-m0001... Default: a new OUT/airspace.sqlite.")
@@ -84,7 +84,7 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
             sys.exit(2)
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fleet")
     if airspace_file is not None:      # a bad FILE: one error line before any planning
-        store = AirspaceStore.open(airspace_file) if airspace_file.exists() else None
+        store = AirspaceStore.open(airspace_file) if airspace_file.exists() or airspace_file.is_symlink() else None
     cache = Cache(cache_dir)
     maps = fleet_maps(sc, cache.root)
     crs = maps["surface"]["surface"].rio.crs

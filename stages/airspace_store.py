@@ -177,6 +177,8 @@ class AirspaceStore:
         """An existing airspace file; InputError (one line: what is wrong, how to fix it) when
         ``path`` is missing or is not a skyroute airspace of a known schema."""
         path = Path(path)
+        if path.is_dir():
+            raise InputError(f"{path} is a folder; give an airspace file (e.g. {path / 'airspace.sqlite'})")
         if not path.is_file():
             raise InputError(f"airspace file {path} does not exist; give the FILE written by "
                              "`skyroute fleet --airspace FILE` (or OUT/airspace.sqlite)")

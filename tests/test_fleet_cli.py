@@ -523,6 +523,14 @@ def test_bad_airspace_file_one_error_line_exit_2(tmp_path, args):
     assert not (tmp_path / "o" / "fleet.csv").exists()
 
 
+def test_airspace_folder_or_missing_file_one_error_line(tmp_path):
+    for args, what in ((["airspace", "check", str(tmp_path)], "is a folder"),
+                       (["airspace", "ls", str(tmp_path / "none.sqlite")], "does not exist")):
+        res = CliRunner().invoke(main, args)
+        assert res.exit_code == 2 and res.output.count("\n") == 1 and res.output.startswith("error: ")
+        assert what in res.output
+
+
 def test_unknown_intent_and_changed_mission(airspace, tmp_path, cache_dir):
     res = CliRunner().invoke(main, ["airspace", "show", str(airspace / "air.sqlite"), "nope"])
     assert res.exit_code == 2 and res.output.startswith("error: no intent 'nope'")

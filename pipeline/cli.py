@@ -456,6 +456,7 @@ _PLUGINS = {
     "skyroute.pipeline.cli_compare": "compare_command",
     "skyroute.pipeline.cli_diff": "diff_command",
     "skyroute.pipeline.cli_fleet": "fleet_command",
+    "skyroute.pipeline.cli_airspace": "airspace_group",
     "skyroute.pipeline.cli_inspect": "inspect_command",
 }
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 from pathlib import Path
 
@@ -36,14 +37,19 @@ from skyroute.pipeline.cli import SCHEDULER_HELP
 @click.option("--scheduler", default="threads", show_default=True,
               help=SCHEDULER_HELP + "; with distributed / tcp:// the missions are planned speculatively in parallel")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers of --scheduler distributed.")
+@click.option("--airspace", "airspace_file", type=click.Path(path_type=Path), default=None,
+              help="Airspace file (SQLite, see `skyroute airspace`): plan against every intent already accepted there "
+                   "and add this run's; missions already decided there are skipped (a killed run continues). Drawn "
+                   "missions get ids s<SEED>-m0001... Default: a new OUT/airspace.sqlite.")
 @click.option("-q", "--quiet", is_flag=True, help="No per-mission lines.")
 def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max_delay_min, delay_step_s, ground_m,
-                  no_preempt, cache_dir, scheduler, workers, quiet) -> None:
+                  no_preempt, cache_dir, scheduler, workers, airspace_file, quiet) -> None:
     """Plan many operators' missions in SCENARIO first-come-first-served (issue 15): each at one
     DOP level, every accepted mission's ASTM F3548 intent volumes as traffic in STEP II; a
     mission whose volumes would intersect an accepted one is delayed (--delay-step-s up to
     --max-delay-min) or rejected, and may preempt lower-priority missions (re-planned). Writes
-    fleet.csv, intents/<mission>.json, fleet.geojson, tracks.csv, fleet.png and summary.json."""
+    fleet.csv, intents/<mission>.json, fleet.geojson, tracks.csv, fleet.png, summary.json and
+    the accepted intents into the airspace file (--airspace; each decision one transaction)."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.errors import InputError
     from skyroute.pipeline.fleet import (
@@ -59,6 +65,7 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
     from skyroute.pipeline.graph import scheduler_context
     from skyroute.pipeline.outputs import ensure_writable_dir, write_folder_summary
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, GroundReference, load_scenario
+    from skyroute.stages.airspace_store import AirspaceStore
 
     if (fleet_file is None) == (missions is None):
         raise InputError("give either --fleet FILE or --missions N (with --seed S)")
@@ -75,11 +82,20 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
                 click.echo(f"error: {p}", err=True)
             sys.exit(2)
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fleet")
+    if airspace_file is not None:      # a bad FILE: one error line before any planning
+        store = AirspaceStore.open(airspace_file) if airspace_file.exists() or airspace_file.is_symlink() else None
     cache = Cache(cache_dir)
     maps = fleet_maps(sc, cache.root)
+    crs = maps["surface"]["surface"].rio.crs
+    if airspace_file is None:
+        store = AirspaceStore.create(out_dir / "airspace.sqlite", crs, sc.mission.start_time_utc, replace=True)
+    elif store is None:
+        store = AirspaceStore.create(airspace_file, crs, sc.mission.start_time_utc)
     warnings: list[str] = []
     if tasks is None:
         tasks = draw_missions(sc, maps, missions, seed, window_min * 60.0, notes=warnings)
+        if airspace_file is not None:   # ids unique across the draws added to one airspace
+            tasks = [dataclasses.replace(t, id=f"s{seed}-{t.id}") for t in tasks]
     level = default_level(maps)
     opt = FleetOptions(delay_step_s=delay_step_s, max_delay_s=max_delay_min * 60.0, seed=seed, preempt=not no_preempt)
     gnss_min = sc.gnss.window_min
@@ -90,15 +106,26 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
                         "the worst case over the window)")
     echo = None if quiet else (lambda s: click.echo(s, err=True))
     if scheduler in ("threads", "synchronous", "sync"):
-        res = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, echo=echo)
+        res = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, echo=echo, airspace=store)
     else:
         with scheduler_context(scheduler, workers) as client:
             if client is None:
                 raise InputError(f"--scheduler {scheduler}: the fleet runs sequentially (threads) or on "
                                  "dask.distributed (distributed, tcp://HOST:PORT)")
-            res = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, client=client, echo=echo)
+            res = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, client=client, echo=echo,
+                            airspace=store)
     res.warnings.extend(warnings)
     files, section = write_fleet(res, sc, maps, out_dir)
+    shift = store.time_shift_s(sc.mission.start_time_utc)
+    air_conf = sorted({tuple(sorted((o.task.id, m))) for o in res.outcomes if o.attempt is not None
+                       and o.status != "rejected" for _, m in store.conflicts(
+                           [dataclasses.replace(v, t_start_s=v.t_start_s + shift, t_end_s=v.t_end_s + shift)
+                            for v in o.attempt.volumes], exclude=(o.task.id,))})
+    section["airspace"] = {**res.airspace, "conflicts_with_the_airspace": len(air_conf),
+                           "conflicting_pairs": [list(c) for c in air_conf]}
+    store.close()
+    if Path(os.path.abspath(store.path)).is_relative_to(os.path.abspath(out_dir)):   # listed: never removed as stale
+        files.append(Path(store.path))
     section.update({"default_dop_level": level, "scheduler": scheduler,
                     "source": str(fleet_file) if fleet_file else f"--missions {missions} --seed {seed}",
                     "window_min": window_min, "max_delay_min": max_delay_min, "delay_step_s": delay_step_s,
@@ -116,7 +143,10 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
                f"{c['preempted-replanned']} preempted-replanned, {c['rejected']} rejected; mean delay "
                f"{section['mean_delay_s'] or 0:.0f} s; {section['throughput_plans_per_min']} plans/min; "
                f"conflicts (independent check) {section['conflicts_independent_check']} -> {out_dir}")
-    if section["accepted_total"] == 0:      # an honest result: nothing flies (every reason is in fleet.csv)
+    if res.airspace.get("already_decided"):
+        click.echo(f"airspace: {len(res.airspace['already_decided'])} mission(s) already decided in "
+                   f"{res.airspace['file']} (skipped); it holds {res.airspace['intents_after']} intents", err=True)
+    if section["accepted_total"] == 0 and res.outcomes:   # an honest result: nothing flies (reasons in fleet.csv)
         reasons = sorted({o.reason for o in res.outcomes if o.reason})
         click.echo("no mission accepted: " + (" | ".join(reasons[:3]) or "no mission was given"), err=True)
         sys.exit(3)

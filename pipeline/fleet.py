@@ -49,6 +49,7 @@ from skyroute.pipeline.settings import MissionPoint, Scenario
 
 __all__ = ["FLEET_COLUMNS", "Attempt", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult", "FleetTask",
            "MissionOutcome", "default_level", "draw_missions", "fleet_maps", "independent_conflicts", "load_fleet",
+           "mission_fields",
            "min_separation_m", "plan_attempt", "plot_fleet", "run_fleet", "still_valid", "write_fleet"]
 
 FLEET_COLUMNS = ("mission", "operator", "priority", "status", "departure_utc", "earliest_s", "delay_s", "dop_level",
@@ -485,12 +486,9 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
 
     for v in iv:
         poly = shapely.Polygon(v.outline_xy_m)
-        lon, lat = to_ll.transform(v.outline_xy_m[:, 0], v.outline_xy_m[:, 1])
-        off = ref.ellipsoidal_m(np.asarray(lon), np.asarray(lat), np.zeros(len(lon)))   # W84 of the datum's 0 m
         ts, te = v.t_start_s + departure_s, v.t_end_s + departure_s
         vols.append(Volume4(poly, v.alt_lower_m, v.alt_upper_m, ts, te))
-        obst.append(Volume4(poly, v.alt_lower_m - float(np.max(off)) - 0.01, v.alt_upper_m - float(np.min(off)) + 0.01,
-                            ts, te))
+        obst.append(_obstacle(vols[-1], v.outline_xy_m, to_ll, ref))
     tau = np.append(np.arange(0.0, traj.duration_s, 0.05), traj.duration_s)
     xyz = traj.sample(tau)
     s2 = plan.step2[0]
@@ -499,6 +497,18 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
                    float(c.flight_time_s), time.perf_counter() - t_start, seen,
                    s2.status if s2 is not None else "", None if s2 is None else (s2.waypoints, s2.times_s),
                    (traj, t0), free_legs=None if s2 is None else s2.free_legs)
+
+
+def _obstacle(v, ring_xy_m: np.ndarray, to_ll, ref):
+    """The Volume4 ``v`` (W84 altitudes) as an obstacle in the surface datum: its band brought
+    to the datum conservatively over the outline's vertices ``ring_xy_m`` [m] (the lowest and
+    highest W84 height of the datum's 0 m there), +- 1 cm."""
+    from skyroute.stages.fleet import Volume4
+
+    lon, lat = to_ll.transform(ring_xy_m[:, 0], ring_xy_m[:, 1])
+    off = ref.ellipsoidal_m(np.asarray(lon), np.asarray(lat), np.zeros(len(lon)))   # W84 of the datum's 0 m
+    return Volume4(v.polygon, v.alt_lower_m - float(np.max(off)) - 0.01, v.alt_upper_m - float(np.min(off)) + 0.01,
+                   v.t_start_s, v.t_end_s)
 
 
 def still_valid(a: Attempt, added: Sequence[tuple[str, Any]], task: FleetTask, sc: Scenario,
@@ -570,6 +580,7 @@ class FleetResult:
     seconds: float
     speculative: dict = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    airspace: dict = field(default_factory=dict)
 
     def counts(self) -> dict[str, int]:
         out = {k: 0 for k in ("accepted", "delayed", "rejected", "preempted-replanned")}
@@ -621,6 +632,132 @@ class _State:
                 seen.append((m, self.version[m]))
                 obst.extend((m, v) for v in vs)
         return tuple(seen), obst
+
+
+FIRM_PRIORITY = 2**62      # intents accepted before this run (an airspace store): never preempted
+
+
+def mission_fields(task: FleetTask, sc: Scenario) -> dict:
+    """The fields that identify a mission in an airspace store (a later run with the same id
+    and the same fields continues; another mission under that id is an error)."""
+    import pandas as pd
+
+    t0 = pd.Timestamp(sc.mission.start_time_utc)
+    t0 = t0.tz_localize("UTC") if t0.tzinfo is None else t0.tz_convert("UTC")
+    return {"scenario": sc.name, "operator": task.operator,
+            "start_xy_m": [round(float(v), 3) for v in task.start_xy], "start_agl_m": float(task.start_agl_m),
+            "goal_xy_m": [round(float(v), 3) for v in task.goal_xy], "goal_agl_m": float(task.goal_agl_m),
+            "earliest_departure_utc": (t0 + pd.Timedelta(seconds=task.earliest_s)).isoformat(),
+            "priority": int(task.priority), "vehicle": task.vehicle, "dop_level": task.dop_level}
+
+
+class _AirspaceLink:
+    """The fleet's side of an :class:`~skyroute.stages.airspace_store.AirspaceStore`: missions
+    already decided there are skipped; the accepted intents near this run's missions (the
+    R*Tree, every corridor grown by another ``corridor_m``) are loaded as firm traffic; every
+    attempt is also checked against the whole store (R*Tree + exact test), an intent found
+    there is loaded then; every decision is written at once (one transaction each)."""
+
+    def __init__(self, store, sc: Scenario, opt: FleetOptions, state: _State, cache_dir):
+        from pyproj import Transformer
+
+        maps = fleet_maps(sc, cache_dir, scheduler="synchronous")
+        crs = maps["surface"]["surface"].rio.crs
+        if not store.same_crs(crs):
+            raise InputError(f"the airspace {store.path} holds volumes in another map CRS than scenario {sc.name}'s "
+                             f"({crs}); use one airspace file per map CRS")
+        self.store, self.sc, self.opt, self.state = store, sc, opt, state
+        self.ref, self.to_ll = maps["_ref"], Transformer.from_crs(crs, 4326, always_xy=True)
+        self.shift = store.time_shift_s(sc.mission.start_time_utc)
+        self.n_before = len(store)
+        self.loaded = 0
+        self.continued: list[str] = []
+
+    def split(self, tasks: Sequence[FleetTask]) -> list[FleetTask]:
+        """The tasks not yet decided in the store (InputError for an id decided there with other fields)."""
+        dec = self.store.decisions()
+        todo, bad = [], []
+        for t in tasks:
+            d = dec.get(t.id)
+            if d is None:
+                todo.append(t)
+            elif d[2] == mission_fields(t, self.sc):
+                self.continued.append(t.id)
+            else:
+                bad.append(t.id)
+        if bad:
+            raise InputError(f"mission(s) {', '.join(bad[:5])}{' ...' if len(bad) > 5 else ''} already decided in the "
+                             f"airspace {self.store.path} with other start, goal, departure, priority or vehicle; give "
+                             "them new ids (drawn missions: another --seed)")
+        return todo
+
+    def preload(self, tasks: Sequence[FleetTask]) -> None:
+        if not tasks or not len(self.store):
+            return
+        c = 2.0 * self.opt.corridor_m
+        x0 = min(min(t.start_xy[0], t.goal_xy[0]) for t in tasks) - c
+        y0 = min(min(t.start_xy[1], t.goal_xy[1]) for t in tasks) - c
+        x1 = max(max(t.start_xy[0], t.goal_xy[0]) for t in tasks) + c
+        y1 = max(max(t.start_xy[1], t.goal_xy[1]) for t in tasks) + c
+        t0 = min(t.earliest_s for t in tasks) - self.opt.time_buffer_s - self.opt.max_volume_s - 1.0
+        t1 = max(t.earliest_s + _horizon_s(t, self.opt) for t in tasks) + self.opt.max_delay_s + 1.0
+        self.load(self.store.ids_in_box(x0, y0, x1, y1, t0 + self.shift, t1 + self.shift))
+
+    def load(self, ids) -> None:
+        from skyroute.stages.fleet import Volume4
+
+        ids = [m for m in ids if m not in self.state.accepted]
+        got = self.store.volumes(ids, t_shift_s=self.shift)
+        if not got:
+            return
+        # _obstacle of every volume at once (elementwise: the same numbers as one at a time)
+        rings = [np.asarray(v.polygon.exterior.coords)[:-1] for vs in got.values() for v in vs]
+        xy = np.concatenate(rings)
+        lon, lat = self.to_ll.transform(xy[:, 0], xy[:, 1])
+        off = self.ref.ellipsoidal_m(np.asarray(lon), np.asarray(lat), np.zeros(len(xy)))
+        starts = np.cumsum([0] + [len(r) for r in rings[:-1]])
+        hi, lo = np.maximum.reduceat(off, starts), np.minimum.reduceat(off, starts)
+        k = 0
+        for m, vols in got.items():
+            obst = []
+            for v in vols:
+                obst.append(Volume4(v.polygon, v.alt_lower_m - float(hi[k]) - 0.01, v.alt_upper_m - float(lo[k]) + 0.01,
+                                    v.t_start_s, v.t_end_s))
+                k += 1
+            self.state.add(Attempt(m, math.nan, True, volumes=vols, obstacles=obst), FIRM_PRIORITY)
+            self.loaded += 1
+
+    def _to_store(self, vols) -> list:
+        from skyroute.stages.fleet import Volume4
+
+        if not self.shift:
+            return list(vols)
+        return [Volume4(v.polygon, v.alt_lower_m, v.alt_upper_m, v.t_start_s + self.shift, v.t_end_s + self.shift)
+                for v in vols]
+
+    def conflicts(self, vols) -> list[str]:
+        """Stored intents (not loaded yet) that ``vols`` intersect; they are loaded."""
+        hit = sorted({m for _, m in self.store.conflicts(self._to_store(vols), exclude=self.state.accepted)})
+        self.load(hit)
+        return hit
+
+    def accept(self, o: MissionOutcome, victims: Sequence[str]) -> None:
+        import pandas as pd
+
+        a, t = o.attempt, o.task
+        t0 = pd.Timestamp(self.sc.mission.start_time_utc)
+        t0 = t0.tz_localize("UTC") if t0.tzinfo is None else t0.tz_convert("UTC")
+        self.store.accept(t.id, a.doc, self._to_store(a.volumes), priority=t.priority, operator=t.operator,
+                          mission=mission_fields(t, self.sc),
+                          departure_utc=(t0 + pd.Timedelta(seconds=a.departure_s)).isoformat(),
+                          withdraw=victims, decision=(o.status, o.reason))
+
+    def reject(self, o: MissionOutcome) -> None:
+        self.store.record_decision(o.task.id, "rejected", o.reason, mission_fields(o.task, self.sc))
+
+    def summary(self) -> dict:
+        return {"file": str(self.store.path), "intents_before": self.n_before, "intents_after": len(self.store),
+                "loaded_near_this_run": self.loaded, "already_decided": self.continued}
 
 
 def _horizon_s(task: FleetTask, opt: FleetOptions) -> float:
@@ -732,12 +869,17 @@ class _Planner:
 
 def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, options: FleetOptions | None = None,
               default_dop: float | None = None, client=None, depth: int = 1, affinity: str = "speculative",
-              later_departures: bool = True, echo: Callable[[str], None] | None = None) -> FleetResult:
+              later_departures: bool = True, echo: Callable[[str], None] | None = None,
+              airspace=None) -> FleetResult:
     """First-come-first-served planning of ``tasks`` (see the module docstring); ``client``: a
     dask.distributed Client for the speculative parallel driver (``depth`` missions in flight;
     ``affinity``: which attempts prefer their goal's worker: "all", "speculative" (the driver
     does not wait for them) or "none"; ``later_departures``: also speculate a mission's next
-    departure when its speculative attempt came back failed or conflicting)."""
+    departure when its speculative attempt came back failed or conflicting); ``airspace``: an
+    :class:`~skyroute.stages.airspace_store.AirspaceStore` (same map CRS) the missions are
+    planned against and every decision is written to (missions already decided there with
+    the same fields are skipped: a run killed midway continues; intents accepted there before
+    this run are never preempted)."""
     if affinity not in ("all", "speculative", "none"):
         raise InputError(f"affinity {affinity!r} must be 'all', 'speculative' or 'none'")
     if not (isinstance(depth, int) and depth >= 0):
@@ -754,6 +896,14 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
         return t.dop_level if t.dop_level is not None else default_dop
 
     state = _State()
+    air = None
+    if airspace is not None:
+        air = _AirspaceLink(airspace, sc, opt, state, cache_dir)
+        tasks = air.split(tasks)
+        air.preload(tasks)
+        if echo is not None:
+            for m in air.continued:
+                echo(f"fleet: {m} already decided in the airspace")
     order = sorted(tasks, key=lambda t: (t.earliest_s, -t.priority, t.id))
     outcomes = {t.id: MissionOutcome(t, level=level_of(t)) for t in order}
     queue: list[FleetTask] = list(order)
@@ -771,6 +921,8 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
             return a, []
         pairs = state.index.conflicts(a.volumes)
         who = list(dict.fromkeys(state.index.owner[j] for _, j in pairs))
+        if air is not None:
+            who += air.conflicts(a.volumes)
         if min_priority is not None:
             who = [m for m in who if state.priority[m] >= min_priority]
         return a, who
@@ -781,6 +933,7 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
         o = outcomes[task.id]
         dep = task.earliest_s
         accepted: Attempt | None = None
+        victims: list[str] = []
         last_reason = ""
         a, who = try_at(task, dep)
         if a.ok and not who:
@@ -813,11 +966,15 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
             o.delay_s = accepted.departure_s - task.earliest_s
             o.status = ("preempted-replanned" if o.preempted_by else "delayed" if o.delay_s > 0 else "accepted")
             o.reason = f"preempted by {o.preempted_by}, re-planned" if o.preempted_by else ""
+            if air is not None:
+                air.accept(o, victims)
         else:
             o.status = "rejected"
             o.reason = ((f"preempted by {o.preempted_by}; then " if o.preempted_by else "")
                         + (f"no plan at any departure: {last_reason}" if a.static else
                            f"no conflict-free plan up to {opt.max_delay_s:g} s of delay: {last_reason}"))
+            if air is not None:
+                air.reject(o)
         planner.done(task)
         n_done += 1
         if echo is not None:
@@ -825,7 +982,8 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
     for s in planner.spec.values():
         s[1].cancel()
     res = FleetResult([outcomes[t.id] for t in order], time.perf_counter() - t_start,
-                      {**planner.stats, "worker_setup_s": round(setup_s, 3)})
+                      {**planner.stats, "worker_setup_s": round(setup_s, 3)},
+                      airspace={} if air is None else air.summary())
     return res
 
 

@@ -17,6 +17,7 @@ test only for the pairs that pass the box, altitude and time filters.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -26,7 +27,7 @@ import shapely
 from skyroute.stages.base import InputError
 
 __all__ = ["MIN_AREA_M2", "FleetDecision", "Volume4", "VolumeIndex", "accept_fcfs", "conflicts_naive",
-           "volumes_intersect", "volumes_of_intent", "volumes_of_plan"]
+           "pairs_intersect", "volumes_intersect", "volumes_of_intent", "volumes_of_plan"]
 
 MIN_AREA_M2 = 1e-4
 
@@ -53,9 +54,8 @@ def volumes_of_intent(doc: dict, crs, start_time_utc) -> list[Volume4]:
     """The :class:`Volume4` list of an F3548 OperationalIntentDetails dict: vertices projected to
     the metric ``crs``, times in seconds after ``start_time_utc``."""
     import pandas as pd
-    from pyproj import Transformer
 
-    tr = Transformer.from_crs(4326, crs, always_xy=True)
+    tr = _from_lonlat(crs if isinstance(crs, str) else str(crs.to_wkt()) if hasattr(crs, "to_wkt") else crs)
     t0 = pd.Timestamp(start_time_utc)
     t0 = t0.tz_localize("UTC") if t0.tzinfo is None else t0.tz_convert("UTC")
     out = []
@@ -67,6 +67,13 @@ def volumes_of_intent(doc: dict, crs, start_time_utc) -> list[Volume4]:
                            (pd.Timestamp(v["time_start"]["value"]) - t0).total_seconds(),
                            (pd.Timestamp(v["time_end"]["value"]) - t0).total_seconds()))
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def _from_lonlat(crs):
+    from pyproj import Transformer
+
+    return Transformer.from_crs(4326, crs, always_xy=True)
 
 
 def volumes_of_plan(volumes: Sequence, t_offset_s: float = 0.0) -> list[Volume4]:
@@ -90,6 +97,20 @@ def _arrays(vols: Sequence[Volume4]) -> tuple[np.ndarray, np.ndarray]:
     polys = np.array([v.polygon for v in vols], dtype=object)
     iv = np.array([[v.alt_lower_m, v.alt_upper_m, v.t_start_s, v.t_end_s] for v in vols], float).reshape(-1, 4)
     return polys, iv
+
+
+def pairs_intersect(q: Sequence[Volume4], a: Sequence[Volume4], qidx, aidx,
+                    min_area_m2: float = MIN_AREA_M2) -> np.ndarray:
+    """Boolean mask over the candidate pairs ``(q[qidx[k]], a[aidx[k]])``: the exact 4-D test
+    of :func:`volumes_intersect` (altitude and time overlap, then the outlines' shared area >
+    ``min_area_m2`` [m^2]), vectorised.  The one exact test of the candidate pairs an index
+    (the STRtree here, the R*Tree of :mod:`skyroute.stages.airspace_store`) proposes."""
+    qidx, aidx = np.asarray(qidx, np.intp).ravel(), np.asarray(aidx, np.intp).ravel()
+    if not len(q) or not len(a) or not qidx.size:
+        return np.zeros(qidx.size, bool)
+    qp, qi = _arrays(q)
+    ap, ai = _arrays(a)
+    return _exact(qp, qi, ap, ai, qidx, aidx, min_area_m2)
 
 
 def _exact(qp, qi, ap, ai, qidx, aidx, min_area_m2) -> np.ndarray:

@@ -46,6 +46,9 @@ from pydantic import ValidationError, field_validator
 from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.model import FrozenModel
 from skyroute.pipeline.settings import MissionPoint, Scenario
+from skyroute.stages.planning.request import (
+    PLANNER_STAGES as MAP_STAGES,  # the maps a planner reads
+)
 
 __all__ = ["FLEET_COLUMNS", "Attempt", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult", "FleetTask",
            "MissionOutcome", "default_level", "draw_missions", "fleet_maps", "independent_conflicts", "load_fleet",
@@ -55,7 +58,6 @@ __all__ = ["FLEET_COLUMNS", "Attempt", "FleetFileError", "FleetMission", "FleetO
 FLEET_COLUMNS = ("mission", "operator", "priority", "status", "departure_utc", "earliest_s", "delay_s", "dop_level",
                  "energy_Wh", "length_m", "flight_time_s", "compute_s", "attempts", "volumes", "preempted_by",
                  "reason")
-MAP_STAGES = ("surface", "environment", "clearance", "wind", "satellites", "coverage")
 
 
 class FleetFileError(InputError):
@@ -419,7 +421,8 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
     from skyroute.stages.base import SkyrouteError
     from skyroute.stages.fleet import Volume4
     from skyroute.stages.intents import intent_details, plan_volumes
-    from skyroute.stages.planning.strategic import plan_strategic
+    from skyroute.stages.planning.request import Maps, PlanRequest
+    from skyroute.stages.planning.request import plan as make_plan
     from skyroute.stages.traffic import build_occupancy, volume_prisms
     from skyroute.stages.vehicle import load_vehicle
 
@@ -441,17 +444,18 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
     t0_utc = pd.Timestamp(sc.mission.start_time_utc) + pd.Timedelta(seconds=departure_s)
     p = sc.planner
     try:
-        plan = plan_strategic(maps["surface"], maps.get("environment"), maps.get("wind"), maps["clearance"], cov,
-                              maps.get("satellites"), occ, start_xy=task.start_xy, start_agl_m=task.start_agl_m,
-                              goal_xy=task.goal_xy, goal_agl_m=task.goal_agl_m, start_time_utc=t0_utc,
-                              vehicle=task.vehicle, weights=p.weights, planner="astar",
-                              time_budget_s=opt.time_budget_s, seed=_seed(opt.seed, task.id, departure_s),
-                              max_tries=p.max_tries, step_cells=p.step_cells,
-                              min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
-                              dop_kind=sc.gnss.dop_kind, d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s,
-                              uere_m=sc.gnss.uere_m, workers=1, battery_reserve_pct=sc.constraints.battery_reserve_pct,
-                              heuristic_cache=maps.setdefault("_heuristics", {}),
-                              edge_cache=maps.setdefault("_edges", {}), step2_max_iter=opt.step2_max_iter)
+        request = PlanRequest.of(
+            start_xy=task.start_xy, start_agl_m=task.start_agl_m, goal_xy=task.goal_xy, goal_agl_m=task.goal_agl_m,
+            start_time_utc=t0_utc, vehicle=veh, weights=p.weights, planner="astar", time_budget_s=opt.time_budget_s,
+            seed=_seed(opt.seed, task.id, departure_s), max_tries=p.max_tries, step_cells=p.step_cells,
+            min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
+            dop_kind=sc.gnss.dop_kind, d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s,
+            uere_m=sc.gnss.uere_m, workers=1, battery_reserve_pct=sc.constraints.battery_reserve_pct,
+            step2_max_iter=opt.step2_max_iter)
+        area = Maps(surface=maps["surface"], clearance=maps["clearance"], environment=maps.get("environment"),
+                    wind=maps.get("wind"), coverage=cov, satellites=maps.get("satellites"), traffic=occ)
+        plan = make_plan(area, request, heuristic_cache=maps.setdefault("_heuristics", {}),
+                         edge_cache=maps.setdefault("_edges", {}))
     except SkyrouteError as exc:
         return Attempt(task.id, departure_s, False, f"planner: {exc}", compute_s=time.perf_counter() - t_start,
                        seen=seen)

@@ -35,6 +35,7 @@ from skyroute.pipeline.runner import run_scenario
 from skyroute.pipeline.settings import load_scenario
 from skyroute.pipeline.stages_builtin import _plan_settings
 from skyroute.stages.planning.problem import build_problem, xyz_from_agl
+from skyroute.stages.planning.strategic import plan_strategic
 
 MAPS = ["surface", "environment", "clearance", "wind", "coverage", "satellites", "traffic"]
 
@@ -89,11 +90,11 @@ def long_mission(sc, d, s, inset_m: float = 150.0, agl: float = 60.0):
 
 def run_plan(d: dict, s, **kw):
     from skyroute.pipeline.stages_builtin import plan_arguments
-    from skyroute.stages.planning.request import Maps, PlanRequest, plan
+    from skyroute.stages.planning.request import Maps, PlanRequest
 
     request = PlanRequest.of(**{**plan_arguments(s, d["surface"]), **kw})
     t = time.perf_counter()
-    result = plan(Maps.from_datasets(d), request)
+    result = plan_strategic(Maps.from_datasets(d), request)
     return result, time.perf_counter() - t
 
 

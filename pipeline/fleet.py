@@ -422,7 +422,7 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
     from skyroute.stages.fleet import Volume4
     from skyroute.stages.intents import intent_details, plan_volumes
     from skyroute.stages.planning.request import Maps, PlanRequest
-    from skyroute.stages.planning.request import plan as make_plan
+    from skyroute.stages.planning.strategic import plan_strategic
     from skyroute.stages.traffic import build_occupancy, volume_prisms
     from skyroute.stages.vehicle import load_vehicle
 
@@ -454,7 +454,7 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
             step2_max_iter=opt.step2_max_iter)
         area = Maps(surface=maps["surface"], clearance=maps["clearance"], environment=maps.get("environment"),
                     wind=maps.get("wind"), coverage=cov, satellites=maps.get("satellites"), traffic=occ)
-        plan = make_plan(area, request, heuristic_cache=maps.setdefault("_heuristics", {}),
+        plan = plan_strategic(area, request, heuristic_cache=maps.setdefault("_heuristics", {}),
                          edge_cache=maps.setdefault("_edges", {}))
     except SkyrouteError as exc:
         return Attempt(task.id, departure_s, False, f"planner: {exc}", compute_s=time.perf_counter() - t_start,

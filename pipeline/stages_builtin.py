@@ -466,8 +466,7 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
                settings: PlanSettings) -> xr.Dataset:
     """Strategic plan (seed 000 III): STEP I-III for every coverage level and the choice."""
     from skyroute.stages.planning.request import Maps, PlanRequest
-    from skyroute.stages.planning.request import plan as make_plan
-    from skyroute.stages.planning.strategic import plan_to_dataset
+    from skyroute.stages.planning.strategic import plan_strategic, plan_to_dataset
 
     kw = plan_arguments(settings, surface)
     extra = {}
@@ -477,7 +476,7 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
         kw["bubble"] = sb["bubble"]
     maps = Maps(surface=surface, clearance=clearance, environment=environment, wind=wind, coverage=coverage,
                 satellites=satellites, traffic=traffic, **extra)
-    plan = make_plan(maps, PlanRequest.of(**kw))
+    plan = plan_strategic(maps, PlanRequest.of(**kw))
     ds = plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),
                          settings.start_time_utc)
     ds.attrs["provenance"] = json.dumps(plan_provenance(settings))
@@ -510,7 +509,8 @@ def plan_provenance(s: PlanSettings) -> dict:
 
 
 def plan_arguments(s: PlanSettings, surface: xr.Dataset) -> dict:
-    """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_strategic` for
+    """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_levels` (the fields of a
+    :class:`~skyroute.stages.planning.request.PlanRequest`) for
     these settings (one place: the plan stage and the benchmarks call it)."""
     from skyroute.stages.traffic import intruders_for
     from skyroute.stages.vehicle import vehicle_from_dict

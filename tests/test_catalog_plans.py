@@ -17,7 +17,7 @@ from skyroute.pipeline.errors import ScenarioError
 from skyroute.pipeline.outputs import revalidate
 from skyroute.pipeline.runner import run_scenario
 from skyroute.pipeline.settings import load_scenario, parse_scenario, scenario_paths
-from skyroute.stages.planning.strategic import plan_from_dataset, plan_strategic
+from skyroute.stages.planning.strategic import plan_from_dataset, plan_levels
 from skyroute.stages.vehicle import load_vehicle
 
 CATALOG = sorted(scenario_paths())
@@ -103,7 +103,7 @@ def test_table2_single_term_plans_minimise_their_own_term(cache):
     m = sc.mission
     rows = []
     for w in WEIGHT_SETS:
-        plan = plan_strategic(r["surface"], r["environment"], r["wind"], r["clearance"], cov, r["satellites"], None,
+        plan = plan_levels(r["surface"], r["environment"], r["wind"], r["clearance"], cov, r["satellites"], None,
                               start_xy=sc.point_xy(m.start), start_agl_m=m.start.alt_agl_m,
                               goal_xy=sc.point_xy(m.goal), goal_agl_m=m.goal.alt_agl_m,
                               start_time_utc=m.start_time_utc.isoformat(), vehicle=sc.vehicle, weights=w,

@@ -289,9 +289,9 @@ def test_planner_defaults_agree_everywhere():
 
     assert PlannerSettings().name == "astar"
     assert PlannerSettings().step_cells == grid_planner.STEP_CELLS
-    for fn in (strategic.plan_strategic, step1.plan_step1, step1.step1_all_levels):
+    for fn in (strategic.plan_levels, step1.plan_step1, step1.step1_all_levels):
         assert inspect.signature(fn).parameters["planner"].default == "astar", fn.__name__
-    for fn in (strategic.plan_strategic, step1.plan_step1, grid_planner.make_lattice, grid_planner.plan_grid,
+    for fn in (strategic.plan_levels, step1.plan_step1, grid_planner.make_lattice, grid_planner.plan_grid,
                grid_planner.shared_heuristic):
         assert inspect.signature(fn).parameters["step_cells"].default == grid_planner.STEP_CELLS, fn.__name__
 

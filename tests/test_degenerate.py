@@ -24,7 +24,7 @@ from skyroute.stages.environment import environment_risk_dataset
 from skyroute.stages.grid import Grid
 from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
 from skyroute.stages.planning.problem import build_problem
-from skyroute.stages.planning.strategic import plan_strategic, plan_to_dataset
+from skyroute.stages.planning.strategic import plan_levels, plan_to_dataset
 
 DATA = catalog_dir() / "data"
 
@@ -158,7 +158,7 @@ def _plan_inputs():
 
 
 def _plan(surface, env, clearance, weights, **kw):
-    return plan_strategic(surface, env, None, clearance, None, None, None, start_xy=(10, 50), start_agl_m=20.0,
+    return plan_levels(surface, env, None, clearance, None, None, None, start_xy=(10, 50), start_agl_m=20.0,
                           goal_xy=(190, 50), goal_agl_m=20.0, start_time_utc="2020-01-03T10:00:00Z",
                           planner="astar", weights=weights, min_agl_m=0.0, max_agl_m=80.0, step_cells=4, **kw)
 

@@ -31,7 +31,7 @@ from skyroute.stages.planning.step1 import (
     plan_step1,
     step1_all_levels,
 )
-from skyroute.stages.planning.strategic import plan_strategic
+from skyroute.stages.planning.strategic import plan_levels, plan_strategic
 from skyroute.stages.vehicle import load_vehicle
 
 VEH = load_vehicle("dji-m300-rtk")
@@ -357,7 +357,7 @@ def _plan_inputs(floors: list[np.ndarray], thresholds: list[float]):
 
 
 def _strategic(ds, clearance, coverage, **kw):
-    return plan_strategic(ds, None, None, clearance, coverage, None, None, start_xy=(10, 50), start_agl_m=20.0,
+    return plan_levels(ds, None, None, clearance, coverage, None, None, start_xy=(10, 50), start_agl_m=20.0,
                           goal_xy=(190, 50), goal_agl_m=20.0, start_time_utc="2020-01-03T10:00:00Z",
                           planner="astar", min_agl_m=0.0, max_agl_m=80.0, step_cells=4, **kw)
 
@@ -540,12 +540,12 @@ def test_a_plan_that_hit_its_wall_clock_safety_net_is_never_cached(monkeypatch):
 
 
 def test_plan_request_gives_the_plan_of_the_keyword_call_and_resolves_the_vehicle_once(tmp_path):
-    """Issue 25: plan(Maps, PlanRequest) is plan_strategic with the same arguments (same chain,
+    """Issue 25: plan_strategic(Maps, PlanRequest) is plan_levels with the same arguments (same chain,
     same f); the request holds the vehicle profile (a YAML path is read once, when the request
     is made: editing the file afterwards does not change the request) and hashes it by content."""
     import shutil
 
-    from skyroute.stages.planning.request import Maps, PlanRequest, plan
+    from skyroute.stages.planning.request import Maps, PlanRequest
 
     g, _ = _surface()
     ds, clearance, coverage = _plan_inputs([np.full(g.shape, 5.0)], [3.0])
@@ -554,7 +554,7 @@ def test_plan_request_gives_the_plan_of_the_keyword_call_and_resolves_the_vehicl
     req = PlanRequest.of(start_xy=(10, 50), start_agl_m=20.0, goal_xy=(190, 50), goal_agl_m=20.0,
                          start_time_utc="2020-01-03T10:00:00Z", vehicle="dji-m300-rtk", planner="astar",
                          min_agl_m=0.0, max_agl_m=80.0, step_cells=4)
-    got = plan(maps, req)
+    got = plan_strategic(maps, req)
     assert ref.step1[0].solved
     np.testing.assert_array_equal(got.step1[0].waypoints, ref.step1[0].waypoints)
     assert got.candidates[0].f == ref.candidates[0].f and got.reason == ref.reason

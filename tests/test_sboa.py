@@ -20,7 +20,7 @@ from skyroute.stages.environment import environment_risk_dataset
 from skyroute.stages.grid import Grid
 from skyroute.stages.navigation import los_from_az_el, navigation_error
 from skyroute.stages.planning.outputs import CANDIDATE_COLUMNS, write_plan
-from skyroute.stages.planning.strategic import plan_from_dataset, plan_strategic, plan_to_dataset
+from skyroute.stages.planning.strategic import plan_from_dataset, plan_levels, plan_to_dataset
 from skyroute.stages.planning.validate import surface_clearance_m, validate_bubble
 from skyroute.stages.sboa import check_dop_kind, level_radius_m, level_sigma_m
 from skyroute.stages.vehicle import load_vehicle
@@ -138,7 +138,7 @@ def _plans_inputs(g, s, veh, clearance_by_level=None, bubble=None):
     cov = xr.Dataset({"coverage_floor": (("threshold", "y", "x"), np.zeros((2, *g.shape)))},
                      coords={"threshold": THRESHOLDS, "y": sd["y"], "x": sd["x"]})
     clear = clearance_dataset(sd, veh.r_p_m, terrain=t, max_agl_m=80.0)
-    return plan_strategic(surf, env, None, clear, cov, _SKY["sky"], None, start_xy=(X0 + 60, Y0 + 100),
+    return plan_levels(surf, env, None, clear, cov, _SKY["sky"], None, start_xy=(X0 + 60, Y0 + 100),
                           start_agl_m=30.0, goal_xy=(X0 + 200, Y0 + 100), goal_agl_m=30.0, start_time_utc=START,
                           planner="astar", weights=(1, 0, 0, 0), min_agl_m=0.0, max_agl_m=80.0, step_cells=2,
                           workers=1, clearance_by_level=clearance_by_level, bubble=bubble)

@@ -1,7 +1,8 @@
 """One plan request (issue 25): :class:`Maps` (the datasets a planner reads) and
 :class:`PlanRequest` (mission, weights, limits, budgets, seed and the resolved vehicle
-profile), and :func:`plan` -- the strategic planner's entry point for the pipeline's plan
-stage, ``skyroute fleet`` and the benchmarks.
+profile): the two arguments of
+:func:`~skyroute.stages.planning.strategic.plan_strategic`, the strategic planner's entry point
+for the pipeline's plan stage, ``skyroute fleet`` and the benchmarks.
 
 The vehicle is resolved once, when the request is made (:meth:`PlanRequest.of`): the profile
 travels with the request and is hashed by content (:meth:`PlanRequest.vehicle_hash`), never
@@ -20,7 +21,7 @@ import xarray as xr
 
 from skyroute.stages.vehicle import FixedWingProfile, VehicleProfile, load_vehicle
 
-__all__ = ["PLANNER_STAGES", "Maps", "PlanRequest", "plan"]
+__all__ = ["PLANNER_STAGES", "Maps", "PlanRequest"]
 
 # the stage datasets a strategic planner reads (surface and clearance required), in one place:
 # the pipeline's plan stage, fly and fleet load exactly these (traffic is optional and separate)
@@ -101,7 +102,7 @@ class PlanRequest:
     """What to plan: mission, weights, limits, budgets, seed and the resolved vehicle profile.
 
     Make one with :meth:`of`, which resolves the vehicle once; :meth:`kwargs` gives the keyword
-    arguments of :func:`~skyroute.stages.planning.strategic.plan_strategic`, where every field is
+    arguments of :func:`~skyroute.stages.planning.strategic.plan_levels`, where every field is
     described further.
 
     Parameters
@@ -137,7 +138,7 @@ class PlanRequest:
     uere_m : float, default 3.0
         GNSS user equivalent range error [m].
     step_cells : int, optional
-        The A* lattice step [cells] (None: plan_strategic's default).
+        The A* lattice step [cells] (None: plan_levels' default).
     max_iterations : int, optional
         BIT*'s iteration stop rule.
     battery_reserve_pct : float, default 0.0
@@ -145,7 +146,7 @@ class PlanRequest:
     bubble : tuple of float, optional
         The safety bubble (k, surface uncertainty [m]).
     step2_max_iter : int, optional
-        STEP II's iterations (None: plan_strategic's default).
+        STEP II's iterations (None: plan_levels' default).
     workers : int, optional
         Threads for the levels.
     """
@@ -228,53 +229,18 @@ class PlanRequest:
         return hashlib.blake2b(doc.encode(), digest_size=8).hexdigest()
 
     def kwargs(self) -> dict[str, Any]:
-        """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_strategic`.
+        """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_levels`.
 
         Returns
         -------
         dict of str to object
             Every field (``intruders`` as a list or None; ``step_cells`` and ``step2_max_iter``
-            left out when None, so plan_strategic's defaults apply).
+            left out when None, so plan_levels' defaults apply).
         """
         kw = {k: v for k, v in asdict(self).items() if k != "vehicle"}
         kw["vehicle"] = self.vehicle
         kw["intruders"] = list(self.intruders) or None
-        for k in ("step_cells", "step2_max_iter"):      # None: plan_strategic's default
+        for k in ("step_cells", "step2_max_iter"):      # None: plan_levels' default
             if kw[k] is None:
                 kw.pop(k)
         return kw
-
-
-def plan(maps: Maps, request: PlanRequest, *, heuristic_cache: dict | None = None,
-         edge_cache: dict | None = None):
-    """The strategic plan (STEP I-III on every coverage level, seed 000) of ``request`` on ``maps``.
-
-    Parameters
-    ----------
-    maps : Maps
-        The datasets the planner reads.
-    request : PlanRequest
-        What to plan.
-    heuristic_cache, edge_cache : dict, optional
-        Dicts kept by a caller planning many missions on the same maps (fleet); see
-        :func:`~skyroute.stages.planning.strategic.plan_strategic`.
-
-    Returns
-    -------
-    StrategicPlan
-        A :class:`~skyroute.stages.planning.strategic.StrategicPlan`.
-
-    Raises
-    ------
-    DegenerateCostError, InputError
-        As :func:`~skyroute.stages.planning.strategic.plan_strategic`.
-
-    References
-    ----------
-    Seed 000 (the strategic planner, STEP I-III).
-    """
-    from skyroute.stages.planning.strategic import plan_strategic
-
-    return plan_strategic(maps.surface, maps.environment, maps.wind, maps.clearance, maps.coverage,
-                          maps.satellites, maps.traffic, clearance_by_level=maps.clearance_by_level,
-                          heuristic_cache=heuristic_cache, edge_cache=edge_cache, **request.kwargs())

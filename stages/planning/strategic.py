@@ -4,8 +4,10 @@ STEP I (optimised polygonal chain), STEP II (deconfliction against known traffic
 costs); then the choice of the flyable
 candidate with minimum f.
 
-:func:`plan_strategic` takes the pipeline's datasets (surface, satellites, coverage, environment,
-wind, clearance, traffic) and returns a :class:`StrategicPlan`; :func:`plan_to_dataset` /
+:func:`plan_strategic` takes the maps (:class:`~skyroute.stages.planning.request.Maps`: surface,
+satellites, coverage, environment, wind, clearance, traffic) and a
+:class:`~skyroute.stages.planning.request.PlanRequest` and returns a :class:`StrategicPlan`
+(:func:`plan_levels` is the same with every setting as a keyword); :func:`plan_to_dataset` /
 :func:`plan_from_dataset` convert it to and from an xarray Dataset so the plan is cached like
 every other stage output.
 
@@ -40,6 +42,7 @@ from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cos
 from skyroute.stages.planning.grid_planner import STEP_CELLS, EdgeCache, shared_heuristic
 from skyroute.stages.planning.kinds import FIXED_WING_PLANNERS, check_planner_vehicle
 from skyroute.stages.planning.problem import PlanningProblem, build_problem, xyz_from_agl
+from skyroute.stages.planning.request import Maps, PlanRequest
 from skyroute.stages.planning.step1 import LEVEL_CAP_FACTOR, PLANNERS, Step1Result, plan_step1
 from skyroute.stages.planning.step3 import (
     Candidate,
@@ -99,7 +102,7 @@ class StrategicPlan:
         return list(dict.fromkeys(out))
 
 
-def plan_strategic(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Dataset | None,
+def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Dataset | None,
                    clearance: xr.Dataset, coverage: xr.Dataset | None, satellites: xr.Dataset | None,
                    traffic: xr.Dataset | TrafficOccupancy | None, *, start_xy: tuple[float, float], start_agl_m: float,
                    goal_xy: tuple[float, float], goal_agl_m: float, start_time_utc,
@@ -702,5 +705,39 @@ def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]
     return chosen, cands
 
 
-__all__ = ["PlanningError", "StrategicPlan", "plan_from_dataset", "plan_strategic", "plan_to_dataset",
+def plan_strategic(maps: Maps, request: PlanRequest, *, heuristic_cache: dict | None = None,
+                   edge_cache: dict | None = None) -> StrategicPlan:
+    """The strategic plan (STEP I-III on every coverage level, seed 000) of ``request`` on ``maps``.
+
+    Parameters
+    ----------
+    maps : Maps
+        The datasets the planner reads (:class:`~skyroute.stages.planning.request.Maps`).
+    request : PlanRequest
+        What to plan, with the vehicle profile resolved
+        (:class:`~skyroute.stages.planning.request.PlanRequest`).
+    heuristic_cache, edge_cache : dict, optional
+        Dicts kept by a caller planning many missions on the same maps (``skyroute fleet``);
+        see :func:`plan_levels`.
+
+    Returns
+    -------
+    StrategicPlan
+        Every level's STEP I-III outcome and the chosen candidate (None if none is flyable).
+
+    Raises
+    ------
+    DegenerateCostError, InputError
+        As :func:`plan_levels`.
+
+    References
+    ----------
+    Seed 000 (the strategic planner, STEP I-III).
+    """
+    return plan_levels(maps.surface, maps.environment, maps.wind, maps.clearance, maps.coverage, maps.satellites,
+                       maps.traffic, clearance_by_level=maps.clearance_by_level, heuristic_cache=heuristic_cache,
+                       edge_cache=edge_cache, **request.kwargs())
+
+
+__all__ = ["PlanningError", "StrategicPlan", "plan_from_dataset", "plan_levels", "plan_strategic", "plan_to_dataset",
            "trajectory_from_dataset", "trajectory_to_dataset"]

@@ -29,9 +29,15 @@ class SkyrouteGroup(click.Group):
     """A click group that reports SkyrouteError as a clean one-line error (exit code 2)."""
 
     def invoke(self, ctx: click.Context):
+        import dask
+        import dask.threaded
+
         from skyroute.pipeline import control
 
-        with control.signal_handlers():
+        # a callable default scheduler: reading a lazy array outside a command's own
+        # --scheduler context would otherwise look for a distributed client (importing
+        # distributed, ~0.1-0.5 s of a warm run); --scheduler still overrides it inside
+        with control.signal_handlers(), dask.config.set(scheduler=dask.threaded.get):
             try:
                 return super().invoke(ctx)
             except SkyrouteError as exc:

@@ -216,3 +216,32 @@ def test_warm_run_imports_no_compute_only_modules(tmp_path):
     assert warm == [], warm
     # surface.png and maps.png (risk, landing, wind, no-fly) embedded by the warm run
     assert report.read_text().count('<img src="data:image/png;base64,') == 2
+
+
+def test_warm_default_run_imports_no_compute_only_modules_and_reuses_its_outputs(tmp_path):
+    """The whole default `skyroute run` (plan, pilot exports, map page, report), warm: no numba,
+    matplotlib, ompl or dask.distributed (issue 25: reading a cached plan once looked up a
+    distributed client), and every output file is reused (the same modification times)."""
+    code = textwrap.dedent("""
+        import sys
+        from skyroute.pipeline.cli import main
+        sys.argv = ["skyroute", "run", "helsinki-medical", "--out", sys.argv[1], "-q"]
+        try:
+            main()
+        except SystemExit as exc:
+            assert not exc.code, exc.code
+        heavy = ("numba", "matplotlib", "ompl", "distributed")
+        print("HEAVY", *[m for m in heavy if m in sys.modules])
+    """)
+    env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
+    out = tmp_path / "out"
+    runs, mtimes = [], []
+    for _ in range(2):
+        runs.append(subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True, env=env,
+                                   timeout=900))
+        assert runs[-1].returncode == 0, runs[-1].stderr
+        mtimes.append({p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and p.name not in
+                       ("summary.json", "report.html")})
+    warm = runs[1].stdout.split("HEAVY")[1].split()
+    assert warm == [], warm
+    assert mtimes[0] == mtimes[1]                 # nothing rewritten but the summary and the report

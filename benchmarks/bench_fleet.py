@@ -34,8 +34,8 @@ def main() -> None:
         draw_missions,
         fleet_maps,
         run_fleet,
-        write_fleet,
     )
+    from skyroute.pipeline.fleet_outputs import write_fleet
     from skyroute.pipeline.graph import scheduler_context
     from skyroute.pipeline.settings import GroundReference, load_scenario
 

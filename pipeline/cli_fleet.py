@@ -60,8 +60,8 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
         fleet_maps,
         load_fleet,
         run_fleet,
-        write_fleet,
     )
+    from skyroute.pipeline.fleet_outputs import write_fleet
     from skyroute.pipeline.graph import scheduler_context
     from skyroute.pipeline.outputs import ensure_writable_dir, write_folder_summary
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, GroundReference, load_scenario

@@ -30,289 +30,40 @@ commit is re-planned, so the result equals the sequential one.
 
 from __future__ import annotations
 
-import csv
-import datetime as dt
 import math
 import time
 import zlib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import ValidationError, field_validator
 
 from skyroute.pipeline.errors import InputError
-from skyroute.pipeline.model import FrozenModel
-from skyroute.pipeline.settings import MissionPoint, Scenario
+from skyroute.pipeline.fleet_check import independent_conflicts, min_separation_m  # noqa: F401  (re-exported)
+from skyroute.pipeline.fleet_missions import (  # noqa: F401  (re-exported: the mission model)
+    FIRM_PRIORITY,
+    Attempt,
+    FleetFileError,
+    FleetMission,
+    FleetOptions,
+    FleetResult,
+    FleetTask,
+    MissionOutcome,
+    draw_missions,
+    load_fleet,
+    mission_fields,
+)
+from skyroute.pipeline.settings import Scenario
 from skyroute.stages.planning.request import (
     PLANNER_STAGES as MAP_STAGES,  # the maps a planner reads
 )
 
-__all__ = ["FLEET_COLUMNS", "Attempt", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult", "FleetTask",
+# the driver: maps, attempts, the first-come-first-served scheduler; the mission model, the
+# independent checks and the outputs live in fleet_missions, fleet_check and fleet_outputs
+__all__ = ["Attempt", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult", "FleetTask",
            "MissionOutcome", "default_level", "draw_missions", "fleet_maps", "independent_conflicts", "load_fleet",
-           "mission_fields",
-           "min_separation_m", "plan_attempt", "plot_fleet", "run_fleet", "still_valid", "write_fleet"]
-
-FLEET_COLUMNS = ("mission", "operator", "priority", "status", "departure_utc", "earliest_s", "delay_s", "dop_level",
-                 "energy_Wh", "length_m", "flight_time_s", "compute_s", "attempts", "volumes", "preempted_by",
-                 "reason")
-
-
-class FleetFileError(InputError):
-    """A fleet file with problems: ``problems`` lists each (one ``error:`` line each)."""
-
-    def __init__(self, source: str, problems: list[str]):
-        self.problems = [f"{source}: {p}" for p in problems]
-        super().__init__("\n".join(self.problems))
-
-
-class FleetMission(FrozenModel):
-    """One mission of a fleet file: ``departure`` is the earliest departure, seconds after the
-    scenario's mission start or a UTC time; ``priority``: higher wins (F3548); ``vehicle``
-    (default the scenario's); ``dop_level``: the DOP threshold D_j to plan at (default: the
-    scenario's strictest flyable level)."""
-
-    id: str
-    operator: str = "operator"
-    start: MissionPoint
-    goal: MissionPoint
-    departure: float | dt.datetime = 0.0
-    priority: int = 0
-    vehicle: str | None = None
-    dop_level: float | None = None
-
-    @field_validator("id")
-    @classmethod
-    def _id(cls, v: str) -> str:
-        if not v or "/" in v or v.strip() != v:
-            raise ValueError(f"mission id {v!r} must be non-empty, without '/' or surrounding spaces")
-        return v
-
-
-@dataclass(frozen=True)
-class FleetTask:
-    """A mission resolved on the scenario's map: x/y [m], earliest departure [s after the
-    scenario start], DOP level."""
-
-    index: int
-    id: str
-    operator: str
-    start_xy: tuple[float, float]
-    start_agl_m: float
-    goal_xy: tuple[float, float]
-    goal_agl_m: float
-    earliest_s: float
-    priority: int
-    vehicle: str
-    dop_level: float | None
-
-
-@dataclass(frozen=True)
-class FleetOptions:
-    """Fleet settings: ``delay_step_s`` / ``max_delay_s`` [s]; ``seed`` (STEP II); ``k_sigma``
-    and ``time_buffer_s`` [s], ``max_volume_s`` [s], ``max_dz_m`` [m] of the intent volumes;
-    ``sigma_est_m`` [m]: the navigation error assumed to grow the obstacles before a plan
-    exists; ``corridor_m`` [m], ``horizon_s`` [s]: the space-time corridor of an attempt (start-goal box
-    grown by ``corridor_m``; from the departure to 3 x the direct flight time + 120 s, at most
-    ``horizon_s``);
-    ``preempt``: allow priority preemption; ``step2_max_iter``: K of each attempt's STEP II RRT
-    (the seed's 5000, as ``skyroute plan``; a failed deconfliction costs all K iterations, on
-    Helsinki 0.14 s, before the mission is tried at a later departure)."""
-
-    delay_step_s: float = 60.0
-    max_delay_s: float = 600.0
-    seed: int = 0
-    k_sigma: float = 3.0
-    time_buffer_s: float = 5.0
-    max_volume_s: float = 10.0
-    max_dz_m: float = 5.0
-    sigma_est_m: float = 1.5
-    corridor_m: float = 250.0
-    horizon_s: float = 900.0
-    preempt: bool = True
-    time_budget_s: float = 5.0
-    step2_max_iter: int = 5000
-
-
-# ---------------------------------------------------------------------------------- fleet input
-def _csv_records(path: Path) -> list[dict]:
-    out = []
-    with open(path, newline="") as f:
-        for row in csv.DictReader(f):
-            rec: dict[str, Any] = {}
-            pts: dict[str, dict] = {"start": {}, "goal": {}}
-            for k, v in row.items():
-                if k is None or v is None or str(v).strip() == "":
-                    continue
-                k, v = k.strip(), str(v).strip()
-                head, _, tail = k.partition("_")
-                if head in pts and tail:
-                    pts[head][tail] = v
-                else:
-                    rec[k] = v
-            rec.update({k: p for k, p in pts.items() if p})
-            out.append(rec)
-    return out
-
-
-def _departure_s(dep, t0: dt.datetime) -> float:
-    if isinstance(dep, dt.datetime):
-        d = dep if dep.tzinfo is not None else dep.replace(tzinfo=dt.UTC)
-        return (d - t0).total_seconds()
-    return float(dep)
-
-
-def load_fleet(path: Path | str, sc: Scenario, levels: Sequence[float] = ()) -> list[FleetTask]:
-    """The missions of a fleet file (YAML ``missions: [...]`` or CSV with columns id, operator,
-    start_x / start_y or start_lon / start_lat, start_alt_agl_m, goal_..., departure, priority,
-    vehicle, dop_level) as :class:`FleetTask` s.  Every problem is collected and raised at once
-    (:class:`FleetFileError`): schema, duplicate ids, points outside the map, departures before
-    the scenario start, unknown vehicles, DOP levels not among the scenario's ``levels``."""
-    import yaml
-
-    from skyroute.stages.vehicle import load_vehicle
-
-    path = Path(path)
-    src = str(path)
-    if not path.is_file():
-        raise FleetFileError(src, ["no such file; give a YAML or CSV fleet file"])
-    try:
-        if path.suffix.lower() == ".csv":
-            records = _csv_records(path)
-        else:
-            doc = yaml.safe_load(path.read_text())
-            if not isinstance(doc, dict) or not isinstance(doc.get("missions"), list):
-                raise FleetFileError(src, ["the YAML needs a top-level list 'missions: [...]'"])
-            records = doc["missions"]
-    except (yaml.YAMLError, csv.Error, UnicodeDecodeError) as exc:
-        raise FleetFileError(src, [f"cannot be read: {exc}".replace("\n", " ")]) from None
-    if not records:
-        raise FleetFileError(src, ["no mission in the file"])
-    problems: list[str] = []
-    missions: list[tuple[int, FleetMission]] = []
-    for i, rec in enumerate(records):
-        name = rec.get("id", f"#{i + 1}") if isinstance(rec, dict) else f"#{i + 1}"
-        try:
-            missions.append((i, FleetMission.model_validate(rec)))
-        except ValidationError as exc:
-            for e in exc.errors():
-                loc = ".".join(str(x) for x in e["loc"])
-                problems.append(f"mission {name}: {loc + ': ' if loc else ''}{e['msg']}")
-    seen: dict[str, int] = {}
-    g = sc.grid
-    xmin, ymin, xmax, ymax = g.bounds
-    t0 = sc.mission.start_time_utc
-    tasks = []
-    for i, m in missions:
-        if m.id in seen:
-            problems.append(f"mission {m.id}: id already used by mission #{seen[m.id] + 1}")
-        seen.setdefault(m.id, i)
-        xy = {}
-        for which in ("start", "goal"):
-            x, y = sc.point_xy(getattr(m, which))
-            if not (xmin <= x <= xmax and ymin <= y <= ymax):
-                problems.append(f"mission {m.id}: {which} ({x:.1f}, {y:.1f}) is outside the scenario's map "
-                                f"[{xmin:.1f}, {xmax:.1f}] x [{ymin:.1f}, {ymax:.1f}]")
-            xy[which] = (float(x), float(y))
-        dep = _departure_s(m.departure, t0)
-        if not math.isfinite(dep) or dep < 0:
-            problems.append(f"mission {m.id}: departure {m.departure} is before the scenario start {t0.isoformat()}")
-        veh = m.vehicle or sc.vehicle
-        try:
-            load_vehicle(veh)
-        except Exception as exc:   # noqa: BLE001 - the loader's own message says what is known
-            problems.append(f"mission {m.id}: vehicle: {exc}")
-        if m.dop_level is not None and levels and not any(abs(m.dop_level - d) < 1e-9 for d in levels):
-            problems.append(f"mission {m.id}: dop_level {m.dop_level:g} is not one of the scenario's levels "
-                            f"{', '.join(f'{d:g}' for d in levels)}")
-        tasks.append(FleetTask(i, m.id, m.operator, xy["start"], m.start.alt_agl_m, xy["goal"], m.goal.alt_agl_m,
-                               dep, m.priority, veh, m.dop_level))
-    if problems:
-        raise FleetFileError(src, problems)
-    return tasks
-
-
-def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, *, alt_agl_m: float | None = None,
-                  min_km: float = 0.2, max_km: float = 1.5, operators: int = 5,
-                  priority_share: float = 0.1, notes: list[str] | None = None) -> list[FleetTask]:
-    """``n`` missions between the landing sites of the environment stage (``site_x`` /
-    ``site_y``; OSM helipads, hospitals' pads, parks, ... as :mod:`skyroute.stages.landing`
-    finds them) whose cell is not no-fly and whose clearance floor lies below ``alt_agl_m``
-    (default the scenario's start altitude) above the ground: start and goal drawn uniformly
-    among the pairs ``min_km``-``max_km`` apart, departure uniform in ``[0, window_s]`` [s],
-    operator ``op-1..op-<operators>``, priority 1 with probability ``priority_share`` (else 0),
-    the scenario's vehicle and the default DOP level.  ``np.random.default_rng(seed)``.  A site
-    is usable when the mission altitude above it lies between the clearance floor and ceiling
-    (not no-fly); a pair is drawn only when both lie in one 8-connected region of cells where
-    the vehicle may be at some altitude.
-
-    A city without such a pair of landing sites (a user's own DSM or CityJSON) gets candidate
-    sites derived from open ground (:func:`skyroute.stages.landing.open_ground_sites`: no
-    obstacle within r_p, not no-fly, the lowest risk level present), said in ``notes``."""
-    env, surf, clear = maps["environment"], maps["surface"], maps["clearance"]
-    alt = float(sc.mission.start.alt_agl_m if alt_agl_m is None else alt_agl_m)
-    g = sc.grid
-    n_sites = int(len(env["site_x"])) if "site_x" in env.coords else 0
-    if n_sites:
-        sx, sy = np.asarray(env["site_x"].values, float), np.asarray(env["site_y"].values, float)
-    else:
-        sx = sy = np.zeros(0)
-
-    from scipy import ndimage
-
-    floor_all = np.asarray(clear["min_altitude_m"].values, float)
-    ceil_all = np.asarray(clear["max_altitude_m"].values, float)
-    nofly_all = np.asarray(clear["nofly"].values, bool) if "nofly" in clear else np.zeros(g.shape, bool)
-    # cells where the vehicle may be at some altitude, and their 8-connected regions: a pair of
-    # sites in two regions has no path at all
-    region, _ = ndimage.label(np.isfinite(floor_all) & (floor_all <= ceil_all) & ~nofly_all, np.ones((3, 3), bool))
-
-    def usable_pairs(sx, sy):
-        r, c = g.cell_of(sx, sy)
-        top = np.asarray(surf["terrain"].values)[r, c] + alt     # the mission's start / goal altitude
-        ok = np.isfinite(floor_all[r, c]) & (floor_all[r, c] <= top) & (top <= ceil_all[r, c]) & ~nofly_all[r, c]
-        idx = np.flatnonzero(ok)
-        d = np.hypot(sx[idx, None] - sx[None, idx], sy[idx, None] - sy[None, idx])
-        lab = region[r[idx], c[idx]]
-        ii, jj = np.nonzero((d >= min_km * 1e3) & (d <= max_km * 1e3) & (lab[:, None] == lab[None, :]))
-        return idx, ii, jj
-
-    idx, ii, jj = usable_pairs(sx, sy)
-    if ii.size == 0:
-        from skyroute.stages.landing import OPEN_GROUND_SPACING_M, open_ground_sites
-
-        nofly = nofly_all
-        ox, oy, level = open_ground_sites(
-            terrain=np.asarray(surf["terrain"].values, float), surface=np.asarray(surf["surface"].values, float),
-            obstacle_floor=np.asarray(clear["obstacle_floor_m"].values, float),
-            risk_level=np.asarray(env["risk_level"].values), nofly=nofly, grid=g,
-            radius_m=float(clear.attrs.get("radius_m", 0.0)))
-        idx, ii, jj = usable_pairs(ox, oy)
-        if ii.size == 0:
-            raise InputError(f"no pair of usable landing sites of {sc.name} lies {min_km}-{max_km} km apart, nor of "
-                             "candidate sites on open ground; give data.landing_sites (a GeoJSON) or a fleet file "
-                             "(--fleet)")
-        sx, sy = ox, oy
-        if notes is not None:
-            notes.append(f"fleet: scenario {sc.name} has {n_sites} landing site(s) and no usable pair of them "
-                         f"(the mission altitude {alt:g} m AGL between the clearance floor and ceiling, connected) "
-                         f"{min_km}-{max_km} km apart: missions are drawn between {len(ox)} candidate sites derived "
-                         f"from open ground (no obstacle within r_p, not no-fly, risk level {level}, one per "
-                         f"{OPEN_GROUND_SPACING_M:g} m block); give data.landing_sites (a GeoJSON) for real ones")
-    rng = np.random.default_rng(seed)
-    pick = rng.integers(0, ii.size, n)
-    dep = np.sort(rng.uniform(0.0, window_s, n))
-    ops = rng.integers(1, operators + 1, n)
-    pri = (rng.random(n) < priority_share).astype(int)
-    out = []
-    for k in range(n):
-        a, b = idx[ii[pick[k]]], idx[jj[pick[k]]]
-        out.append(FleetTask(k, f"m{k + 1:04d}", f"op-{ops[k]}", (float(sx[a]), float(sy[a])), alt,
-                             (float(sx[b]), float(sy[b])), alt, round(float(dep[k]), 1), int(pri[k]), sc.vehicle,
-                             None))
-    return out
+           "mission_fields", "min_separation_m", "plan_attempt", "run_fleet", "still_valid"]
 
 
 # ---------------------------------------------------------------------------------- the maps
@@ -366,36 +117,6 @@ def default_level(maps: dict) -> float | None:
         if ok:
             return min(ok)
     return levels[-1]
-
-
-# ---------------------------------------------------------------------------------- one attempt
-@dataclass
-class Attempt:
-    """One planning attempt of a mission at a departure: ``ok`` when a flyable plan came out
-    (not yet checked against the accepted volumes); its intent ``volumes`` (W84, fleet time
-    [s]), ``obstacles`` (the same in the surface datum, conservative band) and ``doc`` (the
-    F3548 OperationalIntentDetails dict); ``xyz_m`` / ``t_s``: the trajectory sampled every
-    0.05 s (map CRS, surface datum; fleet time)."""
-
-    mission: str
-    departure_s: float
-    ok: bool
-    reason: str = ""
-    volumes: list = field(default_factory=list)
-    obstacles: list = field(default_factory=list)
-    doc: dict | None = None
-    xyz_m: np.ndarray | None = None
-    t_s: np.ndarray | None = None
-    energy_Wh: float = math.nan
-    length_m: float = math.nan
-    flight_time_s: float = math.nan
-    compute_s: float = 0.0
-    seen: tuple = ()
-    step2_status: str = ""
-    chain: tuple | None = None        # STEP II chain (waypoints (k, 3) [m], times [s] mission time)
-    trajectory: tuple | None = None   # (CornerTrajectory, t0 [s] mission time)
-    static: bool = False              # failed (ok False) in STEP I: no departure can help
-    free_legs: np.ndarray | None = None   # Step2Result.free_legs of an RRT run (mission time)
 
 
 def _seed(base: int, mission: str, departure_s: float) -> int:
@@ -562,37 +283,6 @@ def still_valid(a: Attempt, added: Sequence[tuple[str, Any]], task: FleetTask, s
     return not _retimed_conflicts(occ, traj, t0, 1.0)[2].any()   # step3's default check_spacing_m
 
 
-# ---------------------------------------------------------------------------------- the fleet
-@dataclass
-class MissionOutcome:
-    """The fleet decision of one mission (a row of fleet.csv)."""
-
-    task: FleetTask
-    status: str = "pending"
-    attempt: Attempt | None = None
-    delay_s: float = 0.0
-    attempts: int = 0
-    compute_s: float = 0.0
-    reason: str = ""
-    preempted_by: str = ""
-    level: float | None = None
-
-
-@dataclass
-class FleetResult:
-    outcomes: list[MissionOutcome]
-    seconds: float
-    speculative: dict = field(default_factory=dict)
-    warnings: list[str] = field(default_factory=list)
-    airspace: dict = field(default_factory=dict)
-
-    def counts(self) -> dict[str, int]:
-        out = {k: 0 for k in ("accepted", "delayed", "rejected", "preempted-replanned")}
-        for o in self.outcomes:
-            out[o.status] = out.get(o.status, 0) + 1
-        return out
-
-
 class _State:
     """The accepted missions: their obstacles (surface datum), a version per mission (bumped
     when withdrawn or re-accepted) and the VolumeIndex of their intent volumes (rebuilt on a
@@ -636,23 +326,6 @@ class _State:
                 seen.append((m, self.version[m]))
                 obst.extend((m, v) for v in vs)
         return tuple(seen), obst
-
-
-FIRM_PRIORITY = 2**62      # intents accepted before this run (an airspace store): never preempted
-
-
-def mission_fields(task: FleetTask, sc: Scenario) -> dict:
-    """The fields that identify a mission in an airspace store (a later run with the same id
-    and the same fields continues; another mission under that id is an error)."""
-    import pandas as pd
-
-    t0 = pd.Timestamp(sc.mission.start_time_utc)
-    t0 = t0.tz_localize("UTC") if t0.tzinfo is None else t0.tz_convert("UTC")
-    return {"scenario": sc.name, "operator": task.operator,
-            "start_xy_m": [round(float(v), 3) for v in task.start_xy], "start_agl_m": float(task.start_agl_m),
-            "goal_xy_m": [round(float(v), 3) for v in task.goal_xy], "goal_agl_m": float(task.goal_agl_m),
-            "earliest_departure_utc": (t0 + pd.Timedelta(seconds=task.earliest_s)).isoformat(),
-            "priority": int(task.priority), "vehicle": task.vehicle, "dop_level": task.dop_level}
 
 
 class _AirspaceLink:
@@ -991,198 +664,3 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
     return res
 
 
-# ---------------------------------------------------------------------------------- independent checks
-def independent_conflicts(docs: dict[str, dict], crs, start_time_utc) -> list[tuple[str, str]]:
-    """Pairs of missions whose intent documents intersect, by plain pairwise shapely code (every
-    pair of volumes of two different intents: altitude overlap, time overlap and intersection
-    area > 1e-4 m^2 in the metric ``crs``), independent of the VolumeIndex that accepted them."""
-    from skyroute.stages.fleet import MIN_AREA_M2, volumes_of_intent
-
-    vols = {m: volumes_of_intent(d, crs, start_time_utc) for m, d in docs.items()}
-    ids = sorted(vols)
-    span = {m: (min((u.t_start_s for u in vs), default=math.inf), max((u.t_end_s for u in vs), default=-math.inf))
-            for m, vs in vols.items()}
-    bad = []
-    for i, a in enumerate(ids):
-        for b in ids[i + 1:]:
-            if not (span[a][0] < span[b][1] and span[b][0] < span[a][1]):
-                continue       # no volume of a overlaps a volume of b in time
-            hit = False
-            for u in vols[a]:
-                for v in vols[b]:
-                    if (u.alt_lower_m < v.alt_upper_m and v.alt_lower_m < u.alt_upper_m and u.t_start_s < v.t_end_s
-                            and v.t_start_s < u.t_end_s and u.polygon.intersection(v.polygon).area > MIN_AREA_M2):
-                        hit = True
-                        break
-                if hit:
-                    break
-            if hit:
-                bad.append((a, b))
-    return bad
-
-
-def min_separation_m(tracks: dict[str, tuple[np.ndarray, np.ndarray]]) -> tuple[float, tuple[str, str] | None]:
-    """Smallest 3-D distance [m] between two tracks at the same time (each track: times [s],
-    positions (n, 3) [m]; the other track linearly interpolated at one track's samples)."""
-    ids = sorted(tracks)
-    best, who = math.inf, None
-    for i, a in enumerate(ids):
-        ta, pa = tracks[a]
-        for b in ids[i + 1:]:
-            tb, pb = tracks[b]
-            if ta[-1] < tb[0] or tb[-1] < ta[0]:
-                continue
-            m = (ta >= tb[0]) & (ta <= tb[-1])
-            if not m.any():
-                continue
-            q = np.column_stack([np.interp(ta[m], tb, pb[:, k]) for k in range(3)])
-            d = float(np.min(np.linalg.norm(pa[m] - q, axis=1)))
-            if d < best:
-                best, who = d, (a, b)
-    return best, who
-
-
-# ---------------------------------------------------------------------------------- outputs
-def _accepted(res: FleetResult) -> list[MissionOutcome]:
-    return [o for o in res.outcomes if o.attempt is not None and o.status != "rejected"]
-
-
-def write_fleet(res: FleetResult, sc: Scenario, maps: dict, out_dir: Path) -> tuple[list[Path], dict]:
-    """fleet.csv, intents/<mission>.json (accepted, delayed, re-planned), fleet.geojson,
-    tracks.csv (0.05 s), fleet.png; returns (files, summary ``fleet`` section)."""
-    import json
-
-    import pandas as pd
-    from pyproj import Transformer
-
-    from skyroute.stages.intents import parse_intent
-
-    out = Path(out_dir)
-    (out / "intents").mkdir(parents=True, exist_ok=True)
-    for old in (out / "intents").glob("*.json"):
-        old.unlink()
-    t0 = pd.Timestamp(sc.mission.start_time_utc)
-    files: list[Path] = []
-    rows = []
-    for o in res.outcomes:
-        a = o.attempt if o.status != "rejected" else None
-        rows.append({"mission": o.task.id, "operator": o.task.operator, "priority": o.task.priority,
-                     "status": o.status,
-                     "departure_utc": (t0 + pd.Timedelta(seconds=a.departure_s)).isoformat() if a else "",
-                     "earliest_s": round(o.task.earliest_s, 3), "delay_s": round(o.delay_s, 3) if a else "",
-                     "dop_level": "" if o.level is None else o.level,
-                     "energy_Wh": round(a.energy_Wh, 3) if a else "", "length_m": round(a.length_m, 2) if a else "",
-                     "flight_time_s": round(a.flight_time_s, 2) if a else "", "compute_s": round(o.compute_s, 3),
-                     "attempts": o.attempts, "volumes": len(a.volumes) if a else 0, "preempted_by": o.preempted_by,
-                     "reason": o.reason})
-    p = out / "fleet.csv"
-    with open(p, "w", newline="") as f:
-        w = csv.DictWriter(f, FLEET_COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
-    files.append(p)
-    acc = _accepted(res)
-    docs = {}
-    for o in acc:
-        parse_intent(o.attempt.doc)          # F3548 schema and limits (uas-standards)
-        docs[o.task.id] = o.attempt.doc
-        q = out / "intents" / f"{o.task.id}.json"
-        q.write_text(json.dumps(o.attempt.doc, indent=1))
-        files.append(q)
-    crs = maps["surface"]["surface"].rio.crs
-    datum = str(maps["surface"]["surface"].attrs.get("vertical_datum", ""))
-    to_ll = Transformer.from_crs(crs, 4326, always_xy=True)
-    feats = []
-    with open(out / "tracks.csv", "w") as f:
-        f.write("mission,t_s,x_m,y_m,z_m\n")
-        for o in acc:
-            a = o.attempt
-            np.savetxt(f, np.column_stack([a.t_s, a.xyz_m]), fmt=[o.task.id + ",%.3f", "%.3f", "%.3f", "%.3f"],
-                       delimiter=",")
-            k = np.unique(np.r_[np.arange(0, a.t_s.size, 20), a.t_s.size - 1])
-            lon, lat = to_ll.transform(a.xyz_m[k, 0], a.xyz_m[k, 1])
-            feats.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": [
-                [round(float(x), 7), round(float(y), 7), round(float(z), 2)] for x, y, z in zip(lon, lat, a.xyz_m[k, 2],
-                                                                                             strict=True)]},
-                "properties": {"mission": o.task.id, "operator": o.task.operator, "status": o.status,
-                               "priority": o.task.priority,
-                               "departure_utc": (t0 + pd.Timedelta(seconds=a.departure_s)).isoformat(),
-                               "delay_s": o.delay_s, "z_datum": datum}})
-    files.append(out / "tracks.csv")
-    gj = {"type": "FeatureCollection", "name": f"skyroute fleet {sc.name}",
-          "description": f"accepted trajectories (lon, lat [deg] WGS 84; z [m] in the surface datum of the maps: "
-                         f"{datum}; absolute heights are in intents/*.json, WGS 84 ellipsoidal)",
-          "vertical_datum": datum, "features": feats}
-    (out / "fleet.geojson").write_text(json.dumps(gj))
-    files.append(out / "fleet.geojson")
-    files.append(plot_fleet(res, sc, maps, out / "fleet.png"))
-    conflicts = independent_conflicts(docs, crs, sc.mission.start_time_utc.isoformat())
-    sep, pair = min_separation_m({o.task.id: (o.attempt.t_s, o.attempt.xyz_m) for o in acc})
-    counts = res.counts()
-    delays = [o.delay_s for o in acc]
-    attempts = sum(o.attempts for o in res.outcomes)
-    section = {"missions": len(res.outcomes), "counts": counts, "accepted_total": len(acc),
-               "mean_delay_s": float(np.mean(delays)) if delays else None,
-               "seconds": round(res.seconds, 3), "planning_attempts": attempts,
-               "throughput_plans_per_min": round(attempts / res.seconds * 60.0, 2) if res.seconds > 0 else None,
-               "missions_per_min": round(len(res.outcomes) / res.seconds * 60.0, 2) if res.seconds > 0 else None,
-               "conflicts_independent_check": len(conflicts), "conflicting_pairs": [list(c) for c in conflicts],
-               "min_separation_m": None if not math.isfinite(sep) else round(sep, 3),
-               "min_separation_pair": list(pair) if pair else None,
-               "required_separation_m": _required_separation_m(acc, sc), "preempted": sorted(o.task.id for o in res.outcomes if o.preempted_by),
-               "speculative": res.speculative, "z_datum_geojson": datum,
-               "notes": ["the scenario's own intruders are not fleet traffic: the traffic of each mission is the "
-                         "accepted intents"]}
-    return files, section
-
-
-def _required_separation_m(acc: Sequence[MissionOutcome], sc: Scenario) -> float | None:
-    """The separation the accepted tracks must keep [m]: the least r_p of their vehicles + d_c."""
-    from skyroute.stages.vehicle import load_vehicle
-
-    r = [load_vehicle(o.task.vehicle).r_p_m for o in acc]
-    return round(min(r) + float(sc.traffic.margin_m), 3) if r else None
-
-
-def plot_fleet(res: FleetResult, sc: Scenario, maps: dict, path: Path) -> Path:
-    """Two panels: the accepted paths over the surface model, and the timeline of every
-    accepted mission's intent volumes (one row per mission)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    acc = _accepted(res)
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 6.2), gridspec_kw={"width_ratios": [1, 1.25]})
-    s = maps["surface"]["surface"]
-    x, y = np.asarray(s["x"].values), np.asarray(s["y"].values)
-    step = max(1, int(max(x.size, y.size) / 800))
-    im = ax.imshow(np.asarray(s.values)[::step, ::step], extent=(x.min(), x.max(), y.min(), y.max()), origin="upper"
-                   if y[0] > y[-1] else "lower", cmap="Greys", interpolation="nearest")
-    fig.colorbar(im, ax=ax, shrink=0.7, label="surface [m]")
-    cmap = plt.get_cmap("tab20")
-    for i, o in enumerate(acc):
-        p = o.attempt.xyz_m
-        ax.plot(p[:, 0], p[:, 1], lw=0.9, color=cmap(i % 20))
-        ax.plot(p[0, 0], p[0, 1], "o", ms=2.5, color=cmap(i % 20))
-    ax.set_title(f"{sc.name}: {len(acc)} accepted paths")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.ticklabel_format(useOffset=False, style="plain")
-    ax.tick_params(axis="x", labelrotation=30)
-    colors = {"accepted": "tab:green", "delayed": "tab:orange", "preempted-replanned": "tab:purple"}
-    for i, o in enumerate(acc):
-        for v in o.attempt.volumes:
-            bx.plot([v.t_start_s / 60.0, v.t_end_s / 60.0], [i, i], lw=2.5, color=colors.get(o.status, "k"),
-                    solid_capstyle="butt")
-    for k, c in colors.items():
-        bx.plot([], [], color=c, lw=3, label=k)
-    rej = sum(o.status == "rejected" for o in res.outcomes)
-    bx.legend(loc="lower right", fontsize=8, title=f"rejected: {rej}", title_fontsize=8)
-    bx.set_xlabel("time after the scenario start [min]")
-    bx.set_ylabel("accepted mission (order of acceptance)")
-    bx.set_title("intent volumes' time windows")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

@@ -1,0 +1,354 @@
+"""The fleet's mission model (``skyroute fleet``): a fleet file's missions (:func:`load_fleet`) or
+missions drawn on a map (:func:`draw_missions`), the driver's options, attempts and outcomes."""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError, field_validator
+
+from skyroute.pipeline.errors import InputError
+from skyroute.pipeline.model import FrozenModel
+from skyroute.pipeline.settings import MissionPoint, Scenario
+
+__all__ = ["Attempt", "FIRM_PRIORITY", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult", "FleetTask", "MissionOutcome", "draw_missions", "load_fleet", "mission_fields"]
+
+
+class FleetFileError(InputError):
+    """A fleet file with problems: ``problems`` lists each (one ``error:`` line each)."""
+
+    def __init__(self, source: str, problems: list[str]):
+        self.problems = [f"{source}: {p}" for p in problems]
+        super().__init__("\n".join(self.problems))
+
+
+class FleetMission(FrozenModel):
+    """One mission of a fleet file: ``departure`` is the earliest departure, seconds after the
+    scenario's mission start or a UTC time; ``priority``: higher wins (F3548); ``vehicle``
+    (default the scenario's); ``dop_level``: the DOP threshold D_j to plan at (default: the
+    scenario's strictest flyable level)."""
+
+    id: str
+    operator: str = "operator"
+    start: MissionPoint
+    goal: MissionPoint
+    departure: float | dt.datetime = 0.0
+    priority: int = 0
+    vehicle: str | None = None
+    dop_level: float | None = None
+
+    @field_validator("id")
+    @classmethod
+    def _id(cls, v: str) -> str:
+        if not v or "/" in v or v.strip() != v:
+            raise ValueError(f"mission id {v!r} must be non-empty, without '/' or surrounding spaces")
+        return v
+
+
+@dataclass(frozen=True)
+class FleetTask:
+    """A mission resolved on the scenario's map: x/y [m], earliest departure [s after the
+    scenario start], DOP level."""
+
+    index: int
+    id: str
+    operator: str
+    start_xy: tuple[float, float]
+    start_agl_m: float
+    goal_xy: tuple[float, float]
+    goal_agl_m: float
+    earliest_s: float
+    priority: int
+    vehicle: str
+    dop_level: float | None
+
+
+@dataclass(frozen=True)
+class FleetOptions:
+    """Fleet settings: ``delay_step_s`` / ``max_delay_s`` [s]; ``seed`` (STEP II); ``k_sigma``
+    and ``time_buffer_s`` [s], ``max_volume_s`` [s], ``max_dz_m`` [m] of the intent volumes;
+    ``sigma_est_m`` [m]: the navigation error assumed to grow the obstacles before a plan
+    exists; ``corridor_m`` [m], ``horizon_s`` [s]: the space-time corridor of an attempt (start-goal box
+    grown by ``corridor_m``; from the departure to 3 x the direct flight time + 120 s, at most
+    ``horizon_s``);
+    ``preempt``: allow priority preemption; ``step2_max_iter``: K of each attempt's STEP II RRT
+    (the seed's 5000, as ``skyroute plan``; a failed deconfliction costs all K iterations, on
+    Helsinki 0.14 s, before the mission is tried at a later departure)."""
+
+    delay_step_s: float = 60.0
+    max_delay_s: float = 600.0
+    seed: int = 0
+    k_sigma: float = 3.0
+    time_buffer_s: float = 5.0
+    max_volume_s: float = 10.0
+    max_dz_m: float = 5.0
+    sigma_est_m: float = 1.5
+    corridor_m: float = 250.0
+    horizon_s: float = 900.0
+    preempt: bool = True
+    time_budget_s: float = 5.0
+    step2_max_iter: int = 5000
+
+
+# ---------------------------------------------------------------------------------- fleet input
+def _csv_records(path: Path) -> list[dict]:
+    out = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            rec: dict[str, Any] = {}
+            pts: dict[str, dict] = {"start": {}, "goal": {}}
+            for k, v in row.items():
+                if k is None or v is None or str(v).strip() == "":
+                    continue
+                k, v = k.strip(), str(v).strip()
+                head, _, tail = k.partition("_")
+                if head in pts and tail:
+                    pts[head][tail] = v
+                else:
+                    rec[k] = v
+            rec.update({k: p for k, p in pts.items() if p})
+            out.append(rec)
+    return out
+
+
+def _departure_s(dep, t0: dt.datetime) -> float:
+    if isinstance(dep, dt.datetime):
+        d = dep if dep.tzinfo is not None else dep.replace(tzinfo=dt.UTC)
+        return (d - t0).total_seconds()
+    return float(dep)
+
+
+def load_fleet(path: Path | str, sc: Scenario, levels: Sequence[float] = ()) -> list[FleetTask]:
+    """The missions of a fleet file (YAML ``missions: [...]`` or CSV with columns id, operator,
+    start_x / start_y or start_lon / start_lat, start_alt_agl_m, goal_..., departure, priority,
+    vehicle, dop_level) as :class:`FleetTask` s.  Every problem is collected and raised at once
+    (:class:`FleetFileError`): schema, duplicate ids, points outside the map, departures before
+    the scenario start, unknown vehicles, DOP levels not among the scenario's ``levels``."""
+    import yaml
+
+    from skyroute.stages.vehicle import load_vehicle
+
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise FleetFileError(src, ["no such file; give a YAML or CSV fleet file"])
+    try:
+        if path.suffix.lower() == ".csv":
+            records = _csv_records(path)
+        else:
+            doc = yaml.safe_load(path.read_text())
+            if not isinstance(doc, dict) or not isinstance(doc.get("missions"), list):
+                raise FleetFileError(src, ["the YAML needs a top-level list 'missions: [...]'"])
+            records = doc["missions"]
+    except (yaml.YAMLError, csv.Error, UnicodeDecodeError) as exc:
+        raise FleetFileError(src, [f"cannot be read: {exc}".replace("\n", " ")]) from None
+    if not records:
+        raise FleetFileError(src, ["no mission in the file"])
+    problems: list[str] = []
+    missions: list[tuple[int, FleetMission]] = []
+    for i, rec in enumerate(records):
+        name = rec.get("id", f"#{i + 1}") if isinstance(rec, dict) else f"#{i + 1}"
+        try:
+            missions.append((i, FleetMission.model_validate(rec)))
+        except ValidationError as exc:
+            for e in exc.errors():
+                loc = ".".join(str(x) for x in e["loc"])
+                problems.append(f"mission {name}: {loc + ': ' if loc else ''}{e['msg']}")
+    seen: dict[str, int] = {}
+    g = sc.grid
+    xmin, ymin, xmax, ymax = g.bounds
+    t0 = sc.mission.start_time_utc
+    tasks = []
+    for i, m in missions:
+        if m.id in seen:
+            problems.append(f"mission {m.id}: id already used by mission #{seen[m.id] + 1}")
+        seen.setdefault(m.id, i)
+        xy = {}
+        for which in ("start", "goal"):
+            x, y = sc.point_xy(getattr(m, which))
+            if not (xmin <= x <= xmax and ymin <= y <= ymax):
+                problems.append(f"mission {m.id}: {which} ({x:.1f}, {y:.1f}) is outside the scenario's map "
+                                f"[{xmin:.1f}, {xmax:.1f}] x [{ymin:.1f}, {ymax:.1f}]")
+            xy[which] = (float(x), float(y))
+        dep = _departure_s(m.departure, t0)
+        if not math.isfinite(dep) or dep < 0:
+            problems.append(f"mission {m.id}: departure {m.departure} is before the scenario start {t0.isoformat()}")
+        veh = m.vehicle or sc.vehicle
+        try:
+            load_vehicle(veh)
+        except Exception as exc:   # noqa: BLE001 - the loader's own message says what is known
+            problems.append(f"mission {m.id}: vehicle: {exc}")
+        if m.dop_level is not None and levels and not any(abs(m.dop_level - d) < 1e-9 for d in levels):
+            problems.append(f"mission {m.id}: dop_level {m.dop_level:g} is not one of the scenario's levels "
+                            f"{', '.join(f'{d:g}' for d in levels)}")
+        tasks.append(FleetTask(i, m.id, m.operator, xy["start"], m.start.alt_agl_m, xy["goal"], m.goal.alt_agl_m,
+                               dep, m.priority, veh, m.dop_level))
+    if problems:
+        raise FleetFileError(src, problems)
+    return tasks
+
+
+def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, *, alt_agl_m: float | None = None,
+                  min_km: float = 0.2, max_km: float = 1.5, operators: int = 5,
+                  priority_share: float = 0.1, notes: list[str] | None = None) -> list[FleetTask]:
+    """``n`` missions between the landing sites of the environment stage (``site_x`` /
+    ``site_y``; OSM helipads, hospitals' pads, parks, ... as :mod:`skyroute.stages.landing`
+    finds them) whose cell is not no-fly and whose clearance floor lies below ``alt_agl_m``
+    (default the scenario's start altitude) above the ground: start and goal drawn uniformly
+    among the pairs ``min_km``-``max_km`` apart, departure uniform in ``[0, window_s]`` [s],
+    operator ``op-1..op-<operators>``, priority 1 with probability ``priority_share`` (else 0),
+    the scenario's vehicle and the default DOP level.  ``np.random.default_rng(seed)``.  A site
+    is usable when the mission altitude above it lies between the clearance floor and ceiling
+    (not no-fly); a pair is drawn only when both lie in one 8-connected region of cells where
+    the vehicle may be at some altitude.
+
+    A city without such a pair of landing sites (a user's own DSM or CityJSON) gets candidate
+    sites derived from open ground (:func:`skyroute.stages.landing.open_ground_sites`: no
+    obstacle within r_p, not no-fly, the lowest risk level present), said in ``notes``."""
+    env, surf, clear = maps["environment"], maps["surface"], maps["clearance"]
+    alt = float(sc.mission.start.alt_agl_m if alt_agl_m is None else alt_agl_m)
+    g = sc.grid
+    n_sites = int(len(env["site_x"])) if "site_x" in env.coords else 0
+    if n_sites:
+        sx, sy = np.asarray(env["site_x"].values, float), np.asarray(env["site_y"].values, float)
+    else:
+        sx = sy = np.zeros(0)
+
+    from scipy import ndimage
+
+    floor_all = np.asarray(clear["min_altitude_m"].values, float)
+    ceil_all = np.asarray(clear["max_altitude_m"].values, float)
+    nofly_all = np.asarray(clear["nofly"].values, bool) if "nofly" in clear else np.zeros(g.shape, bool)
+    # cells where the vehicle may be at some altitude, and their 8-connected regions: a pair of
+    # sites in two regions has no path at all
+    region, _ = ndimage.label(np.isfinite(floor_all) & (floor_all <= ceil_all) & ~nofly_all, np.ones((3, 3), bool))
+
+    def usable_pairs(sx, sy):
+        r, c = g.cell_of(sx, sy)
+        top = np.asarray(surf["terrain"].values)[r, c] + alt     # the mission's start / goal altitude
+        ok = np.isfinite(floor_all[r, c]) & (floor_all[r, c] <= top) & (top <= ceil_all[r, c]) & ~nofly_all[r, c]
+        idx = np.flatnonzero(ok)
+        d = np.hypot(sx[idx, None] - sx[None, idx], sy[idx, None] - sy[None, idx])
+        lab = region[r[idx], c[idx]]
+        ii, jj = np.nonzero((d >= min_km * 1e3) & (d <= max_km * 1e3) & (lab[:, None] == lab[None, :]))
+        return idx, ii, jj
+
+    idx, ii, jj = usable_pairs(sx, sy)
+    if ii.size == 0:
+        from skyroute.stages.landing import OPEN_GROUND_SPACING_M, open_ground_sites
+
+        nofly = nofly_all
+        ox, oy, level = open_ground_sites(
+            terrain=np.asarray(surf["terrain"].values, float), surface=np.asarray(surf["surface"].values, float),
+            obstacle_floor=np.asarray(clear["obstacle_floor_m"].values, float),
+            risk_level=np.asarray(env["risk_level"].values), nofly=nofly, grid=g,
+            radius_m=float(clear.attrs.get("radius_m", 0.0)))
+        idx, ii, jj = usable_pairs(ox, oy)
+        if ii.size == 0:
+            raise InputError(f"no pair of usable landing sites of {sc.name} lies {min_km}-{max_km} km apart, nor of "
+                             "candidate sites on open ground; give data.landing_sites (a GeoJSON) or a fleet file "
+                             "(--fleet)")
+        sx, sy = ox, oy
+        if notes is not None:
+            notes.append(f"fleet: scenario {sc.name} has {n_sites} landing site(s) and no usable pair of them "
+                         f"(the mission altitude {alt:g} m AGL between the clearance floor and ceiling, connected) "
+                         f"{min_km}-{max_km} km apart: missions are drawn between {len(ox)} candidate sites derived "
+                         f"from open ground (no obstacle within r_p, not no-fly, risk level {level}, one per "
+                         f"{OPEN_GROUND_SPACING_M:g} m block); give data.landing_sites (a GeoJSON) for real ones")
+    rng = np.random.default_rng(seed)
+    pick = rng.integers(0, ii.size, n)
+    dep = np.sort(rng.uniform(0.0, window_s, n))
+    ops = rng.integers(1, operators + 1, n)
+    pri = (rng.random(n) < priority_share).astype(int)
+    out = []
+    for k in range(n):
+        a, b = idx[ii[pick[k]]], idx[jj[pick[k]]]
+        out.append(FleetTask(k, f"m{k + 1:04d}", f"op-{ops[k]}", (float(sx[a]), float(sy[a])), alt,
+                             (float(sx[b]), float(sy[b])), alt, round(float(dep[k]), 1), int(pri[k]), sc.vehicle,
+                             None))
+    return out
+
+
+# ---------------------------------------------------------------------------------- one attempt
+@dataclass
+class Attempt:
+    """One planning attempt of a mission at a departure: ``ok`` when a flyable plan came out
+    (not yet checked against the accepted volumes); its intent ``volumes`` (W84, fleet time
+    [s]), ``obstacles`` (the same in the surface datum, conservative band) and ``doc`` (the
+    F3548 OperationalIntentDetails dict); ``xyz_m`` / ``t_s``: the trajectory sampled every
+    0.05 s (map CRS, surface datum; fleet time)."""
+
+    mission: str
+    departure_s: float
+    ok: bool
+    reason: str = ""
+    volumes: list = field(default_factory=list)
+    obstacles: list = field(default_factory=list)
+    doc: dict | None = None
+    xyz_m: np.ndarray | None = None
+    t_s: np.ndarray | None = None
+    energy_Wh: float = math.nan
+    length_m: float = math.nan
+    flight_time_s: float = math.nan
+    compute_s: float = 0.0
+    seen: tuple = ()
+    step2_status: str = ""
+    chain: tuple | None = None        # STEP II chain (waypoints (k, 3) [m], times [s] mission time)
+    trajectory: tuple | None = None   # (CornerTrajectory, t0 [s] mission time)
+    static: bool = False              # failed (ok False) in STEP I: no departure can help
+    free_legs: np.ndarray | None = None   # Step2Result.free_legs of an RRT run (mission time)
+
+
+# ---------------------------------------------------------------------------------- the fleet
+@dataclass
+class MissionOutcome:
+    """The fleet decision of one mission (a row of fleet.csv)."""
+
+    task: FleetTask
+    status: str = "pending"
+    attempt: Attempt | None = None
+    delay_s: float = 0.0
+    attempts: int = 0
+    compute_s: float = 0.0
+    reason: str = ""
+    preempted_by: str = ""
+    level: float | None = None
+
+
+@dataclass
+class FleetResult:
+    outcomes: list[MissionOutcome]
+    seconds: float
+    speculative: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    airspace: dict = field(default_factory=dict)
+
+    def counts(self) -> dict[str, int]:
+        out = {k: 0 for k in ("accepted", "delayed", "rejected", "preempted-replanned")}
+        for o in self.outcomes:
+            out[o.status] = out.get(o.status, 0) + 1
+        return out
+
+
+FIRM_PRIORITY = 2**62      # intents accepted before this run (an airspace store): never preempted
+
+
+def mission_fields(task: FleetTask, sc: Scenario) -> dict:
+    """The fields that identify a mission in an airspace store (a later run with the same id
+    and the same fields continues; another mission under that id is an error)."""
+    import pandas as pd
+
+    t0 = pd.Timestamp(sc.mission.start_time_utc)
+    t0 = t0.tz_localize("UTC") if t0.tzinfo is None else t0.tz_convert("UTC")
+    return {"scenario": sc.name, "operator": task.operator,
+            "start_xy_m": [round(float(v), 3) for v in task.start_xy], "start_agl_m": float(task.start_agl_m),
+            "goal_xy_m": [round(float(v), 3) for v in task.goal_xy], "goal_agl_m": float(task.goal_agl_m),
+            "earliest_departure_utc": (t0 + pd.Timedelta(seconds=task.earliest_s)).isoformat(),
+            "priority": int(task.priority), "vehicle": task.vehicle, "dop_level": task.dop_level}

@@ -21,8 +21,35 @@ SCHEDULER_HELP = ("dask scheduler: threads (default), processes, synchronous, di
                   "(a new LocalCluster, see --workers) or the address of a running cluster tcp://HOST:PORT")
 
 
+class FiniteFloat(click.FloatRange):
+    """A float option that refuses nan and +-inf (``click.FloatRange`` lets nan through every
+    bound and inf through an open upper bound)."""
+
+    def convert(self, value, param, ctx):
+        import math
+
+        v = super().convert(value, param, ctx)
+        if v is not None and not math.isfinite(v):
+            self.fail(f"{value!r} is not a finite number; give a number such as 1.5", param, ctx)
+        return v
+
+
+class OutPath(click.Path):
+    """An output path option (``--out``, ``--cache-dir``) that refuses an empty or blank value
+    (``--out ""`` would otherwise mean the current folder)."""
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            self.fail("an empty path; give a folder (or file) name, e.g. out/run1", param, ctx)
+        return super().convert(value, param, ctx)
+
+
+SEED = click.IntRange(min=0, max=2**32 - 1)   # numpy and OMPL seeds: 0 .. 2**32 - 1
+
+
 class SkyrouteGroup(click.Group):
-    """A click group that reports SkyrouteError as a clean one-line error (exit code 2)."""
+    """A click group that reports SkyrouteError, and click's own usage errors (a bad option
+    value, an unknown option), as one clean ``error: ...`` line (exit code 2)."""
 
     def invoke(self, ctx: click.Context):
         from skyroute.pipeline import control
@@ -33,6 +60,11 @@ class SkyrouteGroup(click.Group):
             except SkyrouteError as exc:
                 msg = str(exc)
                 click.echo(f"error: {msg}", err=True)
+                ctx.exit(2)
+            except click.UsageError as exc:
+                where = exc.ctx.command_path if exc.ctx is not None else ctx.command_path
+                msg = " ".join(exc.format_message().split())
+                click.echo(f"error: {msg} (see `{where} -h`)", err=True)
                 ctx.exit(2)
             except KeyboardInterrupt:
                 # SIGINT -> 130, SIGTERM -> 143; every stage output is either complete in the
@@ -46,6 +78,19 @@ class SkyrouteGroup(click.Group):
                     sys.stderr.flush()
                     os._exit(code)   # do not wait for dask's worker threads to drain their queue
                 ctx.exit(code)
+
+
+def check_stage_names(names, option: str, also=()) -> None:
+    """InputError naming ``option`` when a name is not a pipeline stage (``run --force bogus``
+    used to succeed silently)."""
+    from skyroute.pipeline.errors import InputError
+    from skyroute.pipeline.graph import REGISTRY, _load_registry
+
+    _load_registry()
+    known = sorted(set(REGISTRY) | set(also))
+    bad = [n for n in names if n not in known]
+    if bad:
+        raise InputError(f"{option} {', '.join(bad)}: not a stage; give one of {', '.join(known)}")
 
 
 def _report_warnings(warnings: list[str]) -> None:
@@ -122,9 +167,9 @@ def scenarios_command() -> None:
 
 @main.command("run")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers for processes/distributed.")
@@ -146,6 +191,8 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
     from skyroute.pipeline.runner import run_scenario
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
 
+    check_stage_names(force, "--force")
+    check_stage_names(targets, "--stage")
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name)
     result = run_scenario(sc, cache=Cache(cache_dir), targets=targets or None, scheduler=scheduler,
@@ -220,9 +267,9 @@ def write_folder_summary(out_dir: Path, command: str, result, files, sections: d
 
 @main.command("maps")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/maps).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
@@ -253,17 +300,17 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
 
 @main.command("plan")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/plan).")
 @click.option("--weights", default=None, metavar="W_L,W_R,W_D,W_E",
               help="Cost weights of eq. 11: length, risk, landing, energy (overrides planner.weights).")
 @click.option("--planner", "planner_name", default=None, help="STEP I planner: astar, bitstar or potential; fixed-wing: eeastar, astar-fw, energy-optimal or "
               "bitstar-dubins "
               "(overrides planner.name).")
-@click.option("--seed", type=int, default=None, help="Random seed of BIT* and the RRT (overrides planner.seed).")
-@click.option("--time-budget", "time_budget_s", type=float, default=None,
+@click.option("--seed", type=SEED, default=None, help="Random seed of BIT* and the RRT (overrides planner.seed).")
+@click.option("--time-budget", "time_budget_s", type=FiniteFloat(), default=None,
               help="BIT* time per coverage level [s] (overrides planner.time_budget_s).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
@@ -329,11 +376,11 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
 
 @main.command("report")
 @click.argument("run_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
-@click.option("--out", "out_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_path", type=OutPath(dir_okay=False, path_type=Path), default=None,
               help="The HTML file to write (default: RUN_DIR/report.html).")
 @click.option("--no-maps", "no_maps", is_flag=True,
               help="Do not draw the scenario's maps into a plan, fly or navsim folder that has none.")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     """One self-contained HTML page (figures embedded, nothing loaded from the network) of a
@@ -370,9 +417,9 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
 
 @main.command("coverage")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/coverage).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers for processes/distributed.")
@@ -407,7 +454,7 @@ def cache_group() -> None:
 
 
 @cache_group.command("ls")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None)
 def cache_ls(cache_dir) -> None:
     """List cache entries: stage, key, scenario, size, creation time."""
     from skyroute.pipeline.cache import Cache
@@ -421,13 +468,15 @@ def cache_ls(cache_dir) -> None:
 
 
 @cache_group.command("clear")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None)
 @click.option("--stage", default=None, help="Remove only the entries of this stage.")
 def cache_clear(cache_dir, stage) -> None:
     """Remove cache entries (all, or one stage's) and orphaned temporaries."""
     from skyroute.pipeline.cache import Cache
 
     c = Cache(cache_dir)
+    if stage is not None:
+        check_stage_names([stage], "--stage", also=[e.stage for e in c.entries()])
     n = c.clear(stage)
     click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'} from {c.root}")
 
@@ -448,7 +497,7 @@ def parse_size(text: str) -> int:
 
 
 @cache_group.command("prune")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None)
 @click.option("--max-size", required=True, help="Keep at most this much (e.g. 10G, 500M): the least "
               "recently used entries go first.")
 def cache_prune(cache_dir, max_size) -> None:

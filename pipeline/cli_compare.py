@@ -8,16 +8,16 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP
+from skyroute.pipeline.cli import SCHEDULER_HELP, OutPath
 
 
 @click.command("compare")
 @click.argument("scenario", required=False, default=None)
 @click.option("--planners", default=None,
               help="Comma-separated planner names (default: every planner that fits the vehicle).")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/compare).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress lines.")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP
+from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath
 
 
 def write_fly_folder(fr, out_dir: Path, command: str = "fly") -> dict:
@@ -27,19 +27,19 @@ def write_fly_folder(fr, out_dir: Path, command: str = "fly") -> dict:
 
 @click.command("fly")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/fly).")
 @click.option("--events", "events_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="A YAML file of events (a top-level `events:` list) added to the scenario's.")
-@click.option("--t-rep", "t_rep_s", type=float, default=None,
+@click.option("--t-rep", "t_rep_s", type=FiniteFloat(), default=None,
               help="Replanning timeout t_rep [s] (default: tactical.t_rep_s, 5 s).")
-@click.option("--tick", "tick_s", type=float, default=None, help="Simulation and output step [s] (default 0.1 s).")
-@click.option("--seed", type=int, default=None, help="Seed of the RRTs and the intruder report noise.")
+@click.option("--tick", "tick_s", type=FiniteFloat(), default=None, help="Simulation and output step [s] (default 0.1 s).")
+@click.option("--seed", type=SEED, default=None, help="Seed of the RRTs and the intruder report noise.")
 @click.option("--tactical", "method", type=click.Choice(["levels", "octant", "local"]), default=None,
               help="How conflicts are resolved: levels 1-3 (seed 001) or the octant manoeuvre with dense-traffic "
                    "zones (seed 004) for rotorcraft; local (seed 002: climb over obstacles, turn right for UAVs) "
                    "for fixed-wing (default: tactical.method; levels, or local for a fixed-wing vehicle).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")

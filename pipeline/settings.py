@@ -20,17 +20,35 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
 from pydantic import Field, TypeAdapter, ValidationError, field_validator, model_validator
 
 from skyroute.pipeline.errors import ScenarioError, UnknownNameError
 from skyroute.pipeline.model import FrozenModel
+from skyroute.stages.yaml_io import read_yaml_file
 
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
 Bounds = tuple[float, float, float, float]
 
 DEFAULT_SCENARIO = "helsinki-medical"
+
+
+_NAME_OK = re.compile(r"^[^\x00-\x1f\x7f/\\:*?\"<>|]+$")
+
+
+def unsafe_name(v: str) -> str | None:
+    """Why ``v`` is not a safe single path component (a folder name under skyroute-out/), or None."""
+    if not v or not v.strip():
+        return "is empty"
+    if v != v.strip():
+        return "has leading or trailing spaces"
+    if not _NAME_OK.match(v):
+        return "is not a single folder name: it holds a path separator or a character not allowed in file names (/ \\ : * ? \" < > | or a control character)"
+    if v in (".", "..") or v.startswith((".", "-")):
+        return "starts with '.' or '-'"
+    if len(v) > 100:
+        return f"is {len(v)} characters long (at most 100)"
+    return None
 
 
 # --------------------------------------------------------------------------- sections
@@ -208,6 +226,13 @@ class DataSources(FrozenModel):
     obstacles: tuple[Obstacle, ...] = ()
     ground: GroundReference | None = None
 
+    @model_validator(mode="after")
+    def _one_wind(self) -> DataSources:
+        if self.uniform_wind is not None and self.wind is not None:
+            raise ValueError("give either uniform_wind (one constant wind) or wind (a gridded file), not both: "
+                             "remove one of them")
+        return self
+
 
 class MissionPoint(FrozenModel):
     """A mission point in lon/lat [deg] or map x/y [m], with its altitude above ground [m]."""
@@ -315,6 +340,16 @@ class TrafficSettings(FrozenModel):
     margin_m: NonNegFloat = 5.0
     time_margin_s: NonNegFloat = 5.0
 
+    @field_validator("intruders")
+    @classmethod
+    def _unique_ids(cls, v: tuple[Intruder, ...]) -> tuple[Intruder, ...]:
+        seen: set[str] = set()
+        dup = [i.id for i in v if i.id in seen or seen.add(i.id)]
+        if dup:
+            raise ValueError(f"intruder id(s) {', '.join(map(repr, dict.fromkeys(dup)))} given more than once; "
+                             "give every intruder its own id")
+        return v
+
 
 PLANNERS = ("astar", "bitstar", "potential", "eeastar", "astar-fw", "energy-optimal", "bitstar-dubins")
 
@@ -331,7 +366,7 @@ class PlannerSettings(FrozenModel):
     name: str = "astar"
     weights: tuple[NonNegFloat, NonNegFloat, NonNegFloat, NonNegFloat] = (1.0, 1.0, 1.0, 1.0)
     time_budget_s: PositiveFloat = 5.0
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
     max_tries: Annotated[int, Field(ge=1)] = 3
     # A* lattice step [cells] (8: measured best on 2 m city grids; a coarse mountain grid whose
     # cells span tens of metres of relief may need a finer lattice to follow a canyon)
@@ -378,7 +413,7 @@ class NavsimSettings(FrozenModel):
     (:class:`skyroute.stages.integrity.IntegrityBudget` explains the defaults)."""
 
     runs: Annotated[int, Field(ge=1, le=100000)] = 50
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
     rate_hz: PositiveFloat = 10.0
     gnss_rate_hz: PositiveFloat = 1.0
     nlos_reception_prob: Annotated[float, Field(ge=0, le=1)] = 0.7
@@ -414,7 +449,7 @@ class TacticalSettings(FrozenModel):
 
     t_rep_s: PositiveFloat = 5.0
     tick_s: PositiveFloat = 0.1
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
     intruder_noise_m: NonNegFloat = 0.0
     report_latency_s: NonNegFloat = 0.0
     level2_iterations: Annotated[int, Field(ge=1)] = 3000
@@ -667,6 +702,15 @@ class Scenario(FrozenModel):
     events: tuple[Event, ...] = ()
     source_path: Path | None = Field(default=None, exclude=True)
 
+    @field_validator("name")
+    @classmethod
+    def _safe_name(cls, v: str) -> str:
+        why = unsafe_name(v)
+        if why:
+            raise ValueError(f"{v!r} {why} (the name is the output folder skyroute-out/NAME): use letters, digits, "
+                             "'-', '_' and '.', e.g. my-city-delivery")
+        return v
+
     @field_validator("events")
     @classmethod
     def _by_time(cls, v: tuple) -> tuple:
@@ -762,7 +806,10 @@ def _problems_from(exc: ValidationError, prefix: Sequence[Any] = ()) -> list[str
     for err in exc.errors():
         loc = _yaml_path([*prefix, *err["loc"]])
         msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
+        if err["type"] == "number_field":      # FrozenModel: true/false or .inf/.nan given for a number
+            loc = _yaml_path([*prefix, *err["loc"], err["ctx"]["key"]])
+            msg = err["ctx"]["why"]
+        elif err["type"] == "extra_forbidden":
             msg = ("unknown key (check the spelling; valid keys: catalogs/README.md or "
                    "`python -m skyroute.pipeline.settings_reference`)")
         elif err["type"] == "missing":
@@ -972,13 +1019,7 @@ def load_scenario(name_or_path: str | Path = DEFAULT_SCENARIO) -> Scenario:
         if str(name_or_path) not in known:
             raise UnknownNameError("scenario", str(name_or_path), list(known))
         p = known[str(name_or_path)]
-    try:
-        raw = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ScenarioError(str(p), [f"<file>: not valid YAML{where}: {what}"]) from None
+    raw = read_yaml_file(p, "scenario")
     return parse_scenario(raw, source=str(p), base=p.parent)
 
 
@@ -987,13 +1028,7 @@ _EVENTS = TypeAdapter(tuple[Event, ...])
 
 
 def _read_yaml(p: Path) -> Any:
-    try:
-        return yaml.safe_load(p.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ScenarioError(str(p), [f"<file>: not valid YAML{where}: {what}"]) from None
+    return read_yaml_file(p, "events")
 
 
 def _raw_events_of(path: str | Path) -> list:

@@ -44,6 +44,21 @@ class OutPath(click.Path):
         return super().convert(value, param, ctx)
 
 
+def _set_max_memory(ctx, param, value):
+    from skyroute.pipeline.budget import set_max_memory
+
+    set_max_memory(None if value is None else parse_size(value, "--max-memory"))
+    return value
+
+
+def max_memory_option(f):
+    """``--max-memory SIZE`` of a command that computes: requests estimated to need more are
+    refused before any work (:mod:`skyroute.pipeline.budget`)."""
+    return click.option("--max-memory", default=None, metavar="SIZE", expose_value=False, callback=_set_max_memory,
+                        help="Refuse, before any work, a request estimated to need more memory than this (e.g. 8G; "
+                             "default: $SKYROUTE_MAX_MEMORY or 80% of the machine's memory).")(f)
+
+
 SEED = click.IntRange(min=0, max=2**32 - 1)   # numpy and OMPL seeds: 0 .. 2**32 - 1
 
 
@@ -144,6 +159,9 @@ def main(verbose: int) -> None:
     from skyroute.pipeline.outputs import PRINTED_WARNINGS
 
     PRINTED_WARNINGS.clear()                    # one command's warnings (a Python session may run several)
+    from skyroute.pipeline.budget import set_max_memory
+
+    set_max_memory(None)                        # --max-memory of an earlier command in this session
     _setup_logging(verbose)
 
 
@@ -179,6 +197,7 @@ def scenarios_command() -> None:
               "(saves space; the links break when the cache is cleared).")
 @click.option("--no-report", "no_report", is_flag=True, help="Do not write DIR/report.html.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force, link, no_report, quiet) -> None:
     """Run every stage that applies to SCENARIO (a catalog name or a YAML path; default
     helsinki-medical) and write datasets, GeoTIFFs, figures, summary.json, the interactive map
@@ -273,6 +292,7 @@ def write_folder_summary(out_dir: Path, command: str, result, files, sections: d
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
     """Environment maps of SCENARIO: GeoTIFFs of risk, landing, no-fly and clearance layers
     and a PNG panel (risk, landing cost, wind over buildings, no-fly, a traffic slice)."""
@@ -314,6 +334,7 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, cache_dir, scheduler, quiet) -> None:
     """Strategic plan of SCENARIO (seed 000 III): for every GNSS coverage level D_j, STEP I
     (BIT* or A*), STEP II (deconfliction against known traffic) and STEP III (min-snap, navigation
@@ -424,6 +445,7 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers for processes/distributed.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) -> None:
     """GNSS coverage maps of SCENARIO: for each DOP threshold D_j (scenario gnss.dop_thresholds)
     the altitude above which DOP < D_j, worst case over the mission window, as one GeoTIFF per
@@ -484,7 +506,7 @@ def cache_clear(cache_dir, stage) -> None:
 _SIZE_UNITS = {"": 1, "B": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
 
 
-def parse_size(text: str) -> int:
+def parse_size(text: str, option: str = "--max-size") -> int:
     """``"10G"``, ``"500M"``, ``"1.5T"``, ``"1024"`` -> bytes (binary units; a trailing B or iB is allowed)."""
     import re
 
@@ -492,7 +514,7 @@ def parse_size(text: str) -> int:
 
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([KMGT]?)(?:i?B)?\s*", text, flags=re.IGNORECASE)
     if not m:
-        raise InputError(f"--max-size {text!r} is not a size: give e.g. 10G, 500M or a number of bytes")
+        raise InputError(f"{option} {text!r} is not a size: give e.g. 10G, 500M or a number of bytes")
     return int(float(m.group(1)) * _SIZE_UNITS[m.group(2).upper()])
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP, OutPath
+from skyroute.pipeline.cli import SCHEDULER_HELP, OutPath, max_memory_option
 
 
 @click.command("compare")
@@ -21,6 +21,7 @@ from skyroute.pipeline.cli import SCHEDULER_HELP, OutPath
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress lines.")
+@max_memory_option
 def compare_command(scenario, planners, out_dir, cache_dir, scheduler, quiet) -> None:
     """Plan SCENARIO with each planner on the same (cached) maps: compare.csv (f and its
     terms, length, energy, minimum and mean exact clearance from the surface, max sigma_p,

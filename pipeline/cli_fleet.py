@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath
+from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, max_memory_option
 
 
 @click.command("fleet")
@@ -37,6 +37,7 @@ from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath
               help=SCHEDULER_HELP + "; with distributed / tcp:// the missions are planned speculatively in parallel")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers of --scheduler distributed.")
 @click.option("-q", "--quiet", is_flag=True, help="No per-mission lines.")
+@max_memory_option
 def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max_delay_min, delay_step_s, ground_m,
                   no_preempt, cache_dir, scheduler, workers, quiet) -> None:
     """Plan many operators' missions in SCENARIO first-come-first-served (issue 15): each at one

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath
+from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, max_memory_option
 
 
 def write_fly_folder(fr, out_dir: Path, command: str = "fly") -> dict:
@@ -43,6 +43,7 @@ def write_fly_folder(fr, out_dir: Path, command: str = "fly") -> dict:
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, cache_dir, scheduler, quiet) -> None:
     """Fly the strategic plan of SCENARIO (default helsinki-tactical) in simulated time through
     its events (seed 001 section 3.2): at each event the rest of the plan is checked; when it

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, OutPath
+from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, OutPath, max_memory_option
 
 
 @click.command("navsim")
@@ -22,6 +22,7 @@ from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, OutPath
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, scheduler, quiet) -> None:
     """Navigation Monte Carlo of SCENARIO's chosen plan (seed 003 section III): each run
     simulates the IMU, the receiver clock and the pseudoranges (satellites hidden by the

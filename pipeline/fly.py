@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from skyroute.pipeline.budget import check_ticks
 from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.fly_common import MAP_STAGES, FlyResult, _world, tactical_events
@@ -58,6 +59,16 @@ def tactical_method(sc: Scenario, method: str | None = None) -> str:
     return method
 
 
+def _shortest_flight_s(sc: Scenario) -> float:
+    """A lower bound of the flight's duration [s]: the straight line at the vehicle's top speed."""
+    from skyroute.stages.vehicle import load_vehicle
+
+    (x0, y0), (x1, y1) = sc.point_xy(sc.mission.start), sc.point_xy(sc.mission.goal)
+    veh = load_vehicle(sc.vehicle)
+    v = max(float(getattr(veh, name, 0.0) or 0.0) for name in ("max_airspeed_mps", "cruise_speed_mps"))
+    return math.hypot(x1 - x0, y1 - y0) / v if v > 0 else 0.0
+
+
 def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "threads", progress: bool = False,
                  t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
                  result: RunResult | None = None, method: str | None = None) -> FlyResult:
@@ -78,6 +89,7 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
         return fly_fixedwing(sc, cache=cache, scheduler=scheduler, progress=progress, tick_s=tick_s, seed=seed,
                              result=result)
     params = fly_params(sc, t_rep_s, tick_s, seed, method)   # bad values fail here, before any work
+    check_ticks(_shortest_flight_s(sc), params.tick_s)       # even the straight flight needs too many ticks
     cache = cache or Cache()
     if result is None:
         result = run_scenario(sc, cache=cache, targets=["plan"], scheduler=scheduler, progress=progress)
@@ -97,6 +109,7 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
         params = dataclasses.replace(params, bubble_k=float(sc.constraints.sboa_k),
                                      surface_uncertainty_m=float(sc.navsim.surface_uncertainty_m),
                                      clearance_radius_m=radius)
+    check_ticks(float(t0 + traj.duration_s), params.tick_s)  # the planned flight, before the replay
     problems = check_event_times(sc, float(t0 + traj.duration_s))
     if problems:
         raise InputError("; ".join(problems))

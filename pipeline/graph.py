@@ -419,6 +419,9 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                  scheduler: str = "threads", workers: int | None = None, progress: bool = False,
                  force: Sequence[str] = ()) -> RunResult:
     """Run (or read from the cache) every stage of ``scenario`` needed for ``targets``."""
+    from skyroute.pipeline.budget import check_scenario
+
+    check_scenario(scenario)   # cells x levels x epochs over --max-memory: InputError before any work
     cache = cache or Cache()
     cache.clean_tmp()
     t_all = time.perf_counter()

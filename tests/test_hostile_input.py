@@ -146,6 +146,17 @@ CASES = [
      ["--max-delay-min"]),
     ("fly-tick-nan", lambda t: ["fly", _scenario(t), "--tick", "nan"], ["--tick"]),
     ("plan-time-budget-inf", lambda t: ["plan", _scenario(t), "--time-budget", "inf"], ["--time-budget"]),
+    # ---- resources: refused from the estimate, before any work
+    ("resolution-tiny", lambda t: ["plan", _scenario(t, _set(h_raw(), "aoi.resolution_m", 0.01))],
+     ["18,3", "cells", "aoi.resolution_m", "--max-memory"]),
+    ("window-huge", lambda t: ["plan", _scenario(t, _set(h_raw(), "gnss.window_min", 1e7))],
+     ["10,000,001 GNSS epochs", "gnss.window_min"]),
+    ("step-tiny", lambda t: ["coverage", _scenario(t, _set(h_raw(), "gnss.step_min", 1e-6))],
+     ["20,000,001 GNSS epochs", "gnss.step_min"]),
+    ("fly-tick-tiny", lambda t: ["fly", "helsinki-tactical", "--tick", "1e-7", "--out", str(t / "f")],
+     ["ticks", "--tick"]),
+    ("max-memory-small", lambda t: ["plan", _scenario(t), "--max-memory", "100M"], ["--max-memory", "460,598 cells"]),
+    ("max-memory-bogus", lambda t: ["run", _scenario(t), "--max-memory", "lots"], ["--max-memory 'lots'"]),
     ("unknown-option", lambda t: ["plan", _scenario(t), "--bogus"], ["--bogus"]),
 ]
 
@@ -167,3 +178,32 @@ def test_hostile_input_one_error_line(tmp_path, monkeypatch, build, words):
         assert w in out, (w, out)
     assert not (tmp_path / "skyroute-out").exists() or not any((tmp_path / "skyroute-out").rglob("*.csv"))
     assert took < 20, f"refused only after {took:.1f} s"
+
+
+def test_footprint_counts_cells_and_epochs():
+    """The estimate's counts are the grid's and the epochs' (brute force), and the limit is a
+    sharp threshold."""
+    from skyroute.pipeline import budget
+    from skyroute.pipeline.errors import InputError
+    from skyroute.pipeline.settings import load_scenario
+
+    sc = load_scenario("helsinki-medical")
+    fp = budget.scenario_footprint(sc)
+    assert fp.cells == sc.grid.nx * sc.grid.ny == 460598
+    assert fp.epochs == len(sc.mission_times_utc()) == 21
+    assert budget.check_scenario(sc, limit_bytes=int(fp.bytes) + 1) == fp
+    with pytest.raises(InputError, match="aoi.resolution_m"):
+        budget.check_scenario(sc, limit_bytes=int(fp.bytes) - 1)
+    assert budget.check_ticks(100.0, 0.1, limit_bytes=1 << 30) == pytest.approx(1000)
+    with pytest.raises(InputError, match="1,000,000,000 ticks"):
+        budget.check_ticks(100.0, 1e-7, limit_bytes=1 << 30)
+
+
+def test_max_memory_default_is_the_machines(monkeypatch):
+    from skyroute.pipeline import budget
+
+    budget.set_max_memory(None)
+    monkeypatch.delenv(budget.ENV, raising=False)
+    assert budget.max_memory_bytes() == int(budget.machine_memory_bytes() * budget.DEFAULT_FRACTION)
+    monkeypatch.setenv(budget.ENV, "3G")
+    assert budget.max_memory_bytes() == 3 << 30

@@ -68,6 +68,7 @@ class SkyrouteGroup(click.Group):
 
     def invoke(self, ctx: click.Context):
         from skyroute.pipeline import control
+        from skyroute.pipeline.budget import set_max_memory
 
         with control.signal_handlers():
             try:
@@ -93,6 +94,8 @@ class SkyrouteGroup(click.Group):
                     sys.stderr.flush()
                     os._exit(code)   # do not wait for dask's worker threads to drain their queue
                 ctx.exit(code)
+            finally:
+                set_max_memory(None)   # --max-memory holds for this command only (a session may run more)
 
 
 def check_stage_names(names, option: str, also=()) -> None:

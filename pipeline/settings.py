@@ -906,6 +906,7 @@ def _semantic_problems(sc: Scenario) -> list[str]:
     if sc.vehicle not in known_vehicles() and not Path(sc.vehicle).is_file():
         problems.append(f"vehicle: unknown vehicle {sc.vehicle!r}; known vehicles: {', '.join(known_vehicles())}")
     else:
+        problems.extend(_vehicle_file_problems(sc))
         problems.extend(_vehicle_altitude_problems(sc))
         problems.extend(planner_vehicle_problems(sc))
     try:
@@ -958,6 +959,21 @@ def planner_vehicle_problems(sc: Scenario) -> list[str]:
         return [f"planner.name: {exc}"]
     except Exception:  # an unreadable vehicle is reported by its own check
         return []
+    return []
+
+
+def _vehicle_file_problems(sc: Scenario) -> list[str]:
+    """The vehicle profile's own problems (a vehicle YAML that is not UTF-8, not YAML or not a
+    valid profile), found when the scenario is loaded rather than when a stage needs it."""
+    from skyroute.stages.base import SkyrouteError
+    from skyroute.stages.vehicle import load_vehicle
+
+    try:
+        load_vehicle(sc.vehicle)
+    except ScenarioError as exc:
+        return [f"vehicle ({exc.source}): {p}" for p in exc.problems]
+    except SkyrouteError as exc:
+        return [f"vehicle: {exc}"]
     return []
 
 

@@ -368,7 +368,7 @@ def vehicle_from_dict(raw: dict) -> AnyVehicle:
     """The profile of a mapping by its ``kind`` (default ``multirotor``); pydantic's
     ValidationError for invalid content, ValueError for an unknown kind."""
     kind = raw.get("kind", "multirotor")
-    if kind not in VEHICLE_KINDS:
+    if not isinstance(kind, str) or kind not in VEHICLE_KINDS:
         raise ValueError(f"kind: unknown vehicle kind {kind!r}; known kinds: {', '.join(VEHICLE_KINDS)}")
     return VEHICLE_KINDS[kind].model_validate(raw)
 
@@ -419,7 +419,8 @@ def load_vehicle(name_or_path: str | Path | AnyVehicle) -> AnyVehicle:
     raw = read_yaml_text(text, source, "vehicle")   # one ScenarioError line: not UTF-8, not YAML, duplicate key...
     if not isinstance(raw, dict):
         raise DataError(f"{source}: expected a mapping of vehicle fields, got {type(raw).__name__}")
-    if raw.get("kind", "multirotor") not in VEHICLE_KINDS:
+    kind = raw.get("kind", "multirotor")
+    if not isinstance(kind, str) or kind not in VEHICLE_KINDS:
         raise ScenarioError(source, [f"kind: unknown vehicle kind {raw.get('kind')!r}; known kinds: "
                                      f"{', '.join(VEHICLE_KINDS)}"])
     try:

@@ -11,7 +11,8 @@ column) and the fix:
 * a mapping key given twice (``<<`` merge keys may override, as YAML specifies);
 * more than :data:`MAX_ALIASES` aliases (``*name``), or a document whose aliases expand it to
   more than :data:`MAX_NODES` nodes;
-* nesting deeper than :data:`MAX_DEPTH`.
+* nesting deeper than :data:`MAX_DEPTH`;
+* a string holding a NUL character (``"\\0"``: no name or path may hold one).
 
 It lives in ``stages`` (the bottom layer) so that :mod:`skyroute.stages.vehicle` uses it too.
 """
@@ -115,6 +116,25 @@ def _expanded_size(root: yaml.Node) -> int:
     return memo[id(root)]
 
 
+def _nul_string(doc: Any) -> str | None:
+    """The YAML path of the first string (key or value) holding a NUL character, or None."""
+    stack: list[tuple[Any, str]] = [(doc, "")]
+    while stack:
+        node, path = stack.pop()
+        if isinstance(node, str):
+            if "\x00" in node:
+                return path
+        elif isinstance(node, dict):
+            for k, v in node.items():
+                sub = f"{path}.{k}" if path else str(k)
+                if isinstance(k, str) and "\x00" in k:
+                    return sub
+                stack.append((v, sub))
+        elif isinstance(node, list):
+            stack.extend((v, f"{path}[{i}]") for i, v in enumerate(node))
+    return None
+
+
 def _problem(exc: BaseException) -> str:
     mark = getattr(exc, "problem_mark", None)
     where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
@@ -139,13 +159,21 @@ def read_yaml_text(text: str | bytes, source: str, what: str = "YAML") -> Any:
     if "\x00" in text:
         raise ScenarioError(source, [f"<file>: holds NUL bytes, so it is not a text file; give a {what} file"])
     text = text.removeprefix("\ufeff")
-    loader = _Loader(text)
+    try:
+        loader = _Loader(text)     # the reader refuses non-printable characters here already
+    except yaml.YAMLError as exc:
+        raise ScenarioError(source, [_problem(exc)]) from None
     try:
         node = loader.get_single_node()
         if node is None:
             return None
         _expanded_size(node)
-        return loader.construct_document(node)
+        doc = loader.construct_document(node)
+        where = _nul_string(doc)
+        if where is not None:
+            raise ScenarioError(source, [f"{where or '<root>'}: a text holds a NUL character (\\0), which no name "
+                                         "or path may hold; remove it"])
+        return doc
     except yaml.YAMLError as exc:
         raise ScenarioError(source, [_problem(exc)]) from None
     except RecursionError:

@@ -207,3 +207,11 @@ def test_max_memory_default_is_the_machines(monkeypatch):
     assert budget.max_memory_bytes() == int(budget.machine_memory_bytes() * budget.DEFAULT_FRACTION)
     monkeypatch.setenv(budget.ENV, "3G")
     assert budget.max_memory_bytes() == 3 << 30
+
+
+def test_max_memory_holds_for_one_command_only(tmp_path):
+    from skyroute.pipeline import budget
+
+    res = CliRunner().invoke(main, ["plan", _scenario(tmp_path), "--max-memory", "1", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "of memory" in res.output
+    assert budget._limit_bytes is None          # the next command (or an API call) has the default again

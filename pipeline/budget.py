@@ -125,7 +125,8 @@ def scenario_footprint(sc) -> Footprint:
     """The counts and the memory estimate of ``sc`` (see the module docstring)."""
     cells = _cells(sc)
     g = sc.gnss
-    epochs = math.floor(g.window_min / g.step_min) + 1.0 if sc.data.almanacs else 0.0
+    ratio = g.window_min / g.step_min
+    epochs = (math.floor(ratio) + 1.0 if math.isfinite(ratio) else math.inf) if sc.data.almanacs else 0.0
     sats = SATS_PER_ALMANAC * max(1, len(sc.data.almanacs)) if sc.data.almanacs else 0
     levels = len(g.dop_thresholds)
     chunk = float(sc.aoi.chunk_cells) ** 2

@@ -36,6 +36,14 @@ DEFAULT_SCENARIO = "helsinki-medical"
 _NAME_OK = re.compile(r"^[^\x00-\x1f\x7f/\\:*?\"<>|]+$")
 
 
+def _is_file(p: str | Path) -> bool:
+    """``Path(p).is_file()`` that is False, not an exception, for a name too long or with a NUL."""
+    try:
+        return Path(p).is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def unsafe_name(v: str) -> str | None:
     """Why ``v`` is not a safe single path component (a folder name under skyroute-out/), or None."""
     if not v or not v.strip():
@@ -873,7 +881,7 @@ def _event_problems(sc: Scenario, labels: Sequence[str], check: Sequence[bool] |
         elif isinstance(e, GnssEvent):
             files = [(f"{lab}.almanacs", a) for a in e.almanacs]
         for where, f in files:
-            if not Path(f).is_file():
+            if not _is_file(f):
                 problems.append(f"{where}: data file not found: {f}")
     return problems
 
@@ -893,7 +901,7 @@ def _semantic_problems(sc: Scenario) -> list[str]:
         ("constraints.nofly_zones", [sc.constraints.nofly_zones] if sc.constraints.nofly_zones else []),
     ):
         for p in paths:
-            if not Path(p).is_file():
+            if not _is_file(p):
                 problems.append(f"{section}: data file not found: {p}")
             elif not os.access(p, os.R_OK):
                 problems.append(f"{section}: data file is not readable: {p}")
@@ -903,7 +911,7 @@ def _semantic_problems(sc: Scenario) -> list[str]:
                         f"{dt_.vertical_datum!r}; convert one raster so the DSM and the DEM share a vertical datum")
     from skyroute.stages.vehicle import known_vehicles
 
-    if sc.vehicle not in known_vehicles() and not Path(sc.vehicle).is_file():
+    if sc.vehicle not in known_vehicles() and not _is_file(sc.vehicle):
         problems.append(f"vehicle: unknown vehicle {sc.vehicle!r}; known vehicles: {', '.join(known_vehicles())}")
     else:
         problems.extend(_vehicle_file_problems(sc))
@@ -1027,8 +1035,8 @@ def parse_scenario(raw: Any, source: str = "<scenario>", base: Path | None = Non
 def load_scenario(name_or_path: str | Path = DEFAULT_SCENARIO) -> Scenario:
     """Load and validate a scenario by catalog name (``helsinki-medical``) or YAML path."""
     p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml") or p.is_file():
-        if not p.is_file():
+    if p.suffix in (".yaml", ".yml") or _is_file(p):
+        if not _is_file(p):
             raise ScenarioError(str(p), [f"<file>: scenario file not found: {p}"])
     else:
         known = scenario_paths()
@@ -1049,7 +1057,7 @@ def _read_yaml(p: Path) -> Any:
 
 def _raw_events_of(path: str | Path) -> list:
     p = Path(path)
-    if not p.is_file():
+    if not _is_file(p):
         raise ScenarioError(str(p), [f"<file>: events file not found: {p}"])
     raw = _read_yaml(p)
     if isinstance(raw, dict) and set(raw) == {"events"}:

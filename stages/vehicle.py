@@ -399,7 +399,11 @@ def load_vehicle(name_or_path: str | Path | AnyVehicle) -> AnyVehicle:
     s = str(name_or_path)
     if isinstance(name_or_path, Path) or s.endswith((".yaml", ".yml")) or "/" in s:
         path = Path(s)
-        if not path.is_file():
+        try:
+            found = path.is_file()
+        except (OSError, ValueError):   # a name too long for the filesystem
+            found = False
+        if not found:
             raise DataError(f"vehicle file {path} not found; give a catalog name "
                             f"({', '.join(known_vehicles())}) or an existing YAML path")
         try:

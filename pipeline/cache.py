@@ -8,9 +8,10 @@ Integrity: the manifest lists every file of the zarr store with its size, modifi
 BLAKE2b digest (``blake2b:<hex>``; entries written before held a SHA-256).  :meth:`Cache.get`
 re-hashes every file on every read, whatever its time says (a byte flipped with the file time
 restored is caught): an entry with a missing, resized or altered file, or an unreadable manifest,
-is damaged: it is removed with a warning and the stage recomputes.  The cost on a warm
-``skyroute plan helsinki-medical`` (265 files, 3.7 MB) is measured in
-tests/test_cache_integrity.py's docstring.
+is damaged: it is removed with a warning and the stage recomputes.  Measured cost (helsinki-medical,
+8 cached stages, 795 files, 5.3 MB): 8.6-9.0 ms per warm ``run_scenario(targets=["plan"])``
+against 1.9-2.2 ms for sizes and times only, i.e. ~7 ms on a 0.14-0.22 s in-process warm run
+(3-5 %) and 0.15 % of a warm ``skyroute plan`` command (4.8-5.3 s with its outputs).
 Writes go to ``<root>/tmp/`` and are renamed into place only once the zarr store and its
 manifest (``skyroute.json``) are complete; ``os.rename`` of a directory is atomic on one
 filesystem, so a run killed at any moment leaves at worst an orphan under ``tmp/`` that no

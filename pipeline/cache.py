@@ -88,6 +88,18 @@ class Cache:
             raise CacheError(f"cannot create cache directory {self.root}: {exc}; "
                              "pass --cache-dir or set SKYROUTE_CACHE_DIR to a writable folder") from exc
 
+    def check_writable(self) -> None:
+        """CacheError (one line) when entries cannot be written here: before any stage computes,
+        not after (a read-only cache is fine while every stage is cached)."""
+        self._ensure()
+        probe = self.tmp_dir / f".write-test-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+        try:
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise CacheError(f"cannot write to the cache directory {self.root}: {exc.strerror or exc}; pass "
+                             "--cache-dir or set SKYROUTE_CACHE_DIR to a writable folder") from None
+
     # -- read
     def get(self, stage: str, key: str, touch: bool = True, verify: bool = True) -> CacheEntry | None:
         """The complete entry for (stage, key), or None.  An entry is trusted only when its

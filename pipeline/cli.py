@@ -77,6 +77,15 @@ class SkyrouteGroup(click.Group):
                 msg = str(exc)
                 click.echo(f"error: {msg}", err=True)
                 ctx.exit(2)
+            except OSError as exc:
+                import errno
+
+                if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+                    raise
+                where = f" writing {exc.filename}" if exc.filename else ""
+                click.echo(f"error: {exc.strerror or exc}{where}: free some space or choose another --out / "
+                           "--cache-dir", err=True)
+                ctx.exit(2)
             except click.UsageError as exc:
                 where = exc.ctx.command_path if exc.ctx is not None else ctx.command_path
                 msg = " ".join(exc.format_message().split())
@@ -96,6 +105,9 @@ class SkyrouteGroup(click.Group):
                 ctx.exit(code)
             finally:
                 set_max_memory(None)   # --max-memory holds for this command only (a session may run more)
+                from skyroute.pipeline.outputs import restore_untouched
+
+                restore_untouched()    # a folder this command set aside but never wrote gets its summary back
 
 
 def check_stage_names(names, option: str, also=()) -> None:
@@ -418,6 +430,7 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     import tempfile
 
     from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.outputs import check_writable_dir
     from skyroute.pipeline.report import (
         add_to_summary,
         build_report,
@@ -425,6 +438,7 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
         write_fly_map,
     )
 
+    check_writable_dir(Path(out_path).parent if out_path is not None else run_dir, "--out")  # before any drawing
     added = []
     fly_map = write_fly_map(run_dir)
     if fly_map is not None:

@@ -80,6 +80,16 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
             for p in exc.problems:
                 click.echo(f"error: {p}", err=True)
             sys.exit(2)
+    if tasks is not None and sc.data.almanacs:
+        from skyroute.stages.orbits import AGE_LIMITS_S
+
+        limit_s = AGE_LIMITS_S["almanac"][1]
+        late = [t for t in tasks if t.earliest_s > limit_s]
+        if late:
+            raise InputError(f"{fleet_file}: mission {late[0].id} departs {late[0].earliest_s / 86400:.0f} days "
+                             f"after the scenario start ({len(late)} mission(s) beyond {limit_s / 86400:.0f} days): the "
+                             "scenario's almanacs do not hold that far; move the departures or the scenario's "
+                             "mission.start_time_utc (with an almanac of that time)")
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fleet")
     cache = Cache(cache_dir)
     maps = fleet_maps(sc, cache.root)

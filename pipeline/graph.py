@@ -440,6 +440,8 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
             keys[st.name] = stage_key(st, scenario, [keys[d] for d in st.inputs]
                                       + [keys.get(d, "absent") for d in st.optional_inputs], versions[st.name])
             entries[st.name] = None if st.name in force else cache.get(st.name, keys[st.name])
+        if any(e is None for e in entries.values()):
+            cache.check_writable()   # a read-only or unusable cache: one error before any stage computes
         prechecks = [s for s in todo if s.precheck is not None and entries[s.name] is None]
         _run_prechecks(prechecks, todo, scenario, result.datasets)
         for i, st in enumerate(todo, 1):

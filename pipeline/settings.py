@@ -917,6 +917,19 @@ def _semantic_problems(sc: Scenario) -> list[str]:
         problems.extend(_vehicle_file_problems(sc))
         problems.extend(_vehicle_altitude_problems(sc))
         problems.extend(planner_vehicle_problems(sc))
+    problems.extend(_raster_problems(sc))
+    if sc.aoi.crs is not None:
+        try:
+            from pyproj import CRS
+
+            crs = CRS.from_user_input(sc.aoi.crs)
+            if not crs.is_projected:
+                problems.append(f"aoi.crs: {sc.aoi.crs!r} is not a projected CRS in metres (its units are "
+                                f"{crs.axis_info[0].unit_name if crs.axis_info else 'not metres'}); give a projected "
+                                "CRS such as the UTM zone ('EPSG:326NN'), or omit aoi.crs with bounds_lonlat")
+                return problems
+        except Exception:
+            pass  # an unknown CRS: the grid below says so
     try:
         grid = sc.grid
     except Exception as exc:  # CRSError / InputError
@@ -945,6 +958,31 @@ def _semantic_problems(sc: Scenario) -> list[str]:
         if _outside_aoi(grid, np.asarray(o.polygon)):
             problems.append(f"data.obstacles[{k}].polygon: the polygon lies outside the AOI; check the coordinates (map CRS metres)")
     return problems
+
+
+def _raster_problems(sc: Scenario) -> list[str]:
+    """A DSM or DEM must be one band of numeric heights (a 3-band RGB image or a paletted map
+    is not); only the header is read."""
+    out = []
+    rasters = [("data.surface.path", p) for p in (sc.data.surface.paths if sc.data.surface else ())]
+    rasters += [("data.terrain.path", sc.data.terrain.path)] if sc.data.terrain else []
+    for key, p in rasters:
+        if not _is_file(p):
+            continue
+        try:
+            import rasterio
+
+            with rasterio.open(p) as src:
+                count, dtype = src.count, np.dtype(src.dtypes[0])
+                interp = [str(c.name) for c in src.colorinterp]
+        except Exception:   # not a raster rasterio can open: the stage says so with its reader's message
+            continue
+        if count != 1:
+            out.append(f"{key}: {p} has {count} bands ({', '.join(interp)}); a DSM / DEM is one band of heights [m] "
+                       "(an RGB image is not): give the height raster")
+        elif dtype.kind not in "iuf" or interp[0] == "palette":
+            out.append(f"{key}: {p} holds {dtype} {interp[0]} values, not heights [m]: give the height raster")
+    return out
 
 
 def _vehicle_max_altitude_m(sc: Scenario) -> float | None:

@@ -66,6 +66,19 @@ def _file(tmp: Path, name: str, content: str | bytes) -> str:
     return str(p)
 
 
+def _rgb_tif(tmp: Path) -> str:
+    """A 3-band RGB GeoTIFF over the Helsinki AOI (a photo, not heights)."""
+    import numpy as np
+    import rasterio
+    from rasterio.transform import from_origin
+
+    p = tmp / "photo.tif"
+    with rasterio.open(p, "w", driver="GTiff", width=64, height=64, count=3, dtype="uint8", crs="EPSG:32635",
+                       transform=from_origin(385300, 6672900, 20, 20), photometric="RGB") as dst:
+        dst.write(np.zeros((3, 64, 64), np.uint8))
+    return str(p)
+
+
 def _vehicle_with(tmp: Path, line: str) -> str:
     text = VEHICLE_SRC.read_text()
     key = line.split(":")[0]
@@ -101,6 +114,10 @@ CASES = [
      ["fl.yaml", "not a UTF-8"]),
     ("fleet-duplicate-key", lambda t: ["fleet", _scenario(t), "--fleet", _file(t, "fl.yaml", "missions: []\nmissions: []\n")],
      ["'missions' is given twice"]),
+    ("fleet-departure-2100", lambda t: ["fleet", _scenario(t), "--fleet", _file(t, "fl.yaml", yaml.safe_dump({"missions": [
+        {"id": "late", "start": {"x": 385747.35, "y": 6672213.62, "alt_agl_m": 60},
+         "goal": {"x": 385969.55, "y": 6672495.29, "alt_agl_m": 60}, "departure": "2100-01-01T00:00:00Z"}]}))],
+     ["late", "almanacs"]),
     ("fleet-alias-bomb", lambda t: ["fleet", _scenario(t), "--fleet", _file(t, "fl.yaml", ALIAS_BOMB)], ["alias"]),
     # ---- numbers that make no sense
     ("resolution-inf", lambda t: ["plan", _scenario(t, _set(h_raw(), "aoi.resolution_m", float("inf")))],
@@ -134,6 +151,10 @@ CASES = [
     ("every-satellite-excluded", lambda t: ["run", _scenario(t, _set(h_raw(), "gnss.exclude_satellites", [
         f"G{i:02d}" for i in range(1, 33)] + [f"E{i:02d}" for i in range(1, 37)])), "--stage", "satellites",
         "--out", str(t / "o"), "--no-report"], ["gnss.exclude_satellites", "at least 4"]),
+    ("aoi-crs-geographic", lambda t: ["plan", _scenario(t, _set(h_raw(), "aoi.crs", "EPSG:4326"))],
+     ["aoi.crs", "projected"]),
+    ("dsm-rgb-image", lambda t: ["plan", _scenario(t, _set(h_raw(), "data.surface", {
+        "path": _rgb_tif(t), "vertical_datum": "EGM96 geoid"}))], ["data.surface.path", "3 bands"]),
     # ---- command line numbers
     ("fleet-seed-negative", lambda t: ["fleet", _scenario(t), "--missions", "2", "--seed", "-1"], ["--seed"]),
     ("fly-seed-negative", lambda t: ["fly", _scenario(t), "--seed", "-1"], ["--seed"]),

@@ -236,3 +236,20 @@ def test_max_memory_holds_for_one_command_only(tmp_path):
     res = CliRunner().invoke(main, ["plan", _scenario(tmp_path), "--max-memory", "1", "--out", str(tmp_path / "o")])
     assert res.exit_code == 2 and "of memory" in res.output
     assert budget._limit_bytes is None          # the next command (or an API call) has the default again
+
+
+def test_a_gnss_event_taking_every_satellite_out_is_an_input_error(tmp_path):
+    """The maps of `fly` after a gnss event come from the satellites stage of scenario_at: an
+    event leaving no satellite is an InputError (exit 2), not a ValueError in dop_table."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.errors import InputError
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.pipeline.settings import load_scenario, scenario_at, with_events
+
+    sc = load_scenario(_scenario(tmp_path))
+    every = [f"G{i:02d}" for i in range(1, 33)] + [f"E{i:02d}" for i in range(1, 37)]
+    sc = with_events(sc, [{"t_s": 30, "kind": "gnss", "out_of_service": every}])
+    cache = Cache(tmp_path / "cache")
+    assert run_scenario(scenario_at(sc, 10.0), cache=cache, targets=["satellites"])["satellites"].sizes["sat"] > 4
+    with pytest.raises(InputError, match="takes out all .* satellites"):
+        run_scenario(scenario_at(sc, 40.0), cache=cache, targets=["satellites"])

@@ -114,3 +114,41 @@ def test_a_full_disk_is_one_error_line(tmp_path, monkeypatch):
     r = CliRunner().invoke(main, ["plan", "--cache-dir", str(tmp_path / "c"), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and r.output.count("error:") == 1, r.output
     assert "No space left on device" in r.output and "Traceback" not in r.output
+
+
+def test_an_interrupted_run_over_an_earlier_folder_is_refused(tmp_path, monkeypatch):
+    """The issue's reproduction end to end: a command interrupted while rewriting --out X leaves
+    no summary.json beside its new files, and report / diff refuse X until it is run again."""
+    import json
+
+    import yaml
+    from click.testing import CliRunner
+
+    import skyroute.pipeline.outputs as outputs
+    from skyroute.pipeline.cli import main
+    from skyroute.pipeline.settings import scenario_paths
+
+    src = scenario_paths()["helsinki-medical"]
+    raw = json.loads(json.dumps(yaml.safe_load(src.read_text()), default=str).replace(
+        "../data/", str(src.parent.parent / "data") + "/"))
+    (tmp_path / "H.yaml").write_text(yaml.safe_dump(raw))
+    sc, out = str(tmp_path / "H.yaml"), tmp_path / "X"
+    argv = ["run", sc, "--stage", "satellites", "--no-report", "--out", str(out), "--cache-dir", str(tmp_path / "c")]
+    assert CliRunner().invoke(main, argv).exit_code == 0
+    assert (out / "summary.json").is_file()
+    real = outputs.write_run_outputs
+
+    def interrupted(result, out_dir, **kw):
+        (out_dir / "half-written.csv").write_text("x\n")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(outputs, "write_run_outputs", interrupted)
+    r = CliRunner().invoke(main, argv)
+    assert r.exit_code == 130 and "interrupted" in r.output
+    assert not (out / "summary.json").exists()
+    for cmd in (["report", str(out)], ["diff", str(out), str(out)]):
+        r = CliRunner().invoke(main, cmd)
+        assert r.exit_code == 2 and r.output.count("error:") == 1 and "did not finish" in r.output, (cmd, r.output)
+    monkeypatch.setattr(outputs, "write_run_outputs", real)
+    assert CliRunner().invoke(main, argv).exit_code == 0
+    assert CliRunner().invoke(main, ["report", str(out)]).exit_code == 0

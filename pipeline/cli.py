@@ -25,14 +25,57 @@ SCHEDULER_HELP = ("dask scheduler: threads (default), processes, synchronous, di
                   "(a new LocalCluster, see --workers) or the address of a running cluster tcp://HOST:PORT")
 
 
+class FiniteFloat(click.FloatRange):
+    """A float option that refuses nan and +-inf (``click.FloatRange`` lets nan through every
+    bound and inf through an open upper bound)."""
+
+    def convert(self, value, param, ctx):
+        import math
+
+        v = super().convert(value, param, ctx)
+        if v is not None and not math.isfinite(v):
+            self.fail(f"{value!r} is not a finite number; give a number such as 1.5", param, ctx)
+        return v
+
+
+class OutPath(click.Path):
+    """An output path option (``--out``, ``--cache-dir``) that refuses an empty or blank value
+    (``--out ""`` would otherwise mean the current folder)."""
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            self.fail("an empty path; give a folder (or file) name, e.g. out/run1", param, ctx)
+        return super().convert(value, param, ctx)
+
+
+def _set_max_memory(ctx, param, value):
+    from skyroute.pipeline.budget import set_max_memory
+
+    set_max_memory(None if value is None else parse_size(value, "--max-memory"))
+    return value
+
+
+def max_memory_option(f):
+    """``--max-memory SIZE`` of a command that computes: requests estimated to need more are
+    refused before any work (:mod:`skyroute.pipeline.budget`)."""
+    return click.option("--max-memory", default=None, metavar="SIZE", expose_value=False, callback=_set_max_memory,
+                        help="Refuse, before any work, a request estimated to need more memory than this (e.g. 8G; "
+                             "default: $SKYROUTE_MAX_MEMORY or 80% of the machine's memory).")(f)
+
+
+SEED = click.IntRange(min=0, max=2**32 - 1)   # numpy and OMPL seeds: 0 .. 2**32 - 1
+
+
 class SkyrouteGroup(click.Group):
-    """A click group that reports SkyrouteError as a clean one-line error (exit code 2)."""
+    """A click group that reports SkyrouteError, and click's own usage errors (a bad option
+    value, an unknown option), as one clean ``error: ...`` line (exit code 2)."""
 
     def invoke(self, ctx: click.Context):
         import dask
         import dask.threaded
 
         from skyroute.pipeline import control
+        from skyroute.pipeline.budget import set_max_memory
 
         # a callable default scheduler: reading a lazy array outside a command's own
         # --scheduler context would otherwise look for a distributed client (importing
@@ -43,6 +86,20 @@ class SkyrouteGroup(click.Group):
             except SkyrouteError as exc:
                 msg = str(exc)
                 click.echo(f"error: {msg}", err=True)
+                ctx.exit(2)
+            except OSError as exc:
+                import errno
+
+                if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+                    raise
+                where = f" writing {exc.filename}" if exc.filename else ""
+                click.echo(f"error: {exc.strerror or exc}{where}: free some space or choose another --out / "
+                           "--cache-dir", err=True)
+                ctx.exit(2)
+            except click.UsageError as exc:
+                where = exc.ctx.command_path if exc.ctx is not None else ctx.command_path
+                msg = " ".join(exc.format_message().split())
+                click.echo(f"error: {msg} (see `{where} -h`)", err=True)
                 ctx.exit(2)
             except KeyboardInterrupt:
                 # SIGINT -> 130, SIGTERM -> 143; every stage output is either complete in the
@@ -56,6 +113,24 @@ class SkyrouteGroup(click.Group):
                     sys.stderr.flush()
                     os._exit(code)   # do not wait for dask's worker threads to drain their queue
                 ctx.exit(code)
+            finally:
+                set_max_memory(None)   # --max-memory holds for this command only (a session may run more)
+                from skyroute.pipeline.outputs import restore_untouched
+
+                restore_untouched()    # a folder this command set aside but never wrote gets its summary back
+
+
+def check_stage_names(names, option: str, also=()) -> None:
+    """InputError naming ``option`` when a name is not a pipeline stage (``run --force bogus``
+    used to succeed silently)."""
+    from skyroute.pipeline.errors import InputError
+    from skyroute.pipeline.graph import REGISTRY, _load_registry
+
+    _load_registry()
+    known = sorted(set(REGISTRY) | set(also))
+    bad = [n for n in names if n not in known]
+    if bad:
+        raise InputError(f"{option} {', '.join(bad)}: not a stage; give one of {', '.join(known)}")
 
 
 def _report_warnings(warnings: list[str]) -> None:
@@ -110,6 +185,9 @@ def main(verbose: int) -> None:
     from skyroute.pipeline.outputs import PRINTED_WARNINGS
 
     PRINTED_WARNINGS.clear()                    # one command's warnings (a Python session may run several)
+    from skyroute.pipeline.budget import set_max_memory
+
+    set_max_memory(None)                        # --max-memory of an earlier command in this session
     _setup_logging(verbose)
 
 
@@ -133,9 +211,9 @@ def scenarios_command() -> None:
 
 @main.command("run")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers for processes/distributed.")
@@ -145,6 +223,7 @@ def scenarios_command() -> None:
               "(saves space; the links break when the cache is cleared).")
 @click.option("--no-report", "no_report", is_flag=True, help="Do not write DIR/report.html.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force, link, no_report, quiet) -> None:
     """Run every stage that applies to SCENARIO (a catalog name or a YAML path; default
     helsinki-medical) and write datasets, GeoTIFFs, figures, summary.json, the interactive map
@@ -157,6 +236,8 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
     from skyroute.pipeline.runner import run_scenario
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
 
+    check_stage_names(force, "--force")
+    check_stage_names(targets, "--stage")
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name)
     result = run_scenario(sc, cache=Cache(cache_dir), targets=targets or None, scheduler=scheduler,
@@ -209,12 +290,13 @@ def _run_fly(sc, result, out_dir: Path, scheduler: str, quiet: bool) -> dict | N
 
 @main.command("maps")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/maps).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
     """Environment maps of SCENARIO: GeoTIFFs of risk, landing, no-fly and clearance layers
     and a PNG panel (risk, landing cost, wind over buildings, no-fly, a traffic slice)."""
@@ -242,19 +324,20 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
 
 @main.command("plan")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/plan).")
 @click.option("--weights", default=None, metavar="W_L,W_R,W_D,W_E",
               help="Cost weights of eq. 11: length, risk, landing, energy (overrides planner.weights).")
 @click.option("--planner", "planner_name", default=None, metavar="|".join(PLANNERS),
               help=f"STEP I planner ({planner_help()}; overrides planner.name).")
-@click.option("--seed", type=int, default=None, help="Random seed of BIT* and the RRT (overrides planner.seed).")
-@click.option("--time-budget", "time_budget_s", type=float, default=None,
+@click.option("--seed", type=SEED, default=None, help="Random seed of BIT* and the RRT (overrides planner.seed).")
+@click.option("--time-budget", "time_budget_s", type=FiniteFloat(), default=None,
               help="BIT* time per coverage level [s] (overrides planner.time_budget_s).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, cache_dir, scheduler, quiet) -> None:
     """Strategic plan of SCENARIO (seed 000 III): for every GNSS coverage level D_j, STEP I
     (BIT* or A*), STEP II (deconfliction against known traffic) and STEP III (min-snap, navigation
@@ -317,11 +400,11 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
 
 @main.command("report")
 @click.argument("run_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
-@click.option("--out", "out_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_path", type=OutPath(dir_okay=False, path_type=Path), default=None,
               help="The HTML file to write (default: RUN_DIR/report.html).")
 @click.option("--no-maps", "no_maps", is_flag=True,
               help="Do not draw the scenario's maps into a plan, fly or navsim folder that has none.")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     """One self-contained HTML page (figures embedded, nothing loaded from the network) of a
@@ -335,6 +418,7 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     import tempfile
 
     from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.outputs import check_writable_dir
     from skyroute.pipeline.report import (
         add_to_summary,
         build_report,
@@ -342,6 +426,7 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
         write_fly_map,
     )
 
+    check_writable_dir(Path(out_path).parent if out_path is not None else run_dir, "--out")  # before any drawing
     added = []
     fly_map = write_fly_map(run_dir)
     if fly_map is not None:
@@ -358,13 +443,14 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
 
 @main.command("coverage")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/coverage).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers for processes/distributed.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) -> None:
     """GNSS coverage maps of SCENARIO: for each DOP threshold D_j (scenario gnss.dop_thresholds)
     the altitude above which DOP < D_j, worst case over the mission window, as one GeoTIFF per
@@ -395,7 +481,7 @@ def cache_group() -> None:
 
 
 @cache_group.command("ls")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None)
 def cache_ls(cache_dir) -> None:
     """List cache entries: stage, key, scenario, size, creation time."""
     from skyroute.pipeline.cache import Cache
@@ -409,34 +495,24 @@ def cache_ls(cache_dir) -> None:
 
 
 @cache_group.command("clear")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None)
 @click.option("--stage", default=None, help="Remove only the entries of this stage.")
 def cache_clear(cache_dir, stage) -> None:
     """Remove cache entries (all, or one stage's) and orphaned temporaries."""
     from skyroute.pipeline.cache import Cache
 
     c = Cache(cache_dir)
+    if stage is not None:
+        check_stage_names([stage], "--stage", also=[e.stage for e in c.entries()])
     n = c.clear(stage)
     click.echo(f"removed {n} entr{'y' if n == 1 else 'ies'} from {c.root}")
 
 
-_SIZE_UNITS = {"": 1, "B": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
-
-
-def parse_size(text: str) -> int:
-    """``"10G"``, ``"500M"``, ``"1.5T"``, ``"1024"`` -> bytes (binary units; a trailing B or iB is allowed)."""
-    import re
-
-    from skyroute.pipeline.errors import InputError
-
-    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([KMGT]?)(?:i?B)?\s*", text, flags=re.IGNORECASE)
-    if not m:
-        raise InputError(f"--max-size {text!r} is not a size: give e.g. 10G, 500M or a number of bytes")
-    return int(float(m.group(1)) * _SIZE_UNITS[m.group(2).upper()])
+from skyroute.pipeline.budget import parse_size  # noqa: E402  (its home; the CLI's name)
 
 
 @cache_group.command("prune")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None)
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None)
 @click.option("--max-size", required=True, help="Keep at most this much (e.g. 10G, 500M): the least "
               "recently used entries go first.")
 def cache_prune(cache_dir, max_size) -> None:

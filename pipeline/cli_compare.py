@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP
+from skyroute.pipeline.cli import SCHEDULER_HELP, OutPath, max_memory_option
 from skyroute.stages.planning.registry import planner_help
 
 
@@ -16,12 +16,13 @@ from skyroute.stages.planning.registry import planner_help
 @click.argument("scenario", required=False, default=None)
 @click.option("--planners", default=None,
               help=f"Comma-separated planner names ({planner_help()}; default: every planner that fits the vehicle).")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/compare).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress lines.")
+@max_memory_option
 def compare_command(scenario, planners, out_dir, cache_dir, scheduler, quiet) -> None:
     """Plan SCENARIO with each planner on the same (cached) maps: compare.csv (f and its
     terms, length, energy, minimum and mean exact clearance from the surface, max sigma_p,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP
+from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, max_memory_option
 
 
 @click.command("fleet")
@@ -19,20 +19,20 @@ from skyroute.pipeline.cli import SCHEDULER_HELP
                    "vehicle, dop_level.")
 @click.option("--missions", type=click.IntRange(min=1), default=None,
               help="Draw N missions between the scenario's landing sites instead of --fleet.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the draw and of STEP II.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the draw and of STEP II.")
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/fleet).")
-@click.option("--window-min", type=click.FloatRange(min=0.0, min_open=True), default=120.0, show_default=True,
+@click.option("--window-min", type=FiniteFloat(min=0.0, min_open=True), default=120.0, show_default=True,
               help="Departures of drawn missions uniform over this window [min].")
-@click.option("--max-delay-min", type=click.FloatRange(min=0.0), default=10.0, show_default=True,
+@click.option("--max-delay-min", type=FiniteFloat(min=0.0), default=10.0, show_default=True,
               help="Longest departure delay before a mission is rejected [min].")
-@click.option("--delay-step-s", type=click.FloatRange(min=1.0), default=60.0, show_default=True,
+@click.option("--delay-step-s", type=FiniteFloat(min=1.0), default=60.0, show_default=True,
               help="Departure delay step [s].")
-@click.option("--ground-m", type=float, default=None,
+@click.option("--ground-m", type=FiniteFloat(min=-500.0, max=9000.0), default=None,
               help="Height of the scenario's flat local ground above the EGM96 geoid [m] (sets data.ground when the "
                    "scenario has none; intents need absolute heights).")
 @click.option("--no-preempt", is_flag=True, help="Priorities do not preempt accepted missions.")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True,
               help=SCHEDULER_HELP + "; with distributed / tcp:// the missions are planned speculatively in parallel")
@@ -42,6 +42,7 @@ from skyroute.pipeline.cli import SCHEDULER_HELP
                    "and add this run's; missions already decided there are skipped (a killed run continues). Drawn "
                    "missions get ids s<SEED>-m0001... Default: a new OUT/airspace.sqlite.")
 @click.option("-q", "--quiet", is_flag=True, help="No per-mission lines.")
+@max_memory_option
 def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max_delay_min, delay_step_s, ground_m,
                   no_preempt, cache_dir, scheduler, workers, airspace_file, quiet) -> None:
     """Plan many operators' missions in SCENARIO first-come-first-served (issue 15): each at one
@@ -75,12 +76,26 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
             update={"ground": GroundReference(height_m=ground_m, vertical_datum="EGM96 geoid")})})
     tasks = None
     if fleet_file is not None:
+        if Path(fleet_file).suffix.lower() != ".csv":
+            from skyroute.stages.yaml_io import read_yaml_file
+
+            read_yaml_file(fleet_file, "fleet")   # the front door: not UTF-8, duplicate keys, alias bombs
         try:
             tasks = load_fleet(fleet_file, sc, sc.gnss.dop_thresholds)
         except FleetFileError as exc:
             for p in exc.problems:
                 click.echo(f"error: {p}", err=True)
             sys.exit(2)
+    if tasks is not None and sc.data.almanacs:
+        from skyroute.stages.orbits import AGE_LIMITS_S
+
+        limit_s = AGE_LIMITS_S["almanac"][1]
+        late = [t for t in tasks if t.earliest_s > limit_s]
+        if late:
+            raise InputError(f"{fleet_file}: mission {late[0].id} departs {late[0].earliest_s / 86400:.0f} days "
+                             f"after the scenario start ({len(late)} mission(s) beyond {limit_s / 86400:.0f} days): the "
+                             "scenario's almanacs do not hold that far; move the departures or the scenario's "
+                             "mission.start_time_utc (with an almanac of that time)")
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fleet")
     if airspace_file is not None:      # a bad FILE: one error line before any planning
         store = AirspaceStore.open(airspace_file) if airspace_file.exists() or airspace_file.is_symlink() else None

@@ -7,28 +7,29 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP
-from skyroute.pipeline.fly_outputs import write_fly_folder  # noqa: E402,F401  (its old home)
+from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, max_memory_option
+from skyroute.pipeline.fly_outputs import write_fly_folder  # noqa: F401  (its old home)
 
 
 @click.command("fly")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/fly).")
 @click.option("--events", "events_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="A YAML file of events (a top-level `events:` list) added to the scenario's.")
-@click.option("--t-rep", "t_rep_s", type=float, default=None,
+@click.option("--t-rep", "t_rep_s", type=FiniteFloat(), default=None,
               help="Replanning timeout t_rep [s] (default: tactical.t_rep_s, 5 s).")
-@click.option("--tick", "tick_s", type=float, default=None, help="Simulation and output step [s] (default 0.1 s).")
-@click.option("--seed", type=int, default=None, help="Seed of the RRTs and the intruder report noise.")
+@click.option("--tick", "tick_s", type=FiniteFloat(), default=None, help="Simulation and output step [s] (default 0.1 s).")
+@click.option("--seed", type=SEED, default=None, help="Seed of the RRTs and the intruder report noise.")
 @click.option("--tactical", "method", type=click.Choice(["levels", "octant", "local"]), default=None,
               help="How conflicts are resolved: levels 1-3 (seed 001) or the octant manoeuvre with dense-traffic "
                    "zones (seed 004) for rotorcraft; local (seed 002: climb over obstacles, turn right for UAVs) "
                    "for fixed-wing (default: tactical.method; levels, or local for a fixed-wing vehicle).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, cache_dir, scheduler, quiet) -> None:
     """Fly the strategic plan of SCENARIO (default helsinki-tactical) in simulated time through
     its events (seed 001 section 3.2): at each event the rest of the plan is checked; when it

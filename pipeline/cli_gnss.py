@@ -9,6 +9,7 @@ import warnings
 import click
 import numpy as np
 
+from skyroute.pipeline.cli import FiniteFloat
 from skyroute.pipeline.errors import InputError
 
 
@@ -30,11 +31,11 @@ def _parse_time(text: str) -> np.datetime64:
                    "constellations (e.g. GPS + Galileo).")
 @click.option("--time", "time_text", required=True, metavar="ISO8601",
               help="Epoch in UTC, e.g. 2020-01-01T12:00:00Z (a naive time is taken as UTC).")
-@click.option("--lat", "lat_deg", type=float, metavar="DEG", required=True, help="Geodetic latitude [deg], WGS 84.")
-@click.option("--lon", "lon_deg", type=float, metavar="DEG", required=True, help="Longitude [deg], WGS 84.")
-@click.option("--height", "height_m", type=float, metavar="M", default=0.0, show_default=True,
+@click.option("--lat", "lat_deg", type=FiniteFloat(), metavar="DEG", required=True, help="Geodetic latitude [deg], WGS 84.")
+@click.option("--lon", "lon_deg", type=FiniteFloat(), metavar="DEG", required=True, help="Longitude [deg], WGS 84.")
+@click.option("--height", "height_m", type=FiniteFloat(), metavar="M", default=0.0, show_default=True,
               help="Ellipsoidal height [m].")
-@click.option("--mask-deg", type=float, metavar="DEG", default=5.0, show_default=True,
+@click.option("--mask-deg", type=FiniteFloat(), metavar="DEG", default=5.0, show_default=True,
               help="Elevation mask [deg], 0..60.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document instead of a table.")
 def sky_command(almanacs: tuple[str, ...], time_text: str, lat_deg: float, lon_deg: float,

@@ -7,21 +7,22 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP
+from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, OutPath, max_memory_option
 
 
 @click.command("navsim")
 @click.argument("scenario", required=False, default=None)
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/navsim).")
 @click.option("--runs", type=click.IntRange(min=1), default=None, help="Monte Carlo runs (default: navsim.runs, 50).")
-@click.option("--seed", type=int, default=None, help="Seed of every random draw (default: navsim.seed).")
+@click.option("--seed", type=SEED, default=None, help="Seed of every random draw (default: navsim.seed).")
 @click.option("--trajectory", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="A flown.csv of `skyroute fly` to simulate instead of the strategic plan.")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@max_memory_option
 def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, scheduler, quiet) -> None:
     """Navigation Monte Carlo of SCENARIO's chosen plan (seed 003 section III): each run
     simulates the IMU, the receiver clock and the pseudoranges (satellites hidden by the

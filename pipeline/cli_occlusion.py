@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 import numpy as np
 
+from skyroute.pipeline.cli import FiniteFloat
 from skyroute.pipeline.errors import CRSError, DataError
 
 
@@ -15,11 +16,11 @@ from skyroute.pipeline.errors import CRSError, DataError
               type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Surface model GeoTIFF (terrain + buildings) [m], one band, north-up, "
                    "projected CRS in metres.  Nodata cells are holes.")
-@click.option("--az-deg", type=float, required=True,
+@click.option("--az-deg", type=FiniteFloat(), required=True,
               help="Satellite azimuth [deg], clockwise from the raster's GRID north (the +y "
                    "axis of its CRS), not true north: convert true azimuths with "
                    "skyroute.stages.occlusion.grid_azimuth_deg.")
-@click.option("--el-deg", type=float, required=True,
+@click.option("--el-deg", type=FiniteFloat(), required=True,
               help="Satellite elevation above the horizon [deg], in (0, 90].")
 @click.option("--out", "out_path", required=True,
               type=click.Path(dir_okay=False, path_type=Path),

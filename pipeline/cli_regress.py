@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP
+from skyroute.pipeline.cli import SCHEDULER_HELP, OutPath
 
 
 def _fmt(v) -> str:
@@ -22,9 +22,9 @@ def _fmt(v) -> str:
 @click.command("regress")
 @click.argument("scenarios", nargs=-1)
 @click.option("--update", is_flag=True, help="Rewrite the golden files with this run's figures (review the diff).")
-@click.option("--golden-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--golden-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Folder of golden JSON files (default: the packaged catalogs/golden).")
-@click.option("--cache-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+@click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True,
               help=SCHEDULER_HELP + "; with a cluster each scenario is one task")

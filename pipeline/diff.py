@@ -124,6 +124,11 @@ def read_summary(folder: Path | str, name: str = "folder") -> dict[str, Any]:
     if not folder.is_dir():
         raise InputError(f"{name} {folder}: no such folder ({hint})")
     path = folder / "summary.json"
+    from skyroute.pipeline.outputs import check_summary_files, unfinished_rewrite
+
+    if unfinished_rewrite(folder):
+        raise InputError(f"{name} {folder} was being rewritten by a command that did not finish (interrupted or "
+                         "failed): its files may mix two runs; run that command again")
     if not path.is_file():
         raise InputError(f"{name} {folder} is not a skyroute output folder (no summary.json): {hint}")
     try:
@@ -133,6 +138,7 @@ def read_summary(folder: Path | str, name: str = "folder") -> dict[str, Any]:
     if not isinstance(doc, dict) or "schema_version" not in doc or "command" not in doc:
         raise InputError(f"{name} {folder}: summary.json has no schema_version / command, so it was not written "
                          f"by skyroute: {hint}")
+    check_summary_files(folder, doc, name)
     return doc
 
 

@@ -12,9 +12,16 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from skyroute.pipeline.budget import check_ticks
 from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.errors import InputError
-from skyroute.pipeline.fly_common import MAP_STAGES, FlyResult, _world, tactical_events
+from skyroute.pipeline.fly_common import (
+    MAP_STAGES,
+    FlyResult,
+    _world,
+    shortest_flight_s,
+    tactical_events,
+)
 from skyroute.pipeline.runner import RunResult, run_scenario
 from skyroute.pipeline.settings import Scenario, check_event_times, scenario_at
 
@@ -78,6 +85,7 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
         return fly_fixedwing(sc, cache=cache, scheduler=scheduler, progress=progress, tick_s=tick_s, seed=seed,
                              result=result)
     params = fly_params(sc, t_rep_s, tick_s, seed, method)   # bad values fail here, before any work
+    check_ticks(shortest_flight_s(sc), params.tick_s)       # even the straight flight needs too many ticks
     cache = cache or Cache()
     if result is None:
         result = run_scenario(sc, cache=cache, targets=["plan"], scheduler=scheduler, progress=progress)
@@ -97,6 +105,7 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
         params = dataclasses.replace(params, bubble_k=float(sc.constraints.sboa_k),
                                      surface_uncertainty_m=float(sc.navsim.surface_uncertainty_m),
                                      clearance_radius_m=radius)
+    check_ticks(float(t0 + traj.duration_s), params.tick_s)  # the planned flight, before the replay
     problems = check_event_times(sc, float(t0 + traj.duration_s))
     if problems:
         raise InputError("; ".join(problems))

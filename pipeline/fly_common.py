@@ -91,3 +91,13 @@ def _radius_of(sc: Scenario, ident: str) -> float:
         if ev.kind == "intruder" and ev.id == ident:
             return float(ev.radius_m)
     return 2.0
+
+
+def shortest_flight_s(sc: Scenario) -> float:
+    """A lower bound of the flight's duration [s]: the straight line at the vehicle's top speed."""
+    from skyroute.stages.vehicle import load_vehicle
+
+    (x0, y0), (x1, y1) = sc.point_xy(sc.mission.start), sc.point_xy(sc.mission.goal)
+    veh = load_vehicle(sc.vehicle)
+    v = max(float(getattr(veh, name, 0.0) or 0.0) for name in ("max_airspeed_mps", "cruise_speed_mps"))
+    return math.hypot(x1 - x0, y1 - y0) / v if v > 0 else 0.0

@@ -100,6 +100,11 @@ def fly_fixedwing(sc: Scenario, *, cache: Cache | None = None, scheduler: str = 
                          f"scenario {sc.name!r} has {', '.join(bad)} event(s): remove them or plan again with "
                          "`skyroute plan` on the changed scenario")
     params = local_params(sc, tick_s)
+    from skyroute.pipeline.budget import check_ticks
+    from skyroute.pipeline.fly_common import shortest_flight_s
+
+    if params.tick_s > 0:
+        check_ticks(shortest_flight_s(sc), params.tick_s)   # even the straight flight needs too many ticks
     cache = cache or Cache()
     if result is None:
         result = run_scenario(sc, cache=cache, targets=["plan"], scheduler=scheduler, progress=progress)

@@ -420,6 +420,9 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                  scheduler: str = "threads", workers: int | None = None, progress: bool = False,
                  force: Sequence[str] = ()) -> RunResult:
     """Run (or read from the cache) every stage of ``scenario`` needed for ``targets``."""
+    from skyroute.pipeline.budget import check_scenario
+
+    check_scenario(scenario)   # cells x levels x epochs over --max-memory: InputError before any work
     cache = cache or Cache()
     cache.clean_tmp()
     t_all = time.perf_counter()
@@ -438,6 +441,8 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
             keys[st.name] = stage_key(st, scenario, [keys[d] for d in st.inputs]
                                       + [keys.get(d, "absent") for d in st.optional_inputs], versions[st.name])
             entries[st.name] = None if st.name in force else cache.get(st.name, keys[st.name])
+        if any(e is None for e in entries.values()):
+            cache.check_writable()   # a read-only or unusable cache: one error before any stage computes
         prechecks = [s for s in todo if s.precheck is not None and entries[s.name] is None]
         _run_prechecks(prechecks, todo, scenario, result.datasets)
         for i, st in enumerate(todo, 1):

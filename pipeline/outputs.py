@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import textwrap
+import time
 from pathlib import Path
 from typing import Any
 
@@ -247,15 +248,90 @@ def write_summary(out_dir: Path, command: str, files: list[str], warnings: list[
     tmp = out_dir / ".summary.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1, allow_nan=False))
     os.replace(tmp, out_dir / "summary.json")
+    try:
+        (out_dir / RETIRED_SUMMARY).unlink(missing_ok=True)   # the rewrite is complete
+    except OSError:
+        pass
+    _RETIRED.pop(out_dir.resolve(), None)
     return doc
 
 
 def previous_summary(out_dir: Path) -> dict[str, Any]:
-    try:
-        doc = json.loads((out_dir / "summary.json").read_text())
-        return doc if isinstance(doc, dict) else {}
-    except (OSError, ValueError):
-        return {}
+    """The summary of the folder's previous contents: ``summary.json``, or the one
+    :func:`retire_summary` set aside when this command started writing."""
+    for name in ("summary.json", RETIRED_SUMMARY):
+        try:
+            doc = json.loads((Path(out_dir) / name).read_text())
+            return doc if isinstance(doc, dict) else {}
+        except (OSError, ValueError):
+            continue
+    return {}
+
+
+# ---------------------------------------------------------------- rewrites never leave a mix
+# A command rewriting a folder first sets its summary.json aside (RETIRED_SUMMARY) and writes the
+# new one last: a command interrupted or failing in between leaves a folder with no summary.json,
+# which `report` and `diff` refuse (the old summary beside new files was accepted before).  When
+# the command wrote nothing into the folder, the old summary is put back (restore_untouched).
+RETIRED_SUMMARY = ".summary.json.previous"
+_RETIRED: dict[Path, int] = {}       # folder -> time [ns] its summary was set aside
+
+
+def retire_summary(out_dir: Path) -> None:
+    """Set ``out_dir/summary.json`` aside before the folder is rewritten."""
+    out_dir = Path(out_dir)
+    cur = out_dir / "summary.json"
+    if cur.is_file():
+        os.replace(cur, out_dir / RETIRED_SUMMARY)
+    if (out_dir / RETIRED_SUMMARY).is_file():
+        _RETIRED[out_dir.resolve()] = time.time_ns()
+
+
+def _written_since(folder: Path, t0_ns: int) -> bool:
+    for root, dirs, files in os.walk(folder):
+        for name in files + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
+            if name == RETIRED_SUMMARY:
+                continue
+            try:
+                if os.lstat(os.path.join(root, name)).st_mtime_ns >= t0_ns:
+                    return True
+            except OSError:
+                continue
+    return False
+
+
+def restore_untouched() -> None:
+    """At the end of a command: put back the summary of every folder it set aside but did not
+    write into (a command that failed before its outputs); the others keep no summary."""
+    for folder, t0 in list(_RETIRED.items()):
+        _RETIRED.pop(folder, None)
+        prev = folder / RETIRED_SUMMARY
+        try:
+            if prev.is_file() and not (folder / "summary.json").exists() and not _written_since(folder, t0):
+                os.replace(prev, folder / "summary.json")
+        except OSError:
+            pass
+
+
+def check_summary_files(folder: Path, doc: dict[str, Any], name: str = "folder",
+                        may_miss: tuple[str, ...] = ("report.html",)) -> None:
+    """InputError when the folder does not hold what its summary lists (files deleted, or a
+    rewrite that did not finish); ``may_miss``: files written after the summary (the report
+    page, built from the summary)."""
+    files = doc.get("files", [])
+    if not isinstance(files, list):
+        raise InputError(f"{name} {folder}: summary.json's files is not a list; run the command that wrote it again")
+    for f in files:
+        if not isinstance(f, str) or ".." in Path(f).parts or Path(f).is_absolute():
+            raise InputError(f"{name} {folder}: summary.json lists {str(f)[:80]!r}, not a file of the folder")
+        if f not in may_miss and not os.path.lexists(Path(folder) / f):
+            raise InputError(f"{name} {folder}: summary.json lists {f}, which is missing: the folder is not what its "
+                             "command wrote; run that command again")
+
+
+def unfinished_rewrite(folder: Path) -> bool:
+    """A folder whose summary was set aside by a rewrite that did not finish."""
+    return not (Path(folder) / "summary.json").exists() and (Path(folder) / RETIRED_SUMMARY).is_file()
 
 
 def remove_stale(out_dir: Path, previous: dict[str, Any], files: list[str], command: str) -> None:
@@ -276,7 +352,15 @@ def remove_stale(out_dir: Path, previous: dict[str, Any], files: list[str], comm
 
 
 def ensure_writable_dir(out_dir: Path | str, option: str = "--out") -> Path:
-    """Create ``out_dir`` and prove it writable, before any long work (one clear error otherwise)."""
+    """Create ``out_dir`` and prove it writable, before any long work (one clear error
+    otherwise); its summary.json is set aside until the command writes the new one."""
+    out_dir = check_writable_dir(out_dir, option)
+    retire_summary(out_dir)   # until the new summary.json is written, the folder is not a finished output
+    return out_dir
+
+
+def check_writable_dir(out_dir: Path | str, option: str = "--out") -> Path:
+    """Create ``out_dir`` and prove it writable (a probe file), nothing else."""
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)

@@ -377,6 +377,11 @@ def _map_links(page_dir: Path, folders: dict[str, Path | None]) -> str:
 
 def read_summary(run_dir: Path) -> dict[str, Any]:
     """``run_dir/summary.json``; InputError naming the folder when it is missing or unreadable."""
+    from skyroute.pipeline.outputs import check_summary_files, unfinished_rewrite
+
+    if unfinished_rewrite(Path(run_dir)):
+        raise InputError(f"{run_dir} was being rewritten by a command that did not finish (interrupted or failed): "
+                         "its files may mix two runs; run that command again")
     try:
         doc = json.loads((Path(run_dir) / "summary.json").read_text())
     except (OSError, ValueError) as exc:
@@ -384,6 +389,7 @@ def read_summary(run_dir: Path) -> dict[str, Any]:
                          "plan, fly or navsim") from None
     if not isinstance(doc, dict):
         raise InputError(f"{run_dir}/summary.json is not a skyroute summary (not a JSON object)")
+    check_summary_files(Path(run_dir), doc, "run folder")
     return doc
 
 

@@ -20,17 +20,43 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import yaml
 from pydantic import Field, TypeAdapter, ValidationError, field_validator, model_validator
 
 from skyroute.pipeline.errors import ScenarioError, UnknownNameError
 from skyroute.pipeline.model import FrozenModel
+from skyroute.stages.yaml_io import read_yaml_file
 
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
 Bounds = tuple[float, float, float, float]
 
 DEFAULT_SCENARIO = "helsinki-medical"
+
+
+_NAME_OK = re.compile(r"^[^\x00-\x1f\x7f/\\:*?\"<>|]+$")
+
+
+def _is_file(p: str | Path) -> bool:
+    """``Path(p).is_file()`` that is False, not an exception, for a name too long or with a NUL."""
+    try:
+        return Path(p).is_file()
+    except (OSError, ValueError):
+        return False
+
+
+def unsafe_name(v: str) -> str | None:
+    """Why ``v`` is not a safe single path component (a folder name under skyroute-out/), or None."""
+    if not v or not v.strip():
+        return "is empty"
+    if v != v.strip():
+        return "has leading or trailing spaces"
+    if not _NAME_OK.match(v):
+        return "is not a single folder name: it holds a path separator or a character not allowed in file names (/ \\ : * ? \" < > | or a control character)"
+    if v in (".", "..") or v.startswith((".", "-")):
+        return "starts with '.' or '-'"
+    if len(v) > 100:
+        return f"is {len(v)} characters long (at most 100)"
+    return None
 
 
 # --------------------------------------------------------------------------- sections
@@ -208,6 +234,13 @@ class DataSources(FrozenModel):
     obstacles: tuple[Obstacle, ...] = ()
     ground: GroundReference | None = None
 
+    @model_validator(mode="after")
+    def _one_wind(self) -> DataSources:
+        if self.uniform_wind is not None and self.wind is not None:
+            raise ValueError("give either uniform_wind (one constant wind) or wind (a gridded file), not both: "
+                             "remove one of them")
+        return self
+
 
 class MissionPoint(FrozenModel):
     """A mission point in lon/lat [deg] or map x/y [m], with its altitude above ground [m]."""
@@ -315,6 +348,16 @@ class TrafficSettings(FrozenModel):
     margin_m: NonNegFloat = 5.0
     time_margin_s: NonNegFloat = 5.0
 
+    @field_validator("intruders")
+    @classmethod
+    def _unique_ids(cls, v: tuple[Intruder, ...]) -> tuple[Intruder, ...]:
+        seen: set[str] = set()
+        dup = [i.id for i in v if i.id in seen or seen.add(i.id)]
+        if dup:
+            raise ValueError(f"intruder id(s) {', '.join(map(repr, dict.fromkeys(dup)))} given more than once; "
+                             "give every intruder its own id")
+        return v
+
 
 from skyroute.stages.planning.registry import PLANNERS  # noqa: E402  (the one list of planners)
 
@@ -331,7 +374,7 @@ class PlannerSettings(FrozenModel):
     name: str = "astar"
     weights: tuple[NonNegFloat, NonNegFloat, NonNegFloat, NonNegFloat] = (1.0, 1.0, 1.0, 1.0)
     time_budget_s: PositiveFloat = 5.0
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
     max_tries: Annotated[int, Field(ge=1)] = 3
     # A* lattice step [cells] (8: measured best on 2 m city grids; a coarse mountain grid whose
     # cells span tens of metres of relief may need a finer lattice to follow a canyon)
@@ -378,7 +421,7 @@ class NavsimSettings(FrozenModel):
     (:class:`skyroute.stages.integrity.IntegrityBudget` explains the defaults)."""
 
     runs: Annotated[int, Field(ge=1, le=100000)] = 50
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
     rate_hz: PositiveFloat = 10.0
     gnss_rate_hz: PositiveFloat = 1.0
     nlos_reception_prob: Annotated[float, Field(ge=0, le=1)] = 0.7
@@ -414,7 +457,7 @@ class TacticalSettings(FrozenModel):
 
     t_rep_s: PositiveFloat = 5.0
     tick_s: PositiveFloat = 0.1
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
     intruder_noise_m: NonNegFloat = 0.0
     report_latency_s: NonNegFloat = 0.0
     level2_iterations: Annotated[int, Field(ge=1)] = 3000
@@ -667,6 +710,15 @@ class Scenario(FrozenModel):
     events: tuple[Event, ...] = ()
     source_path: Path | None = Field(default=None, exclude=True)
 
+    @field_validator("name")
+    @classmethod
+    def _safe_name(cls, v: str) -> str:
+        why = unsafe_name(v)
+        if why:
+            raise ValueError(f"{v!r} {why} (the name is the output folder skyroute-out/NAME): use letters, digits, "
+                             "'-', '_' and '.', e.g. my-city-delivery")
+        return v
+
     @field_validator("events")
     @classmethod
     def _by_time(cls, v: tuple) -> tuple:
@@ -762,7 +814,10 @@ def _problems_from(exc: ValidationError, prefix: Sequence[Any] = ()) -> list[str
     for err in exc.errors():
         loc = _yaml_path([*prefix, *err["loc"]])
         msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
+        if err["type"] == "number_field":      # FrozenModel: true/false or .inf/.nan given for a number
+            loc = _yaml_path([*prefix, *err["loc"], err["ctx"]["key"]])
+            msg = err["ctx"]["why"]
+        elif err["type"] == "extra_forbidden":
             msg = ("unknown key (check the spelling; valid keys: catalogs/README.md or "
                    "`python -m skyroute.pipeline.settings_reference`)")
         elif err["type"] == "missing":
@@ -826,7 +881,7 @@ def _event_problems(sc: Scenario, labels: Sequence[str], check: Sequence[bool] |
         elif isinstance(e, GnssEvent):
             files = [(f"{lab}.almanacs", a) for a in e.almanacs]
         for where, f in files:
-            if not Path(f).is_file():
+            if not _is_file(f):
                 problems.append(f"{where}: data file not found: {f}")
     return problems
 
@@ -846,7 +901,7 @@ def _semantic_problems(sc: Scenario) -> list[str]:
         ("constraints.nofly_zones", [sc.constraints.nofly_zones] if sc.constraints.nofly_zones else []),
     ):
         for p in paths:
-            if not Path(p).is_file():
+            if not _is_file(p):
                 problems.append(f"{section}: data file not found: {p}")
             elif not os.access(p, os.R_OK):
                 problems.append(f"{section}: data file is not readable: {p}")
@@ -856,11 +911,25 @@ def _semantic_problems(sc: Scenario) -> list[str]:
                         f"{dt_.vertical_datum!r}; convert one raster so the DSM and the DEM share a vertical datum")
     from skyroute.stages.vehicle import known_vehicles
 
-    if sc.vehicle not in known_vehicles() and not Path(sc.vehicle).is_file():
+    if sc.vehicle not in known_vehicles() and not _is_file(sc.vehicle):
         problems.append(f"vehicle: unknown vehicle {sc.vehicle!r}; known vehicles: {', '.join(known_vehicles())}")
     else:
+        problems.extend(_vehicle_file_problems(sc))
         problems.extend(_vehicle_altitude_problems(sc))
         problems.extend(planner_vehicle_problems(sc))
+    problems.extend(_raster_problems(sc))
+    if sc.aoi.crs is not None:
+        try:
+            from pyproj import CRS
+
+            crs = CRS.from_user_input(sc.aoi.crs)
+            if not crs.is_projected:
+                problems.append(f"aoi.crs: {sc.aoi.crs!r} is not a projected CRS in metres (its units are "
+                                f"{crs.axis_info[0].unit_name if crs.axis_info else 'not metres'}); give a projected "
+                                "CRS such as the UTM zone ('EPSG:326NN'), or omit aoi.crs with bounds_lonlat")
+                return problems
+        except Exception:
+            pass  # an unknown CRS: the grid below says so
     try:
         grid = sc.grid
     except Exception as exc:  # CRSError / InputError
@@ -891,6 +960,31 @@ def _semantic_problems(sc: Scenario) -> list[str]:
     return problems
 
 
+def _raster_problems(sc: Scenario) -> list[str]:
+    """A DSM or DEM must be one band of numeric heights (a 3-band RGB image or a paletted map
+    is not); only the header is read."""
+    out = []
+    rasters = [("data.surface.path", p) for p in (sc.data.surface.paths if sc.data.surface else ())]
+    rasters += [("data.terrain.path", sc.data.terrain.path)] if sc.data.terrain else []
+    for key, p in rasters:
+        if not _is_file(p):
+            continue
+        try:
+            import rasterio
+
+            with rasterio.open(p) as src:
+                count, dtype = src.count, np.dtype(src.dtypes[0])
+                interp = [str(c.name) for c in src.colorinterp]
+        except Exception:   # not a raster rasterio can open: the stage says so with its reader's message
+            continue
+        if count != 1:
+            out.append(f"{key}: {p} has {count} bands ({', '.join(interp)}); a DSM / DEM is one band of heights [m] "
+                       "(an RGB image is not): give the height raster")
+        elif dtype.kind not in "iuf" or interp[0] == "palette":
+            out.append(f"{key}: {p} holds {dtype} {interp[0]} values, not heights [m]: give the height raster")
+    return out
+
+
 def _vehicle_max_altitude_m(sc: Scenario) -> float | None:
     from skyroute.stages.vehicle import load_vehicle
 
@@ -911,6 +1005,21 @@ def planner_vehicle_problems(sc: Scenario) -> list[str]:
         return [f"planner.name: {exc}"]
     except Exception:  # an unreadable vehicle is reported by its own check
         return []
+    return []
+
+
+def _vehicle_file_problems(sc: Scenario) -> list[str]:
+    """The vehicle profile's own problems (a vehicle YAML that is not UTF-8, not YAML or not a
+    valid profile), found when the scenario is loaded rather than when a stage needs it."""
+    from skyroute.stages.base import SkyrouteError
+    from skyroute.stages.vehicle import load_vehicle
+
+    try:
+        load_vehicle(sc.vehicle)
+    except ScenarioError as exc:
+        return [f"vehicle ({exc.source}): {p}" for p in exc.problems]
+    except SkyrouteError as exc:
+        return [f"vehicle: {exc}"]
     return []
 
 
@@ -964,21 +1073,15 @@ def parse_scenario(raw: Any, source: str = "<scenario>", base: Path | None = Non
 def load_scenario(name_or_path: str | Path = DEFAULT_SCENARIO) -> Scenario:
     """Load and validate a scenario by catalog name (``helsinki-medical``) or YAML path."""
     p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml") or p.is_file():
-        if not p.is_file():
+    if p.suffix in (".yaml", ".yml") or _is_file(p):
+        if not _is_file(p):
             raise ScenarioError(str(p), [f"<file>: scenario file not found: {p}"])
     else:
         known = scenario_paths()
         if str(name_or_path) not in known:
             raise UnknownNameError("scenario", str(name_or_path), list(known))
         p = known[str(name_or_path)]
-    try:
-        raw = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ScenarioError(str(p), [f"<file>: not valid YAML{where}: {what}"]) from None
+    raw = read_yaml_file(p, "scenario")
     return parse_scenario(raw, source=str(p), base=p.parent)
 
 
@@ -987,18 +1090,12 @@ _EVENTS = TypeAdapter(tuple[Event, ...])
 
 
 def _read_yaml(p: Path) -> Any:
-    try:
-        return yaml.safe_load(p.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        what = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ScenarioError(str(p), [f"<file>: not valid YAML{where}: {what}"]) from None
+    return read_yaml_file(p, "events")
 
 
 def _raw_events_of(path: str | Path) -> list:
     p = Path(path)
-    if not p.is_file():
+    if not _is_file(p):
         raise ScenarioError(str(p), [f"<file>: events file not found: {p}"])
     raw = _read_yaml(p)
     if isinstance(raw, dict) and set(raw) == {"events"}:

@@ -144,6 +144,12 @@ def _without_satellites(ds: xr.Dataset, exclude: tuple[str, ...]) -> xr.Dataset:
 
     sats = [str(s) for s in ds["sat"].values]
     gone = [s for s in exclude if s in sats]
+    if len(gone) == len(sats):
+        from skyroute.pipeline.errors import InputError
+
+        raise InputError(f"gnss.exclude_satellites (with the out_of_service of gnss events) takes out all "
+                         f"{len(sats)} satellites of the almanacs: no position can be computed; list fewer "
+                         "satellites (at least 4 must stay in service)")
     ds = ds.isel(sat=np.array([s not in exclude for s in sats]))
     above = ds["above_mask"]
     ds["n_visible"] = above.sum("sat").assign_attrs(ds["n_visible"].attrs)

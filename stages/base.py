@@ -10,13 +10,90 @@ keeps its traceback.
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict
+import math
+import types
+import typing
+from functools import lru_cache
+
+from pydantic import BaseModel, ConfigDict, model_validator
+from pydantic_core import PydanticCustomError
+
+
+def _leaf_types(annotation) -> set:
+    """The concrete types an annotation can hold (through Optional, unions, tuples, lists and
+    Annotated), e.g. ``tuple[float, ...] | None`` -> {float, NoneType}."""
+    out: set = set()
+    stack = [annotation]
+    while stack:
+        a = stack.pop()
+        origin = typing.get_origin(a)
+        if origin is typing.Annotated:
+            stack.append(typing.get_args(a)[0])
+        elif origin in (typing.Union, types.UnionType, tuple, list, set, frozenset, typing.Literal):
+            if origin is typing.Literal:
+                out.update(type(v) for v in typing.get_args(a))
+            else:
+                stack.extend(x for x in typing.get_args(a) if x is not Ellipsis)
+        elif origin is not None:
+            out.add(origin)
+        else:
+            out.add(a)
+    return out
+
+
+@lru_cache(maxsize=4096)
+def _number_field(model: type, name: str) -> tuple[bool, bool]:
+    """(a number is meant and not true/false, a non-finite number is refused) for a field."""
+    f = model.model_fields.get(name)
+    if f is None:
+        return False, False
+    leaves = _leaf_types(f.annotation)
+    numeric = bool(leaves & {int, float}) and not (leaves & {bool, str, typing.Any})
+    default = f.default
+    inf_ok = isinstance(default, float) and not math.isfinite(default)
+    return numeric, numeric and float in leaves and not inf_ok
+
+
+def _bad_number(v, finite: bool, depth: int = 0) -> str | None:
+    """Why ``v`` (a value or a nested list of values for a number field) is refused, or None."""
+    if isinstance(v, bool):
+        return f"give a number, not {str(v).lower()} (true/false are not numbers)"
+    if finite:
+        x = None
+        if isinstance(v, float):
+            x = v
+        elif isinstance(v, str) and v.strip().lower().lstrip("+-").lstrip(".") in ("inf", "infinity", "nan"):
+            x = float("nan")
+        if x is not None and not math.isfinite(x):
+            return f"give a finite number, not {v!s} (.inf / .nan make no sense here)"
+    if isinstance(v, list | tuple) and depth < 3:
+        for item in v:
+            why = _bad_number(item, finite, depth + 1)
+            if why is not None:
+                return why
+    return None
 
 
 class FrozenModel(BaseModel):
-    """Base of all settings: immutable, strict about unknown keys."""
+    """Base of all settings: immutable, strict about unknown keys.  A number field refuses
+    ``true``/``false`` (YAML booleans would otherwise be read as 1/0) and, unless its default
+    is itself infinite, ``.inf``/``.nan``."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _numbers_are_numbers(cls, data):
+        if isinstance(data, dict):
+            for key, v in data.items():
+                if not isinstance(key, str):
+                    continue
+                numeric, finite = _number_field(cls, key)
+                if numeric:
+                    why = _bad_number(v, finite)
+                    if why is not None:
+                        raise PydanticCustomError("number_field", "{key}: {why}", {"key": key, "why": why})
+        return data
 
 
 class SkyrouteError(Exception):

@@ -80,13 +80,13 @@ import rasterio.features
 import rasterio.warp
 import shapely
 import xarray as xr
-import yaml
 from pyproj import CRS, Transformer
 from shapely.geometry.base import BaseGeometry
 
 from skyroute.stages.base import DataError, InputError
 from skyroute.stages.figures import image_extent
 from skyroute.stages.grid import Grid, ring_cells, warp_to_grid
+from skyroute.stages.yaml_io import read_yaml_file
 
 LEVELS = (1, 2, 3, 4, 5, 6)
 LEVEL_NAMES = {
@@ -217,10 +217,7 @@ def _parse_table(raw: Any, src: str) -> TagTable:
 
 @lru_cache(maxsize=8)
 def _load_file(path: str, mtime_ns: int) -> TagTable:
-    try:
-        raw = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise DataError(f"risk tag table {path} is not valid YAML: {exc}") from exc
+    raw = read_yaml_file(path, "risk tag table")
     return _parse_table(raw or {}, path)
 
 

@@ -32,10 +32,10 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Annotated, Literal
 
-import yaml
 from pydantic import Field, ValidationError, model_validator
 
 from skyroute.stages.base import DataError, FrozenModel, ScenarioError, UnknownNameError
+from skyroute.stages.yaml_io import read_yaml_text
 
 Pos = Annotated[float, Field(gt=0)]
 NonNeg = Annotated[float, Field(ge=0)]
@@ -368,7 +368,7 @@ def vehicle_from_dict(raw: dict) -> AnyVehicle:
     """The profile of a mapping by its ``kind`` (default ``multirotor``); pydantic's
     ValidationError for invalid content, ValueError for an unknown kind."""
     kind = raw.get("kind", "multirotor")
-    if kind not in VEHICLE_KINDS:
+    if not isinstance(kind, str) or kind not in VEHICLE_KINDS:
         raise ValueError(f"kind: unknown vehicle kind {kind!r}; known kinds: {', '.join(VEHICLE_KINDS)}")
     return VEHICLE_KINDS[kind].model_validate(raw)
 
@@ -383,7 +383,7 @@ def known_vehicles() -> list[str]:
     return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".yaml"))
 
 
-_PARSED: dict[str, AnyVehicle] = {}   # YAML text -> profile (parsing takes ~10 ms; planners load per call)
+_PARSED: dict[bytes, AnyVehicle] = {}   # YAML text -> profile (parsing takes ~10 ms; planners load per call)
 
 
 def load_vehicle(name_or_path: str | Path | AnyVehicle) -> AnyVehicle:
@@ -399,33 +399,40 @@ def load_vehicle(name_or_path: str | Path | AnyVehicle) -> AnyVehicle:
     s = str(name_or_path)
     if isinstance(name_or_path, Path) or s.endswith((".yaml", ".yml")) or "/" in s:
         path = Path(s)
-        if not path.is_file():
+        try:
+            found = path.is_file()
+        except (OSError, ValueError):   # a name too long for the filesystem
+            found = False
+        if not found:
             raise DataError(f"vehicle file {path} not found; give a catalog name "
                             f"({', '.join(known_vehicles())}) or an existing YAML path")
-        text = path.read_text()
+        try:
+            text = path.read_bytes()
+        except OSError as exc:
+            raise DataError(f"vehicle file {path} cannot be read: {exc.strerror or exc}") from None
         source = str(path)
     else:
         res = _catalog_dir().joinpath(f"{s}.yaml")
         if not res.is_file():
             raise UnknownNameError("vehicle", s, known_vehicles())
-        text = res.read_text()
+        text = res.read_bytes()
         source = f"vehicle {s}"
     hit = _PARSED.get(text)
     if hit is not None:     # the same file content parsed before: the same (frozen) profile
         return hit
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise DataError(f"{source}: invalid YAML: {exc}") from exc
+    raw = read_yaml_text(text, source, "vehicle")   # one ScenarioError line: not UTF-8, not YAML, duplicate key...
     if not isinstance(raw, dict):
         raise DataError(f"{source}: expected a mapping of vehicle fields, got {type(raw).__name__}")
-    if raw.get("kind", "multirotor") not in VEHICLE_KINDS:
+    kind = raw.get("kind", "multirotor")
+    if not isinstance(kind, str) or kind not in VEHICLE_KINDS:
         raise ScenarioError(source, [f"kind: unknown vehicle kind {raw.get('kind')!r}; known kinds: "
                                      f"{', '.join(VEHICLE_KINDS)}"])
     try:
         veh = vehicle_from_dict(raw)
     except ValidationError as exc:
-        problems = [f"{'.'.join(str(p) for p in e['loc']) or '(root)'}: {e['msg']}" for e in exc.errors()]
+        problems = [f"{'.'.join(str(p) for p in e['loc']) or '(root)'}: {e['msg']}" if e["type"] != "number_field"
+                    else f"{'.'.join(str(p) for p in (*e['loc'], e['ctx']['key']))}: {e['ctx']['why']}"
+                    for e in exc.errors()]
         raise ScenarioError(source, problems) from exc
     if len(_PARSED) >= 64:
         _PARSED.clear()

@@ -102,22 +102,33 @@ class SkyrouteGroup(click.Group):
                 click.echo(f"error: {msg} (see `{where} -h`)", err=True)
                 ctx.exit(2)
             except KeyboardInterrupt:
-                # SIGINT -> 130, SIGTERM -> 143; every stage output is either complete in the
-                # cache or an orphan under its tmp/ folder (never trusted)
-                code = control.exit_code()
-                control.request_cancel()
-                control.mark_reported()
-                click.echo("interrupted", err=True)
-                if control.signal_received() is not None:
-                    sys.stdout.flush()
-                    sys.stderr.flush()
-                    os._exit(code)   # do not wait for dask's worker threads to drain their queue
-                ctx.exit(code)
+                _interrupted(ctx, control)
+            except Exception:
+                # a signal that reaches Python while a compiled kernel or numba's dispatcher is on
+                # the stack can surface as another exception (numba: SystemError "returned a
+                # result with an exception set"): once a cancel was requested, it is the interrupt
+                if not control.cancelled():
+                    raise
+                _interrupted(ctx, control)
             finally:
                 set_max_memory(None)   # --max-memory holds for this command only (a session may run more)
                 from skyroute.pipeline.outputs import restore_untouched
 
                 restore_untouched()    # a folder this command set aside but never wrote gets its summary back
+
+
+def _interrupted(ctx: click.Context, control) -> None:
+    """SIGINT -> 130, SIGTERM -> 143 with one ``interrupted`` line; every stage output is either
+    complete in the cache or an orphan under its tmp/ folder (never trusted)."""
+    code = control.exit_code()
+    control.request_cancel()
+    control.mark_reported()
+    click.echo("interrupted", err=True)
+    if control.signal_received() is not None:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)   # do not wait for dask's worker threads to drain their queue
+    ctx.exit(code)
 
 
 def check_stage_names(names, option: str, also=()) -> None:

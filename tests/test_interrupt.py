@@ -184,3 +184,36 @@ def test_stop_flag_states():
             f.check()
     control.reset()
     assert control.exit_code(signal.SIGINT) == 130 and control.exit_code(signal.SIGTERM) == 143
+
+
+def test_signal_during_a_fleet_exits_130_or_143_without_a_traceback(tmp_path):
+    """Issue 27 item 5: SIGINT / SIGTERM at random moments of a warm `skyroute fleet` (its A*,
+    STEP II/III and numba dispatch in between) end with exit 130 / 143 and one `interrupted`
+    line, never a traceback (numba's SystemError used to escape when the signal landed in a
+    compiled call)."""
+    cache = tmp_path / "cache"
+    args = ["fleet", "helsinki-medical", "--missions", "6", "--seed", "3", "-q"]
+    r = _run(args[:2] + ["--missions", "1", "--seed", "3", "-q"], cache, tmp_path / "warm")   # maps cached
+    assert r.returncode == 0, r.stderr[-2000:]
+    t0 = time.monotonic()
+    r = _run(args, cache, tmp_path / "timed")
+    duration = time.monotonic() - t0
+    assert r.returncode == 0, r.stderr[-2000:]
+    env = {**os.environ, "SKYROUTE_CACHE_DIR": str(cache)}
+    rng = np.random.default_rng(27)
+    landed = 0
+    for i in range(4):
+        sig = (signal.SIGINT, signal.SIGTERM)[i % 2]
+        p = subprocess.Popen([*SKYROUTE, *args, "--out", str(tmp_path / f"k{i}")], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, env=env)
+        time.sleep(float(rng.uniform(0.35, 0.9)) * duration)
+        if p.poll() is not None:          # finished before the signal: nothing to check
+            p.stderr.read()
+            continue
+        p.send_signal(sig)
+        rc = p.wait(timeout=60)
+        err = p.stderr.read().decode()
+        landed += 1
+        assert rc == 128 + int(sig), (rc, err[-2000:])
+        assert "Traceback" not in err and err.strip().splitlines()[-1] == "interrupted", err[-2000:]
+    assert landed >= 2

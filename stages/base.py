@@ -142,6 +142,12 @@ class PlanningError(SkyrouteError):
     """A planner could not produce a flyable plan; the message gives the reasons."""
 
 
+class ClusterError(SkyrouteError):
+    """The dask cluster a command runs on failed (every worker lost, the scheduler gone); the
+    message says what was lost and how to go on (restart the workers, or run without
+    ``--scheduler``)."""
+
+
 class DegenerateCostError(InputError):
     """The cost weights select only terms that are the same per metre everywhere (e.g. risk with
     no land use): every path would score alike; the message names the data source to add."""

@@ -89,7 +89,7 @@ def test_vehicle_kind_default_and_errors(tmp_path):
 def test_planner_must_fit_the_vehicle_kind(tmp_path):
     with pytest.raises(InputError, match="use one of eeastar, astar-fw, energy-optimal"):
         check_planner_vehicle("astar", "skywalker-x8", PLANNERS)
-    with pytest.raises(InputError, match="fixed-wing aircraft; vehicle 'dji-m300-rtk'.*use one of bitstar, astar"):
+    with pytest.raises(InputError, match="fixed-wing aircraft; vehicle 'dji-m300-rtk'.*use one of astar, bitstar"):
         check_planner_vehicle("eeastar", "dji-m300-rtk", PLANNERS)
     r = CliRunner().invoke(main, ["plan", "san-gabriel-mountains", "--planner", "eeastar", "--cache-dir", str(tmp_path)])
     assert r.exit_code == 2 and r.output.count("error:") == 1 and "use one of" in r.output

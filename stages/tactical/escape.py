@@ -388,6 +388,50 @@ class Escapes:
         self.n = 0
         self.log: list[dict] = []
         self.losses: list[dict] = []
+        self._committed_until: dict[str, float] = {}   # intruder -> end of the interval already checked
+
+    def committed(self, rp, k: int, ev, t_e: float, t_react: float, dt_s: float = 0.01) -> list[dict]:
+        """Losses of separation no manoeuvre can avoid because they happen before any can act:
+        along the path the vehicle flies from ``t_e`` [s] (the event that made the conflict
+        known) to ``t_react`` [s] (the earliest start of an escape: the reaction latency), the
+        distance to a known intruder's believed track below r_p + r_i + d_c.  Sampled every
+        ``dt_s`` [s] (the true minimum is at most v_rel dt / 2 below the sampled one); each such
+        loss is recorded in :attr:`losses` (declared unavoidable, with its margin) once per
+        intruder and interval.  Returns the new records."""
+        out: list[dict] = []
+        if not t_react > t_e:
+            return out
+        intr = rp.known.intruders()
+        if not intr:
+            return out
+        t, p = rp.tl.samples(t_e, dt_s, t_react)
+        if t.size == 0:
+            return out
+        for it in intr:
+            t0 = max(t_e, self._committed_until.get(str(it.id), -math.inf))
+            sel = t >= t0 - 1e-9
+            if not sel.any():
+                continue
+            q = np.stack([np.interp(t[sel], it.times_s, it.xyz_m[:, j]) for j in range(3)], axis=1)
+            live = (t[sel] >= it.times_s[0] - 1e-9) & (t[sel] <= it.times_s[-1] + 1e-9)
+            if not live.any():
+                continue
+            d = np.linalg.norm(p[sel] - q, axis=1)[live]
+            sep = rp.veh.r_p_m + it.radius_m + rp.p.d_c_m
+            j = int(np.argmin(d))
+            margin = float(d[j] - sep)
+            self._committed_until[str(it.id)] = t_react
+            if margin >= 0:
+                continue
+            t_min = float(t[sel][live][j])
+            rec = {"replanning": k, "event": ev.label, "t_s": t_min, "intruder": str(it.id),
+                   "predicted_margin_m": margin,
+                   "why": (f"the separation is lost at t = {t_min:.1f} s, before any manoeuvre can act (the "
+                           f"conflict was known at t = {t_e:.1f} s, an escape starts {t_react - t_e:.1f} s "
+                           "later): the intruder was known too late")}
+            self.losses.append(rec)
+            out.append(rec)
+        return out
 
     def available(self, rp, t0: float) -> bool:
         """Whether an escape from ``t0`` [s] keeps the separation from every known intruder

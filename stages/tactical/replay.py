@@ -458,6 +458,10 @@ class _Replay:
             self.n_replan += 1
             alert = self.alert(t_s, pts, t_e, t_v, detail)
             intruder_conflict = hasattr(detail, "own_velocity_mps")
+            if intruder_conflict:      # losses before any manoeuvre can act: declared, whatever resolves the rest
+                for loss in self.escapes.committed(self, k, ev, t_e, self.effective_time(t_e + p.escape_latency_s)):
+                    self.warnings.append(f"unavoidable loss of separation from intruder {loss['intruder']!r}: "
+                                         f"{loss['why']} (margin {loss['predicted_margin_m']:+.1f} m)")
             if t_coll <= p.t_rep_s:
                 why = f"t_coll {t_coll:.2f} s <= t_rep {p.t_rep_s:g} s ({cause})"
                 ok, tried = self.land(k, ev, t_e, t_e, t_coll, update_s, why)

@@ -15,7 +15,6 @@ import xarray as xr
 from skyroute.pipeline.cache import Cache, zarr_uniform_chunks
 from skyroute.stages.overlap import overlap_map
 
-
 CASES = [  # (input blocks, halo [cells], blocks of the output along y)
     # blocks of 8 with a 2-cell last block: the runner merges it into its neighbour, the last
     # block comes out larger than the others ("Final chunk ... must be ... smaller than the first")

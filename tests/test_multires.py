@@ -1,0 +1,136 @@
+"""Multi-resolution STEP I A* (issue 23): the refined path is checked against the FULL-resolution
+maps and motion validator (never the coarse ones), its f against full-resolution A* on a small
+synthetic city (tests/_city.py, procedural) where that finishes fast."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from _city import city_maps, city_problem
+
+from skyroute.stages.planning import multires
+from skyroute.stages.planning.grid_planner import plan_grid
+from skyroute.stages.planning.kernels import EPS_Z
+from skyroute.stages.planning.multires import coarse_factor, coarse_problem, plan_multires
+from skyroute.stages.planning.step1 import plan_step1
+
+SIZE = (1000.0, 640.0)
+
+
+@pytest.fixture(scope="module")
+def maps():
+    return city_maps(SIZE, 2.0, seed=0)
+
+
+def _samples_ok(problem, maps, wp, step_m=0.25) -> list[str]:
+    """Independent check of a path on the full-resolution rasters: every point every
+    ``step_m`` along it lies in the AOI, outside the no-fly discs, at or above max(clearance,
+    min AGL) and at or below the 80 m AGL ceiling of its 2 m cell (flat 0 m ground)."""
+    bad = []
+    g = maps["grid"]
+    for a, b in zip(wp[:-1], wp[1:], strict=True):
+        n = max(2, int(math.ceil(np.linalg.norm(b - a) / step_m)) + 1)
+        p = a + np.linspace(0, 1, n)[:, None] * (b - a)
+        c = np.floor((p[:, 0] - g.x0) / g.resolution_m).astype(int)
+        r = np.floor((g.y1 - p[:, 1]) / g.resolution_m).astype(int)
+        if (c < 0).any() or (r < 0).any() or (c >= g.nx).any() or (r >= g.ny).any():
+            bad.append("outside the AOI")
+            continue
+        if maps["nofly"][r, c].any():
+            bad.append("in a no-fly disc")
+        if (p[:, 2] < maps["clearance"][r, c] - EPS_Z).any():
+            bad.append("below the clearance floor")
+        if (p[:, 2] > 80.0 + EPS_Z).any():
+            bad.append("above 80 m AGL")
+    return bad
+
+
+def test_coarse_abstraction_is_conservative(maps):
+    pr, _ = city_problem(SIZE, (0.1, 0.15), (0.9, 0.85), maps=maps)
+    f = coarse_factor(pr)
+    assert f == 16 and f * pr.grid.resolution_m == 32.0        # 2 m cells, lattice step 8
+    cp = coarse_problem(pr, f)
+    assert cp.grid.shape == (-(-pr.grid.ny // f), -(-pr.grid.nx // f))
+    ends = multires._endpoint_cells(cp.grid, (pr.start_xyz, pr.goal_xyz), 1)
+    n_forbidden = 0
+    for i in range(cp.grid.ny):
+        for j in range(cp.grid.nx):
+            if ends[i, j]:
+                continue
+            sl = (slice(i * f, (i + 1) * f), slice(j * f, (j + 1) * f))
+            assert cp.floor_m[i, j] == pr.floor_m[sl].max()
+            assert cp.ceiling_m[i, j] == pr.ceiling_m[sl].min()
+            assert cp.risk_cost[i, j] == pr.risk_cost[sl].max()
+            assert cp.landing_cost[i, j] == pr.landing_cost[sl].max()
+            if maps["nofly"][sl].any():
+                assert cp.floor_m[i, j] == np.inf
+                n_forbidden += 1
+    assert n_forbidden > 0
+    # the endpoint cells are optimistic, so the valid full-resolution endpoints are valid coarse states
+    assert cp.endpoint_problem() == ""
+
+
+def test_refined_path_valid_on_full_maps_and_f_within_3_percent(maps):
+    pr, _ = city_problem(SIZE, (0.05, 0.12), (0.95, 0.88), maps=maps)
+    full = plan_grid(pr)
+    mr = plan_multires(pr)
+    wp = mr["waypoints"]
+    assert wp is not None and mr["multires"]["stage"] == "conservative"
+    np.testing.assert_allclose(wp[0], pr.start_xyz)
+    np.testing.assert_allclose(wp[-1], pr.goal_xyz)
+    pc = pr.path_costs(wp)                  # the full-resolution problem's exact motion check
+    assert pc["valid"], pc["first_invalid"]
+    assert _samples_ok(pr, maps, wp) == []   # and an independent one on the full-resolution rasters
+    f_full = pr.path_costs(full["waypoints"])["f"]
+    ratio = pc["f"] / f_full
+    assert ratio <= 1.03, ratio
+    # restricting the lattice only removes paths: never below the full lattice optimum
+    assert mr["lattice_f"] >= full["lattice_f"] * (1 - 1e-12)
+    assert mr["multires"]["corridor_fraction"] < 0.6
+    assert mr["expanded"] == mr["multires"]["coarse_expanded"] + mr["multires"]["fine_expanded"]
+    # deterministic: the same plan twice
+    np.testing.assert_array_equal(plan_multires(pr)["waypoints"], wp)
+
+
+def test_gap_narrower_than_a_coarse_cell_falls_back_and_stays_valid(maps):
+    """A no-fly wall across the whole AOI with a 20 m gap: every coarse cell of the wall has a
+    no-fly child, so the conservative abstraction has no path; the optimistic one does, and the
+    refined path threads the gap on the full-resolution maps."""
+    m = dict(maps)
+    g = maps["grid"]
+    nofly = np.zeros(g.shape, bool)
+    c0 = 251                               # x = 502..506 m, inside one coarse column
+    nofly[:, c0:c0 + 2] = True
+    r_gap = 150                            # y rows 150..159: 20 m, not aligned on the 16-cell blocks
+    nofly[r_gap:r_gap + 10, c0:c0 + 2] = False
+    m["nofly"] = nofly
+    pr, _ = city_problem(SIZE, (0.1, 0.5), (0.9, 0.5), maps=m)
+    mr = plan_multires(pr)
+    info = mr["multires"]
+    assert info["stage"] in ("optimistic", "full") and info["widenings"] >= 1
+    wp = mr["waypoints"]
+    assert wp is not None
+    assert pr.path_costs(wp)["valid"]
+    assert _samples_ok(pr, m, wp) == []
+    # it crosses the wall through the gap
+    gy = g.y1 - (np.array([r_gap, r_gap + 10]) * g.resolution_m)
+    xw = g.x0 + c0 * g.resolution_m
+    k = int(np.nonzero((wp[:-1, 0] <= xw) & (wp[1:, 0] >= xw))[0][0])
+    t = (xw - wp[k, 0]) / (wp[k + 1, 0] - wp[k, 0])
+    y_cross = wp[k, 1] + t * (wp[k + 1, 1] - wp[k, 1])
+    assert gy[1] <= y_cross <= gy[0]
+
+
+def test_step1_dispatch_by_problem_size(maps, monkeypatch):
+    pr, _ = city_problem(SIZE, (0.05, 0.12), (0.95, 0.88), maps=maps)
+    small = plan_step1(pr, "astar")
+    assert "multires" not in small.info["tries"][0]          # below MULTIRES_MIN_CELLS: plan_grid as before
+    assert pr.grid.nx * pr.grid.ny < multires.MULTIRES_MIN_CELLS
+    monkeypatch.setattr(multires, "MULTIRES_MIN_CELLS", 1000)
+    big = plan_step1(pr, "astar")
+    info = big.info["tries"][0]["multires"]
+    assert big.solved and info["stage"] == "conservative"
+    assert pr.path_costs(big.waypoints)["valid"]
+    assert big.f <= 1.03 * small.f

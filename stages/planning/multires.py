@@ -69,6 +69,8 @@ HALF_WIDTH_CELLS = 3             # initial corridor half width [coarse cells] be
 WIDEN_FACTOR = 2                 # a widening multiplies the half width by this
 MAX_WIDENINGS = 2                # corridor widenings around one coarse path before the next fallback
 MAX_EXPANSIONS = 50_000_000      # per search (the coarse one and each corridor search), as plan_grid
+COARSE_WEIGHT = 1.5              # weighted A* on the coarse level (its path only places the corridor)
+FINE_WEIGHT = 1.0                # corridor A* heuristic weight: f <= FINE_WEIGHT x the corridor's lattice optimum
 
 
 def coarse_factor(problem: PlanningProblem, step_cells: int = STEP_CELLS,
@@ -160,21 +162,28 @@ def corridor_columns(lattice: Lattice, coarse_grid: Grid, path_xyz: np.ndarray, 
     return mark[np.ix_(lr, lc)]
 
 
-def _coarse_path(problem: PlanningProblem, factor: int, optimistic: bool, z_anchor_m: float | None,
-                 max_expansions: int, time_limit_s: float) -> tuple[np.ndarray | None, Grid, int, str]:
-    """(coarse waypoints or None, coarse grid, expansions, stopped_by) of A* on the coarse problem."""
+def _coarse_path(problem: PlanningProblem, factor: int, optimistic: bool, fine: Lattice, step_cells: int,
+                 z_anchor_m: float | None, max_expansions: int, time_limit_s: float, weight: float
+                 ) -> tuple[np.ndarray | None, Grid, int, str]:
+    """(coarse waypoints or None, coarse grid, expansions, stopped_by) of A* on the coarse
+    problem's lattice: one node per coarse cell, levels ``factor / step_cells`` times the fine
+    lattice's apart (so its edges have the fine edges' directions and share their memoised
+    energy bounds), heuristic :func:`heuristic_2d` x ``weight`` (weighted A*: the coarse path
+    only places the corridor)."""
     cp = coarse_problem(problem, factor, optimistic=optimistic)
     if cp.endpoint_problem():          # cannot happen for valid full-resolution endpoints; kept safe
         return None, cp.grid, 0, ""
-    lat = make_lattice(cp, 1, z_anchor_m=z_anchor_m)
-    r = astar(cp, lat, max_expansions, time_limit_s=time_limit_s)
+    lat = make_lattice(cp, 1, dz_m=fine.dz_m * (factor // int(step_cells)), z_anchor_m=z_anchor_m)
+    h2 = heuristic_2d(cp, lat) * float(weight)
+    r = astar(cp, lat, max_expansions, h2=h2, time_limit_s=time_limit_s)
     return r["waypoints"], cp.grid, int(r["expanded"]), r["stopped_by"]
 
 
 def plan_multires(problem: PlanningProblem, step_cells: int = STEP_CELLS, refine: bool = True,
                   max_expansions: int = MAX_EXPANSIONS, time_limit_s: float = math.inf,
                   z_anchor_m: float | None = None, coarse_cell_m: float = COARSE_CELL_M,
-                  half_width: int = HALF_WIDTH_CELLS, max_widenings: int = MAX_WIDENINGS) -> dict:
+                  half_width: int = HALF_WIDTH_CELLS, max_widenings: int = MAX_WIDENINGS,
+                  weight: float = FINE_WEIGHT, coarse_weight: float = COARSE_WEIGHT) -> dict:
     """Multi-resolution A* (module docstring) on ``problem``; the result of
     :func:`~.grid_planner.plan_grid` (``waypoints`` or None, ``lattice_f`` of the corridor
     search, ``expanded`` = coarse + every corridor search, ``lattice`` (the full one),
@@ -186,6 +195,8 @@ def plan_multires(problem: PlanningProblem, step_cells: int = STEP_CELLS, refine
     all).  Stops on counts (``max_expansions`` per search, ``max_widenings`` per coarse path);
     ``time_limit_s`` [s] is the wall-clock safety net of the level, as for ``plan_grid``."""
     t0 = time.perf_counter()
+    if not (weight >= 1 and coarse_weight >= 1):
+        raise InputError(f"heuristic weights {weight}, {coarse_weight} must be >= 1 (1: optimal A*)")
     if int(half_width) < 0 or int(max_widenings) < 0:
         raise InputError(f"half_width {half_width} and max_widenings {max_widenings} must be >= 0")
     left = lambda: time_limit_s - (time.perf_counter() - t0)  # noqa: E731
@@ -203,8 +214,8 @@ def plan_multires(problem: PlanningProblem, step_cells: int = STEP_CELLS, refine
             hws = [math.inf]
             cgrid = None
         else:
-            cwp, cgrid, cexp, cstop = _coarse_path(problem, factor, stage == "optimistic", z_anchor_m,
-                                                   max_expansions, left())
+            cwp, cgrid, cexp, cstop = _coarse_path(problem, factor, stage == "optimistic", lat, step_cells,
+                                                   z_anchor_m, max_expansions, left(), coarse_weight)
             info["coarse_expanded"] += cexp
             if cstop:
                 stopped = cstop
@@ -217,7 +228,7 @@ def plan_multires(problem: PlanningProblem, step_cells: int = STEP_CELLS, refine
             if stage != "full":
                 mask = corridor_columns(lat, cgrid, cwp, hw)
             sub = dataclasses.replace(lat, valid=lat.valid & mask[None])
-            h2 = heuristic_2d(problem, sub)
+            h2 = heuristic_2d(problem, sub) * float(weight)
             r = astar(problem, sub, max_expansions, h2=h2, time_limit_s=left())
             info["fine_expanded"] += int(r["expanded"])
             if r["stopped_by"]:

@@ -75,7 +75,7 @@ def test_coarse_abstraction_is_conservative(maps):
 def test_refined_path_valid_on_full_maps_and_f_within_3_percent(maps):
     pr, _ = city_problem(SIZE, (0.05, 0.12), (0.95, 0.88), maps=maps)
     full = plan_grid(pr)
-    mr = plan_multires(pr)
+    mr = plan_multires(pr, half_width=2)     # a corridor much narrower than this small AOI
     wp = mr["waypoints"]
     assert wp is not None and mr["multires"]["stage"] == "conservative"
     np.testing.assert_allclose(wp[0], pr.start_xyz)
@@ -88,10 +88,15 @@ def test_refined_path_valid_on_full_maps_and_f_within_3_percent(maps):
     assert ratio <= 1.03, ratio
     # restricting the lattice only removes paths: never below the full lattice optimum
     assert mr["lattice_f"] >= full["lattice_f"] * (1 - 1e-12)
-    assert mr["multires"]["corridor_fraction"] < 0.6
+    assert mr["multires"]["corridor_fraction"] < 0.5
+    assert mr["expanded"] < full["expanded"]
     assert mr["expanded"] == mr["multires"]["coarse_expanded"] + mr["multires"]["fine_expanded"]
     # deterministic: the same plan twice
-    np.testing.assert_array_equal(plan_multires(pr)["waypoints"], wp)
+    np.testing.assert_array_equal(plan_multires(pr, half_width=2)["waypoints"], wp)
+    # the default corridor and weights
+    d = plan_multires(pr)
+    assert pr.path_costs(d["waypoints"])["valid"] and _samples_ok(pr, maps, d["waypoints"]) == []
+    assert pr.path_costs(d["waypoints"])["f"] <= 1.03 * f_full
 
 
 def test_gap_narrower_than_a_coarse_cell_falls_back_and_stays_valid(maps):

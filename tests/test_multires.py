@@ -17,6 +17,7 @@ from skyroute.stages.planning.multires import coarse_factor, coarse_problem, pla
 from skyroute.stages.planning.step1 import plan_step1
 
 SIZE = (1000.0, 640.0)
+NARROW = {"coarse_cell_m": 32.0, "half_width": 2}   # 32 m coarse cells, corridor 80 m each side
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +51,7 @@ def _samples_ok(problem, maps, wp, step_m=0.25) -> list[str]:
 def test_coarse_abstraction_is_conservative(maps):
     pr, _ = city_problem(SIZE, (0.1, 0.15), (0.9, 0.85), maps=maps)
     f = coarse_factor(pr)
-    assert f == 16 and f * pr.grid.resolution_m == 32.0        # 2 m cells, lattice step 8
+    assert f == 32 and f * pr.grid.resolution_m == 64.0        # 2 m cells, lattice step 8
     cp = coarse_problem(pr, f)
     assert cp.grid.shape == (-(-pr.grid.ny // f), -(-pr.grid.nx // f))
     ends = multires._endpoint_cells(cp.grid, (pr.start_xyz, pr.goal_xyz), 1)
@@ -75,7 +76,7 @@ def test_coarse_abstraction_is_conservative(maps):
 def test_refined_path_valid_on_full_maps_and_f_within_3_percent(maps):
     pr, _ = city_problem(SIZE, (0.05, 0.12), (0.95, 0.88), maps=maps)
     full = plan_grid(pr)
-    mr = plan_multires(pr, half_width=2)     # a corridor much narrower than this small AOI
+    mr = plan_multires(pr, **NARROW)         # a corridor much narrower than this small AOI
     wp = mr["waypoints"]
     assert wp is not None and mr["multires"]["stage"] == "conservative"
     np.testing.assert_allclose(wp[0], pr.start_xyz)
@@ -92,7 +93,7 @@ def test_refined_path_valid_on_full_maps_and_f_within_3_percent(maps):
     assert mr["expanded"] < full["expanded"]
     assert mr["expanded"] == mr["multires"]["coarse_expanded"] + mr["multires"]["fine_expanded"]
     # deterministic: the same plan twice
-    np.testing.assert_array_equal(plan_multires(pr, half_width=2)["waypoints"], wp)
+    np.testing.assert_array_equal(plan_multires(pr, **NARROW)["waypoints"], wp)
     # the default corridor and weights
     d = plan_multires(pr)
     assert pr.path_costs(d["waypoints"])["valid"] and _samples_ok(pr, maps, d["waypoints"]) == []

@@ -5,7 +5,7 @@ area: a 5 km mission in a 6 x 6 km AOI at 2 m cells (9 M cells, 2.4 M lattice no
 finish in 20 s per level.  :func:`plan_multires` splits the search:
 
 1. **Coarse conservative abstraction** (:func:`coarse_problem`): cells of ``factor`` grid cells
-   (:func:`coarse_factor`, about :data:`COARSE_CELL_M` = 32 m, a whole number of lattice
+   (:func:`coarse_factor`, about :data:`COARSE_CELL_M` = 64 m, a whole number of lattice
    steps) carrying the HIGHEST floor, the LOWEST ceiling, the WORST (highest) risk and landing
    cost of their children, forbidden when any child is (no-fly, no GNSS coverage); the wind
    heights are above the lowest ground of the block.  Only the coarse cells within one coarse
@@ -68,8 +68,8 @@ from skyroute.stages.planning.grid_planner import (
 from skyroute.stages.planning.problem import PlanningProblem
 
 MULTIRES_MIN_CELLS = 2_000_000   # grid cells from which STEP I's A* is multi-resolution (Monaco: 1.15 M)
-COARSE_CELL_M = 32.0             # [m] target coarse cell side (a whole number of lattice steps)
-HALF_WIDTH_CELLS = 6             # initial corridor half width [coarse cells] beside the coarse path (192 m)
+COARSE_CELL_M = 64.0             # [m] target coarse cell side (a whole number of lattice steps)
+HALF_WIDTH_CELLS = 3             # initial corridor half width [coarse cells] beside the coarse path (192 m)
 WIDEN_FACTOR = 2                 # a widening multiplies the half width by this
 MAX_WIDENINGS = 2                # corridor widenings around one coarse path before the next fallback
 MAX_EXPANSIONS = 50_000_000      # per search (the coarse one and each corridor search), as plan_grid

@@ -140,3 +140,35 @@ def test_step1_dispatch_by_problem_size(maps, monkeypatch):
     assert big.solved and info["stage"] == "conservative"
     assert pr.path_costs(big.waypoints)["valid"]
     assert big.f <= 1.03 * small.f
+
+
+def test_bound_memo_computes_a_key_once_across_threads():
+    """The coverage levels run in parallel threads and ask for the same energy bounds: one
+    thread computes a key, the others wait for its value; a failed computation is retried."""
+    import threading
+    import time
+
+    from skyroute.stages.planning.heuristic import BoundMemo
+
+    memo = BoundMemo(limit=8)
+    calls: list[int] = []
+
+    def make() -> float:
+        calls.append(1)
+        time.sleep(0.05)
+        return 2.5
+
+    out: list[float] = []
+    threads = [threading.Thread(target=lambda: out.append(memo.get("k", make))) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert out == [2.5] * 4 and len(calls) == 1
+
+    def fail() -> float:
+        raise RuntimeError("cancelled")
+
+    with pytest.raises(RuntimeError):
+        memo.get("x", fail)
+    assert memo.get("x", lambda: 7.0) == 7.0

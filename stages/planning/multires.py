@@ -125,9 +125,13 @@ def coarse_problem(problem: PlanningProblem, factor: int, optimistic: bool = Fal
         raise InputError(f"coarse factor {factor} must be >= 1 [cells]")
     g = problem.grid
     gc = Grid(g.crs_wkt, g.x0, g.y1, -(-g.nx // f), -(-g.ny // f), g.resolution_m * f)
-    names = ("terrain_m", "floor_m", "ceiling_m", "risk_cost", "landing_cost")
-    hi = {name: _block_reduce(getattr(problem, name), f, np.maximum) for name in names}
-    lo = {name: _block_reduce(getattr(problem, name), f, np.minimum) for name in names}
+    memo = problem.__dict__.setdefault("_coarse_blocks", {})     # both abstractions use them
+    if f not in memo:
+        names = ("terrain_m", "floor_m", "ceiling_m", "risk_cost", "landing_cost")
+        memo.clear()
+        memo[f] = ({name: _block_reduce(getattr(problem, name), f, np.maximum) for name in names},
+                   {name: _block_reduce(getattr(problem, name), f, np.minimum) for name in names})
+    hi, lo = memo[f]
     opt = dict(terrain_m=hi["terrain_m"], floor_m=lo["floor_m"], ceiling_m=hi["ceiling_m"],
                risk_cost=lo["risk_cost"], landing_cost=lo["landing_cost"])
     if optimistic:

@@ -176,3 +176,22 @@ def test_bound_memo_computes_a_key_once_across_threads():
     with pytest.raises(RuntimeError):
         memo.get("x", fail)
     assert memo.get("x", lambda: 7.0) == 7.0
+
+
+@pytest.mark.parametrize("anchor", [None, 0.0])
+def test_corridor_lattice_is_make_lattice_restricted(maps, anchor):
+    """The multi-resolution search evaluates only the corridor's nodes, on the very lattice of
+    make_lattice (same nodes, same validity there)."""
+    from skyroute.stages.planning.grid_planner import make_lattice
+
+    pr, _ = city_problem(SIZE, (0.05, 0.12), (0.95, 0.88), maps=maps)
+    ref = make_lattice(pr, z_anchor_m=anchor)
+    geo = multires.lattice_geometry(pr, z_anchor_m=anchor)
+    for k in ("x", "y", "z", "start_links", "goal_links"):
+        np.testing.assert_array_equal(getattr(geo, k), getattr(ref, k))
+    assert (geo.step_m, geo.dz_m) == (ref.step_m, ref.dz_m) and not geo.valid.any()
+    np.testing.assert_array_equal(multires.corridor_valid(pr, geo, np.ones(ref.shape[1:], bool)), ref.valid)
+    cols = np.zeros(ref.shape[1:], bool)
+    cols[3:9, 10:30] = True
+    part = multires.corridor_valid(pr, geo, cols)
+    np.testing.assert_array_equal(part, ref.valid & cols[None])

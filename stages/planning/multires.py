@@ -176,6 +176,34 @@ def corridor_columns(lattice: Lattice, coarse_grid: Grid, path_xyz: np.ndarray, 
     return mark[np.ix_(lr, lc)]
 
 
+def lattice_geometry(problem: PlanningProblem, step_cells: int = STEP_CELLS,
+                     z_anchor_m: float | None = None) -> Lattice:
+    """The full-resolution lattice of :func:`~.grid_planner.make_lattice` (same nodes) with no
+    node evaluated yet (``valid`` all False): :func:`corridor_valid` evaluates the corridor's
+    nodes only (make_lattice evaluates all of them: 11 M nodes for a 12 km AOI at 2 m)."""
+    from types import SimpleNamespace
+
+    shell = SimpleNamespace(grid=problem.grid, vehicle=problem.vehicle, floor_m=problem.floor_m,
+                            ceiling_m=problem.ceiling_m, start_xyz=problem.start_xyz, goal_xyz=problem.goal_xyz,
+                            state_valid=lambda p: np.zeros(len(p), bool))
+    return make_lattice(shell, step_cells, z_anchor_m=z_anchor_m)
+
+
+def corridor_valid(problem: PlanningProblem, lattice: Lattice, columns: np.ndarray) -> np.ndarray:
+    """(nz, ny_l, nx_l) bool: ``problem.state_valid`` of the lattice nodes in the ``columns``
+    (ny_l, nx_l) bool, False elsewhere (the ``valid`` of make_lattice restricted to them)."""
+    valid = np.zeros(lattice.shape, bool)
+    r, c = np.nonzero(columns)
+    nz = lattice.z.size
+    if r.size:
+        pts = np.empty((nz * r.size, 3))
+        pts[:, 0] = np.tile(lattice.x[c], nz)
+        pts[:, 1] = np.tile(lattice.y[r], nz)
+        pts[:, 2] = np.repeat(lattice.z, r.size)
+        valid[:, r, c] = problem.state_valid(pts).reshape(nz, r.size)
+    return valid
+
+
 def _coarse_path(problem: PlanningProblem, factor: int, optimistic: bool, fine: Lattice, step_cells: int,
                  z_anchor_m: float | None, max_expansions: int, time_limit_s: float, weight: float
                  ) -> tuple[np.ndarray | None, Grid, int, str]:
@@ -201,7 +229,7 @@ def plan_multires(problem: PlanningProblem, step_cells: int = STEP_CELLS, refine
                   union: bool = CORRIDOR_UNION) -> dict:
     """Multi-resolution A* (module docstring) on ``problem``; the result of
     :func:`~.grid_planner.plan_grid` (``waypoints`` or None, ``lattice_f`` of the corridor
-    search, ``expanded`` = coarse + every corridor search, ``lattice`` (the full one),
+    search, ``expanded`` = coarse + every corridor search, ``lattice`` (the full lattice, its nodes evaluated in the corridor searched),
     ``compute_s``, ``stopped_by``) plus ``multires``: ``coarse_cell_m``, ``coarse_expanded``,
     ``fine_expanded``, ``widenings`` (corridor widenings and fallbacks taken), ``stage``
     (the coarse paths whose corridor the plan came from: ``"conservative+optimistic"`` (with
@@ -216,7 +244,7 @@ def plan_multires(problem: PlanningProblem, step_cells: int = STEP_CELLS, refine
     if int(half_width) < 0 or int(max_widenings) < 0:
         raise InputError(f"half_width {half_width} and max_widenings {max_widenings} must be >= 0")
     left = lambda: time_limit_s - (time.perf_counter() - t0)  # noqa: E731
-    lat = make_lattice(problem, step_cells, z_anchor_m=z_anchor_m)
+    lat = lattice_geometry(problem, step_cells, z_anchor_m)
     factor = coarse_factor(problem, step_cells, coarse_cell_m)
     info = {"coarse_cell_m": factor * problem.grid.resolution_m, "coarse_expanded": 0, "fine_expanded": 0,
             "widenings": 0, "stage": "", "half_width_m": math.nan, "corridor_fraction": math.nan}
@@ -264,7 +292,7 @@ def plan_multires(problem: PlanningProblem, step_cells: int = STEP_CELLS, refine
                 mask = np.logical_or.reduce([corridor_columns(lat, cgrid, p, hw) for p in paths])
             else:
                 mask = np.ones(lat.shape[1:], bool)
-            sub = dataclasses.replace(lat, valid=lat.valid & mask[None])
+            sub = dataclasses.replace(lat, valid=corridor_valid(problem, lat, mask))
             h2 = heuristic_2d(problem, sub) * float(weight)
             r = astar(problem, sub, max_expansions, h2=h2, time_limit_s=left())
             info["fine_expanded"] += int(r["expanded"])
@@ -272,7 +300,7 @@ def plan_multires(problem: PlanningProblem, step_cells: int = STEP_CELLS, refine
                 stopped = r["stopped_by"]
                 break
             if r["waypoints"] is not None:
-                res = r
+                res, lat = r, sub
                 info.update(stage="+".join(labels), half_width_m=(hw + 0.5) * info["coarse_cell_m"],
                             corridor_fraction=float(mask.mean()))
                 break
@@ -309,4 +337,5 @@ def plan_astar(problem: PlanningProblem, step_cells: int = STEP_CELLS, refine: b
 
 
 __all__ = ["COARSE_CELL_M", "HALF_WIDTH_CELLS", "MAX_WIDENINGS", "MULTIRES_MIN_CELLS", "coarse_factor",
-           "coarse_problem", "corridor_columns", "plan_astar", "plan_multires", "use_multires"]
+           "coarse_problem", "corridor_columns", "corridor_valid", "lattice_geometry", "plan_astar", "plan_multires",
+           "use_multires"]

@@ -195,3 +195,38 @@ def test_corridor_lattice_is_make_lattice_restricted(maps, anchor):
     cols[3:9, 10:30] = True
     part = multires.corridor_valid(pr, geo, cols)
     np.testing.assert_array_equal(part, ref.valid & cols[None])
+
+
+def test_strategic_plan_with_multires_passes_the_validator(maps, monkeypatch):
+    """The whole strategic plan (STEP I multi-resolution, STEP II, III) on the synthetic city:
+    its trajectory passes validate_plan on the full-resolution clearance, no-fly and altitude
+    limits (without satellite geometry the navigation error is not checked, so the candidate
+    is not chosen; the geometry is)."""
+    import xarray as xr
+    from _city import city_wind, street_point
+
+    from skyroute.stages.planning.strategic import plan_strategic
+    from skyroute.stages.planning.validate import validate_plan
+
+    monkeypatch.setattr(multires, "MULTIRES_MIN_CELLS", 1000)
+    g = maps["grid"]
+    zero = g.dataarray(np.zeros(g.shape), "terrain", units="m")
+    surface = xr.Dataset({"terrain": zero, "surface": zero})
+    clearance = xr.Dataset({"min_altitude_m": g.dataarray(maps["clearance"], "min_altitude_m"),
+                            "nofly": g.dataarray(maps["nofly"], "nofly")})
+    env = xr.Dataset({"risk_cost": g.dataarray(maps["risk"], "risk_cost"),
+                      "landing_cost": g.dataarray(maps["landing"], "landing_cost")})
+    s, e = street_point(maps, 0.05, 0.12), street_point(maps, 0.95, 0.88)
+    plan = plan_strategic(surface, env, city_wind(maps), clearance, None, None, None, start_xy=s, start_agl_m=30.0,
+                          goal_xy=e, goal_agl_m=30.0, start_time_utc="2020-01-03T10:00:00Z", max_agl_m=80.0,
+                          workers=1)
+    assert "multires" in plan.step1[0].info["tries"][0]
+    cand = plan.candidates[0]       # smoothed and retimed by STEP III (no satellites: not "chosen")
+    assert plan.step1[0].solved and len(cand.t_s) > 10
+    viol = validate_plan(cand, grid=g, terrain_m=np.zeros(g.shape), vehicle="dji-m300-rtk",
+                         clearance_floor_m=maps["clearance"], nofly=maps["nofly"], min_agl_m=0.0, max_agl_m=80.0,
+                         start_xyz=(*s, 30.0), goal_xyz=(*e, 30.0))
+    assert viol == []
+    # the validator is live: a floor 90 m higher everywhere is violated
+    assert validate_plan(cand, grid=g, terrain_m=np.zeros(g.shape), vehicle="dji-m300-rtk",
+                         clearance_floor_m=maps["clearance"] + 90.0, min_agl_m=0.0, max_agl_m=80.0)

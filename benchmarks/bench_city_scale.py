@@ -6,6 +6,7 @@ varying 3-D wind map; procedural, not real data), 2 m cells, DJI M300, weights (
     python benchmarks/bench_city_scale.py                       # sides 2 and 6 km
     python benchmarks/bench_city_scale.py --sides 2 6 12        # + 12 km (about 4 GB per case)
     python benchmarks/bench_city_scale.py --full-max-expansions 0   # multires only
+    python benchmarks/bench_city_scale.py --helsinki-6km CACHE_DIR  # real maps: issue 23's 6 km AOI
 
 Each case runs in its own process (its peak RSS is that process's ``ru_maxrss``), after a
 small warm-up plan, so numba compilation is never timed; before each timed plan the memoised
@@ -93,13 +94,86 @@ def run_case(side_km: float, length_km: float, full_max: int) -> dict:
     return out
 
 
+HELSINKI_6KM = {"bounds_lonlat": [24.890, 60.145, 24.998, 60.199],          # issue 23's AOI
+                "goal": {"name": "issue 23 6 km AOI, NE (unnamed point)", "lon": 24.9960, "lat": 60.1975,
+                         "alt_agl_m": 60}}
+
+
+def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_000) -> dict:
+    """helsinki-crosstown widened to issue 23's 6 x 6 km AOI (buildings and land use only where
+    the shipped extract has them) with a 5 km mission from the same start: the maps are built
+    (or read) in ``cache_dir``, then STEP I of level D=``threshold`` by multires and by
+    full-resolution A*, both cold."""
+    import tempfile
+
+    import yaml
+    from bench_planner import case_inputs
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.stages_builtin import plan_arguments
+    from skyroute.stages.planning.grid_planner import plan_grid
+    from skyroute.stages.planning.multires import plan_multires
+    from skyroute.stages.planning.problem import build_problem, xyz_from_agl
+
+    sc = yaml.safe_load((ROOT / "catalogs" / "scenarios" / "helsinki-crosstown.yaml").read_text())
+    sc["name"] = "helsinki-6km"
+    sc["aoi"]["bounds_lonlat"] = HELSINKI_6KM["bounds_lonlat"]
+    sc["mission"]["goal"] = HELSINKI_6KM["goal"]
+    data = ROOT / "catalogs" / "data"
+    for k, v in list(sc["data"].items()):
+        if isinstance(v, str) and v.startswith("../data/"):
+            sc["data"][k] = str(data / v.removeprefix("../data/"))
+        elif isinstance(v, dict) and str(v.get("path", "")).startswith("../data/"):
+            v["path"] = str(data / v["path"].removeprefix("../data/"))
+        elif isinstance(v, list):
+            sc["data"][k] = [str(data / x.removeprefix("../data/")) for x in v]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "helsinki-6km.yaml"
+        path.write_text(yaml.safe_dump(sc))
+        t = time.perf_counter()
+        _, d, s, _ = case_inputs(str(path), Cache(cache_dir))
+        maps_s = time.perf_counter() - t
+    args = plan_arguments(s, d["surface"])
+    surf = d["surface"][["terrain", "surface"]].load()
+    cov = d["coverage"]["coverage_floor"].load()
+    start = xyz_from_agl(surf, *args["start_xy"], args["start_agl_m"])
+    goal = xyz_from_agl(surf, *args["goal_xy"], args["goal_agl_m"])
+    pr = build_problem(surf, d["clearance"]["min_altitude_m"].load(), cov.sel(threshold=threshold),
+                       d["environment"]["risk_cost"].load(), d["environment"]["landing_cost"].load(), d["wind"].load(),
+                       args["vehicle"], args["weights"], start, goal, args["min_agl_m"], args["max_agl_m"], threshold,
+                       nofly=d["clearance"]["nofly"].load(), check_endpoints=False)
+    out = {"case": f"helsinki 6 km, D={threshold:g}", "cells": pr.grid.nx * pr.grid.ny,
+           "mission_km": math.dist(start[:2], goal[:2]) / 1000.0, "maps_s": maps_s}
+    _cold(pr)
+    t = time.perf_counter()
+    mr = plan_multires(pr)
+    out.update(multires_s=time.perf_counter() - t, multires_expanded=mr["expanded"],
+               multires_f=pr.path_costs(mr["waypoints"])["f"], multires_valid=pr.path_costs(mr["waypoints"])["valid"])
+    _cold(pr)
+    t = time.perf_counter()
+    fr = plan_grid(pr, max_expansions=full_max)
+    out.update(full_s=time.perf_counter() - t, full_expanded=fr["expanded"])
+    if fr["waypoints"] is not None:
+        out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
+        out["ratio"] = out["multires_f"] / out["full_f"]
+    out["rss_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sides", type=float, nargs="+", default=[2, 6], help="AOI sides [km] (of 2, 6, 12, 20)")
     ap.add_argument("--full-max-expansions", type=int, default=3_000_000,
                     help="full-resolution A* stops (as not finished) after this many expansions; 0: skip it")
     ap.add_argument("--case", type=float, nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--helsinki-6km", metavar="CACHE_DIR",
+                    help="only the real-map case: issue 23's 6 x 6 km Helsinki AOI (maps built in CACHE_DIR: "
+                         "about 2 min and 3 GB the first time), level D=4, multires vs full-resolution A*")
     a = ap.parse_args()
+    if a.helsinki_6km:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        print(json.dumps(helsinki_6km(a.helsinki_6km, full_max=a.full_max_expansions), indent=1))
+        return
     if a.case:
         print(json.dumps(run_case(a.case[0], a.case[1], a.full_max_expansions)))
         return

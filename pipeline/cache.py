@@ -314,12 +314,42 @@ def _fsync_dir(path: Path) -> None:
         pass
 
 
+def zarr_uniform_chunks(chunks: tuple[tuple[int, ...], ...]) -> tuple[tuple[int, ...], ...] | None:
+    """Chunks that zarr can store for a dask array chunked ``chunks`` (one tuple of block sizes
+    per dim), or None when ``chunks`` already are: zarr needs equal blocks along each dim, the
+    last one possibly smaller.  Overlapped computations (:mod:`skyroute.stages.overlap`) merge
+    too-small blocks into their neighbours, e.g. ``(1024, 526, 498, 1024, 28)``; such a dim
+    gets blocks of its largest block size, ``(1024, 1024, 1024, 28)`` (never more cells per
+    block than the largest block had, so memory per task does not grow)."""
+    new, changed = [], False
+    for c in chunks:
+        c = tuple(int(v) for v in c)
+        ok = len(c) <= 1 or (len(set(c[:-1])) == 1 and c[-1] <= c[0])
+        if ok:
+            new.append(c)
+            continue
+        size, total = max(c), sum(c)
+        new.append((size,) * (total // size) + ((total % size,) if total % size else ()))
+        changed = True
+    return tuple(new) if changed else None
+
+
 def prepare_for_zarr(ds: xr.Dataset) -> xr.Dataset:
-    """Drop encodings inherited from other stores and make string arrays zarr-friendly."""
+    """Drop encodings inherited from other stores, make string arrays zarr-friendly and
+    rechunk dask arrays whose blocks zarr cannot store (:func:`zarr_uniform_chunks`): this is
+    the one place every stage output passes through before ``to_zarr``."""
     ds = ds.copy()
     for name in list(ds.variables):
         var = ds.variables[name]
         var.encoding = {}
+        if var.chunks is not None:
+            uniform = zarr_uniform_chunks(var.chunks)
+            if uniform is not None:
+                var = var.chunk(dict(zip(var.dims, uniform, strict=True)))
+                if name in ds.coords:
+                    ds.coords[name] = var
+                else:
+                    ds[name] = var
         if var.dtype.kind in ("U", "O"):  # variable-length UTF-8 strings: a stable zarr v3 type
             ds[name] = var.copy(data=np.asarray(var.values).astype(np.dtypes.StringDType()))
     return ds

@@ -3,6 +3,7 @@ bottom of the package layers) for API stability."""
 
 from skyroute.stages.base import (  # noqa: F401
     CacheError,
+    ClusterError,
     CRSError,
     DataError,
     DegenerateCostError,
@@ -13,4 +14,4 @@ from skyroute.stages.base import (  # noqa: F401
     UnknownNameError,
 )
 
-__all__ = ["SkyrouteError", "ScenarioError", "UnknownNameError", "DataError", "InputError", "CRSError", "CacheError", "PlanningError", "DegenerateCostError"]
+__all__ = ["SkyrouteError", "ScenarioError", "UnknownNameError", "DataError", "InputError", "CRSError", "CacheError", "ClusterError", "PlanningError", "DegenerateCostError"]

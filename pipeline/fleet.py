@@ -99,9 +99,28 @@ def _warm(sc: Scenario, cache_dir, task: FleetTask | None = None, level: float |
           opt: FleetOptions | None = None) -> None:
     """Load the maps into this process (a dask worker) and, given a ``task``, plan it once
     without traffic (loads the compiled kernels; the result is dropped)."""
-    fleet_maps(sc, cache_dir, scheduler="synchronous")
-    if task is not None:
-        plan_attempt(sc, cache_dir, task, task.earliest_s, level, [], opt or FleetOptions())
+    import dask
+
+    with dask.config.set(scheduler="synchronous"):    # never the worker's own distributed client
+        fleet_maps(sc, cache_dir, scheduler="synchronous")
+        if task is not None:
+            plan_attempt(sc, cache_dir, task, task.earliest_s, level, [], opt or FleetOptions())
+
+
+def _warm_workers(client, sc: Scenario, cache_dir, task: FleetTask, level: float | None, opt: FleetOptions) -> None:
+    """:func:`_warm` on every worker of ``client`` as one ordinary task each (pinned to it), so
+    it runs in the worker's thread pool like any task: ``client.run`` would run it in the
+    worker's event loop, where a worker that already ran other skyroute tasks has a
+    distributed client and the maps' compute failed ("Attempting to use an asynchronous Client
+    in a synchronous context")."""
+    from skyroute.pipeline.graph import cluster_result
+
+    workers = sorted(client.scheduler_info().get("workers", {}))
+    futs = [client.submit(_warm, sc, cache_dir, task, level, opt, workers=[w],
+                          pure=False, allow_other_workers=True, key=f"skyroute-warm-{i}-{time.time_ns()}")
+            for i, w in enumerate(workers)]
+    for f in futs:
+        cluster_result(client, f, "fleet: loading the maps on the workers")
 
 
 def default_level(maps: dict) -> float | None:
@@ -493,9 +512,9 @@ class _Planner:
             sseen, fut, _ = s
             if sseen == seen:
                 self.stats["speculative_used"] += 1
-                return fut.result()
+                return self.result(fut)
             if set(sseen) <= set(seen):     # only new accepted missions in the corridor
-                a = fut.result()
+                a = self.result(fut)
                 new = {m for m, _ in set(seen) - set(sseen)}
                 if still_valid(a, [(m, v) for m, v in obst if m in new], task, self.sc, self.opt):
                     self.stats["speculative_used"] += 1
@@ -505,7 +524,13 @@ class _Planner:
             self.stats["speculative_replanned"] += 1
             fut.cancel()
         out = self.submit(task, dep, seen, obst)
-        return out if self.client is None else out.result()
+        return out if self.client is None else self.result(out)
+
+    def result(self, fut) -> Attempt:
+        """The attempt of a future; a ClusterError (never a hang) when every worker is lost."""
+        from skyroute.pipeline.graph import cluster_result
+
+        return cluster_result(self.client, fut, "fleet: a planning attempt")
 
     def done(self, task) -> None:
         """``task`` is decided: drop its speculative attempts."""
@@ -531,7 +556,7 @@ class _Planner:
             if (mid, dep) in self.checked or fut.status != "finished":
                 continue
             self.checked.add((mid, dep))
-            a = fut.result()
+            a = self.result(fut)
             if a.ok and not state.index.conflicts(a.volumes):
                 continue
             if a.static:
@@ -565,7 +590,7 @@ def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, optio
     t_setup = time.perf_counter()
     if client is not None and tasks:   # every worker loads the maps and kernels before the clock starts
         first = min(tasks, key=lambda t: (t.earliest_s, -t.priority, t.id))
-        client.run(_warm, sc, cache_dir, first, default_dop if first.dop_level is None else first.dop_level, opt)
+        _warm_workers(client, sc, cache_dir, first, default_dop if first.dop_level is None else first.dop_level, opt)
     setup_s = time.perf_counter() - t_setup
     t_start = time.perf_counter()
 

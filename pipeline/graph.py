@@ -356,6 +356,42 @@ def scheduler_context(scheduler: str = "threads", workers: int | None = None) ->
                                ["threads", "processes", "synchronous", "distributed", "tcp://host:port"])
 
 
+WORKER_LOSS_S = 20.0   # with no worker left for this long, a distributed command fails (never hangs)
+
+
+def cluster_result(client: Any, fut: Any, what: str = "the computation", poll_s: float = 2.0,
+                   worker_loss_s: float | None = None) -> Any:
+    """``fut.result()`` of a distributed future that fails loudly: a :class:`ClusterError` once
+    the cluster has had no worker for ``worker_loss_s`` [s] (default :data:`WORKER_LOSS_S`), or
+    its scheduler is gone, instead of waiting forever; a lost worker among others is survived
+    (dask re-runs its tasks)."""
+    from distributed import TimeoutError as DTimeout
+
+    from skyroute.stages.base import ClusterError
+
+    limit = WORKER_LOSS_S if worker_loss_s is None else float(worker_loss_s)
+    empty_since = None
+    while True:
+        control.check()
+        try:
+            return fut.result(timeout=poll_s)
+        except (DTimeout, TimeoutError):
+            pass
+        try:
+            n = len(client.scheduler_info().get("workers", {}))
+        except Exception as exc:           # the scheduler itself is unreachable
+            raise ClusterError(f"{what}: lost the dask scheduler ({exc}); restart it and the workers, or run "
+                               "without --scheduler") from None
+        if n:
+            empty_since = None
+            continue
+        now = time.monotonic()
+        empty_since = empty_since or now
+        if now - empty_since >= limit:
+            raise ClusterError(f"{what}: every dask worker was lost (none for {limit:g} s); restart the workers "
+                               "(`dask worker ADDRESS`) or run without --scheduler")
+
+
 def _computer(client: Any, progress: bool) -> Callable[[Any], Any]:
     def compute(obj: Any) -> Any:
         if client is not None:
@@ -364,7 +400,7 @@ def _computer(client: Any, progress: bool) -> Callable[[Any], Any]:
                 from distributed.diagnostics.progressbar import progress as dprogress
 
                 dprogress(fut)
-            return fut.result()
+            return cluster_result(client, fut, "the stage computation")
         if progress:
             from dask.diagnostics import ProgressBar
 

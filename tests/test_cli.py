@@ -167,6 +167,6 @@ def test_bad_input_is_one_line_exit_2(runner, tmp_path, edit, message):
 def test_unknown_scenario_exit_2(runner):
     res = runner.invoke(main, ["run", "atlantis"])
     assert res.exit_code == 2
-    assert res.output.strip() == ("error: unknown scenario 'atlantis'; known scenarios: helsinki-contingency, "
+    assert res.output.strip() == ("error: unknown scenario 'atlantis'; known scenarios: helsinki-contingency, helsinki-crosstown, "
                                   "helsinki-medical, helsinki-tactical, helsinki-traffic, monaco-helipads, rotterdam-canyon, "
                                   "rotterdam-tactical, san-gabriel-fixedwing, san-gabriel-fixedwing-local, san-gabriel-mountains")

@@ -15,7 +15,7 @@ from skyroute.pipeline.settings import catalog_dir
 from tests.test_own_city import _own_city_fixtures, _readme_yamls
 
 CATALOG_DATA = catalog_dir() / "data"
-CITY_SCENARIOS = ["helsinki-medical", "helsinki-traffic", "helsinki-tactical", "helsinki-contingency",
+CITY_SCENARIOS = ["helsinki-medical", "helsinki-crosstown", "helsinki-traffic", "helsinki-tactical", "helsinki-contingency",
                   "rotterdam-canyon", "rotterdam-tactical", "monaco-helipads"]
 
 

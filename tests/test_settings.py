@@ -87,7 +87,7 @@ def test_bad_crs_is_reported():
 
 
 def test_unknown_scenario_lists_known_ones():
-    with pytest.raises(UnknownNameError, match="unknown scenario 'atlantis'; known scenarios: helsinki-contingency, helsinki-medical"):
+    with pytest.raises(UnknownNameError, match="unknown scenario 'atlantis'; known scenarios: helsinki-contingency, helsinki-crosstown, helsinki-medical"):
         load_scenario("atlantis")
 
 

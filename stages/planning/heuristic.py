@@ -38,23 +38,42 @@ WIND_INTERP_SAMPLES = 8         # samples per gap between two wind levels of the
 
 
 class BoundMemo:
-    """A thread-safe memo ``key -> value`` holding at most ``limit`` entries (cleared when full)."""
+    """A thread-safe memo ``key -> value`` holding at most ``limit`` entries (cleared when full).
+    A key is computed by one thread at a time: the coverage levels planned in parallel threads
+    ask for the same bounds, and a second thread waits for the first one's value instead of
+    computing it again (on the 6 km Helsinki AOI each bound costs ~0.1-0.2 s, 24 per lattice)."""
 
     def __init__(self, limit: int) -> None:
         self.limit = int(limit)
         self._store: dict[str, Any] = {}
+        self._pending: dict[str, threading.Event] = {}
         self._lock = threading.Lock()
 
     def get(self, key: str, make: Callable[[], Any]) -> Any:
-        """The value of ``key``, computed by ``make()`` on a miss (outside the lock)."""
-        with self._lock:
-            value = self._store.get(key)
-        if value is None:
+        """The value of ``key``, computed by ``make()`` on a miss (outside the lock; a thread
+        asking while another computes it waits for that value)."""
+        while True:
+            with self._lock:
+                value = self._store.get(key)
+                if value is not None:
+                    return value
+                event = self._pending.get(key)
+                owner = event is None
+                if owner:
+                    event = self._pending[key] = threading.Event()
+            if owner:
+                break
+            event.wait()          # then read it (or compute it, if that thread failed)
+        try:
             value = make()
             with self._lock:
                 if len(self._store) > self.limit:
                     self._store.clear()
                 self._store[key] = value
+        finally:
+            with self._lock:
+                self._pending.pop(key, None)
+            event.set()
         return value
 
     def clear(self) -> None:

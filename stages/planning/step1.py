@@ -33,7 +33,7 @@ import numpy as np
 
 from skyroute.stages import control
 from skyroute.stages.base import InputError, UnknownNameError
-from skyroute.stages.planning.grid_planner import STEP_CELLS, EdgeCache, plan_grid, refine_path
+from skyroute.stages.planning.grid_planner import STEP_CELLS, EdgeCache, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 
 # the one list of planners; the fixed-wing ones (seed 002) are solved by
@@ -153,11 +153,14 @@ def _solve_once(problem: PlanningProblem, planner: str, time_budget_s: float, se
         r = plan_potential(problem, time_limit_s=left)
         return r["waypoints"], {"stopped_by": r["stopped_by"] or "completed", "reason": r["reason"],
                                 "compute_s": r["compute_s"]}
-    if planner == "astar":
-        r = plan_grid(problem, step_cells=step_cells, refine=refine, h2=h2, time_limit_s=left, z_anchor_m=z_anchor_m,
-                      edge_cache=edge_cache)
+    if planner == "astar":   # multi-resolution above a problem size (issue 23), else plan_grid as before
+        from skyroute.stages.planning.multires import plan_astar
+
+        r = plan_astar(problem, step_cells=step_cells, refine=refine, h2=h2, time_limit_s=left, z_anchor_m=z_anchor_m,
+                       edge_cache=edge_cache)
         return r["waypoints"], {"lattice_f": r["lattice_f"], "expanded": r["expanded"],
-                                "stopped_by": r["stopped_by"] or "completed"}
+                                "stopped_by": r["stopped_by"] or "completed",
+                                **({"multires": r["multires"]} if "multires" in r else {})}
     from skyroute.stages.planning.bitstar import plan_bitstar
 
     if max_iterations is None:          # deterministic: an iteration count, wall clock as a safety cap

@@ -275,8 +275,10 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
     h2 = None
     anchor = None if edge_cache is None else LATTICE_ANCHOR_M
     if planner == "astar":   # one A* heuristic for all levels: that of the loosest (lowest floors)
-        loosest = _loosest(problems)
-        if loosest is not None and not loosest.endpoint_problem():
+        from skyroute.stages.planning.multires import use_multires
+
+        loosest = _loosest(problems)   # (a multi-resolution A* makes its own, within its corridor)
+        if loosest is not None and not loosest.endpoint_problem() and not use_multires(loosest):
             zkey = ("anchor", anchor) if anchor is not None else round(float(start[2]), 6)   # the lattice levels
             hkey = (tuple(np.round(goal, 6)), zkey, loosest.dop_threshold, veh.name, tuple(weights), step_cells,
                     min_agl_m, max_agl_m, dop_kind, battery_reserve_pct)

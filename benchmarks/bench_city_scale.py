@@ -1,0 +1,211 @@
+"""City-scale STEP I (issue 23): multi-resolution A* against full-resolution A* on missions of
+increasing length in a SYNTHETIC city (tests/_city.py: seeded street blocks of random building
+heights, towers above the 80 m AGL limit, no-fly discs, a risk map higher over buildings, a
+varying 3-D wind map; procedural, not real data), 2 m cells, DJI M300, weights (1, 1, 1, 1).
+
+    python benchmarks/bench_city_scale.py                       # sides 2 and 6 km
+    python benchmarks/bench_city_scale.py --sides 2 6 12        # + 12 km (about 4 GB per case)
+    python benchmarks/bench_city_scale.py --full-max-expansions 0   # multires only
+    python benchmarks/bench_city_scale.py --helsinki-6km CACHE_DIR  # real maps: issue 23's 6 km AOI
+
+Each case runs in its own process (its peak RSS is that process's ``ru_maxrss``), after a
+small warm-up plan, so numba compilation is never timed; before each timed plan the memoised
+energy bounds and block reductions are forgotten, so both planners start from the maps alone
+(as the plan stage does).  Per case: grid cells, mission
+length (straight line), multi-resolution plan time [s] (lattice, coarse A*, corridor A*,
+refinement), expansions (coarse + corridor), widenings, corridor share of the lattice columns,
+f (eq. 11, refined), and the same for full-resolution A* (:func:`plan_grid`) when it finishes
+within ``--full-max-expansions`` node expansions (a count, not a time), with the ratio
+f_multires / f_full.  A log-log fit of multires plan time against grid cells is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+# (side [km], mission [km]): missions SW -> NE through the AOI centre
+CASES = {2: (1.0,), 6: (1.0, 5.0), 12: (5.0, 10.0), 20: (15.0,)}
+
+
+def _fractions(side_m: float, length_m: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """AOI fractions of a diagonal mission of ``length_m`` centred in a square AOI of ``side_m``."""
+    d = length_m / math.sqrt(2) / side_m / 2
+    return (0.5 - d, 0.5 - d), (0.5 + d, 0.5 + d)
+
+
+def _cold(problem) -> None:
+    """Forget every bound and block reduction memoised for ``problem`` (both planners are timed
+    as the plan stage meets a problem: maps cached, nothing derived from them yet)."""
+    from skyroute.stages.planning import heuristic
+
+    heuristic.RATIO_MEMO.clear()
+    heuristic.WINDS_MEMO.clear()
+    for k in [k for k in problem.__dict__ if k.startswith("_") and k != "_seg_args"]:
+        del problem.__dict__[k]
+
+
+def run_case(side_km: float, length_km: float, full_max: int) -> dict:
+    from _city import city_problem
+
+    from skyroute.stages.planning.grid_planner import plan_grid
+    from skyroute.stages.planning.multires import plan_multires
+
+    warm, _ = city_problem((400.0, 400.0), (0.1, 0.1), (0.9, 0.9))      # compile the kernels (not timed)
+    plan_multires(warm)
+    plan_grid(warm)
+    side = side_km * 1000.0
+    s, g = _fractions(side, length_km * 1000.0)
+    t = time.perf_counter()
+    pr, _ = city_problem((side, side), s, g, seed=1)
+    build_s = time.perf_counter() - t
+    straight = math.dist(pr.start_xyz[:2], pr.goal_xyz[:2])
+    _cold(pr)
+    t = time.perf_counter()
+    mr = plan_multires(pr)
+    mr_s = time.perf_counter() - t
+    out = {"side_km": side_km, "cells": pr.grid.nx * pr.grid.ny, "mission_km": straight / 1000.0,
+           "maps_s": build_s, "multires_s": mr_s, "multires_expanded": mr["expanded"],
+           "widenings": mr["multires"]["widenings"], "stage": mr["multires"]["stage"],
+           "corridor_fraction": mr["multires"]["corridor_fraction"]}
+    if mr["waypoints"] is not None:
+        pc = pr.path_costs(mr["waypoints"])
+        out.update(multires_f=pc["f"], multires_valid=pc["valid"])
+    out["rss_multires_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if full_max > 0:
+        _cold(pr)
+        t = time.perf_counter()
+        fr = plan_grid(pr, max_expansions=full_max)
+        out["full_s"] = time.perf_counter() - t
+        out["full_expanded"] = fr["expanded"]
+        if fr["waypoints"] is not None:
+            out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
+            out["ratio"] = out.get("multires_f", math.nan) / out["full_f"]
+        out["rss_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
+
+
+HELSINKI_6KM = {"bounds_lonlat": [24.890, 60.145, 24.998, 60.199],          # issue 23's AOI
+                "goal": {"name": "issue 23 6 km AOI, NE (unnamed point)", "lon": 24.9960, "lat": 60.1975,
+                         "alt_agl_m": 60}}
+
+
+def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_000) -> dict:
+    """helsinki-crosstown widened to issue 23's 6 x 6 km AOI (buildings and land use only where
+    the shipped extract has them) with a 5 km mission from the same start: the maps are built
+    (or read) in ``cache_dir``, then STEP I of level D=``threshold`` by multires and by
+    full-resolution A*, both cold."""
+    import tempfile
+
+    import yaml
+    from bench_planner import case_inputs
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.stages_builtin import plan_arguments
+    from skyroute.stages.planning.grid_planner import plan_grid
+    from skyroute.stages.planning.multires import plan_multires
+    from skyroute.stages.planning.problem import build_problem, xyz_from_agl
+
+    sc = yaml.safe_load((ROOT / "catalogs" / "scenarios" / "helsinki-crosstown.yaml").read_text())
+    sc["name"] = "helsinki-6km"
+    sc["aoi"]["bounds_lonlat"] = HELSINKI_6KM["bounds_lonlat"]
+    sc["mission"]["goal"] = HELSINKI_6KM["goal"]
+    data = ROOT / "catalogs" / "data"
+    for k, v in list(sc["data"].items()):
+        if isinstance(v, str) and v.startswith("../data/"):
+            sc["data"][k] = str(data / v.removeprefix("../data/"))
+        elif isinstance(v, dict) and str(v.get("path", "")).startswith("../data/"):
+            v["path"] = str(data / v["path"].removeprefix("../data/"))
+        elif isinstance(v, list):
+            sc["data"][k] = [str(data / x.removeprefix("../data/")) for x in v]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "helsinki-6km.yaml"
+        path.write_text(yaml.safe_dump(sc))
+        t = time.perf_counter()
+        _, d, s, _ = case_inputs(str(path), Cache(cache_dir))
+        maps_s = time.perf_counter() - t
+    args = plan_arguments(s, d["surface"])
+    surf = d["surface"][["terrain", "surface"]].load()
+    cov = d["coverage"]["coverage_floor"].load()
+    start = xyz_from_agl(surf, *args["start_xy"], args["start_agl_m"])
+    goal = xyz_from_agl(surf, *args["goal_xy"], args["goal_agl_m"])
+    pr = build_problem(surf, d["clearance"]["min_altitude_m"].load(), cov.sel(threshold=threshold),
+                       d["environment"]["risk_cost"].load(), d["environment"]["landing_cost"].load(), d["wind"].load(),
+                       args["vehicle"], args["weights"], start, goal, args["min_agl_m"], args["max_agl_m"], threshold,
+                       nofly=d["clearance"]["nofly"].load(), check_endpoints=False)
+    out = {"case": f"helsinki 6 km, D={threshold:g}", "cells": pr.grid.nx * pr.grid.ny,
+           "mission_km": math.dist(start[:2], goal[:2]) / 1000.0, "maps_s": maps_s}
+    _cold(pr)
+    t = time.perf_counter()
+    mr = plan_multires(pr)
+    out.update(multires_s=time.perf_counter() - t, multires_expanded=mr["expanded"],
+               multires_f=pr.path_costs(mr["waypoints"])["f"], multires_valid=pr.path_costs(mr["waypoints"])["valid"])
+    _cold(pr)
+    t = time.perf_counter()
+    fr = plan_grid(pr, max_expansions=full_max)
+    out.update(full_s=time.perf_counter() - t, full_expanded=fr["expanded"])
+    if fr["waypoints"] is not None:
+        out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
+        out["ratio"] = out["multires_f"] / out["full_f"]
+    out["rss_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sides", type=float, nargs="+", default=[2, 6], help="AOI sides [km] (of 2, 6, 12, 20)")
+    ap.add_argument("--full-max-expansions", type=int, default=3_000_000,
+                    help="full-resolution A* stops (as not finished) after this many expansions; 0: skip it")
+    ap.add_argument("--case", type=float, nargs=2, help=argparse.SUPPRESS)
+    ap.add_argument("--helsinki-6km", metavar="CACHE_DIR",
+                    help="only the real-map case: issue 23's 6 x 6 km Helsinki AOI (maps built in CACHE_DIR: "
+                         "about 2 min and 3 GB the first time), level D=4, multires vs full-resolution A*")
+    a = ap.parse_args()
+    if a.helsinki_6km:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        print(json.dumps(helsinki_6km(a.helsinki_6km, full_max=a.full_max_expansions), indent=1))
+        return
+    if a.case:
+        print(json.dumps(run_case(a.case[0], a.case[1], a.full_max_expansions)))
+        return
+    rows = []
+    for side in a.sides:
+        for length in CASES.get(int(side), (min(5.0, side * 0.7),)):
+            r = subprocess.run([sys.executable, __file__, "--case", str(side), str(length),
+                                "--full-max-expansions", str(a.full_max_expansions)],
+                               capture_output=True, text=True, check=False)
+            if r.returncode != 0:
+                print(f"side {side} km, mission {length} km failed:\n{r.stderr[-2000:]}", file=sys.stderr)
+                continue
+            rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
+            print(json.dumps(rows[-1]), file=sys.stderr)
+    print("| AOI side [km] | cells [M] | mission [km] | multires plan [s] | expansions | widenings | corridor [%] "
+          "| full A* [s] | full expansions | f multires / f full | peak RSS [MiB] |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        full = (f"{r['full_s']:.1f} | {r['full_expanded']:,}" if "full_f" in r
+                else ("not finished | > {:,}".format(r["full_expanded"]) if "full_s" in r else "- | -"))
+        ratio = f"{r['ratio']:.4f}" if "ratio" in r else "-"
+        print(f"| {r['side_km']:g} | {r['cells'] / 1e6:.1f} | {r['mission_km']:.2f} | {r['multires_s']:.1f} | "
+              f"{r['multires_expanded']:,} | {r['widenings']} | {100 * r['corridor_fraction']:.1f} | {full} | {ratio} | "
+              f"{r.get('rss_MiB', r['rss_multires_MiB']):.0f} |")
+    import numpy as np
+
+    if len(rows) >= 2:
+        x = np.log([r["cells"] for r in rows])
+        y = np.log([r["multires_s"] for r in rows])
+        slope = np.polyfit(x, y, 1)[0]
+        print(f"\nlog-log slope of multires plan time against grid cells: {slope:.2f}")
+
+
+if __name__ == "__main__":
+    main()

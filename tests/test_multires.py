@@ -205,7 +205,7 @@ def test_strategic_plan_with_multires_passes_the_validator(maps, monkeypatch):
     import xarray as xr
     from _city import city_wind, street_point
 
-    from skyroute.stages.planning.strategic import plan_strategic
+    from skyroute.stages.planning.strategic import plan_levels
     from skyroute.stages.planning.validate import validate_plan
 
     monkeypatch.setattr(multires, "MULTIRES_MIN_CELLS", 1000)
@@ -217,7 +217,7 @@ def test_strategic_plan_with_multires_passes_the_validator(maps, monkeypatch):
     env = xr.Dataset({"risk_cost": g.dataarray(maps["risk"], "risk_cost"),
                       "landing_cost": g.dataarray(maps["landing"], "landing_cost")})
     s, e = street_point(maps, 0.05, 0.12), street_point(maps, 0.95, 0.88)
-    plan = plan_strategic(surface, env, city_wind(maps), clearance, None, None, None, start_xy=s, start_agl_m=30.0,
+    plan = plan_levels(surface, env, city_wind(maps), clearance, None, None, None, start_xy=s, start_agl_m=30.0,
                           goal_xy=e, goal_agl_m=30.0, start_time_utc="2020-01-03T10:00:00Z", max_agl_m=80.0,
                           workers=1)
     assert "multires" in plan.step1[0].info["tries"][0]

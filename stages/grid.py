@@ -819,10 +819,49 @@ def read_window_holes(path, grid: Grid, *, what: str, margin_px: int = 32) -> tu
     margin = max(int(margin_px), 1)
     while True:
         win = read_window(path, grid, what=what, margin_px=margin)
+        check_heights(win.values, path, what)
         holes = find_holes(win)
         if win.full or not holes.at_border[1:].any():
             return win, holes
         margin *= 4
+
+
+#: Heights a DSM or DEM may hold [m]: from below the Dead Sea shore to above Everest's summit.
+#: Anything outside is not a height in metres (an undeclared NoData value such as 1e30 or
+#: -3.4e38, a raster in centimetres or feet ...).
+HEIGHT_RANGE_M = (-1000.0, 10000.0)
+
+
+def check_heights(values: np.ndarray, path, what: str) -> None:
+    """Raise :class:`DataError` when finite ``values`` of a height raster fall outside
+    :data:`HEIGHT_RANGE_M`.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        The raster's values [m] (NaN: NoData).
+    path : str, pathlib.Path or list of them
+        The raster (named in the message).
+    what : str
+        Names the layer ("surface DSM", "terrain DEM").
+
+    Raises
+    ------
+    DataError
+        Naming the extreme value, how many pixels hold values outside the range and the fix.
+    """
+    v = np.asarray(values)
+    fin = v[np.isfinite(v)]
+    if fin.size == 0:
+        return
+    lo, hi = float(fin.min()), float(fin.max())
+    if lo >= HEIGHT_RANGE_M[0] and hi <= HEIGHT_RANGE_M[1]:
+        return
+    bad = int(np.count_nonzero((fin < HEIGHT_RANGE_M[0]) | (fin > HEIGHT_RANGE_M[1])))
+    worst = hi if hi > HEIGHT_RANGE_M[1] else lo
+    raise DataError(f"{what} {path}: {bad} pixel(s) hold {worst:g}, not a height in metres (heights lie within "
+                    f"{HEIGHT_RANGE_M[0]:g} to {HEIGHT_RANGE_M[1]:g} m): declare the raster's NoData value "
+                    "(gdal_edit.py -a_nodata VALUE FILE) or give heights in metres")
 
 
 def fill_holes(win: SourceWindow, holes: Holes, how: str) -> np.ndarray:

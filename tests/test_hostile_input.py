@@ -79,6 +79,21 @@ def _rgb_tif(tmp: Path) -> str:
     return str(p)
 
 
+def _dsm_with_1e30(tmp: Path) -> str:
+    """A one-band float DSM over the Helsinki AOI whose undeclared NoData is 1e30 in one block."""
+    import numpy as np
+    import rasterio
+    from rasterio.transform import from_origin
+
+    p = tmp / "dsm1e30.tif"
+    z = np.full((200, 200), 12.0, np.float32)
+    z[50:80, 60:90] = 1e30
+    with rasterio.open(p, "w", driver="GTiff", width=200, height=200, count=1, dtype="float32", crs="EPSG:32635",
+                       transform=from_origin(385000, 6673400, 10, 10)) as dst:
+        dst.write(z, 1)
+    return str(p)
+
+
 def _vehicle_with(tmp: Path, line: str) -> str:
     text = VEHICLE_SRC.read_text()
     key = line.split(":")[0]
@@ -155,6 +170,9 @@ CASES = [
      ["aoi.crs", "projected"]),
     ("dsm-rgb-image", lambda t: ["plan", _scenario(t, _set(h_raw(), "data.surface", {
         "path": _rgb_tif(t), "vertical_datum": "EGM96 geoid"}))], ["data.surface.path", "3 bands"]),
+    ("dsm-1e30", lambda t: ["run", _scenario(t, _set(h_raw(), "data.surface", {
+        "path": _dsm_with_1e30(t), "vertical_datum": "EGM96 geoid"})), "--stage", "surface", "--no-report",
+        "--out", str(t / "o")], ["surface DSM", "1e+30", "not a height in metres", "-a_nodata"]),
     # ---- command line numbers
     ("fleet-seed-negative", lambda t: ["fleet", _scenario(t), "--missions", "2", "--seed", "-1"], ["--seed"]),
     ("fly-seed-negative", lambda t: ["fly", _scenario(t), "--seed", "-1"], ["--seed"]),

@@ -1,0 +1,193 @@
+"""Reading scenarios and events: catalog names and paths, YAML, :class:`ScenarioError` with every problem,
+:func:`load_scenario`, :func:`with_events`, :func:`scenario_at`."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from pydantic import TypeAdapter, ValidationError
+
+from skyroute.pipeline.errors import ScenarioError, UnknownNameError
+from skyroute.pipeline.settings.checks import (
+    _clamp_default_max_altitude,
+    _event_problems,
+    _semantic_problems,
+)
+from skyroute.pipeline.settings.common import DEFAULT_SCENARIO, _is_file, _problems_from
+from skyroute.pipeline.settings.events import Event, GnssEvent, ObstacleEvent, WindEvent
+from skyroute.pipeline.settings.schema import Obstacle, Scenario
+from skyroute.stages.yaml_io import read_yaml_file
+
+
+def catalog_dir() -> Path:
+    """The folder of the installed scenario catalog."""
+    return Path(str(resources.files("skyroute.catalogs")))
+
+def scenario_paths() -> dict[str, Path]:
+    """Known scenario names -> YAML files (built-in catalog plus ``$SKYROUTE_CATALOG`` folders)."""
+    folders = [catalog_dir() / "scenarios"]
+    extra = os.environ.get("SKYROUTE_CATALOG")
+    if extra:
+        folders += [Path(p) for p in extra.split(os.pathsep) if p]
+    out: dict[str, Path] = {}
+    for folder in folders:
+        for f in sorted(folder.glob("*.yaml")):
+            out.setdefault(f.stem, f)
+    return out
+
+def _resolve_paths(node: Any, base: Path, key: str = "") -> Any:
+    """Make every relative path in a ``path`` / ``*_path`` / data field absolute w.r.t. ``base``."""
+    path_keys = {"path", "landuse", "landing_sites", "nofly_zones", "risk_tags"}
+    if isinstance(node, dict):
+        return {k: _resolve_paths(v, base, k) for k, v in node.items()}
+    if isinstance(node, list):
+        if key == "almanacs":
+            return [str((base / Path(os.path.expandvars(str(v)))).resolve()) if isinstance(v, str) else v for v in node]
+        return [_resolve_paths(v, base, key) for v in node]
+    if isinstance(node, str) and key in path_keys:
+        return str((base / Path(os.path.expandvars(node))).resolve())
+    return node
+
+def _sorted_labels(raw_events: Any, fmt: str = "events[{}]") -> list[str]:
+    """YAML paths of the events in the order the scenario keeps them (by time, stable)."""
+    if not isinstance(raw_events, list):
+        return []
+    order = sorted(range(len(raw_events)), key=lambda i: float(raw_events[i]["t_s"]))
+    return [fmt.format(i) for i in order]
+
+def parse_scenario(raw: Any, source: str = "<scenario>", base: Path | None = None) -> Scenario:
+    """Validate a scenario mapping (already parsed YAML).  Raises ScenarioError with every problem."""
+    if not isinstance(raw, dict):
+        raise ScenarioError(source, ["<root>: a scenario must be a YAML mapping (key: value)"])
+    if base is not None:
+        raw = _resolve_paths(raw, base)
+    try:
+        sc = Scenario.model_validate(raw)
+    except ValidationError as exc:
+        raise ScenarioError(source, _problems_from(exc)) from None
+    sc = _clamp_default_max_altitude(sc)
+    problems = _semantic_problems(sc)
+    if sc.events:
+        problems += _event_problems(sc, _sorted_labels(raw.get("events")))
+    if problems:
+        raise ScenarioError(source, problems)
+    if base is not None:
+        sc = sc.model_copy(update={"source_path": Path(source)})
+    return sc
+
+def load_scenario(name_or_path: str | Path = DEFAULT_SCENARIO) -> Scenario:
+    """Load and validate a scenario by catalog name (``helsinki-medical``) or YAML path."""
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") or _is_file(p):
+        if not _is_file(p):
+            raise ScenarioError(str(p), [f"<file>: scenario file not found: {p}"])
+    else:
+        known = scenario_paths()
+        if str(name_or_path) not in known:
+            raise UnknownNameError("scenario", str(name_or_path), list(known))
+        p = known[str(name_or_path)]
+    raw = read_yaml_file(p, "scenario")
+    return parse_scenario(raw, source=str(p), base=p.parent)
+
+_EVENTS = TypeAdapter(tuple[Event, ...])
+
+def _read_yaml(p: Path) -> Any:
+    return read_yaml_file(p, "events")
+
+def _raw_events_of(path: str | Path) -> list:
+    p = Path(path)
+    if not _is_file(p):
+        raise ScenarioError(str(p), [f"<file>: events file not found: {p}"])
+    raw = _read_yaml(p)
+    if isinstance(raw, dict) and set(raw) == {"events"}:
+        raw = raw["events"]
+    if not isinstance(raw, list):
+        raise ScenarioError(str(p), ["<root>: an events file holds a list of events, or a mapping with one key "
+                                     "`events:` holding that list (each event: t_s, kind, ...)"])
+    return _resolve_paths({"events": raw}, p.parent)["events"]
+
+def load_events_file(path: str | Path) -> tuple[Event, ...]:
+    """Read and validate an events file: a YAML list of events, or a mapping whose only key
+    ``events`` holds that list (the ``events:`` section of a scenario).  Relative paths
+    (almanacs, gridded wind) are resolved against the file's folder.  Events stay in file order
+    (:func:`with_events` sorts them by time).  Raises ScenarioError naming the file and each
+    problem's YAML path (``events[2]: unknown kind 'fog'; ...``)."""
+    raw = _raw_events_of(path)
+    try:
+        return _EVENTS.validate_python(raw)
+    except ValidationError as exc:
+        raise ScenarioError(str(path), _problems_from(exc, prefix=("events",))) from None
+
+def with_events(sc: Scenario, events: Sequence[Event] | str | Path, source: str | None = None) -> Scenario:
+    """``sc`` with ``events`` (a sequence of events, or an events file read with
+    :func:`load_events_file`) appended and the whole list re-validated against the scenario
+    (intruder ids, polygons in the AOI, data files) and sorted by time (stable).  Backs
+    ``skyroute fly --events FILE``; errors name the file (or ``source``) and the event's place in it."""
+    if isinstance(events, str | Path):
+        source = source or str(events)
+        events = load_events_file(events)
+    source = source or "added events"
+    new = list(events)
+    try:
+        new = list(_EVENTS.validate_python(new))  # events built by hand are checked too
+    except ValidationError as exc:
+        raise ScenarioError(source, _problems_from(exc, prefix=("events",))) from None
+    tagged = [(f"scenario events[{i}]", False, e) for i, e in enumerate(sc.events)]
+    tagged += [(f"events[{i}]", True, e) for i, e in enumerate(new)]
+    tagged.sort(key=lambda t: t[2].t_s)
+    out = sc.model_copy(update={"events": tuple(t[2] for t in tagged)})
+    problems = _event_problems(out, [t[0] for t in tagged], [t[1] for t in tagged])
+    if problems:
+        raise ScenarioError(f"{source} (events added to scenario {sc.name!r})", problems)
+    return out
+
+def check_event_times(sc: Scenario, mission_end_s: float) -> list[str]:
+    """Problems of events that come after the end of the mission (``mission_end_s`` [s after the
+    start], known only once the plan is made): one line each, for the engine to raise."""
+    out = []
+    for k, e in enumerate(sc.events):
+        if e.t_s > mission_end_s:
+            name = f" {e.id!r}" if e.id else ""
+            out.append(f"events[{k}]: {e.kind} event{name} at {e.t_s:g} s comes after the end of the mission at "
+                       f"{mission_end_s:.1f} s (events are times after the mission start); move it earlier or drop it")
+    return out
+
+def scenario_at(sc: Scenario, t_s: float) -> Scenario:
+    """The scenario with every map-changing event up to ``t_s`` [s after the start] applied, so
+    the affected maps are recomputed through the same (cached) stages:
+
+    * ``wind``: replaces ``data.uniform_wind`` / ``data.wind`` (wind stage);
+    * ``gnss``: ``out_of_service`` adds to ``gnss.exclude_satellites``, ``almanacs`` replaces
+      ``data.almanacs`` (satellites stage, then coverage);
+    * ``obstacle``: adds to ``data.obstacles`` (surface stage, then everything built on it).
+
+    ``intruder``, ``intruder_update`` and ``nofly`` events change no map.  Stages whose settings
+    these do not touch keep their cache keys."""
+    data, gnss = sc.data, sc.gnss
+    d_upd: dict[str, Any] = {}
+    excluded = list(gnss.exclude_satellites)
+    obstacles = list(data.obstacles)
+    for e in sc.events:
+        if e.t_s > t_s:
+            break  # sorted by time
+        if isinstance(e, WindEvent):
+            d_upd.update(uniform_wind=e.uniform_wind, wind=e.wind)
+        elif isinstance(e, GnssEvent):
+            excluded += [s for s in e.out_of_service if s not in excluded]
+            if e.almanacs:
+                d_upd["almanacs"] = e.almanacs
+        elif isinstance(e, ObstacleEvent):
+            xy = e.polygon_xy(sc)
+            obstacles.append(Obstacle(polygon=tuple((float(x), float(y)) for x, y in xy), height_agl_m=e.height_agl_m))
+    if len(obstacles) != len(data.obstacles):
+        d_upd["obstacles"] = tuple(obstacles)
+    upd: dict[str, Any] = {}
+    if d_upd:
+        upd["data"] = data.model_copy(update=d_upd)
+    if tuple(excluded) != gnss.exclude_satellites:
+        upd["gnss"] = gnss.model_copy(update={"exclude_satellites": tuple(excluded)})
+    return sc.model_copy(update=upd) if upd else sc

@@ -230,3 +230,44 @@ def test_strategic_plan_with_multires_passes_the_validator(maps, monkeypatch):
     # the validator is live: a floor 90 m higher everywhere is violated
     assert validate_plan(cand, grid=g, terrain_m=np.zeros(g.shape), vehicle="dji-m300-rtk",
                          clearance_floor_m=maps["clearance"] + 90.0, min_agl_m=0.0, max_agl_m=80.0)
+
+
+def test_build_problem_shared_levels_identical():
+    """build_problem(shared=...) (plan_levels' coverage levels) gives the problems it gives
+    without it, array for array, and the levels share the arrays derived from the same maps."""
+    import dataclasses
+
+    import xarray as xr
+    from _city import MAX_AGL_M, city_maps, city_wind
+
+    from skyroute.stages.planning.problem import build_problem
+    from skyroute.stages.vehicle import load_vehicle
+
+    maps = city_maps((300.0, 240.0), seed=3)
+    g = maps["grid"]
+    terr = g.dataarray(np.linspace(0.0, 5.0, g.nx)[None, :].repeat(g.ny, 0), "terrain", units="m")
+    ds = xr.Dataset({"terrain": terr, "surface": terr, "terrain_min": terr - 0.5})
+    wind, veh = city_wind(maps, 3, step_m=100.0), load_vehicle("dji-m300-rtk")
+    rng = np.random.default_rng(0)
+    covers = {d: np.where(rng.random(g.shape) < 0.05, np.nan, rng.uniform(0, 40, g.shape)) for d in (2.0, 3.0, 4.0)}
+    risk = np.where(rng.random(g.shape) < 0.01, np.inf, maps["risk"])
+    s, e = (g.x[3], g.y[3], 30.0), (g.x[-4], g.y[-4], 30.0)
+
+    def build(d, shared):
+        return build_problem(ds, maps["clearance"], covers[d], risk, maps["landing"], wind, veh, (1, 1, 1, 1), s, e,
+                             2.0, MAX_AGL_M, d, nofly=maps["nofly"], check_endpoints=False, shared=shared)
+
+    shared: dict = {}
+    together = [build(d, shared) for d in covers]
+    alone = [build(d, None) for d in covers]
+    for a, b in zip(together, alone):
+        for f in dataclasses.fields(a):
+            x, y = getattr(a, f.name), getattr(b, f.name)
+            if isinstance(x, np.ndarray):
+                assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True), f.name
+            elif f.name not in ("vehicle", "wind_grid", "grid"):
+                assert x == y, f.name
+    assert together[0].floor_m is not together[1].floor_m         # per level
+    assert not np.array_equal(together[0].floor_m, together[1].floor_m)
+    for name in ("terrain_m", "ceiling_m", "risk_cost", "landing_cost", "wind_uvw", "nofly"):
+        assert getattr(together[0], name) is getattr(together[2], name), name

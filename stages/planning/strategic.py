@@ -263,10 +263,12 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
         c = by_level[d]
         return c["min_altitude_m"].load(), (c["nofly"].load() if "nofly" in c else None)
 
+    shared: dict = {}        # the levels share the arrays derived from the same maps (build_problem)
     problems = [build_problem(surf, level_clearance(d)[0], floor_j, risk, land, wind_map, veh, weights, start, goal,
                               min_agl_m, max_agl_m, d, dop_kind=dop_kind, nofly=level_clearance(d)[1],
-                              check_endpoints=False)
+                              check_endpoints=False, shared=shared)
                 for d, floor_j in levels]
+    del shared
     if planner in FIXED_WING_PLANNERS:
         return _plan_fixedwing_levels(problems, levels, planner, time_budget_s, step_cells, t0, cost_warnings,
                                       seed=seed, intruders=intruders, d_c_m=d_c_m, dt_c_s=dt_c_s,

@@ -271,3 +271,9 @@ def test_build_problem_shared_levels_identical():
     assert not np.array_equal(together[0].floor_m, together[1].floor_m)
     for name in ("terrain_m", "ceiling_m", "risk_cost", "landing_cost", "wind_uvw", "nofly"):
         assert getattr(together[0], name) is getattr(together[2], name), name
+    for a, b in zip(together, alone):          # the shared block reductions: the same coarse maps
+        for opt in (False, True):
+            ca, cb = coarse_problem(a, 4, optimistic=opt), coarse_problem(b, 4, optimistic=opt)
+            for name in ("terrain_m", "floor_m", "ceiling_m", "risk_cost", "landing_cost"):
+                assert np.array_equal(getattr(ca, name), getattr(cb, name)), name
+    assert len(together[0]._block_memo) == 2 * (4 + 3)   # max and min of 4 shared maps + 3 floors

@@ -128,9 +128,17 @@ def coarse_problem(problem: PlanningProblem, factor: int, optimistic: bool = Fal
     memo = problem.__dict__.setdefault("_coarse_blocks", {})     # both abstractions use them
     if f not in memo:
         names = ("terrain_m", "floor_m", "ceiling_m", "risk_cost", "landing_cost")
+        shared = problem.__dict__.get("_block_memo")    # the coverage levels' (build_problem(shared=))
+
+        def reduce(a: np.ndarray, how: np.ufunc) -> np.ndarray:
+            if shared is None:
+                return _block_reduce(a, f, how)
+            # keyed on the array's id: the entry holds the array, so the id is not reused meanwhile
+            return shared.get(f"{id(a)}:{f}:{how.__name__}", lambda: (a, _block_reduce(a, f, how)))[1]
+
         memo.clear()
-        memo[f] = ({name: _block_reduce(getattr(problem, name), f, np.maximum) for name in names},
-                   {name: _block_reduce(getattr(problem, name), f, np.minimum) for name in names})
+        memo[f] = ({name: reduce(getattr(problem, name), np.maximum) for name in names},
+                   {name: reduce(getattr(problem, name), np.minimum) for name in names})
     hi, lo = memo[f]
     opt = dict(terrain_m=hi["terrain_m"], floor_m=lo["floor_m"], ceiling_m=hi["ceiling_m"],
                risk_cost=lo["risk_cost"], landing_cost=lo["landing_cost"])

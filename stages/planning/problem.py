@@ -452,7 +452,9 @@ def build_problem(surface_ds: xr.Dataset, clearance_floor, coverage_floor_j, ris
     derived from inputs the levels share (the same ``surface_ds``, ``risk_cost``,
     ``landing_cost``, ``wind``, ``nofly`` and ``clearance_floor`` objects) are computed once and
     the levels' problems share them (no array of a problem is ever written in place); the
-    problems are the same as without it (on the 6 km Helsinki AOI it saves ~2 s per level).
+    problems are the same as without it (on the 6 km Helsinki AOI it saves ~2 s per level),
+    and they share one memo of the block reductions of those arrays
+    (:func:`~skyroute.stages.planning.multires.coarse_problem`).
 
     Raises InputError for bad weights/shapes/limits and PlanningError (with the reason) when
     the start or the goal is not a valid state (unless ``check_endpoints=False``: STEP I then
@@ -527,6 +529,8 @@ def build_problem(surface_ds: xr.Dataset, clearance_floor, coverage_floor_j, ris
                            dop_threshold=dop_threshold, label=label, wind_z_agl_m=wz, wind_grid=wg,
                            clearance_m=clear, coverage_m=cover, nofly=nf, min_agl_m=float(min_agl_m),
                            max_agl_m=float(max_agl_m), dop_kind=dop_kind, subsegment_m=subsegment_m)
+    if shared is not None:   # the levels' coarse abstractions share block reductions (multires)
+        object.__setattr__(prob, "_block_memo", shared.setdefault("block_memo", _heuristic.BoundMemo(64)))
     if check_endpoints:
         why = prob.endpoint_problem()
         if why:

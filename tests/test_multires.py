@@ -260,7 +260,7 @@ def test_build_problem_shared_levels_identical():
     shared: dict = {}
     together = [build(d, shared) for d in covers]
     alone = [build(d, None) for d in covers]
-    for a, b in zip(together, alone):
+    for a, b in zip(together, alone, strict=True):
         for f in dataclasses.fields(a):
             x, y = getattr(a, f.name), getattr(b, f.name)
             if isinstance(x, np.ndarray):
@@ -271,7 +271,7 @@ def test_build_problem_shared_levels_identical():
     assert not np.array_equal(together[0].floor_m, together[1].floor_m)
     for name in ("terrain_m", "ceiling_m", "risk_cost", "landing_cost", "wind_uvw", "nofly"):
         assert getattr(together[0], name) is getattr(together[2], name), name
-    for a, b in zip(together, alone):          # the shared block reductions: the same coarse maps
+    for a, b in zip(together, alone, strict=True):          # the shared block reductions: the same coarse maps
         for opt in (False, True):
             ca, cb = coarse_problem(a, 4, optimistic=opt), coarse_problem(b, 4, optimistic=opt)
             for name in ("terrain_m", "floor_m", "ceiling_m", "risk_cost", "landing_cost"):

@@ -44,6 +44,7 @@ def dask_processes(n_workers: int, cache_root: Path, tmp: Path):
     tests/test_cluster.py starts them); yields a connected Client, kills them all on exit."""
     from distributed import Client
 
+    tmp.mkdir(parents=True, exist_ok=True)
     sfile = tmp / "scheduler.json"
     env = {**os.environ, "NUMBA_NUM_THREADS": "1", "SKYROUTE_CACHE_DIR": str(cache_root)}
     procs = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--scheduler-file",
@@ -147,11 +148,13 @@ def main() -> None:
             return
         print(f"after the sequential run: {_load()}")
         kind = f"{a.workers} dask worker processes" if a.dask_processes else f"LocalCluster {a.workers} workers"
-        cluster = (dask_processes(a.workers, Path(cache.root), Path(tmp)) if a.dask_processes
-                   else scheduler_context("distributed", a.workers))
-        with cluster as client:
-            for i, cfg in enumerate(a.configs.split(",")):
-                depth, affinity, *later = cfg.split(":")
+        for i, cfg in enumerate(a.configs.split(",")):
+            depth, affinity, *later = cfg.split(":")
+            # a fresh cluster per config: workers that planned these missions before would reuse
+            # their STEP I memos and edge costs (a later config would not be comparable)
+            cluster = (dask_processes(a.workers, Path(cache.root), Path(tmp) / f"c{i}") if a.dask_processes
+                       else scheduler_context("distributed", a.workers))
+            with cluster as client:
                 par = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, client=client,
                                 depth=int(depth), affinity=affinity, later_departures=later != ["nolater"])
                 report(f"{kind}, {cfg}", par, Path(tmp) / f"par{i}")

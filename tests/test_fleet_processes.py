@@ -52,7 +52,13 @@ def test_worker_processes_decide_as_the_sequential_run(worker_processes):
     from distributed import Client
 
     from skyroute.pipeline.cache import Cache
-    from skyroute.pipeline.fleet import FleetOptions, default_level, draw_missions, fleet_maps, run_fleet
+    from skyroute.pipeline.fleet import (
+        FleetOptions,
+        default_level,
+        draw_missions,
+        fleet_maps,
+        run_fleet,
+    )
     from skyroute.pipeline.settings import load_scenario
 
     address, cache = worker_processes

@@ -602,7 +602,6 @@ class _Planner:
             self.spec[(mid, nd)] = (seen, self.submit(t, nd, seen, obst, urgent=False), t)
             self.stats["speculative_later_departures"] += 1
 
-
     def revalidate(self) -> None:
         """Each speculative attempt back since the accepted set last changed, whose corridor's
         accepted set differs from the one it was planned against: kept (under the new set) when

@@ -37,6 +37,9 @@ from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, ma
 @click.option("--scheduler", default="threads", show_default=True,
               help=SCHEDULER_HELP + "; with distributed / tcp:// the missions are planned speculatively in parallel")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers of --scheduler distributed.")
+@click.option("--depth", type=click.IntRange(min=0), default=4, show_default=True,
+              help="With --scheduler distributed / tcp://: the next missions planned ahead on the workers (the "
+                   "decisions are the sequential ones at any depth).")
 @click.option("--airspace", "airspace_file", type=click.Path(path_type=Path), default=None,
               help="Airspace file (SQLite, see `skyroute airspace`): plan against every intent already accepted there "
                    "and add this run's; missions already decided there are skipped (a killed run continues). Drawn "
@@ -44,7 +47,7 @@ from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, ma
 @click.option("-q", "--quiet", is_flag=True, help="No per-mission lines.")
 @max_memory_option
 def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max_delay_min, delay_step_s, ground_m,
-                  no_preempt, cache_dir, scheduler, workers, airspace_file, quiet) -> None:
+                  no_preempt, cache_dir, scheduler, workers, depth, airspace_file, quiet) -> None:
     """Plan many operators' missions in SCENARIO first-come-first-served (issue 15): each at one
     DOP level, every accepted mission's ASTM F3548 intent volumes as traffic in STEP II; a
     mission whose volumes would intersect an accepted one is delayed (--delay-step-s up to
@@ -128,7 +131,7 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
                 raise InputError(f"--scheduler {scheduler}: the fleet runs sequentially (threads) or on "
                                  "dask.distributed (distributed, tcp://HOST:PORT)")
             res = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, client=client, echo=echo,
-                            airspace=store)
+                            airspace=store, depth=depth)
     res.warnings.extend(warnings)
     files, section = write_fleet(res, sc, maps, out_dir)
     shift = store.time_shift_s(sc.mission.start_time_utc)

@@ -313,6 +313,7 @@ class _State:
         self.accepted: dict[str, Attempt] = {}
         self.priority: dict[str, int] = {}
         self.version: dict[str, int] = {}
+        self.changes = 0        # accepts + withdrawals so far: a corridor's accepted set may have changed
         self.index = VolumeIndex()
         self._VolumeIndex = VolumeIndex
 
@@ -321,10 +322,12 @@ class _State:
         self.priority[a.mission] = priority
         self.version[a.mission] = self.version.get(a.mission, 0) + 1
         self.index.add(a.volumes, a.mission)
+        self.changes += 1
 
     def remove(self, mission: str) -> None:
         self.accepted.pop(mission)
         self.version[mission] = self.version.get(mission, 0) + 1
+        self.changes += 1
         self.index = self._VolumeIndex()
         for m, a in self.accepted.items():
             self.index.add(a.volumes, m)
@@ -469,8 +472,32 @@ def _box_overlap(a, b) -> bool:
     return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
 
 
+class _Done:
+    """A speculative attempt already back and re-validated against a later accepted set (in
+    place of its future)."""
+
+    status = "finished"
+
+    def __init__(self, attempt: Attempt):
+        self.attempt = attempt
+
+    def cancel(self) -> None:
+        pass
+
+
 class _Planner:
-    """Runs attempts: inline (sequential) or on a dask client (speculative)."""
+    """Runs attempts: inline (sequential) or on a dask client (speculative).
+
+    How the work is partitioned (issue 26): by mission, in first-come-first-served order, with
+    no spatial or temporal cut: the next ``depth`` missions are planned at once on the workers,
+    each against the accepted set of its own space-time corridor (:meth:`_State.corridor`) at
+    submission.  An attempt's result depends only on that set, so an attempt whose corridor
+    no acceptance touched meanwhile (missions far apart in space or time) is exactly the
+    sequential one and is kept as is; one whose corridor gained missions is kept when
+    :func:`still_valid` shows the new volumes meet none of the tests it passed; otherwise it
+    is planned again.  Re-validation is eager: after every decision, each speculative attempt
+    already back is checked against its corridor's new accepted set and, when invalid, planned
+    again at once against it (rather than when the driver reaches that mission)."""
 
     def __init__(self, sc, cache_dir, opt, level_of, queue: list[FleetTask], state: _State, client=None,
                  depth: int = 1, affinity: str = "speculative", later: bool = True):
@@ -479,9 +506,11 @@ class _Planner:
         self.depth, self.affinity, self.later = depth, affinity, later
         self.spec: dict[tuple[str, float], Any] = {}   # (mission id, departure) -> (seen, future, task)
         self.checked: set[tuple[str, float]] = set()
+        self.rechecked: dict[tuple[str, float], int] = {}   # spec -> state.changes when last re-validated
         self.workers: list[str] | None = None
         self.stats = {"speculative_used": 0, "speculative_still_valid": 0, "speculative_replanned": 0,
-                      "speculative_later_departures": 0, "attempts": 0}
+                      "speculative_later_departures": 0, "speculative_revalidated": 0,
+                      "speculative_resubmitted": 0, "attempts": 0}
 
     def _worker_of(self, task) -> list[str] | None:
         """A preferred worker per goal (soft: an idle worker may still take the task): the
@@ -508,6 +537,7 @@ class _Planner:
         self.speculate()
         s = self.spec.pop((task.id, dep), None)
         self.checked.discard((task.id, dep))
+        self.rechecked.pop((task.id, dep), None)
         if s is not None:
             sseen, fut, _ = s
             if sseen == seen:
@@ -530,6 +560,8 @@ class _Planner:
         """The attempt of a future; a ClusterError (never a hang) when every worker is lost."""
         from skyroute.pipeline.graph import cluster_result
 
+        if isinstance(fut, _Done):
+            return fut.attempt
         return cluster_result(self.client, fut, "fleet: a planning attempt")
 
     def done(self, task) -> None:
@@ -537,6 +569,7 @@ class _Planner:
         for key in [k for k in self.spec if k[0] == task.id]:
             self.spec.pop(key)[1].cancel()
             self.checked.discard(key)
+            self.rechecked.pop(key, None)
 
     def speculate(self) -> None:
         """Keep the first attempts of the next ``depth`` missions of ``queue`` in flight, each
@@ -547,6 +580,7 @@ class _Planner:
         if self.client is None:
             return
         opt, state = self.opt, self.state
+        self.revalidate()
         for t in self.queue[:self.depth]:
             if (t.id, t.earliest_s) in self.spec:
                 continue
@@ -567,6 +601,30 @@ class _Planner:
             seen, obst = state.corridor(t, nd, opt)
             self.spec[(mid, nd)] = (seen, self.submit(t, nd, seen, obst, urgent=False), t)
             self.stats["speculative_later_departures"] += 1
+
+    def revalidate(self) -> None:
+        """Each speculative attempt back since the accepted set last changed, whose corridor's
+        accepted set differs from the one it was planned against: kept (under the new set) when
+        only missions were added and :func:`still_valid` holds, else planned again now."""
+        state, opt = self.state, self.opt
+        for key, (sseen, fut, t) in list(self.spec.items()):
+            if fut.status != "finished" or self.rechecked.get(key) == state.changes:
+                continue
+            self.rechecked[key] = state.changes
+            seen, obst = state.corridor(t, key[1], opt)
+            if seen == sseen:
+                continue
+            if set(sseen) <= set(seen):
+                a = self.result(fut)
+                new = {m for m, _ in set(seen) - set(sseen)}
+                if still_valid(a, [(m, v) for m, v in obst if m in new], t, self.sc, opt):
+                    a.seen = seen
+                    self.spec[key] = (seen, _Done(a), t)
+                    self.stats["speculative_revalidated"] += 1
+                    continue
+            self.spec[key] = (seen, self.submit(t, key[1], seen, obst, urgent=False), t)
+            self.checked.discard(key)
+            self.stats["speculative_resubmitted"] += 1
 
 
 def run_fleet(sc: Scenario, tasks: Sequence[FleetTask], *, cache_dir=None, options: FleetOptions | None = None,

@@ -65,7 +65,7 @@ def test_two_commands_on_one_cluster_then_every_worker_lost(cluster, tmp_path):
         assert r.returncode == 0, r.stderr[-3000:]
         assert "Traceback" not in r.stderr
     # 2. every worker killed in the middle of a fleet: one error line within a bounded time
-    p = subprocess.Popen([*SKYROUTE, "fleet", "helsinki-medical", "--missions", "12", "--seed", "2", "--scheduler",
+    p = subprocess.Popen([*SKYROUTE, "fleet", "helsinki-medical", "--missions", "80", "--seed", "2", "--scheduler",
                           address, "-q", "--out", str(tmp_path / "fleet2")], stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, env=env)
     time.sleep(6.0)

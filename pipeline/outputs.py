@@ -381,16 +381,17 @@ def remove_path(path: Path) -> None:
         shutil.rmtree(path)
 
 
-def _copy_store(src: Path, dst: Path) -> None:
-    """Copy a zarr store (atomically: a partial copy never takes the final name), with its
-    metadata consolidated so ``xr.open_zarr`` reads the copy without a warning."""
+def _place_store(dst: Path, fill) -> None:
+    """Make the zarr store ``dst`` atomically (a partial store never takes the final name):
+    ``fill(tmp)`` writes it under a temporary sibling, its metadata is consolidated (so
+    ``xr.open_zarr`` reads it without a warning), then it is renamed into place."""
     import warnings
 
     import zarr
 
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(src, tmp)
+    fill(tmp)
     with warnings.catch_warnings():       # "consolidated metadata is not part of the Zarr v3 spec" (yet)
         warnings.simplefilter("ignore")
         zarr.consolidate_metadata(str(tmp))
@@ -398,22 +399,16 @@ def _copy_store(src: Path, dst: Path) -> None:
     os.rename(tmp, dst)
 
 
+def _copy_store(src: Path, dst: Path) -> None:
+    """Copy the zarr store ``src`` to ``dst`` (:func:`_place_store`)."""
+    _place_store(dst, lambda tmp: shutil.copytree(src, tmp))
+
+
 def _write_store(ds, dst: Path) -> None:
-    """Write an in-memory dataset as a consolidated zarr store (atomically, as :func:`_copy_store`)."""
-    import warnings
-
-    import zarr
-
+    """Write an in-memory dataset as the zarr store ``dst`` (:func:`_place_store`)."""
     from skyroute.pipeline.cache import prepare_for_zarr
 
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    prepare_for_zarr(ds).to_zarr(tmp, mode="w", consolidated=False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        zarr.consolidate_metadata(str(tmp))
-    remove_path(dst)
-    os.rename(tmp, dst)
+    _place_store(dst, lambda tmp: prepare_for_zarr(ds).to_zarr(tmp, mode="w", consolidated=False))
 
 
 def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", link: bool = False,

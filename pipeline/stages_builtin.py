@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import xarray as xr
@@ -505,9 +504,9 @@ def plan_provenance(s: PlanSettings) -> dict:
     if s.planner == "bitstar":
         budgets["bitstar_iterations"] = bitstar_iterations(s.time_budget_s)
     if s.planner == "bitstar-dubins":
-        from skyroute.stages.planning.bitstar_dubins import DUBINS_ITERATIONS_PER_S
+        from skyroute.stages.planning.bitstar_dubins import dubins_iterations
 
-        budgets["bitstar_iterations"] = max(1, math.ceil(DUBINS_ITERATIONS_PER_S * s.time_budget_s))
+        budgets["bitstar_iterations"] = dubins_iterations(s.time_budget_s)
     return {"planner": s.planner, "seed": int(s.seed), "weights": [float(w) for w in s.weights],
             "time_budget_s": float(s.time_budget_s), "max_tries": int(s.max_tries), "step_cells": int(s.step_cells),
             "budgets": budgets, "vehicle": s.vehicle, "vehicle_profile_hash": stable_hash(s.vehicle_profile),

@@ -110,6 +110,8 @@ _listener_installed = [False]
 
 
 def _install_compile_listener() -> None:
+    if _listener_installed[0]:     # the common case, without the lock (work_clock is on hot loops)
+        return
     with _lock:
         if _listener_installed[0]:
             return

@@ -226,9 +226,9 @@ def test_cli_table_json_and_errors(tmp_path):
         assert len(lines) == 1 and lines[0].startswith("error: RUN_B") and "skyroute" in lines[0], lines
 
 
-def test_same_run_twice_has_no_differences(tmp_path):
-    """A real pair: a small helsinki-medical variant (8 m cells, one coverage level, a 2-minute
-    window, no traffic) run twice through one cache."""
+def _small_helsinki(tmp_path) -> Path:
+    """A small helsinki-medical variant (8 m cells, one coverage level, a 2-minute window, no
+    traffic) written as a YAML file in ``tmp_path``."""
     p = scenario_paths()["helsinki-medical"]
     raw = json.loads(json.dumps(yaml.safe_load(p.read_text()), default=str)
                      .replace("../data/", str(p.parent.parent / "data") + "/"))
@@ -237,6 +237,13 @@ def test_same_run_twice_has_no_differences(tmp_path):
     raw.pop("traffic", None)
     yml = tmp_path / "small.yaml"
     yml.write_text(yaml.safe_dump(raw))
+    return yml
+
+
+def test_same_run_twice_has_no_differences(tmp_path):
+    """A real pair: a small helsinki-medical variant (8 m cells, one coverage level, a 2-minute
+    window, no traffic) run twice through one cache."""
+    yml = _small_helsinki(tmp_path)
     runner = CliRunner()
     cache = str(tmp_path / "cache")
     for out in ("A", "B"):
@@ -264,14 +271,7 @@ def test_outputs_say_how_the_plan_was_made_and_diff_shows_a_planner_change(tmp_p
     the same scenario reports the planner (and its counted budgets) as changed."""
     import csv
 
-    p = scenario_paths()["helsinki-medical"]
-    raw = json.loads(json.dumps(yaml.safe_load(p.read_text()), default=str)
-                     .replace("../data/", str(p.parent.parent / "data") + "/"))
-    raw["aoi"] = {"bounds_lonlat": [24.9370, 60.1636, 24.9440, 60.1725], "resolution_m": 8.0}
-    raw["gnss"] = {"elevation_mask_deg": 5, "dop_kind": "PDOP", "dop_thresholds": [4], "window_min": 2, "step_min": 1}
-    raw.pop("traffic", None)
-    yml = tmp_path / "small.yaml"
-    yml.write_text(yaml.safe_dump(raw))
+    yml = _small_helsinki(tmp_path)
     runner = CliRunner()
     cache = str(tmp_path / "cache")
     for out, extra in (("A", []), ("B", ["--planner", "bitstar", "--seed", "7"])):

@@ -33,7 +33,7 @@ from skyroute.stages.planning.bitstar import StateValidity
 from skyroute.stages.planning.fixedwing import FwPlanResult, _vehicle, path_energy, turn_radius_m
 from skyroute.stages.planning.problem import PlanningProblem
 
-__all__ = ["DUBINS_ITERATIONS_PER_S", "dubins_result", "plan_bitstar_dubins"]
+__all__ = ["DUBINS_ITERATIONS_PER_S", "dubins_iterations", "dubins_result", "plan_bitstar_dubins"]
 
 
 class _Length(ob.OptimizationObjective):
@@ -139,6 +139,12 @@ def plan_bitstar_dubins(problem: PlanningProblem, time_budget_s: float = 10.0, s
 DUBINS_ITERATIONS_PER_S = 100.0   # bitstar-dubins: BIT* iterations per second of planner.time_budget_s
 
 
+def dubins_iterations(time_budget_s: float) -> int:
+    """The BIT* iteration count of ``bitstar-dubins`` for a budget of ``time_budget_s`` [s]:
+    ``ceil(DUBINS_ITERATIONS_PER_S * time_budget_s)``, at least 1."""
+    return max(1, math.ceil(DUBINS_ITERATIONS_PER_S * float(time_budget_s)))
+
+
 def dubins_result(problem: PlanningProblem, time_budget_s: float, seed: int = 0,
                   time_limit_s: float | None = None) -> FwPlanResult:
     """``bitstar-dubins`` as a :class:`FwPlanResult`: BIT* on the Dubins-airplane space
@@ -150,7 +156,7 @@ def dubins_result(problem: PlanningProblem, time_budget_s: float, seed: int = 0,
     why = problem.endpoint_problem()
     if why:
         return FwPlanResult(None, math.nan, math.nan, math.nan, 0, 0.0, "no_solution", why, "bitstar-dubins")
-    n = max(1, math.ceil(DUBINS_ITERATIONS_PER_S * float(time_budget_s)))
+    n = dubins_iterations(time_budget_s)
     cap = float(time_limit_s) if time_limit_s else 4.0 * float(time_budget_s) + 10.0
     r = plan_bitstar_dubins(problem, cap, seed=seed, max_iterations=n)
     info = {"turn_radius_m": r["turn_radius_m"], "max_pitch_deg": r["max_pitch_deg"], "iterations": r["iterations"],

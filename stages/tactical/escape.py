@@ -394,41 +394,32 @@ class Escapes:
         """Losses of separation no manoeuvre can avoid because they happen before any can act:
         along the path the vehicle flies from ``t_e`` [s] (the event that made the conflict
         known) to ``t_react`` [s] (the earliest start of an escape: the reaction latency), the
-        distance to a known intruder's believed track below r_p + r_i + d_c.  Sampled every
-        ``dt_s`` [s] (the true minimum is at most v_rel dt / 2 below the sampled one); each such
-        loss is recorded in :attr:`losses` (declared unavoidable, with its margin) once per
-        intruder and interval.  Returns the new records."""
+        exact minimum distance to a known intruder's believed track
+        (:func:`~skyroute.stages.tactical.conflict.min_separation` on the path sampled every
+        ``dt_s`` [s], less the chord buffer) below r_p + r_i + d_c.  Each such loss is recorded
+        in :attr:`losses` (declared unavoidable, with its margin) once per intruder and
+        interval.  Returns the new records."""
         out: list[dict] = []
-        if not t_react > t_e:
-            return out
-        intr = rp.known.intruders()
-        if not intr:
+        if not (t_react > t_e and rp.known.intruders()):
             return out
         t, p = rp.tl.samples(t_e, dt_s, t_react)
-        if t.size == 0:
+        if t.size < 2:
             return out
-        for it in intr:
-            t0 = max(t_e, self._committed_until.get(str(it.id), -math.inf))
-            sel = t >= t0 - 1e-9
-            if not sel.any():
+        tracks, sep = rp.tracks()
+        buf = rp.chord_buffer_m(t)
+        for i, iid in enumerate(tracks.ids):
+            t_from = max(t_e, self._committed_until.get(iid, -math.inf))
+            self._committed_until[iid] = t_react
+            if t_from >= t_react:
                 continue
-            q = np.stack([np.interp(t[sel], it.times_s, it.xyz_m[:, j]) for j in range(3)], axis=1)
-            live = (t[sel] >= it.times_s[0] - 1e-9) & (t[sel] <= it.times_s[-1] + 1e-9)
-            if not live.any():
+            margin = float(min_separation(t, p, tracks, t_from_s=t_from)[i] - sep[i] - buf)
+            if not margin < 0:          # kept (inf: the intruder is not flying then)
                 continue
-            d = np.linalg.norm(p[sel] - q, axis=1)[live]
-            sep = rp.veh.r_p_m + it.radius_m + rp.p.d_c_m
-            j = int(np.argmin(d))
-            margin = float(d[j] - sep)
-            self._committed_until[str(it.id)] = t_react
-            if margin >= 0:
-                continue
-            t_min = float(t[sel][live][j])
-            rec = {"replanning": k, "event": ev.label, "t_s": t_min, "intruder": str(it.id),
+            rec = {"replanning": k, "event": ev.label, "t_s": t_from, "intruder": iid,
                    "predicted_margin_m": margin,
-                   "why": (f"the separation is lost at t = {t_min:.1f} s, before any manoeuvre can act (the "
-                           f"conflict was known at t = {t_e:.1f} s, an escape starts {t_react - t_e:.1f} s "
-                           "later): the intruder was known too late")}
+                   "why": (f"the separation is lost between t = {t_from:.1f} s and t = {t_react:.1f} s, before any "
+                           f"manoeuvre can act (the conflict was known at t = {t_e:.1f} s, an escape starts "
+                           f"{t_react - t_e:.1f} s later): the intruder was known too late")}
             self.losses.append(rec)
             out.append(rec)
         return out

@@ -143,3 +143,21 @@ def test_cell_of_clips_to_the_grid_and_agrees_with_index_of_inside():
     np.testing.assert_array_equal(np.stack(g.cell_of(x, y)), np.stack(g.index_of(x, y)))
     r, c = g.cell_of(np.array([-5.0, 105.0, 50.0]), np.array([60.0, -3.0, 25.0]))
     assert r.tolist() == [0, g.ny - 1, 12] and c.tolist() == [0, g.nx - 1, 25]
+
+
+def test_check_heights_refuses_values_that_are_not_heights_in_metres():
+    """An undeclared NoData such as 1e30 (or -3.4e38) in a DSM / DEM is a DataError naming the
+    value, the pixel count and the fix; plausible heights (Dead Sea to Everest) and NaN pass."""
+    from skyroute.stages.base import DataError
+    from skyroute.stages.grid import HEIGHT_RANGE_M, check_heights
+
+    ok = np.array([[-430.0, 8849.0], [np.nan, 12.5]])
+    check_heights(ok, "dsm.tif", "surface DSM")
+    check_heights(np.array(HEIGHT_RANGE_M), "dsm.tif", "surface DSM")       # the bounds themselves
+    bad = ok.copy()
+    bad[1, 0] = 1e30
+    with pytest.raises(DataError, match=r"surface DSM dsm\.tif: 1 pixel\(s\) hold 1e\+30, not a height in metres"
+                                        r".*gdal_edit\.py -a_nodata"):
+        check_heights(bad, "dsm.tif", "surface DSM")
+    with pytest.raises(DataError, match=r"terrain DEM d\.tif: 2 pixel\(s\) hold -3\.4e\+38"):
+        check_heights(np.array([-3.4e38, -3.4e38, 100.0]), "d.tif", "terrain DEM")

@@ -560,7 +560,8 @@ class _Replay:
         """Compute the maps every level reads on the current world once, before the levels
         are timed (their cost is the replanning's ``update_s``): the line-of-sight heights of
         every sky epoch from take-off to an hour after the planned arrival, over the whole grid
-        (:func:`~skyroute.stages.planning.step3.line_of_sight` with the world's cache)."""
+        (:func:`~skyroute.stages.planning.step3.line_of_sight` with the world's cache), as many
+        epochs as :data:`~skyroute.stages.sky_visibility.LOS_CACHE_MAX_BYTES` holds."""
         sky = self.world.satellites
         if sky is None:
             return

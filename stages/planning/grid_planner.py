@@ -465,11 +465,9 @@ def astar(problem: PlanningProblem, lattice: Lattice, max_expansions: int = ASTA
 
 
 def _seg_f(problem: PlanningProblem, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(f per segment, valid per segment); invalid segments get f = inf."""
-    codes, out = problem.motion_codes(a, b, want_cost=True)
-    f = problem.f_of(np.where(np.isfinite(out[:, :4]), out[:, :4], np.inf))
-    ok = codes == OK
-    return np.where(ok, f, np.inf), ok
+    """(f per segment, valid per segment); invalid segments get f = inf (and cost no energy
+    evaluation: :meth:`~.problem.PlanningProblem.motion_f_if_valid`)."""
+    return problem.motion_f_if_valid(a, b)
 
 
 def shortcut(problem: PlanningProblem, wp: np.ndarray) -> np.ndarray:

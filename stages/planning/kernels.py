@@ -359,6 +359,19 @@ def segments_kernel(p0, p1, want_cost, maps, wind, vehicle, power, out, codes):
 
 
 @numba.njit(cache=True, nogil=True)
+def segments_kernel_if_valid(p0, p1, maps, wind, vehicle, power, out, codes):
+    """:func:`segment_eval_if_valid` of each motion p0[i] -> p1[i] (n, 3) [m]: ``codes`` (n,)
+    (0 = valid), ``out`` (n, 6) the costs of the valid motions (incomplete for the others, which
+    cost no energy evaluation)."""
+    buf = np.empty(6)
+    for i in range(p0.shape[0]):
+        codes[i] = segment_eval_if_valid(p0[i, 0], p0[i, 1], p0[i, 2], p1[i, 0], p1[i, 1], p1[i, 2],
+                                         maps, wind, vehicle, power, buf)
+        for k in range(6):
+            out[i, k] = buf[k]
+
+
+@numba.njit(cache=True, nogil=True)
 def ratio_kernel(dirs, winds, vehicle, power):
     """min over (unit direction dirs[i], wind winds[j] [m/s]) of the one-sub-segment E_w/E_0
     (flyable pairs only; inf when none is).  The still-air power of a direction is computed
@@ -462,5 +475,5 @@ def ratio_each_kernel(dirs, winds, vehicle, power):
 
 
 __all__ = ["GridParams", "MapParams", "SegmentArgs", "VehicleParams", "WindParams", "entry_point", "grid_params",
-           "ratio_each_kernel", "ratio_kernel", "segment_eval", "segment_eval_if_valid", "segments_kernel", "state_code", "states_kernel",
+           "ratio_each_kernel", "ratio_kernel", "segment_eval", "segment_eval_if_valid", "segments_kernel", "segments_kernel_if_valid", "state_code", "states_kernel",
            "vehicle_params", "wind_at"]

@@ -365,6 +365,11 @@ class PlanningProblem:
         :func:`skyroute.stages.planning.heuristic.energy_ratio_lb_dense_dirs`."""
         return _heuristic.energy_ratio_lb_dense_dirs(self, dirs)
 
+    def energy_ratio_lb_dense_each(self, dirs) -> np.ndarray:
+        """(m,): :meth:`energy_ratio_lb_dense_dirs` of each unit direction of ``dirs`` (m, 3),
+        in one parallel pass (:func:`skyroute.stages.planning.heuristic.energy_ratio_lb_dense_each`)."""
+        return _heuristic.energy_ratio_lb_dense_each(self, dirs)
+
     @property
     def cost_rate_lb(self) -> float:
         """Admissible lower bound of f per metre of path [-]: w_l + w_r min(risk) +

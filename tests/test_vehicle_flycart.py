@@ -74,7 +74,7 @@ def test_hover_power_is_the_published_hovering_time(raw, fc30):
 def test_still_air_range_is_below_the_published_range(fc30):
     """Conservative: the model (no translational lift) flies at most 21-22 km on the full battery in
     still air, against DJI's 28 km; its best speed is 17-19 m/s and the 20 m/s cruise is within
-    1.5 % of it."""
+    2.5 % of it."""
     speeds = np.arange(1.0, PUBLISHED["v_max_mps"] + 0.01, 0.5)
     j_per_m = np.array([_power_w(fc30, v) / v for v in speeds])
     best = int(np.argmin(j_per_m))
@@ -82,7 +82,7 @@ def test_still_air_range_is_below_the_published_range(fc30):
     assert 0.7 * PUBLISHED["range_km"] < range_km < PUBLISHED["range_km"]
     assert 17.0 <= speeds[best] <= 19.0
     assert fc30.cruise_speed_mps == PUBLISHED["v_max_mps"]
-    assert j_per_m[-1] <= 1.015 * j_per_m[best]
+    assert j_per_m[-1] <= 1.025 * j_per_m[best]
 
 
 def test_cruise_at_max_speed_is_cheapest_in_a_tail_wind(fc30):

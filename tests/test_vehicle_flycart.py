@@ -72,7 +72,7 @@ def test_hover_power_is_the_published_hovering_time(raw, fc30):
 
 
 def test_still_air_range_is_below_the_published_range(fc30):
-    """Conservative: the model (no translational lift) flies at most 21-22 km on the full battery in
+    """Conservative: the model (no translational lift) flies at most about 21 km on the full battery in
     still air, against DJI's 28 km; its best speed is 17-19 m/s and the 20 m/s cruise is within
     2.5 % of it."""
     speeds = np.arange(1.0, PUBLISHED["v_max_mps"] + 0.01, 0.5)

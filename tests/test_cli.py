@@ -169,4 +169,5 @@ def test_unknown_scenario_exit_2(runner):
     assert res.exit_code == 2
     assert res.output.strip() == ("error: unknown scenario 'atlantis'; known scenarios: helsinki-contingency, helsinki-crosstown, "
                                   "helsinki-medical, helsinki-tactical, helsinki-traffic, monaco-helipads, rotterdam-canyon, "
-                                  "rotterdam-tactical, san-gabriel-fixedwing, san-gabriel-fixedwing-local, san-gabriel-mountains")
+                                  "rotterdam-tactical, san-gabriel-fixedwing, san-gabriel-fixedwing-local, san-gabriel-long, "
+                                  "san-gabriel-mountains")

@@ -6,6 +6,7 @@ stderr with exit code 2; anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import logging
@@ -71,16 +72,13 @@ class SkyrouteGroup(click.Group):
     value, an unknown option), as one clean ``error: ...`` line (exit code 2)."""
 
     def invoke(self, ctx: click.Context):
-        import dask
-        import dask.threaded
-
         from skyroute.pipeline import control
         from skyroute.pipeline.budget import set_max_memory
 
         # a callable default scheduler: reading a lazy array outside a command's own
         # --scheduler context would otherwise look for a distributed client (importing
-        # distributed, ~0.1-0.5 s of a warm run); --scheduler still overrides it inside
-        with control.signal_handlers(), dask.config.set(scheduler=dask.threaded.get):
+        # distributed, ~0.1-0.5 s); --scheduler still overrides it inside
+        with control.signal_handlers(), threaded_dask_default():
             try:
                 return super().invoke(ctx)
             except SkyrouteError as exc:
@@ -115,6 +113,64 @@ class SkyrouteGroup(click.Group):
                 from skyroute.pipeline.outputs import restore_untouched
 
                 restore_untouched()    # a folder this command set aside but never wrote gets its summary back
+
+
+@contextlib.contextmanager
+def threaded_dask_default():
+    """For the ``with`` block: dask's default scheduler is the threaded one, as a callable (a
+    named default makes dask look for a distributed client, importing distributed), set once
+    dask is imported: a command that never imports dask (a warm run) does not import it for this."""
+    state: dict = {}
+
+    def configure(dask) -> None:
+        import dask.threaded
+
+        state["set"] = dask.config.set(scheduler=dask.threaded.get)
+
+    hook = None
+    if "dask" in sys.modules:
+        configure(sys.modules["dask"])
+    else:
+        hook = _AfterImport("dask", configure)
+        sys.meta_path.insert(0, hook)
+    try:
+        yield
+    finally:
+        if hook is not None and hook in sys.meta_path:
+            sys.meta_path.remove(hook)
+        if "set" in state:
+            state["set"].__exit__(None, None, None)
+
+
+class _AfterImport:
+    """A one-shot meta path finder: ``then(module)`` runs right after the module ``name`` is
+    first imported (its own finder and loader do the import)."""
+
+    def __init__(self, name: str, then):
+        self.name, self.then = name, then
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname != self.name:
+            return None
+        sys.meta_path.remove(self)
+        import importlib.util
+
+        spec = importlib.util.find_spec(fullname)
+        if spec is None or spec.loader is None:
+            return spec
+        loader, then = spec.loader, self.then
+
+        class _Loader:
+            def create_module(self, spec):
+                return loader.create_module(spec)
+
+            def exec_module(self, module):
+                module.__spec__.loader = module.__loader__ = loader
+                loader.exec_module(module)
+                then(module)
+
+        spec.loader = _Loader()
+        return spec
 
 
 def _interrupted(ctx: click.Context, control) -> None:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from skyroute.pipeline.errors import InputError
-from skyroute.pipeline.graph import RunResult
+from skyroute.pipeline.graph import RunResult, stage_attrs
 from skyroute.stages.figures import add_map_furniture, image_extent
 
 
@@ -144,8 +144,8 @@ def stage_warnings(result: RunResult) -> list[str]:
     """The warnings every stage dataset of ``result`` carries (``attrs["warnings"]``, a
     JSON-encoded list of strings), in stage order, without repeats."""
     out: list[str] = []
-    for ds in result.datasets.values():
-        raw = ds.attrs.get("warnings")
+    for name in result.datasets:
+        raw = stage_attrs(result, name).get("warnings")   # a cached dataset is not opened for its attributes
         if raw is None or raw == "":
             continue
         try:
@@ -471,10 +471,13 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         drawn = tuple(s for s in ("surface", "environment", "wind", "clearance", "traffic") if s in keys)
         produce("figures/maps.png", drawn, lambda p: plot_maps_panel(result, p))
     if "coverage" in result.datasets:
-        from skyroute.pipeline.cli_coverage import plot_coverage
+        def draw_coverage(p: Path) -> None:
+            from skyroute.pipeline.cli_coverage import plot_coverage
 
-        kind = str(result["coverage"].attrs.get("dop_kind", "DOP"))
-        produce(f"figures/coverage_{kind}.png", "coverage", lambda p: plot_coverage(result["coverage"], p))
+            plot_coverage(result["coverage"], p)
+
+        kind = str(stage_attrs(result, "coverage").get("dop_kind", "DOP"))
+        produce(f"figures/coverage_{kind}.png", "coverage", draw_coverage)
     sections: dict[str, Any] = {}
     if "plan" in result.datasets:
         from skyroute.pipeline.plan_exports import export_key
@@ -491,10 +494,13 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
             plan_files = [Path(p).relative_to(out_dir).as_posix() for p in written.values()]
         output_keys["plan/"] = plan_key if "plan" not in uncached else ""
         files.extend(plan_files)
-        # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
-        from dask.local import get_sync
+        if reused and isinstance(previous.get("plan"), dict):   # same plan stage: same section (not read again)
+            sections["plan"] = previous["plan"]
+        else:
+            # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
+            from dask.local import get_sync
 
-        sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
+            sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
         if reused and isinstance(previous.get("exports"), dict):   # same plan, same exports: same section
             sections["exports"] = previous["exports"]
         else:

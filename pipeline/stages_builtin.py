@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-
-import xarray as xr
+from typing import TYPE_CHECKING
 
 from skyroute.pipeline.graph import SKYROUTE_VERSION, Stage, register
 from skyroute.pipeline.model import FrozenModel
 from skyroute.pipeline.settings import Obstacle, Scenario
-from skyroute.stages.grid import Grid
+from skyroute.stages.gridspec import Grid
+
+if TYPE_CHECKING:
+    import xarray as xr
 
 
 class SurfaceSettings(FrozenModel):

@@ -531,6 +531,19 @@ def plan_arguments(s: PlanSettings, surface: xr.Dataset) -> dict:
                 dt_c_s=s.dt_c_s, uere_m=s.uere_m, battery_reserve_pct=s.battery_reserve_pct)
 
 
+def plan_request(sc: Scenario, surface: xr.Dataset | None = None):
+    """The scenario's :class:`~skyroute.stages.planning.request.PlanRequest` as the plan stage
+    makes it from its settings (:func:`plan_arguments`; vehicle resolved once), for the replays
+    of ``skyroute fly``: without the safety bubble (the replay adds it with the plan's radius)
+    and, without ``surface``, without the known intruders (a replay gets them as tracks)."""
+    from skyroute.stages.planning.request import PlanRequest
+
+    s = _plan_settings_fixed(sc)
+    if surface is None:
+        s = s.model_copy(update={"intruders": ()})
+    return PlanRequest.of(**plan_arguments(s, surface))
+
+
 def sboa_levels(s: PlanSboaSettings, surface: xr.Dataset, environment: xr.Dataset,
                 coverage: xr.Dataset | None) -> dict:
     """The safety-bubble arguments of ``plan_strategic``: per coverage level D_j the clearance

@@ -488,6 +488,10 @@ class StageDatasets(MutableMapping):
     def __repr__(self) -> str:
         return f"StageDatasets({list(self._items)})"
 
+    def is_open(self, name: str) -> bool:
+        """Whether ``name``'s dataset is in memory or was opened (False: cached, not read yet)."""
+        return name in self._items and name not in self._openers
+
     def attrs(self, name: str) -> dict[str, Any]:
         """The attributes of ``name``'s dataset (as ``ds.attrs``); read from the store's metadata,
         without opening it, while it is not open yet."""

@@ -466,10 +466,13 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
                 lambda p: result["surface"]["surface"].rio.to_raster(p, compress="deflate"))
         produce("figures/surface.png", "surface", lambda p: plot_surface(result, p))
     if "surface" in result.datasets and "environment" in result.datasets:
-        from skyroute.pipeline.maps import plot_maps_panel
+        def draw_maps(p: Path) -> None:
+            from skyroute.pipeline.maps import plot_maps_panel
+
+            plot_maps_panel(result, p)
 
         drawn = tuple(s for s in ("surface", "environment", "wind", "clearance", "traffic") if s in keys)
-        produce("figures/maps.png", drawn, lambda p: plot_maps_panel(result, p))
+        produce("figures/maps.png", drawn, draw_maps)
     if "coverage" in result.datasets:
         def draw_coverage(p: Path) -> None:
             from skyroute.pipeline.cli_coverage import plot_coverage

@@ -20,6 +20,7 @@ from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.errors import UnknownNameError
 from skyroute.pipeline.graph import REGISTRY, Stage, register, run_pipeline
 from skyroute.pipeline.model import FrozenModel, stable_hash
+from skyroute.pipeline.settings import load_scenario
 
 HERE = Path(__file__).resolve().parent
 
@@ -198,7 +199,8 @@ def test_warm_run_imports_no_compute_only_modules(tmp_path):
             main()
         except SystemExit as exc:
             assert not exc.code, exc.code
-        heavy = ("numba", "matplotlib", "ompl", "distributed")
+        heavy = ("numba", "matplotlib", "ompl", "distributed", "xarray", "dask", "zarr", "pandas", "scipy",
+                 "rasterio", "rioxarray", "shapely", "folium")
         print("HEAVY", *[m for m in heavy if m in sys.modules])
     """)
     env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
@@ -221,7 +223,9 @@ def test_warm_run_imports_no_compute_only_modules(tmp_path):
 def test_warm_default_run_imports_no_compute_only_modules_and_reuses_its_outputs(tmp_path):
     """The whole default `skyroute run` (plan, pilot exports, map page, report), warm: no numba,
     matplotlib, ompl or dask.distributed (issue 25: reading a cached plan once looked up a
-    distributed client), and every output file is reused (the same modification times)."""
+    distributed client), and no xarray, dask, zarr, pandas, scipy, rasterio, shapely or folium
+    either (a warm run opens no dataset: keys, attributes and summary sections need none), and
+    every output file is reused (the same modification times)."""
     code = textwrap.dedent("""
         import sys
         from skyroute.pipeline.cli import main
@@ -230,7 +234,8 @@ def test_warm_default_run_imports_no_compute_only_modules_and_reuses_its_outputs
             main()
         except SystemExit as exc:
             assert not exc.code, exc.code
-        heavy = ("numba", "matplotlib", "ompl", "distributed")
+        heavy = ("numba", "matplotlib", "ompl", "distributed", "xarray", "dask", "zarr", "pandas", "scipy",
+                 "rasterio", "rioxarray", "shapely", "folium")
         print("HEAVY", *[m for m in heavy if m in sys.modules])
     """)
     env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
@@ -245,3 +250,25 @@ def test_warm_default_run_imports_no_compute_only_modules_and_reuses_its_outputs
     warm = runs[1].stdout.split("HEAVY")[1].split()
     assert warm == [], warm
     assert mtimes[0] == mtimes[1]                 # nothing rewritten but the summary and the report
+
+
+def test_a_warm_run_opens_no_dataset_and_still_checks_a_changed_mission(tmp_path):
+    """Issue 25: a cached stage's dataset is opened when first read, and its attributes come from
+    the store's metadata (equal to the opened dataset's); the mission check is kept by the
+    surface key, grid and mission points, so a warm run reads no map, and a mission moved into
+    a building is still refused on the cached surface."""
+    from skyroute.pipeline.errors import ScenarioError
+    from skyroute.pipeline.runner import run_scenario
+
+    cache = Cache(tmp_path / "c")
+    sc = load_scenario("helsinki-medical")
+    run_scenario(sc, cache=cache, targets=["surface"])
+    warm = run_scenario(sc, cache=cache, targets=["surface"])
+    assert warm.records[0].cache_hit and "surface" in warm.datasets and not warm.datasets.is_open("surface")
+    attrs = warm.datasets.attrs("surface")
+    assert attrs["skyroute_stage"] == "surface" and attrs == dict(warm["surface"].attrs)
+    assert warm.datasets.is_open("surface")
+    start = sc.mission.start.model_copy(update={"alt_agl_m": 10.0})
+    bad = sc.model_copy(update={"mission": sc.mission.model_copy(update={"start": start})})
+    with pytest.raises(ScenarioError, match="mission.start: altitude 10 m above ground is inside a building"):
+        run_scenario(bad, cache=cache, targets=["surface"])

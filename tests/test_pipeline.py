@@ -272,3 +272,17 @@ def test_a_warm_run_opens_no_dataset_and_still_checks_a_changed_mission(tmp_path
     bad = sc.model_copy(update={"mission": sc.mission.model_copy(update={"start": start})})
     with pytest.raises(ScenarioError, match="mission.start: altitude 10 m above ground is inside a building"):
         run_scenario(bad, cache=cache, targets=["surface"])
+
+
+def test_output_keys_follow_the_output_code(monkeypatch):
+    """Issue 25: a run's figures, GeoTIFFs and plan files are keyed like a stage, on the stage keys
+    and the code that writes them (the output modules and every module they import), so an edit
+    to that code rewrites them on the next warm run."""
+    from skyroute.pipeline import outputs
+
+    base = outputs.outputs_code_version()
+    assert base == outputs.outputs_code_version()
+    real = graph._module_source
+    for edited in ("skyroute.pipeline.planmap", "skyroute.stages.figures"):   # an output module, one it imports
+        monkeypatch.setattr(graph, "_module_source", lambda m, e=edited: real(m) + (b"\n# edit" if m == e else b""))
+        assert outputs.outputs_code_version() != base, edited

@@ -153,9 +153,14 @@ class Cache:
     def attrs(self, entry: CacheEntry) -> dict[str, Any]:
         """The attributes of the entry's dataset, as :meth:`open` gives them (``ds.attrs``), read
         from the zarr group's metadata without opening the dataset (no xarray)."""
-        meta = json.loads((entry.path / "data.zarr" / "zarr.json").read_bytes())
-        attrs = meta.get("attributes", {}) if isinstance(meta, dict) else {}
-        return {k: v for k, v in attrs.items() if not k.lower().startswith("_nc")}   # as xarray's ZarrStore
+        try:
+            meta = json.loads((entry.path / "data.zarr" / "zarr.json").read_bytes())   # zarr format 3
+        except (OSError, ValueError):
+            meta = None
+        if not (isinstance(meta, dict) and isinstance(meta.get("attributes", {}), dict)):
+            return dict(self.open(entry).attrs)          # another layout: as the opened dataset says
+        return {k: v for k, v in meta.get("attributes", {}).items()
+                if not k.lower().startswith("_nc")}       # as xarray's ZarrStore
 
     # -- checks passed (a check is a function of content-addressed entries: once passed, it
     # passes again on the same key, and its inputs need not be read)

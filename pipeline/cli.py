@@ -639,11 +639,12 @@ def _register_plugins() -> None:
 
 _register_plugins()
 
-if __name__ == "__main__":  # pragma: no cover
-    main()
-
 
 def _folder_summary(*args, **kwargs) -> dict:
     from skyroute.pipeline.outputs import write_folder_summary
 
     return write_folder_summary(*args, **kwargs)
+
+
+if __name__ == "__main__":  # pragma: no cover  (last: `python -m skyroute.pipeline.cli` needs the whole module)
+    main()

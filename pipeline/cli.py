@@ -215,9 +215,11 @@ def check_stage_names(names, option: str, also=()) -> None:
 
 
 def _report_warnings(warnings: list[str]) -> None:
-    from skyroute.pipeline.outputs import report_warnings
+    """The ``warning:`` lines of ``warnings`` not printed yet by this command (a warning raised
+    while a stage computed was printed then; a warm run prints it from the stage's dataset)."""
+    from skyroute.pipeline.outputs import PRINTED_WARNINGS, report_warnings
 
-    report_warnings(warnings)
+    report_warnings([w for w in warnings if w not in PRINTED_WARNINGS])
 
 
 def _exit_if_no_plan(plan: dict | None) -> None:

@@ -121,16 +121,28 @@ def _satellites_settings(sc: Scenario) -> SatellitesSettings:
 
 def satellites_stage(*, settings: SatellitesSettings) -> xr.Dataset:
     """Satellite ECEF positions, true azimuth/elevation and open-sky DOP at the AOI centre,
-    dims (time, sat), at the scenario's GNSS epochs (mission start + window)."""
+    dims (time, sat), at the scenario's GNSS epochs (mission start + window); the almanac
+    readers' warnings (unhealthy satellites excluded) are also in ``attrs["warnings"]``."""
+    import warnings
+
     import numpy as np
 
     from skyroute.stages.almanac import sky_geometry
 
     times = np.array(settings.times_utc, dtype="datetime64[ns]")
-    ds = sky_geometry(list(settings.almanacs), times, settings.lat_deg, settings.lon_deg,
-                      settings.height_m, mask_deg=settings.mask_deg)
+    with warnings.catch_warnings(record=True) as caught:   # e.g. unhealthy satellites excluded
+        warnings.simplefilter("always")
+        ds = sky_geometry(list(settings.almanacs), times, settings.lat_deg, settings.lon_deg,
+                          settings.height_m, mask_deg=settings.mask_deg)
+    for w in caught:          # shown as before, and kept with the dataset: a warm run reports them too
+        warnings.warn(w.message, w.category, stacklevel=2)
     if settings.exclude:
         ds = _without_satellites(ds, settings.exclude)
+    own = str(Path(sky_geometry.__code__.co_filename).parent)    # skyroute's stages: the almanac readers
+    texts = [" ".join(str(w.message).split()) for w in caught
+             if issubclass(w.category, UserWarning) and str(w.filename).startswith(own)]
+    if texts:
+        ds.attrs["warnings"] = json.dumps(list(dict.fromkeys([*texts, *json.loads(ds.attrs.get("warnings", "[]"))])))
     return ds
 
 

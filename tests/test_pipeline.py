@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import signal
 import subprocess
@@ -240,16 +241,22 @@ def test_warm_default_run_imports_no_compute_only_modules_and_reuses_its_outputs
     """)
     env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
     out = tmp_path / "out"
-    runs, mtimes = [], []
+    runs, mtimes, warns = [], [], []
     for _ in range(2):
         runs.append(subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True, env=env,
                                    timeout=900))
         assert runs[-1].returncode == 0, runs[-1].stderr
         mtimes.append({p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and p.name not in
                        ("summary.json", "report.html")})
+        warns.append(json.loads((out / "summary.json").read_text())["warnings"])
+        printed = [ln for ln in runs[-1].stderr.splitlines() if ln.startswith("warning: ")]
+        assert len(printed) == len(set(printed)), printed     # each warning printed once
     warm = runs[1].stdout.split("HEAVY")[1].split()
     assert warm == [], warm
     assert mtimes[0] == mtimes[1]                 # nothing rewritten but the summary and the report
+    # the warnings of the stages (the almanac's unhealthy satellite) are the cold run's, on stderr too
+    assert warns[0] == warns[1] and any("unhealthy satellites excluded" in w for w in warns[1]), warns
+    assert any("unhealthy satellites excluded" in ln for ln in runs[1].stderr.splitlines())
 
 
 def test_a_warm_run_opens_no_dataset_and_still_checks_a_changed_mission(tmp_path):

@@ -21,11 +21,21 @@ from skyroute.pipeline.errors import SkyrouteError
 from skyroute.stages.planning.registry import PLANNERS, planner_help
 
 _T0 = time.perf_counter()     # when the CLI was imported (the wall clock's fallback start)
+_COMMANDS = [0, _T0]          # commands started in this process, start of the latest one
+
+
+def _command_started() -> None:
+    _COMMANDS[0] += 1
+    _COMMANDS[1] = time.perf_counter()
 
 
 def wall_s() -> float:
-    """Seconds since this process started, interpreter start-up and imports included (Linux:
-    from /proc, 10 ms resolution; elsewhere: since the CLI was imported)."""
+    """Seconds of the running command: for the first command of a process, since the process
+    started, interpreter start-up and imports included (Linux: from /proc, 10 ms resolution;
+    elsewhere: since the CLI was imported); for a later one in the same process (a notebook or
+    a test calling ``main`` again), since that command started."""
+    if _COMMANDS[0] > 1:
+        return time.perf_counter() - _COMMANDS[1]
     since_import = time.perf_counter() - _T0
     try:
         with open("/proc/self/stat", "rb") as f:
@@ -265,6 +275,7 @@ def main(verbose: int) -> None:
       skyroute run rotterdam-canyon --out out/rotterdam
       skyroute cache ls                       show cached stage outputs
     """
+    _command_started()
     from skyroute.pipeline.outputs import PRINTED_WARNINGS
 
     PRINTED_WARNINGS.clear()                    # one command's warnings (a Python session may run several)

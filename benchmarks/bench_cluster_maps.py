@@ -83,6 +83,12 @@ def stop_cluster(procs: list[subprocess.Popen]) -> None:
             p.wait()
 
 
+def _cpu_s() -> float:
+    """CPU seconds (user + system) this process has used."""
+    t = os.times()
+    return t.user + t.system
+
+
 def task_summary(stream: list[dict], t0_s: float) -> dict:
     """Per task-key prefix: tasks, compute seconds (summed), transfer seconds, first start and
     last end [s after ``t0_s``], and the busy seconds per worker (from ``get_task_stream``)."""
@@ -130,22 +136,22 @@ def build(address: str, folder: Path, tasks: str | None) -> dict:
     run_scenario(small, cache=Cache(folder / "cache-warmup"), targets=maps_of(small), scheduler=address)
     warmup_s = time.perf_counter() - t
     sc = load_scenario(str(helsinki_6km_yaml(folder)))
-    client = None
-    ctx: contextlib.AbstractContextManager = contextlib.nullcontext()
-    if tasks:
-        from distributed import Client, get_task_stream
+    from distributed import Client, get_task_stream
 
-        client = Client(address)
-        ctx = get_task_stream(client)
+    client = Client(address)
+    ctx: contextlib.AbstractContextManager = get_task_stream(client) if tasks else contextlib.nullcontext()
+    cpu0, driver0 = client.run(_cpu_s), _cpu_s()
     t = time.perf_counter()
     with ctx as ts:
         r = run_scenario(sc, cache=Cache(folder / "cache"), targets=maps_of(sc), scheduler=address)
     total_s = time.perf_counter() - t
-    if client is not None:
+    cpu1, driver1 = client.run(_cpu_s), _cpu_s()
+    if tasks:
         Path(tasks).write_text(json.dumps(task_summary(ts.data, t0_s=time.time() - total_s), indent=1))
-        client.close()
+    client.close()
     assert not r.cache_hits, "the 6 km maps must be built on a fresh cache"
     return {"warmup_s": warmup_s, "total_s": total_s, "cells": sc.grid.nx * sc.grid.ny,
+            "worker_cpu_s": sorted(cpu1[w] - cpu0[w] for w in cpu1), "driver_cpu_s": driver1 - driver0,
             "stages_s": {rec.name: rec.seconds for rec in r.records}}
 
 
@@ -189,7 +195,8 @@ def main() -> None:
         rep = str(Path(a.tasks) / f"run{i}-{n}w.json") if a.tasks else None
         runs.append(one_run(n, rep, a.keep))
         r = runs[-1]
-        print(f"run {i}: {n} worker(s): {r['total_s']:.1f} s (warm-up {r['warmup_s']:.1f} s; load "
+        print(f"run {i}: {n} worker(s): {r['total_s']:.1f} s (warm-up {r['warmup_s']:.1f} s; CPU s: driver "
+              f"{r['driver_cpu_s']:.0f}, workers {', '.join(f'{c:.0f}' for c in r['worker_cpu_s'])}; load "
               f"{r['load_before'][0]:.2f} -> {r['load_after'][0]:.2f}); "
               + ", ".join(f"{k} {v:.1f}" for k, v in r["stages_s"].items()), file=sys.stderr, flush=True)
     if a.json:
@@ -211,6 +218,9 @@ def main() -> None:
         print(f"| {st} | " + " | ".join(cells) + f" | {ratio} |")
     print("load average (1 min) before -> after each run: "
           + "; ".join(f"{r['workers']}w {r['load_before'][0]:.2f} -> {r['load_after'][0]:.2f}" for r in runs))
+    print("CPU seconds of the build (user + system; the machine's load does not inflate them much): "
+          + "; ".join(f"{r['workers']}w driver {r['driver_cpu_s']:.0f} + workers "
+                      + " + ".join(f"{c:.0f}" for c in r["worker_cpu_s"]) for r in runs))
     print("warm-up (helsinki-medical maps, numba compile on the workers; not counted): "
           + "; ".join(f"{r['workers']}w {r['warmup_s']:.1f} s" for r in runs))
 

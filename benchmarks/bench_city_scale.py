@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import resource
 import subprocess
 import sys
@@ -73,11 +74,13 @@ def run_case(side_km: float, length_km: float, full_max: int) -> dict:
     build_s = time.perf_counter() - t
     straight = math.dist(pr.start_xyz[:2], pr.goal_xyz[:2])
     _cold(pr)
-    t = time.perf_counter()
+    load = os.getloadavg()[0]
+    t, c = time.perf_counter(), time.process_time()
     mr = plan_multires(pr)
-    mr_s = time.perf_counter() - t
+    mr_s, mr_cpu_s = time.perf_counter() - t, time.process_time() - c
     out = {"side_km": side_km, "cells": pr.grid.nx * pr.grid.ny, "mission_km": straight / 1000.0,
-           "maps_s": build_s, "multires_s": mr_s, "multires_expanded": mr["expanded"],
+           "maps_s": build_s, "multires_s": mr_s, "multires_cpu_s": mr_cpu_s, "load_average_1min": load,
+           "multires_expanded": mr["expanded"],
            "widenings": mr["multires"]["widenings"], "stage": mr["multires"]["stage"],
            "corridor_fraction": mr["multires"]["corridor_fraction"]}
     if mr["waypoints"] is not None:
@@ -86,9 +89,10 @@ def run_case(side_km: float, length_km: float, full_max: int) -> dict:
     out["rss_multires_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if full_max > 0:
         _cold(pr)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fr = plan_grid(pr, max_expansions=full_max)
-        out["full_s"] = time.perf_counter() - t
+        out["full_s"], out["full_cpu_s"] = time.perf_counter() - t, time.process_time() - c
+        out["load_average_1min"] = max(load, os.getloadavg()[0])
         out["full_expanded"] = fr["expanded"]
         if fr["waypoints"] is not None:
             out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
@@ -265,10 +269,15 @@ def figure(rows: list[dict], path: str | Path) -> None:
             b, a0 = np.polyfit(np.log(x), np.log(y), 1)
             xs = np.geomspace(x.min() / 1.3, x.max() * 1.3, 50)
             ax.loglog(xs, np.exp(a0) * xs ** b, "-", color=color, lw=1.2, alpha=0.7)
-        for r in sel:
-            left = key == "multires_s"      # multires labels left of their point, full A* right
-            ax.annotate(f"{r['side_km']:g} km AOI, {r['mission_km']:.1f} km mission", (r["cells"], r[key]),
-                        textcoords="offset points", xytext=(-8 if left else 8, 0), ha="right" if left else "left",
+        left = key == "multires_s"      # multires labels left of their point, full A* right
+        for cells_i in sorted({r["cells"] for r in sel}):
+            group = sorted((r for r in sel if r["cells"] == cells_i), key=lambda r: r[key])
+            ys = list(np.log10([r[key] for r in group]))
+            for i in range(1, len(ys)):     # labels of one AOI at least 0.07 decades apart
+                ys[i] = max(ys[i], ys[i - 1] + 0.07)
+            for r, y in zip(group, ys, strict=True):
+                ax.text(cells_i / 1.15 if left else cells_i * 1.15, 10 ** y,
+                        f"{r['side_km']:g} km / {r['mission_km']:.1f} km", ha="right" if left else "left",
                         va="center", fontsize=8, color=color)
     ax.set_xlabel("grid cells of the AOI (2 m cells) [-]")
     ax.set_ylabel("STEP I plan time [s]")
@@ -276,9 +285,12 @@ def figure(rows: list[dict], path: str | Path) -> None:
     ax.set_title("City-scale STEP I on a synthetic city (issue 23): time against cells", fontsize=10)
     ax.grid(True, which="both", lw=0.4, alpha=0.5)
     ax.legend(loc="upper left", fontsize=9)
-    fig.text(0.01, 0.01, "SYNTHETIC city (tests/_city.py, procedural, not real data); both planners cold, "
-             "compilation excluded; 2-core shared machine", fontsize=7, color="0.3")
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    loads = [r["load_average_1min"] for r in rows if "load_average_1min" in r]
+    load = f", load average {min(loads):.1f}-{max(loads):.1f}" if loads else ""
+    fig.text(0.01, 0.01, "labels: AOI side / mission length (straight line). SYNTHETIC city (tests/_city.py, "
+             "procedural, not real data);\nboth planners cold, compilation excluded; wall time on a 2-core machine "
+             f"shared with other jobs{load}", fontsize=7, color="0.3")
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     fig.savefig(path)
     plt.close(fig)
 

@@ -183,6 +183,9 @@ def main() -> None:
     ap.add_argument("--json", metavar="FILE", help="write the rows as JSON (the figure is drawn from it)")
     ap.add_argument("--figure", metavar="PNG", help="draw the log-log figure of plan time against grid cells "
                     "(with the fitted slope) into PNG")
+    ap.add_argument("--figure-time", choices=["cpu", "wall"], default="cpu",
+                    help="the figure's time: the planning process's CPU seconds (default; hardly load-dependent) "
+                         "or wall-clock seconds (the table's)")
     ap.add_argument("--from-json", metavar="FILE", help="no runs: read the rows from FILE (written by --json) "
                     "and print the table and draw the figure")
     ap.add_argument("--case", type=float, nargs=2, help=argparse.SUPPRESS)
@@ -224,9 +227,10 @@ def main() -> None:
               f"{r['multires_expanded']:,} | {r['widenings']} | {100 * r['corridor_fraction']:.1f} | {full} | {ratio} | "
               f"{r.get('rss_MiB', r['rss_multires_MiB']):.0f} |")
     if len(rows) >= 2:
-        print(f"\nlog-log slope of multires plan time against grid cells: {loglog_slope(rows, 'multires_s'):.2f}")
+        print(f"\nlog-log slope of multires plan time against grid cells: {loglog_slope(rows, 'multires_s'):.2f} "
+              f"(wall), {loglog_slope(rows, 'multires_cpu_s'):.2f} (CPU seconds)")
     if a.figure:
-        figure(rows, a.figure)
+        figure(rows, a.figure, a.figure_time)
         print(f"figure: {a.figure}")
 
 
@@ -242,10 +246,12 @@ def loglog_slope(rows: list[dict], key: str) -> float:
     return float(np.polyfit(x, y, 1)[0])
 
 
-def figure(rows: list[dict], path: str | Path) -> None:
+def figure(rows: list[dict], path: str | Path, clock: str = "cpu") -> None:
     """Log-log figure of plan time [s] against grid cells: multires (every row) and
     full-resolution A* (rows where it finished), each with its least-squares line and slope;
-    points labelled by AOI side and mission length."""
+    points labelled by AOI side and mission length.  ``clock``: "cpu" (the planning process's CPU
+    seconds, when the rows have them: on a shared machine they hardly depend on its load) or
+    "wall"."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -253,11 +259,13 @@ def figure(rows: list[dict], path: str | Path) -> None:
     import numpy as np
 
     fig, ax = plt.subplots(figsize=(7.5, 5.2), dpi=130)
-    series = [("multires_s", "multi-resolution A*", "tab:blue", "o"),
-              ("full_s", "full-resolution A*", "tab:orange", "s")]
+    cpu = clock == "cpu" and all("multires_cpu_s" in r for r in rows)
+    sfx = "_cpu_s" if cpu else "_s"
+    series = [("multires" + sfx, "multi-resolution A*", "tab:blue", "o"),
+              ("full" + sfx, "full-resolution A*", "tab:orange", "s")]
     cells = np.array([r["cells"] for r in rows], float)
     for key, label, color, marker in series:
-        sel = [r for r in rows if r.get(key) is not None and (key != "full_s" or "full_f" in r)]
+        sel = [r for r in rows if r.get(key) is not None and (not key.startswith("full") or "full_f" in r)]
         if not sel:
             continue
         x = np.array([r["cells"] for r in sel], float)
@@ -269,7 +277,7 @@ def figure(rows: list[dict], path: str | Path) -> None:
             b, a0 = np.polyfit(np.log(x), np.log(y), 1)
             xs = np.geomspace(x.min() / 1.3, x.max() * 1.3, 50)
             ax.loglog(xs, np.exp(a0) * xs ** b, "-", color=color, lw=1.2, alpha=0.7)
-        left = key == "multires_s"      # multires labels left of their point, full A* right
+        left = key.startswith("multires")      # multires labels left of their point, full A* right
         for cells_i in sorted({r["cells"] for r in sel}):
             group = sorted((r for r in sel if r["cells"] == cells_i), key=lambda r: r[key])
             ys = list(np.log10([r[key] for r in group]))
@@ -280,7 +288,7 @@ def figure(rows: list[dict], path: str | Path) -> None:
                         f"{r['side_km']:g} km / {r['mission_km']:.1f} km", ha="right" if left else "left",
                         va="center", fontsize=8, color=color)
     ax.set_xlabel("grid cells of the AOI (2 m cells) [-]")
-    ax.set_ylabel("STEP I plan time [s]")
+    ax.set_ylabel("STEP I plan time [s]" + (" (CPU time of the planning process)" if cpu else " (wall clock)"))
     ax.set_xlim(cells.min() / 4.0, cells.max() * 4.0)
     ax.set_title("City-scale STEP I on a synthetic city (issue 23): time against cells", fontsize=10)
     ax.grid(True, which="both", lw=0.4, alpha=0.5)
@@ -288,8 +296,9 @@ def figure(rows: list[dict], path: str | Path) -> None:
     loads = [r["load_average_1min"] for r in rows if "load_average_1min" in r]
     load = f", load average {min(loads):.1f}-{max(loads):.1f}" if loads else ""
     fig.text(0.01, 0.01, "labels: AOI side / mission length (straight line). SYNTHETIC city (tests/_city.py, "
-             "procedural, not real data);\nboth planners cold, compilation excluded; wall time on a 2-core machine "
-             f"shared with other jobs{load}", fontsize=7, color="0.3")
+             "procedural, not real data);\nboth planners cold, compilation excluded, NUMBA_NUM_THREADS=1; "
+             f"{'CPU seconds' if cpu else 'wall time'} on a 2-core machine shared with other jobs{load}",
+             fontsize=7, color="0.3")
     fig.tight_layout(rect=(0, 0.05, 1, 1))
     fig.savefig(path)
     plt.close(fig)

@@ -183,10 +183,14 @@ def main() -> None:
                     "(per task prefix: count, compute and transfer seconds, span; busy seconds per worker)")
     ap.add_argument("--keep", metavar="DIR", help="build the caches under DIR and keep them")
     ap.add_argument("--json", metavar="FILE", help="also write the runs as JSON")
+    ap.add_argument("--from-json", metavar="FILE", help="no runs: print the summary of the runs in FILE (--json)")
     ap.add_argument("--build", nargs=2, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.build:
         print(json.dumps(build(a.build[0], Path(a.build[1]), a.tasks)))
+        return
+    if a.from_json:
+        summary(json.loads(Path(a.from_json).read_text()))
         return
     if a.tasks:
         Path(a.tasks).mkdir(parents=True, exist_ok=True)
@@ -199,8 +203,14 @@ def main() -> None:
               f"{r['driver_cpu_s']:.0f}, workers {', '.join(f'{c:.0f}' for c in r['worker_cpu_s'])}; load "
               f"{r['load_before'][0]:.2f} -> {r['load_after'][0]:.2f}); "
               + ", ".join(f"{k} {v:.1f}" for k, v in r["stages_s"].items()), file=sys.stderr, flush=True)
-    if a.json:
-        Path(a.json).write_text(json.dumps(runs, indent=1))
+        if a.json:
+            Path(a.json).write_text(json.dumps(runs, indent=1))
+    summary(runs)
+
+
+def summary(runs: list[dict]) -> None:
+    """Print the table of the runs: median seconds per stage and worker count, t1/t2, load
+    averages, CPU seconds and the CPU-bound estimate."""
     stages = list(runs[0]["stages_s"])
     counts = sorted({r["workers"] for r in runs})
     print(f"6 x 6 km Helsinki AOI, {runs[0]['cells'] / 1e6:.1f} M cells, fresh cache per run; runs "
@@ -221,6 +231,11 @@ def main() -> None:
     print("CPU seconds of the build (user + system; the machine's load does not inflate them much): "
           + "; ".join(f"{r['workers']}w driver {r['driver_cpu_s']:.0f} + workers "
                       + " + ".join(f"{c:.0f}" for c in r["worker_cpu_s"]) for r in runs))
+    est = {n: statistics.median(r["driver_cpu_s"] + max(r["worker_cpu_s"]) for r in runs if r["workers"] == n)
+           for n in counts}
+    print("CPU-bound estimate (driver CPU + the busiest worker's CPU: the wall time when every process has a core "
+          "to itself): " + "; ".join(f"{n}w {est[n]:.0f} s" for n in counts)
+          + (f"; t1/t2 {est[1] / est[2]:.2f}" if 1 in est and 2 in est else ""))
     print("warm-up (helsinki-medical maps, numba compile on the workers; not counted): "
           + "; ".join(f"{r['workers']}w {r['warmup_s']:.1f} s" for r in runs))
 

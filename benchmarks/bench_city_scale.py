@@ -281,25 +281,25 @@ def figure(rows: list[dict], path: str | Path, clock: str = "cpu") -> None:
         for cells_i in sorted({r["cells"] for r in sel}):
             group = sorted((r for r in sel if r["cells"] == cells_i), key=lambda r: r[key])
             ys = list(np.log10([r[key] for r in group]))
-            for i in range(1, len(ys)):     # labels of one AOI at least 0.07 decades apart
-                ys[i] = max(ys[i], ys[i - 1] + 0.07)
+            for i in range(1, len(ys)):     # labels of one AOI at least 0.09 decades apart
+                ys[i] = max(ys[i], ys[i - 1] + 0.09)
             for r, y in zip(group, ys, strict=True):
                 ax.text(cells_i / 1.15 if left else cells_i * 1.15, 10 ** y,
                         f"{r['side_km']:g} km / {r['mission_km']:.1f} km", ha="right" if left else "left",
                         va="center", fontsize=8, color=color)
     ax.set_xlabel("grid cells of the AOI (2 m cells) [-]")
-    ax.set_ylabel("STEP I plan time [s]" + (" (CPU time of the planning process)" if cpu else " (wall clock)"))
+    ax.set_ylabel("STEP I plan time [s]" + (" (CPU)" if cpu else " (wall clock)"))
     ax.set_xlim(cells.min() / 4.0, cells.max() * 4.0)
     ax.set_title("City-scale STEP I on a synthetic city (issue 23): time against cells", fontsize=10)
     ax.grid(True, which="both", lw=0.4, alpha=0.5)
     ax.legend(loc="upper left", fontsize=9)
     loads = [r["load_average_1min"] for r in rows if "load_average_1min" in r]
     load = f", load average {min(loads):.1f}-{max(loads):.1f}" if loads else ""
-    fig.text(0.01, 0.01, "labels: AOI side / mission length (straight line). SYNTHETIC city (tests/_city.py, "
-             "procedural, not real data);\nboth planners cold, compilation excluded, NUMBA_NUM_THREADS=1; "
-             f"{'CPU seconds' if cpu else 'wall time'} on a 2-core machine shared with other jobs{load}",
-             fontsize=7, color="0.3")
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    what = "CPU seconds of the planning process" if cpu else "wall-clock seconds"
+    fig.text(0.01, 0.01, "Labels: AOI side / mission length (straight line).  SYNTHETIC city (tests/_city.py: "
+             "procedural, not real data).\nBoth planners cold, compilation excluded, NUMBA_NUM_THREADS=1; "
+             f"{what}\non a 2-core machine shared with other jobs{load}.", fontsize=7, color="0.3")
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path)
     plt.close(fig)
 

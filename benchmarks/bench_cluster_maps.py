@@ -4,6 +4,7 @@ item 3): 1 worker against 2 workers, each run on a fresh cache.
     python benchmarks/bench_cluster_maps.py                    # runs 1 2 1 2 (about 15 min)
     python benchmarks/bench_cluster_maps.py --workers 1 2      # one pair
     python benchmarks/bench_cluster_maps.py --tasks DIR        # + a task-stream summary per run
+    python benchmarks/bench_cluster_maps.py --json runs.json   # + the runs as JSON (--from-json reprints)
 
 Per run a new cluster is started as subprocesses: ``dask scheduler`` and N ``dask worker
 tcp://HOST:PORT --nworkers 1 --nthreads 1`` processes, every one (and the driver) with
@@ -18,7 +19,9 @@ settings, 2 m cells, 3090 x 3100 cells) is computed on a FRESH cache; its time p
 (``RunResult.records``) and in all is printed, with ``uptime``'s load average before and after
 the run (other jobs on this 2-core machine dilute the ratio).  The runs alternate (1 2 1 2 ...)
 so a change in the machine's load hits both worker counts; the ratio t1/t2 is of the runs'
-medians per stage.
+medians per stage.  Each process's CPU seconds (``os.times``; the workers' through ``client.run``)
+are printed too: on a shared machine they hardly grow with its load, and driver CPU + the busiest
+worker's CPU estimates the wall time with a core per process.
 """
 
 from __future__ import annotations

@@ -7,6 +7,8 @@ varying 3-D wind map; procedural, not real data), 2 m cells, DJI M300, weights (
     python benchmarks/bench_city_scale.py --sides 2 6 12        # + 12 km (about 4 GB per case)
     python benchmarks/bench_city_scale.py --full-max-expansions 0   # multires only
     python benchmarks/bench_city_scale.py --helsinki-6km CACHE_DIR  # real maps: issue 23's 6 km AOI
+    python benchmarks/bench_city_scale.py --sides 2 6 12 --json rows.json --figure city_scale.png
+    python benchmarks/bench_city_scale.py --from-json rows.json --figure city_scale.png  # redraw only
 
 Each case runs in its own process (its peak RSS is that process's ``ru_maxrss``), after a
 small warm-up plan, so numba compilation is never timed; before each timed plan the memoised
@@ -16,7 +18,8 @@ length (straight line), multi-resolution plan time [s] (lattice, coarse A*, corr
 refinement), expansions (coarse + corridor), widenings, corridor share of the lattice columns,
 f (eq. 11, refined), and the same for full-resolution A* (:func:`plan_grid`) when it finishes
 within ``--full-max-expansions`` node expansions (a count, not a time), with the ratio
-f_multires / f_full.  A log-log fit of multires plan time against grid cells is printed.
+f_multires / f_full.  A log-log fit of multires plan time against grid cells is printed; ``--figure``
+draws it (both planners' times against cells, each with its fitted slope).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import resource
 import subprocess
 import sys
@@ -70,11 +74,13 @@ def run_case(side_km: float, length_km: float, full_max: int) -> dict:
     build_s = time.perf_counter() - t
     straight = math.dist(pr.start_xyz[:2], pr.goal_xyz[:2])
     _cold(pr)
-    t = time.perf_counter()
+    load = os.getloadavg()[0]
+    t, c = time.perf_counter(), time.process_time()
     mr = plan_multires(pr)
-    mr_s = time.perf_counter() - t
+    mr_s, mr_cpu_s = time.perf_counter() - t, time.process_time() - c
     out = {"side_km": side_km, "cells": pr.grid.nx * pr.grid.ny, "mission_km": straight / 1000.0,
-           "maps_s": build_s, "multires_s": mr_s, "multires_expanded": mr["expanded"],
+           "maps_s": build_s, "multires_s": mr_s, "multires_cpu_s": mr_cpu_s, "load_average_1min": load,
+           "multires_expanded": mr["expanded"],
            "widenings": mr["multires"]["widenings"], "stage": mr["multires"]["stage"],
            "corridor_fraction": mr["multires"]["corridor_fraction"]}
     if mr["waypoints"] is not None:
@@ -83,9 +89,10 @@ def run_case(side_km: float, length_km: float, full_max: int) -> dict:
     out["rss_multires_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if full_max > 0:
         _cold(pr)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fr = plan_grid(pr, max_expansions=full_max)
-        out["full_s"] = time.perf_counter() - t
+        out["full_s"], out["full_cpu_s"] = time.perf_counter() - t, time.process_time() - c
+        out["load_average_1min"] = max(load, os.getloadavg()[0])
         out["full_expanded"] = fr["expanded"]
         if fr["waypoints"] is not None:
             out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
@@ -99,21 +106,11 @@ HELSINKI_6KM = {"bounds_lonlat": [24.890, 60.145, 24.998, 60.199],          # is
                          "alt_agl_m": 60}}
 
 
-def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_000) -> dict:
-    """helsinki-crosstown widened to issue 23's 6 x 6 km AOI (buildings and land use only where
-    the shipped extract has them) with a 5 km mission from the same start: the maps are built
-    (or read) in ``cache_dir``, then STEP I of level D=``threshold`` by multires and by
-    full-resolution A*, both cold."""
-    import tempfile
-
+def helsinki_6km_yaml(folder: str | Path) -> Path:
+    """``folder``/helsinki-6km.yaml: helsinki-crosstown widened to issue 23's 6 x 6 km AOI
+    (buildings and land use only where the shipped extract has them; data paths made absolute)
+    with a 5 km mission from the same start."""
     import yaml
-    from bench_planner import case_inputs
-
-    from skyroute.pipeline.cache import Cache
-    from skyroute.pipeline.stages_builtin import plan_arguments
-    from skyroute.stages.planning.grid_planner import plan_grid
-    from skyroute.stages.planning.multires import plan_multires
-    from skyroute.stages.planning.problem import build_problem, xyz_from_agl
 
     sc = yaml.safe_load((ROOT / "catalogs" / "scenarios" / "helsinki-crosstown.yaml").read_text())
     sc["name"] = "helsinki-6km"
@@ -127,9 +124,27 @@ def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_0
             v["path"] = str(data / v["path"].removeprefix("../data/"))
         elif isinstance(v, list):
             sc["data"][k] = [str(data / x.removeprefix("../data/")) for x in v]
+    path = Path(folder) / "helsinki-6km.yaml"
+    path.write_text(yaml.safe_dump(sc))
+    return path
+
+
+def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_000) -> dict:
+    """helsinki-crosstown widened to issue 23's 6 x 6 km AOI (:func:`helsinki_6km_yaml`): the
+    maps are built (or read) in ``cache_dir``, then STEP I of level D=``threshold`` by multires
+    and by full-resolution A*, both cold."""
+    import tempfile
+
+    from bench_planner import case_inputs
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.stages_builtin import plan_arguments
+    from skyroute.stages.planning.grid_planner import plan_grid
+    from skyroute.stages.planning.multires import plan_multires
+    from skyroute.stages.planning.problem import build_problem, xyz_from_agl
+
     with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "helsinki-6km.yaml"
-        path.write_text(yaml.safe_dump(sc))
+        path = helsinki_6km_yaml(tmp)
         t = time.perf_counter()
         _, d, s, _ = case_inputs(str(path), Cache(cache_dir))
         maps_s = time.perf_counter() - t
@@ -165,6 +180,14 @@ def main() -> None:
     ap.add_argument("--sides", type=float, nargs="+", default=[2, 6], help="AOI sides [km] (of 2, 6, 12, 20)")
     ap.add_argument("--full-max-expansions", type=int, default=3_000_000,
                     help="full-resolution A* stops (as not finished) after this many expansions; 0: skip it")
+    ap.add_argument("--json", metavar="FILE", help="write the rows as JSON (the figure is drawn from it)")
+    ap.add_argument("--figure", metavar="PNG", help="draw the log-log figure of plan time against grid cells "
+                    "(with the fitted slope) into PNG")
+    ap.add_argument("--figure-time", choices=["cpu", "wall"], default="cpu",
+                    help="the figure's time: the planning process's CPU seconds (default; hardly load-dependent) "
+                         "or wall-clock seconds (the table's)")
+    ap.add_argument("--from-json", metavar="FILE", help="no runs: read the rows from FILE (written by --json) "
+                    "and print the table and draw the figure")
     ap.add_argument("--case", type=float, nargs=2, help=argparse.SUPPRESS)
     ap.add_argument("--helsinki-6km", metavar="CACHE_DIR",
                     help="only the real-map case: issue 23's 6 x 6 km Helsinki AOI (maps built in CACHE_DIR: "
@@ -177,17 +200,22 @@ def main() -> None:
     if a.case:
         print(json.dumps(run_case(a.case[0], a.case[1], a.full_max_expansions)))
         return
-    rows = []
-    for side in a.sides:
-        for length in CASES.get(int(side), (min(5.0, side * 0.7),)):
-            r = subprocess.run([sys.executable, __file__, "--case", str(side), str(length),
-                                "--full-max-expansions", str(a.full_max_expansions)],
-                               capture_output=True, text=True, check=False)
-            if r.returncode != 0:
-                print(f"side {side} km, mission {length} km failed:\n{r.stderr[-2000:]}", file=sys.stderr)
-                continue
-            rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
-            print(json.dumps(rows[-1]), file=sys.stderr)
+    if a.from_json:
+        rows = json.loads(Path(a.from_json).read_text())
+    else:
+        rows = []
+        for side in a.sides:
+            for length in CASES.get(int(side), (min(5.0, side * 0.7),)):
+                r = subprocess.run([sys.executable, __file__, "--case", str(side), str(length),
+                                    "--full-max-expansions", str(a.full_max_expansions)],
+                                   capture_output=True, text=True, check=False)
+                if r.returncode != 0:
+                    print(f"side {side} km, mission {length} km failed:\n{r.stderr[-2000:]}", file=sys.stderr)
+                    continue
+                rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
+                print(json.dumps(rows[-1]), file=sys.stderr)
+        if a.json:
+            Path(a.json).write_text(json.dumps(rows, indent=1))
     print("| AOI side [km] | cells [M] | mission [km] | multires plan [s] | expansions | widenings | corridor [%] "
           "| full A* [s] | full expansions | f multires / f full | peak RSS [MiB] |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
@@ -198,14 +226,82 @@ def main() -> None:
         print(f"| {r['side_km']:g} | {r['cells'] / 1e6:.1f} | {r['mission_km']:.2f} | {r['multires_s']:.1f} | "
               f"{r['multires_expanded']:,} | {r['widenings']} | {100 * r['corridor_fraction']:.1f} | {full} | {ratio} | "
               f"{r.get('rss_MiB', r['rss_multires_MiB']):.0f} |")
+    if len(rows) >= 2:
+        print(f"\nlog-log slope of multires plan time against grid cells: {loglog_slope(rows, 'multires_s'):.2f} "
+              f"(wall), {loglog_slope(rows, 'multires_cpu_s'):.2f} (CPU seconds)")
+    if a.figure:
+        figure(rows, a.figure, a.figure_time)
+        print(f"figure: {a.figure}")
+
+
+def loglog_slope(rows: list[dict], key: str) -> float:
+    """Slope of the least-squares line of log(``key``) against log(cells) over ``rows`` (NaN with
+    fewer than two distinct cell counts)."""
     import numpy as np
 
-    if len(rows) >= 2:
-        x = np.log([r["cells"] for r in rows])
-        y = np.log([r["multires_s"] for r in rows])
-        slope = np.polyfit(x, y, 1)[0]
-        print(f"\nlog-log slope of multires plan time against grid cells: {slope:.2f}")
+    pts = [(r["cells"], r[key]) for r in rows if r.get(key) is not None and r[key] > 0]
+    if len({c for c, _ in pts}) < 2:
+        return math.nan
+    x, y = np.log([c for c, _ in pts]), np.log([t for _, t in pts])
+    return float(np.polyfit(x, y, 1)[0])
 
+
+def figure(rows: list[dict], path: str | Path, clock: str = "cpu") -> None:
+    """Log-log figure of plan time [s] against grid cells: multires (every row) and
+    full-resolution A* (rows where it finished), each with its least-squares line and slope;
+    points labelled by AOI side and mission length.  ``clock``: "cpu" (the planning process's CPU
+    seconds, when the rows have them: on a shared machine they hardly depend on its load) or
+    "wall"."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(7.5, 5.2), dpi=130)
+    cpu = clock == "cpu" and all("multires_cpu_s" in r for r in rows)
+    sfx = "_cpu_s" if cpu else "_s"
+    series = [("multires" + sfx, "multi-resolution A*", "tab:blue", "o"),
+              ("full" + sfx, "full-resolution A*", "tab:orange", "s")]
+    cells = np.array([r["cells"] for r in rows], float)
+    for key, label, color, marker in series:
+        sel = [r for r in rows if r.get(key) is not None and (not key.startswith("full") or "full_f" in r)]
+        if not sel:
+            continue
+        x = np.array([r["cells"] for r in sel], float)
+        y = np.array([r[key] for r in sel], float)
+        slope = loglog_slope(sel, key)
+        ax.loglog(x, y, marker, color=color, ms=7, label=f"{label} (fitted slope {slope:.2f})"
+                  if not math.isnan(slope) else label)
+        if not math.isnan(slope):
+            b, a0 = np.polyfit(np.log(x), np.log(y), 1)
+            xs = np.geomspace(x.min() / 1.3, x.max() * 1.3, 50)
+            ax.loglog(xs, np.exp(a0) * xs ** b, "-", color=color, lw=1.2, alpha=0.7)
+        left = key.startswith("multires")      # multires labels left of their point, full A* right
+        for cells_i in sorted({r["cells"] for r in sel}):
+            group = sorted((r for r in sel if r["cells"] == cells_i), key=lambda r: r[key])
+            ys = list(np.log10([r[key] for r in group]))
+            for i in range(1, len(ys)):     # labels of one AOI at least 0.09 decades apart
+                ys[i] = max(ys[i], ys[i - 1] + 0.09)
+            for r, y in zip(group, ys, strict=True):
+                ax.text(cells_i / 1.15 if left else cells_i * 1.15, 10 ** y,
+                        f"{r['side_km']:g} km / {r['mission_km']:.1f} km", ha="right" if left else "left",
+                        va="center", fontsize=8, color=color)
+    ax.set_xlabel("grid cells of the AOI (2 m cells) [-]")
+    ax.set_ylabel("STEP I plan time [s]" + (" (CPU)" if cpu else " (wall clock)"))
+    ax.set_xlim(cells.min() / 4.0, cells.max() * 4.0)
+    ax.set_title("City-scale STEP I on a synthetic city (issue 23): time against cells", fontsize=10)
+    ax.grid(True, which="both", lw=0.4, alpha=0.5)
+    ax.legend(loc="upper left", fontsize=9)
+    loads = [r["load_average_1min"] for r in rows if "load_average_1min" in r]
+    load = f", load average {min(loads):.1f}-{max(loads):.1f}" if loads else ""
+    what = "CPU seconds of the planning process" if cpu else "wall-clock seconds"
+    fig.text(0.01, 0.01, "Labels: AOI side / mission length (straight line).  SYNTHETIC city (tests/_city.py: "
+             "procedural, not real data).\nBoth planners cold, compilation excluded, NUMBA_NUM_THREADS=1; "
+             f"{what}\non a 2-core machine shared with other jobs{load}.", fontsize=7, color="0.3")
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.savefig(path)
+    plt.close(fig)
 
 if __name__ == "__main__":
     main()

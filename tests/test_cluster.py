@@ -83,3 +83,42 @@ def test_two_commands_on_one_cluster_then_every_worker_lost(cluster, tmp_path):
     assert len(lines) == 1 and "every dask worker was lost" in lines[0], err[-3000:]
     assert "Traceback" not in err
     assert waited <= WORKER_LOSS_S + 30, waited
+
+
+def _small_helsinki(folder: Path) -> Path:
+    """helsinki-medical cut to a 0.45 x 1.05 km AOI round its mission, 256-cell chunks and a 5 min
+    GNSS window (a fast scenario whose maps still come in several chunks)."""
+    import yaml
+
+    catalogs = Path(__file__).resolve().parents[1] / "catalogs"
+    sc = yaml.safe_load((catalogs / "scenarios" / "helsinki-medical.yaml").read_text())
+    sc.update(name="helsinki-small")
+    sc.pop("traffic")
+    sc["aoi"].update(bounds_lonlat=[24.9370, 60.1636, 24.9450, 60.1730], chunk_cells=256)
+    sc["gnss"]["window_min"] = 5
+    text = yaml.safe_dump(sc).replace("../data/", f"{catalogs / 'data'}/")
+    (folder / "helsinki-small.yaml").write_text(text)
+    return folder / "helsinki-small.yaml"
+
+
+def test_maps_on_a_real_cluster_equal_the_default_scheduler(cluster, tmp_path):
+    """Every map stage before `plan` (issue 23 item 3: the stages the cluster benchmark times)
+    computed on two worker processes is bit-identical to the default threaded scheduler's."""
+    import xarray as xr
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.graph import run_pipeline, stages_for
+    from skyroute.pipeline.settings import load_scenario
+
+    address, _, _ = cluster
+    sc = load_scenario(str(_small_helsinki(tmp_path)))
+    maps = [s.name for s in stages_for(sc, ["plan"]) if s.name != "plan"]
+    assert "coverage" in maps and "clearance" in maps
+    a = run_pipeline(sc, cache=Cache(tmp_path / "threads"), targets=maps)
+    b = run_pipeline(sc, cache=Cache(tmp_path / "cluster"), targets=maps, scheduler=address)
+    assert [r.name for r in a.records] == [r.name for r in b.records] == maps
+    assert not a.cache_hits and not b.cache_hits
+    surf = b["surface"]["surface"]
+    assert surf.encoding["chunks"][0] < surf.shape[0]     # several chunks
+    for name in maps:
+        xr.testing.assert_identical(a[name].load(), b[name].load())

@@ -410,6 +410,24 @@ def _to_grid_geoms(geoms, src_crs: CRS, grid: Grid):
     return [shapely.transform(g, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1]))) for g in geoms]
 
 
+def osm_building_footprints(path: str | Path, storey_height_m: float = STOREY_HEIGHT_M
+                            ) -> tuple[list[int], list[float], list[str], list]:
+    """The building footprints of an OSM extract: (OSM ids, heights above ground [m], height
+    sources, shapely footprints in WGS 84 lon/lat [deg]); every area tagged ``building`` or
+    ``building:part``, heights from :func:`osm_building_height` (the one reading of building
+    heights: :func:`osm_buildings` and the mosaic-city generator use it)."""
+    ids, hs, srcs, geoms = [], [], [], []
+    for f in read_osm(path, keys=["building", "building:part"]):
+        if f.kind != "area":
+            continue
+        h, src = osm_building_height(f.tags, storey_height_m)
+        ids.append(f.osm_id)
+        hs.append(h)
+        srcs.append(src)
+        geoms.append(f.geometry)
+    return ids, hs, srcs, geoms
+
+
 def osm_buildings(path: str | Path, grid: Grid, storey_height_m: float = STOREY_HEIGHT_M) -> BuildingRaster:
     """Rasterise the building footprints of an OSM extract with their heights above ground.
 
@@ -435,15 +453,8 @@ def osm_buildings(path: str | Path, grid: Grid, storey_height_m: float = STOREY_
     DataError
         When the OSM file is missing or unreadable.
     """
-    feats = [f for f in read_osm(path, keys=["building", "building:part"]) if f.kind == "area"]
+    ids, hs, srcs, geoms = osm_building_footprints(path, storey_height_m)
     xmin, ymin, xmax, ymax = grid.bounds
-    ids, hs, srcs, geoms = [], [], [], []
-    for f in feats:
-        h, src = osm_building_height(f.tags, storey_height_m)
-        ids.append(f.osm_id)
-        hs.append(h)
-        srcs.append(src)
-        geoms.append(f.geometry)
     geoms = _to_grid_geoms(geoms, CRS.from_epsg(4326), grid)
     keep = [i for i, g in enumerate(geoms) if g.intersects(shapely.box(xmin, ymin, xmax, ymax))]
     return _rasterize_flat(grid, [geoms[i] for i in keep], np.array(hs)[keep] if keep else np.zeros(0),

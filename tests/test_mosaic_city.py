@@ -1,0 +1,135 @@
+"""The SYNTHETIC mosaic city generator (issue 23): a 0.5 km mosaic checked against an independent
+reconstruction of its translated buildings (shapely, cell by cell), its determinism, its land use
+and the nature statement in every file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+import shapely
+from pyproj import Transformer
+
+from skyroute.catalogs import generate_mosaic_city as M
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def mosaic(tmp_path_factory):
+    out = tmp_path_factory.mktemp("mosaic")
+    info = M.generate(out, side_km=0.5, seed=3, green_share=0.5)
+    return out, info
+
+
+def _dsm(path):
+    with rasterio.open(path) as d:
+        return d.read(1), d.transform, d.tags()
+
+
+def _reference_buildings(info):
+    """The translated buildings rebuilt from the source OSM file and mosaic.json alone: every
+    building (read with pyosmium directly, height from its tags by the documented rule) whose
+    representative point lies in a tile's source block, moved by the tile's offset."""
+    import osmium
+
+    from skyroute.stages.surface import osm_building_height
+
+    wkb = osmium.geom.WKBFactory()
+    t = Transformer.from_crs(4326, 32635, always_xy=True)
+    src = []
+    for obj in osmium.FileProcessor(str(M.SOURCE_PBF)).with_areas().with_locations():
+        if obj.is_area() and ("building" in obj.tags or "building:part" in obj.tags):
+            try:
+                g = shapely.from_wkb(wkb.create_multipolygon(obj))
+            except RuntimeError:
+                continue
+            g = shapely.transform(g, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1])))
+            src.append((g, osm_building_height(dict(obj.tags))[0]))
+    tile = info["tile_m"]
+    n_side = int(round(info["side_km"] * 1000 / tile))
+    x0, y0 = info["bounds"][:2]
+    out = []
+    for k, (sx, sy) in enumerate(info["tile_source_sw_xy_m"]):
+        tx, ty = x0 + (k % n_side) * tile, y0 + (k // n_side) * tile
+        for g, h in src:
+            p = g.point_on_surface()
+            if sx <= p.x < sx + tile and sy <= p.y < sy + tile:
+                out.append((shapely.affinity.translate(g, tx - sx, ty - sy), h))
+    return out
+
+
+def test_dsm_cells_are_the_highest_translated_building(mosaic):
+    out, info = mosaic
+    dsm, tr, tags = _dsm(out / "mosaic_dsm.tif")
+    ground = info["ground_m"]
+    ref = _reference_buildings(info)
+    assert len(ref) == info["buildings"] > 20
+    tree = shapely.STRtree([g for g, _ in ref])
+    hs = np.array([h for _, h in ref])
+    rng = np.random.default_rng(0)
+    bld = np.argwhere(dsm > ground)
+    assert len(bld) == info["building_cells"] > 1000
+    cells = np.vstack([bld[rng.choice(len(bld), 300, replace=False)],
+                       rng.integers(0, dsm.shape[0], (300, 2))])
+    for r, c in cells:
+        xa, yb = tr * (c, r)
+        box = shapely.box(xa, yb - tr.a, xa + tr.a, yb)       # the cell's closed square
+        hit = tree.query(box, predicate="intersects")
+        want = ground + (hs[hit].max() if len(hit) else 0.0)
+        assert dsm[r, c] == pytest.approx(want, abs=1e-4), (r, c)
+
+
+def test_deterministic_for_a_seed_and_seeds_differ(mosaic, tmp_path):
+    out, info = mosaic
+    again = M.generate(tmp_path / "a", side_km=0.5, seed=3, green_share=0.5)
+    other = M.generate(tmp_path / "b", side_km=0.5, seed=4, green_share=0.5)
+    a0, _, _ = _dsm(out / "mosaic_dsm.tif")
+    a1, _, _ = _dsm(tmp_path / "a" / "mosaic_dsm.tif")
+    a2, _, _ = _dsm(tmp_path / "b" / "mosaic_dsm.tif")
+    assert np.array_equal(a0, a1) and again["tile_source_sw_xy_m"] == info["tile_source_sw_xy_m"]
+    assert (out / "mosaic_landuse.osm.pbf").read_bytes() == (tmp_path / "a" / "mosaic_landuse.osm.pbf").read_bytes()
+    assert not np.array_equal(a0, a2) and other["tile_source_sw_xy_m"] != info["tile_source_sw_xy_m"]
+
+
+def test_parks_open_ground_and_the_nature_statement(mosaic):
+    from skyroute.pipeline.settings import load_scenario
+    from skyroute.stages.landing import landing_sites
+    from skyroute.stages.risk import risk_levels
+
+    out, info = mosaic
+    assert info["green_tiles"] >= 1
+    sc = load_scenario(out / "mosaic-city.yaml")
+    assert "SYNTHETIC mosaic of translated real Helsinki blocks" in sc.description
+    assert sc.grid.nx == sc.grid.ny == 250
+    lv = risk_levels(sc.grid, osm_path=out / "mosaic_landuse.osm.pbf").values
+    assert (lv == 1).mean() > 0.05        # parks, grass, water: natural ground
+    assert (lv == 3).mean() > 0.05        # the translated buildings
+    assert len(landing_sites(sc.grid, osm_path=out / "mosaic_landuse.osm.pbf")) >= 1   # parks, pitches, grass
+    for f in ("mosaic_dsm.tif", "mosaic_dem.tif"):
+        assert "SYNTHETIC mosaic of translated real Helsinki blocks" in _dsm(out / f)[2]["NATURE"]
+    import osmium
+
+    r = osmium.io.Reader(str(out / "mosaic_landuse.osm.pbf"))
+    assert "SYNTHETIC mosaic of translated real Helsinki blocks" in r.header().get("generator")
+    r.close()
+    from skyroute.stages.osm import read_osm
+
+    feats = read_osm(out / "mosaic_landuse.osm.pbf")
+    assert feats and all(f.tags["skyroute:nature"] == M.NATURE for f in feats)
+    assert json.loads((out / "mosaic.json").read_text())["nature"] == M.NATURE
+
+
+def test_shipped_benchmark_scenario_is_the_generated_one():
+    shipped = (ROOT / "benchmarks" / "scenarios" / "mosaic-city-20km.yaml").read_text()
+    assert shipped == M.scenario_yaml(20.0, 0, 2.0)
+    assert "SYNTHETIC mosaic of translated real Helsinki blocks" in shipped
+
+
+def test_bad_sizes_are_one_error_line(tmp_path, capsys):
+    assert M.main([str(tmp_path / "x"), "--side-km", "0.3"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: --side-km 0.3 must be a whole number")

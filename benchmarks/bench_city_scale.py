@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import resource
 import subprocess
 import sys
@@ -163,15 +164,50 @@ def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_0
 MAPS_STAGES = ("surface", "environment", "wind", "clearance", "satellites", "coverage")   # maps + coverage
 
 
-def _rss_sampler(samples: list, stop, period_s: float = 0.5) -> None:
-    """Append (t [s], RSS [MiB]) of this process every ``period_s`` until ``stop`` is set."""
+def _rss_mib() -> int:
+    try:
+        return int(Path("/proc/self/status").read_text().split("VmRSS:")[1].split()[0]) // 1024
+    except (OSError, IndexError, ValueError):
+        return 0
+
+
+def _main_stack(depth: int = 10) -> list[str]:
+    """The main thread's innermost ``depth`` frames, as "file:line function"."""
+    import threading
+    import traceback
+
+    frame = sys._current_frames().get(threading.main_thread().ident)
+    if frame is None:
+        return []
+    return [f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in traceback.extract_stack(frame)[-depth:]]
+
+
+def _rss_sampler(samples: list, stop, report: dict, period_s: float = 0.5, step_mib: int = 512,
+                 kill_mib: int = 0) -> None:
+    """Append (t [s], RSS [MiB]) of this process every ``period_s`` until ``stop`` is set.  With
+    tracemalloc on, at every new RSS high ``step_mib`` above the last one, record where the memory
+    is (the largest live allocations by line) and the main thread's stack; past ``kill_mib`` write
+    the report and stop the process (exit 3) before the machine runs out of memory."""
+    import tracemalloc
+
     t0 = time.perf_counter()
+    last = 0
     while not stop.wait(period_s):
-        try:
-            kb = int(Path("/proc/self/status").read_text().split("VmRSS:")[1].split()[0])
-        except (OSError, IndexError, ValueError):
-            continue
-        samples.append((round(time.perf_counter() - t0, 1), kb // 1024))
+        rss = _rss_mib()
+        samples.append((round(time.perf_counter() - t0, 1), rss))
+        if rss >= last + step_mib:
+            last = rss
+            snap = {"t_s": samples[-1][0], "rss_MiB": rss, "stack": _main_stack()}
+            if tracemalloc.is_tracing():
+                top = tracemalloc.take_snapshot().statistics("lineno")[:12]
+                snap["traced_MiB"] = round(tracemalloc.get_traced_memory()[0] / 2 ** 20)
+                snap["largest"] = [f"{st.size / 2 ** 20:.0f} MiB in {st.count} blocks at "
+                                   f"{Path(st.traceback[0].filename).name}:{st.traceback[0].lineno}" for st in top]
+            report.setdefault("memory_highs", []).append(snap)
+        if kill_mib and rss > kill_mib:
+            report["killed"] = f"RSS {rss} MiB > {kill_mib} MiB at {samples[-1][0]} s"
+            print(json.dumps(report), flush=True)
+            os._exit(3)
 
 
 def stage_child(scenario: str, stage: str, cache_dir: str) -> dict:
@@ -185,9 +221,14 @@ def stage_child(scenario: str, stage: str, cache_dir: str) -> dict:
 
     samples: list = []
     stop = threading.Event()
-    threading.Thread(target=_rss_sampler, args=(samples, stop), daemon=True).start()
+    out: dict = {"stage": stage}
+    if os.environ.get("BENCH_TRACEMALLOC"):
+        import tracemalloc
+
+        tracemalloc.start(1)
+    threading.Thread(target=_rss_sampler, args=(samples, stop, out),
+                     kwargs={"kill_mib": int(os.environ.get("BENCH_KILL_MIB", "0"))}, daemon=True).start()
     t = time.perf_counter()
-    out = {"stage": stage}
     try:
         res = run_scenario(scenario, cache=Cache(cache_dir), targets=[stage])
         out["ok"] = True
@@ -209,7 +250,6 @@ def mosaic_20km(out_dir: str, plan: bool = True, side_km: float = 20.0) -> list[
     stage of ``skyroute maps`` and ``skyroute coverage`` on a fresh cache (``out_dir/cache``), each
     in its own process (cold: its inputs from the earlier ones), then the plan stage: per stage the
     wall time, the peak RSS and the load average."""
-    import os
 
     out = Path(out_dir)
     rows = []
@@ -227,8 +267,11 @@ def mosaic_20km(out_dir: str, plan: bool = True, side_km: float = 20.0) -> list[
     # 1e8 cells; the stages are measured instead
     env = {**os.environ, "SKYROUTE_MAX_MEMORY": os.environ.get("SKYROUTE_MAX_MEMORY", "64G")}
     for stage in (*MAPS_STAGES, *(("plan",) if plan else ())):
+        # the plan child: where its memory goes (tracemalloc, stack at every 512 MiB high) and a stop at
+        # BENCH_KILL_MIB (default 11000 MiB) so that a blow-up is reported, not the machine's OOM killer
+        extra = {"BENCH_TRACEMALLOC": "1", "BENCH_KILL_MIB": os.environ.get("BENCH_KILL_MIB", "11000")} if stage == "plan" else {}
         r = subprocess.run([sys.executable, __file__, "--stage-child", str(out / "mosaic-city.yaml"), stage, str(cache)],
-                           capture_output=True, text=True, check=False, env=env)
+                           capture_output=True, text=True, check=False, env={**env, **extra})
         try:
             row = json.loads(r.stdout.strip().splitlines()[-1])
         except (IndexError, json.JSONDecodeError):

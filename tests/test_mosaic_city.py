@@ -133,3 +133,34 @@ def test_bad_sizes_are_one_error_line(tmp_path, capsys):
     assert M.main([str(tmp_path / "x"), "--side-km", "0.3"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: --side-km 0.3 must be a whole number")
+
+
+def test_small_mosaic_maps_and_the_chunked_clearance_equal_the_dsm_floor(mosaic, tmp_path):
+    """The mosaic scenario through surface -> environment -> clearance: the DSM's pixels are the
+    grid's cells, so the clearance stage takes the chunked floor of the surface; it must equal the
+    DSM's own-prism floor (the path for any other DSM) exactly."""
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.runner import run_scenario
+    from skyroute.pipeline.stages_builtin import _dsm_on_grid_lattice
+    from skyroute.stages.clearance import dsm_obstacle_floor
+    from skyroute.stages.grid import Grid
+    from skyroute.stages.vehicle import load_vehicle
+
+    out, info = mosaic
+    res = run_scenario(str(out / "mosaic-city.yaml"), cache=Cache(tmp_path / "c"), targets=["clearance"])
+    surf = res["surface"]
+    grid = Grid.from_dataarray(surf["surface"])
+    assert _dsm_on_grid_lattice((out / "mosaic_dsm.tif",), grid)
+    dsm, _, _ = _dsm(out / "mosaic_dsm.tif")
+    assert np.array_equal(surf["surface"].values, dsm)            # the aligned DSM copied cell by cell
+    r = load_vehicle("dji-m300-rtk").r_p_m
+    want = dsm_obstacle_floor(surf, out / "mosaic_dsm.tif", r, "fill-max", has_dem=True)
+    cl = res["clearance"]
+    assert np.array_equal(cl["obstacle_floor_m"].values, want)
+    assert np.array_equal(cl["min_altitude_m"].values, np.maximum(want, surf["terrain"].values.astype(float)))
+    assert (res["environment"]["risk_level"].values == 1).any()
+    # a DSM off the lattice (half a cell) or reaching beyond the grid takes the DSM-floor path
+    shifted = grid.__class__(grid.crs_wkt, grid.x0 + 1.0, grid.y1, grid.nx, grid.ny, grid.resolution_m)
+    assert not _dsm_on_grid_lattice((out / "mosaic_dsm.tif",), shifted)
+    smaller = grid.__class__(grid.crs_wkt, grid.x0 + 2.0, grid.y1, grid.nx - 1, grid.ny, grid.resolution_m)
+    assert not _dsm_on_grid_lattice((out / "mosaic_dsm.tif",), smaller)

@@ -164,3 +164,35 @@ def test_small_mosaic_maps_and_the_chunked_clearance_equal_the_dsm_floor(mosaic,
     assert not _dsm_on_grid_lattice((out / "mosaic_dsm.tif",), shifted)
     smaller = grid.__class__(grid.crs_wkt, grid.x0 + 2.0, grid.y1, grid.nx - 1, grid.ny, grid.resolution_m)
     assert not _dsm_on_grid_lattice((out / "mosaic_dsm.tif",), smaller)
+
+
+def test_maps_and_coverage_commands_stream_their_outputs(mosaic, tmp_path, monkeypatch):
+    """``skyroute maps`` and ``skyroute coverage`` on the mosaic with small uneven chunks (64-cell blocks
+    of a 250-cell grid) and a figure limit of 100 cells a side (so the figures use the reduced view
+    city-scale maps get): the GeoTIFFs, written chunk by chunk, hold the cached layers exactly."""
+    from click.testing import CliRunner
+
+    import skyroute.pipeline.maps as maps
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.cli import main
+    from skyroute.pipeline.runner import run_scenario
+
+    out, _ = mosaic
+    text = (out / "mosaic-city.yaml").read_text().replace("  resolution_m: 2\n", "  resolution_m: 2\n  chunk_cells: 64\n")
+    text = text.replace("window_min: 20", "window_min: 2")   # 3 GNSS epochs: a fast coverage
+    yml = out / "mosaic-city-chunked.yaml"
+    yml.write_text(text)
+    monkeypatch.setattr(maps, "DISPLAY_MAX_CELLS", 100)
+    cache = tmp_path / "c"
+    for cmd in ("maps", "coverage"):
+        r = CliRunner().invoke(main, [cmd, str(yml), "--out", str(tmp_path / cmd), "--cache-dir", str(cache), "-q"])
+        assert r.exit_code == 0, r.output
+    res = run_scenario(str(yml), cache=Cache(cache), targets=["clearance", "coverage"])
+    assert res["surface"]["surface"].chunks[0] == (64, 64, 64, 58)
+    for stage, var in (("surface", "surface"), ("environment", "risk_level"), ("clearance", "min_altitude_m")):
+        with rasterio.open(tmp_path / "maps" / f"{var}.tif") as d:
+            assert np.array_equal(d.read(1), res[stage][var].values.astype(d.dtypes[0]))
+    cov = res["coverage"]["coverage_floor"]
+    with rasterio.open(tmp_path / "coverage" / f"coverage_PDOP_{cov['threshold'].values[-1]:g}.tif") as d:
+        np.testing.assert_array_equal(d.read(1), cov.isel(threshold=-1).values.astype(np.float32))
+    assert list((tmp_path / "maps").glob("*.png")) and list((tmp_path / "coverage").glob("*.png"))

@@ -196,3 +196,18 @@ def test_maps_and_coverage_commands_stream_their_outputs(mosaic, tmp_path, monke
     with rasterio.open(tmp_path / "coverage" / f"coverage_PDOP_{cov['threshold'].values[-1]:g}.tif") as d:
         np.testing.assert_array_equal(d.read(1), cov.isel(threshold=-1).values.astype(np.float32))
     assert list((tmp_path / "maps").glob("*.png")) and list((tmp_path / "coverage").glob("*.png"))
+
+
+def test_map_commands_are_estimated_without_the_planner(mosaic):
+    """The up-front memory estimate of a request without the plan stage (maps, coverage) counts the
+    chunked map stages (64 B per cell), not the planner's arrays: the 20 km city's maps pass the
+    default limit of a 16 GB machine, its plan does not."""
+    from skyroute.pipeline import budget
+    from skyroute.pipeline.settings import load_scenario
+
+    sc = load_scenario(mosaic[0] / "mosaic-city.yaml")
+    full, maps = budget.scenario_footprint(sc), budget.scenario_footprint(sc, maps_only=True)
+    assert maps.bytes_cells == sc.grid.nx * sc.grid.ny * budget.BYTES_PER_CELL_MAPS and maps.bytes_levels == 0
+    k = 1e8 / maps.cells       # the same scenario at 20 km: 1e8 cells
+    big = budget.BASE_BYTES + k * maps.bytes_cells + maps.bytes_epochs
+    assert big < 0.8 * (16 << 30) < budget.BASE_BYTES + k * (full.bytes_cells + full.bytes_levels)

@@ -206,6 +206,8 @@ def _rss_sampler(samples: list, stop, report: dict, period_s: float = 0.5, step_
             report.setdefault("memory_highs", []).append(snap)
         if kill_mib and rss > kill_mib:
             report["killed"] = f"RSS {rss} MiB > {kill_mib} MiB at {samples[-1][0]} s"
+            report.update(ok=False, error=f"stopped: {report['killed']} (see memory_highs)", s=samples[-1][0],
+                          rss_MiB=rss)
             print(json.dumps(report), flush=True)
             os._exit(3)
 

@@ -36,8 +36,9 @@ Output (OUTDIR), files the ordinary scenario keys read:
 ``mosaic.json``
     what was generated: seed, sizes, the source block of every tile, counts, the nature statement.
 
-The DSM is written window by window (``--window-cells``, default 2048) with rasterio, each window
-rasterising only the buildings that reach it, so generation needs a few hundred MiB at any size.
+The DSM is written window by window (2048 x 2048 cells) with rasterio, each window rasterising only
+the buildings that reach it; the translated features are held as vectors (20 km: 130 k buildings,
+69 k land-use features, 28 s and 1.2 GB peak on this machine).
 
 Run::
 

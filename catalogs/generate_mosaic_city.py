@@ -333,15 +333,21 @@ COPIED = ("gfs_2011-01-15T12_wind.nc", "yuma_2020-01-03.txt", "alm_gal_ed259.txt
 
 def scenario_yaml(side_km: float = 20.0, seed: int = 0, resolution_m: float = 2.0, mission_km: float | None = None) -> str:
     """The scenario of the mosaic city (its data paths relative to the generator's OUTDIR, where
-    :func:`generate` writes it as ``mosaic-city.yaml``): a diagonal SW -> NE mission through the
-    centre, ``mission_km`` long (default 15 km, at most 3/4 of the diagonal)."""
+    :func:`generate` writes it as ``mosaic-city.yaml``): a diagonal SE -> NW mission through the
+    centre, ``mission_km`` long (default 15 km, at most 3/4 of the diagonal), at 30 m AGL.
+
+    Why SE -> NW at 30 m: the scenario keeps the real GFS wind of ``helsinki-crosstown``, which
+    here blows from the south-east at 13.8-15.5 m/s between 10 and 80 m above ground (above the
+    M300's 15 m/s limit from about 50 m); downwind, 15 km at the 10 m/s cruise ground speed need
+    about 252 Wh of its 627 Wh (straight line, eq. 2-12), SW -> NE about 866 Wh (not flyable); 60 m
+    AGL is already in the wind no-fly, so the ceiling is 40 m AGL (wind at most 14.97 m/s there)."""
     side_m = side_km * 1000.0
     length_m = (MISSION_KM if mission_km is None else mission_km) * 1000.0
     length_m = min(length_m, 0.75 * side_m * 2 ** 0.5)
     h = length_m / 2 ** 0.5 / 2
     cx, cy = ORIGIN_XY_M[0] + side_m / 2, ORIGIN_XY_M[1] + side_m / 2
-    s = (round(cx - h, 1), round(cy - h, 1))
-    g = (round(cx + h, 1), round(cy + h, 1))
+    s = (round(cx + h, 1), round(cy - h, 1))      # south-east
+    g = (round(cx - h, 1), round(cy + h, 1))      # north-west
     name = f"mosaic-city-{side_km:g}km"
     return f"""# {name}: the issue 23 benchmark city.  {NATURE}.
 # Written by `python -m skyroute.catalogs.generate_mosaic_city OUTDIR --side-km {side_km:g} --seed {seed}` next to
@@ -350,8 +356,10 @@ name: {name}
 description: >-
   SYNTHETIC mosaic of translated real Helsinki blocks, not a real city ({side_km:g} x {side_km:g} km, seed {seed}):
   250 m blocks of the shipped Helsinki OSM extract (buildings with their heights, land use, parks) copied
-  onto a seeded mosaic around Helsinki's coordinates; a {length_m / 1000:.1f} km SW -> NE delivery across it
-  (flat ground 3.5 m EGM96).
+  onto a seeded mosaic around Helsinki's coordinates; a {length_m / 1000:.1f} km SE -> NW delivery across it
+  (flat ground 3.5 m EGM96), downwind at 30 m AGL under a 40 m AGL ceiling: the real GFS wind of
+  helsinki-crosstown blows here from the south-east at 14-15 m/s, above the M300's 15 m/s limit from about
+  45 m (about 252 Wh of its 627 Wh for 15 km downwind; upwind SW -> NE would need about 866 Wh).
 aoi:
   crs: EPSG:{CRS_EPSG}
   bounds: [{ORIGIN_XY_M[0]:.1f}, {ORIGIN_XY_M[1]:.1f}, {ORIGIN_XY_M[0] + side_m:.1f}, {ORIGIN_XY_M[1] + side_m:.1f}]
@@ -365,11 +373,12 @@ data:
   wind: {{path: {COPIED[0]}, time_utc: 2011-01-15T12:00:00Z, profile: levels}}
   almanacs: [{COPIED[1]}, {COPIED[2]}]
 mission:
-  start: {{name: "mosaic SW point (synthetic city)", x: {s[0]}, y: {s[1]}, alt_agl_m: 60}}
-  goal: {{name: "mosaic NE point (synthetic city)", x: {g[0]}, y: {g[1]}, alt_agl_m: 60}}
+  start: {{name: "mosaic SE point (synthetic city)", x: {s[0]}, y: {s[1]}, alt_agl_m: 30}}
+  goal: {{name: "mosaic NW point (synthetic city)", x: {g[0]}, y: {g[1]}, alt_agl_m: 30}}
   start_time_utc: 2020-01-03T10:00:00Z
 vehicle: dji-m300-rtk
-constraints: {{min_altitude_agl_m: 0, max_altitude_agl_m: 80}}
+# 40 m AGL: above it the wind reaches the M300's 15 m/s limit (14.97 m/s at 40 m, 15.1 at 50 m)
+constraints: {{min_altitude_agl_m: 0, max_altitude_agl_m: 40}}
 gnss: {{elevation_mask_deg: 5, dop_kind: PDOP, dop_thresholds: [2, 3, 4], window_min: 20, step_min: 1}}
 planner: {{name: astar, weights: [1, 1, 1, 1], time_budget_s: 30, seed: 0}}
 """

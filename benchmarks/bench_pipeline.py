@@ -9,6 +9,11 @@ kernels are on disk: a first-ever compile is not what a user re-running a scenar
 included), and printed with their ratio.  Without ``--quick`` the pipeline is also timed in
 this process, stage by stage, and each warm time is the best of ``--repeat`` runs.
 
+``--pairs N``: N (cold, warm) pairs alternating in this one run, each cold in a new empty
+stage cache and its warm right after on that cache, each pair printed with its ratio and the
+load average (other processes on the machine slow both alike); the numba caches are primed
+first (an untimed run).
+
 ``--quick`` (under 60 s on a quiet machine): one cold and one warm CLI run, no in-process
 table.  A cold run that wrote numba cache files (it compiled kernels) is repeated in a new
 stage cache, so the cold time never includes a compile.
@@ -17,6 +22,7 @@ stage cache, so the cold time never includes a compile.
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -56,13 +62,36 @@ def in_process(scenario: str, tmp: Path, repeat: int) -> None:
     print(f"  {'pipeline':14s} {cold.seconds:9.3f} {warm.seconds:9.3f}   warm/cold = {warm.seconds / cold.seconds:.3f}")
 
 
+def pairs(scenario: str, n: int) -> None:
+    """``n`` alternating (cold, warm) ``skyroute run`` pairs (see the module docstring)."""
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        print("priming numba caches (untimed run in a throwaway stage cache) ...", flush=True)
+        cli_run(scenario, tmp / "prime", tmp / "prime-out")
+        print(f"{scenario}: skyroute run, whole command (numba caches warm)")
+        print(f"  {'pair':>4s} {'cold [s]':>9s} {'warm [s]':>9s} {'warm/cold':>9s}   load average (1, 5, 15 min)")
+        ratios = []
+        for i in range(n):
+            load0 = os.getloadavg()
+            cold = cli_run(scenario, tmp / f"cache{i}", tmp / f"out{i}")
+            warm = cli_run(scenario, tmp / f"cache{i}", tmp / f"out{i}")
+            ratios.append(warm / cold)
+            load = ", ".join(f"{a:.2f}-{b:.2f}" for a, b in zip(load0, os.getloadavg(), strict=True))
+            print(f"  {i + 1:4d} {cold:9.2f} {warm:9.2f} {warm / cold:9.3f}   {load}", flush=True)
+        print(f"  warm/cold: min {min(ratios):.3f}, max {max(ratios):.3f}   (issue 25 target: < 0.10)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenario", nargs="?", default="helsinki-medical")
     ap.add_argument("--repeat", type=int, default=3, help="warm runs; the best counts (default 3)")
     ap.add_argument("--quick", action="store_true", help="one cold and one warm CLI run only")
+    ap.add_argument("--pairs", type=int, default=0, help="N alternating (cold, warm) CLI pairs, each cold on a new cache")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
+    if args.pairs > 0:
+        pairs(args.scenario, args.pairs)
+        return
     repeat = 1 if args.quick else max(args.repeat, 1)
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)

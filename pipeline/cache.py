@@ -33,13 +33,16 @@ import shutil
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import xarray as xr
 
 from skyroute.pipeline.errors import CacheError
 from skyroute.pipeline.model import sha256_file
+
+# xarray is imported where a dataset is opened or written: a warm run that reads none imports none
+if TYPE_CHECKING:
+    import xarray as xr
 
 log = logging.getLogger("skyroute.cache")
 MANIFEST = "skyroute.json"
@@ -137,11 +140,41 @@ class Cache:
         return CacheEntry(stage, key, p, manifest)
 
     def open(self, entry: CacheEntry, chunks: Any = "auto") -> xr.Dataset:
+        """The entry's dataset, lazily (dask arrays; ``.rio`` registered)."""
+        import rioxarray  # noqa: F401  (registers the .rio accessor)
+        import xarray as xr
+
         ds = xr.open_zarr(entry.path / "data.zarr", chunks={} if chunks == "auto" else chunks, consolidated=False)
         for name, var in ds.variables.items():
             if isinstance(var.dtype, np.dtypes.StringDType):  # back to plain Python strings for users
                 ds[name] = var.astype(object)
         return ds
+
+    def attrs(self, entry: CacheEntry) -> dict[str, Any]:
+        """The attributes of the entry's dataset, as :meth:`open` gives them (``ds.attrs``), read
+        from the zarr group's metadata without opening the dataset (no xarray)."""
+        try:
+            meta = json.loads((entry.path / "data.zarr" / "zarr.json").read_bytes())   # zarr format 3
+        except (OSError, ValueError):
+            meta = None
+        if not (isinstance(meta, dict) and isinstance(meta.get("attributes", {}), dict)):
+            return dict(self.open(entry).attrs)          # another layout: as the opened dataset says
+        return {k: v for k, v in meta.get("attributes", {}).items()
+                if not k.lower().startswith("_nc")}       # as xarray's ZarrStore
+
+    # -- checks passed (a check is a function of content-addressed entries: once passed, it
+    # passes again on the same key, and its inputs need not be read)
+    def passed(self, check: str, key: str) -> bool:
+        """Whether the check ``check`` passed on ``key`` (:meth:`note_passed`)."""
+        return (self.root / "checks" / f"{check}-{key}").is_file()
+
+    def note_passed(self, check: str, key: str) -> None:
+        """Record that the check ``check`` passed on ``key`` (a read-only cache records nothing)."""
+        try:
+            (self.root / "checks").mkdir(parents=True, exist_ok=True)
+            (self.root / "checks" / f"{check}-{key}").touch()
+        except OSError:
+            pass
 
     # -- write
     def write(self, stage: str, key: str, ds: xr.Dataset, manifest: dict[str, Any],
@@ -200,6 +233,8 @@ class Cache:
         if stage is None and self.stages_dir.is_dir():
             for p in self.stages_dir.iterdir():  # incomplete or foreign leftovers
                 shutil.rmtree(p, ignore_errors=True)
+        if stage is None:
+            shutil.rmtree(self.root / "checks", ignore_errors=True)
         n += self.clean_tmp(all_=stage is None)
         return n
 

@@ -29,19 +29,20 @@ __all__ = ["MAP_STAGES", "FlyResult", "fly_scenario", "tactical_events", "tactic
 
 def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
                method: str | None = None):
+    """The replay's :class:`~skyroute.stages.tactical.replay.FlyParams`: the scenario's
+    ``tactical:`` section (``t_rep_s``, ``tick_s``, ``seed``, ``method`` override it) and its
+    plan request (:func:`~skyroute.pipeline.stages_builtin.plan_request`: the planning settings)."""
+    from skyroute.pipeline.stages_builtin import plan_request
     from skyroute.stages.tactical.replay import FlyParams
 
     t = sc.tactical
     return FlyParams(t_rep_s=t.t_rep_s if t_rep_s is None else t_rep_s, tick_s=t.tick_s if tick_s is None else tick_s,
-                     seed=t.seed if seed is None else seed, d_c_m=sc.traffic.margin_m, dt_c_s=t.time_margin_s,
-                     weights=tuple(sc.planner.weights), time_scaling_factors=tuple(t.time_scaling_factors),
+                     seed=t.seed if seed is None else seed, dt_c_s=t.time_margin_s,
+                     time_scaling_factors=tuple(t.time_scaling_factors),
                      level2_iterations=t.level2_iterations, level3_iterations=t.level3_iterations,
                      intruder_noise_m=t.intruder_noise_m, report_latency_s=t.report_latency_s,
-                     min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
-                     dop_kind=sc.gnss.dop_kind, uere_m=sc.gnss.uere_m,
-                     battery_reserve_pct=sc.constraints.battery_reserve_pct, step_cells=sc.planner.step_cells,
                      method=t.method if method is None else method, periphery_m=t.periphery_m,
-                     zone_period_s=t.zone_period_s)
+                     zone_period_s=t.zone_period_s, request=plan_request(sc))
 
 
 def tactical_method(sc: Scenario, method: str | None = None) -> str:
@@ -76,7 +77,6 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     from skyroute.stages.planning.strategic import plan_from_dataset, trajectory_from_dataset
     from skyroute.stages.tactical.replay import replay
     from skyroute.stages.traffic import intruders_for
-    from skyroute.stages.vehicle import load_vehicle
 
     method = tactical_method(sc, method)
     if method == "local":
@@ -102,9 +102,8 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
         radius = float(chosen.clearance_radius_m)
         if not math.isfinite(radius):
             raise PlanningError("the cached plan has no safety-bubble radius: re-run with `--force plan`")
-        params = dataclasses.replace(params, bubble_k=float(sc.constraints.sboa_k),
-                                     surface_uncertainty_m=float(sc.navsim.surface_uncertainty_m),
-                                     clearance_radius_m=radius)
+        bubble = (float(sc.constraints.sboa_k), float(sc.navsim.surface_uncertainty_m))
+        params = dataclasses.replace(params, request=params.request.with_(bubble=bubble), clearance_radius_m=radius)
     check_ticks(float(t0 + traj.duration_s), params.tick_s)  # the planned flight, before the replay
     problems = check_event_times(sc, float(t0 + traj.duration_s))
     if problems:
@@ -122,7 +121,7 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     strategic = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else []
     goal = chosen.xyz_m[-1]
     log = replay(traj, t0, goal_xyz=goal, world=_world(result, sc, radius), world_at=world_at, events=events,
-                 strategic_intruders=strategic, vehicle=load_vehicle(sc.vehicle), params=params,
+                 strategic_intruders=strategic, vehicle=params.request.vehicle, params=params,
                  start_time_utc=sc.mission.start_time_utc.isoformat(), dop_threshold=chosen.dop_threshold,
                  scenario=sc.name, crs_wkt=str(surface["surface"].rio.crs),
                  vertical_datum=surface["surface"].attrs.get("vertical_datum", ""))

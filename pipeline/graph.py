@@ -32,20 +32,21 @@ import os
 import sys
 import time
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, MutableMapping, Sequence
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
-from typing import Any
-
-import dask
-import xarray as xr
+from typing import TYPE_CHECKING, Any
 
 from skyroute.pipeline import control
 from skyroute.pipeline.cache import Cache, CacheEntry
 from skyroute.pipeline.errors import InputError, UnknownNameError
 from skyroute.pipeline.model import stable_hash
 from skyroute.pipeline.settings import Scenario
-from skyroute.pipeline.verify import DatasetError, verify_dataset
+
+# dask and xarray are imported where a stage computes or a dataset is read: a warm run that
+# reads no dataset imports neither
+if TYPE_CHECKING:
+    import xarray as xr
 
 log = logging.getLogger("skyroute.pipeline")
 
@@ -76,16 +77,22 @@ class Stage:
     def code_version(self) -> str:
         """Hash of the stage function's and selector's source and of every ``skyroute`` module
         they (transitively) import; ``code_modules`` adds modules reached only dynamically."""
-        h = hashlib.sha256(f"{self.name}:{self.version}".encode())
-        mods: set[str] = set(self.code_modules)
-        for fn in (self.func, self.select):
-            src, mods_fn = _function_imports(fn)
-            h.update(src.encode())
-            mods |= mods_fn
-        for m in sorted(code_closure(mods)):
-            h.update(m.encode())
-            h.update(_module_source(m) or SKYROUTE_VERSION.encode())
-        return h.hexdigest()[:16]
+        return code_version_of(self.func, self.select, modules=self.code_modules, salt=f"{self.name}:{self.version}")
+
+
+def code_version_of(*fns: Callable[..., Any], modules: Sequence[str] = (), salt: str = "") -> str:
+    """Hash of the source of ``fns`` and of every ``skyroute`` module they (transitively)
+    import, plus ``modules`` (and theirs): the code part of a cache key (:meth:`Stage.code_version`)."""
+    h = hashlib.sha256(salt.encode())
+    mods: set[str] = set(modules)
+    for fn in fns:
+        src, mods_fn = _function_imports(fn)
+        h.update(src.encode())
+        mods |= mods_fn
+    for m in sorted(code_closure(mods)):
+        h.update(m.encode())
+        h.update(_module_source(m) or SKYROUTE_VERSION.encode())
+    return h.hexdigest()[:16]
 
 
 _PACKAGE = "skyroute"
@@ -323,11 +330,16 @@ def stages_for(scenario: Scenario, targets: Sequence[str] | None = None) -> list
 
 
 # --------------------------------------------------------------------------- schedulers
+LOCAL_SCHEDULERS = ("threads", "processes", "synchronous", "sync")
+
+
 @contextlib.contextmanager
 def scheduler_context(scheduler: str = "threads", workers: int | None = None) -> Iterator[Any]:
     """Configure dask for ``scheduler``: ``threads`` (default), ``processes``, ``synchronous``,
     ``distributed`` (a new LocalCluster of ``workers`` processes) or ``tcp://host:port``."""
-    if scheduler in ("threads", "processes", "synchronous", "sync"):
+    if scheduler in LOCAL_SCHEDULERS:
+        import dask
+
         kw = {"num_workers": workers} if workers else {}
         with dask.config.set(scheduler=scheduler, **kw):
             yield None
@@ -354,6 +366,14 @@ def scheduler_context(scheduler: str = "threads", workers: int | None = None) ->
     else:
         raise UnknownNameError("scheduler", scheduler,
                                ["threads", "processes", "synchronous", "distributed", "tcp://host:port"])
+
+
+@contextlib.contextmanager
+def _check_scheduler(scheduler: str) -> Iterator[None]:
+    """A local ``scheduler`` name checked, nothing configured (no stage computes)."""
+    if scheduler not in LOCAL_SCHEDULERS:   # pragma: no cover - run_pipeline connects to clusters
+        raise UnknownNameError("scheduler", scheduler, list(LOCAL_SCHEDULERS))
+    yield None
 
 
 WORKER_LOSS_S = 20.0   # with no worker left for this long, a distributed command fails (never hangs)
@@ -401,6 +421,8 @@ def _computer(client: Any, progress: bool) -> Callable[[Any], Any]:
 
                 dprogress(fut)
             return cluster_result(client, fut, "the stage computation")
+        import dask
+
         if progress:
             from dask.diagnostics import ProgressBar
 
@@ -421,12 +443,74 @@ class StageRecord:
     path: str
 
 
+class StageDatasets(MutableMapping):
+    """Stage name -> dataset, in stage order.  A cached stage's dataset is opened from its zarr
+    store (lazily, :meth:`Cache.open`) on first access: a warm run that reads no dataset opens
+    none and imports no xarray.  :meth:`attrs` reads a stage's attributes without opening it."""
+
+    def __init__(self, items: dict[str, Any] | None = None):
+        self._items: dict[str, Any] = {}
+        self._openers: dict[str, tuple[Cache, CacheEntry]] = {}
+        self.update(items or {})
+
+    def defer(self, name: str, cache: Cache, entry: CacheEntry) -> None:
+        """``name``'s dataset is ``cache.open(entry)``, opened when first read."""
+        self._items[name] = None
+        self._openers[name] = (cache, entry)
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return self[name] if name in self._items else default
+
+    def __getitem__(self, name: str) -> xr.Dataset:
+        ds = self._items[name]
+        if ds is None and name in self._openers:
+            cache, entry = self._openers.pop(name)
+            ds = self._items[name] = cache.open(entry)
+        return ds
+
+    def __setitem__(self, name: str, ds: xr.Dataset) -> None:
+        self._openers.pop(name, None)
+        self._items[name] = ds
+
+    def __delitem__(self, name: str) -> None:
+        self._openers.pop(name, None)
+        del self._items[name]
+
+    def __contains__(self, name: object) -> bool:   # (Mapping's would open the dataset)
+        return name in self._items
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __repr__(self) -> str:
+        return f"StageDatasets({list(self._items)})"
+
+    def is_open(self, name: str) -> bool:
+        """Whether ``name``'s dataset is in memory or was opened (False: cached, not read yet)."""
+        return name in self._items and name not in self._openers
+
+    def attrs(self, name: str) -> dict[str, Any]:
+        """The attributes of ``name``'s dataset (as ``ds.attrs``); read from the store's metadata,
+        without opening it, while it is not open yet."""
+        if name in self._openers:
+            cache, entry = self._openers[name]
+            return cache.attrs(entry)
+        return dict(self[name].attrs)
+
+
 @dataclass
 class RunResult:
     scenario: Scenario
-    datasets: dict[str, xr.Dataset] = field(default_factory=dict)
+    datasets: StageDatasets = field(default_factory=StageDatasets)
     records: list[StageRecord] = field(default_factory=list)
     seconds: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.datasets, StageDatasets):
+            self.datasets = StageDatasets(dict(self.datasets))
 
     def __getitem__(self, name: str) -> xr.Dataset:
         return self.datasets[name]
@@ -434,6 +518,13 @@ class RunResult:
     @property
     def cache_hits(self) -> int:
         return sum(r.cache_hit for r in self.records)
+
+
+def stage_attrs(result: Any, name: str) -> dict[str, Any]:
+    """The attributes of stage ``name``'s dataset in ``result`` (a :class:`RunResult`, or any
+    object with a ``datasets`` mapping), without opening a cached dataset."""
+    datasets = result.datasets
+    return datasets.attrs(name) if isinstance(datasets, StageDatasets) else dict(datasets[name].attrs)
 
 
 def stage_key(stage: Stage, scenario: Scenario, input_keys: Sequence[str], code_version: str | None = None) -> str:
@@ -466,21 +557,25 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
     t_all = time.perf_counter()
     result = RunResult(scenario)
     keys: dict[str, str] = {}
-    with scheduler_context(scheduler, workers) as client:
+    todo = stages_for(scenario, targets)
+    # a key needs no data: every key, and whether the cache holds it, is known before any
+    # stage runs, so the prechecks of stages read from the cache are skipped (they read
+    # whole maps, and their stage passed them when it was computed)
+    versions: dict[str, str] = {}
+    entries: dict[str, CacheEntry | None] = {}
+    for st in todo:
+        versions[st.name] = st.code_version()
+        keys[st.name] = stage_key(st, scenario, [keys[d] for d in st.inputs]
+                                  + [keys.get(d, "absent") for d in st.optional_inputs], versions[st.name])
+        entries[st.name] = None if st.name in force else cache.get(st.name, keys[st.name])
+    computes = any(e is None for e in entries.values())
+    if computes:
+        cache.check_writable()   # a read-only or unusable cache: one error before any stage computes
+    # a local scheduler is configured (and dask imported) only when a stage computes; a
+    # cluster is always connected to (a wrong address is an error, cached or not)
+    with (scheduler_context(scheduler, workers) if computes or scheduler not in LOCAL_SCHEDULERS
+          else _check_scheduler(scheduler)) as client:
         compute = _computer(client, progress)
-        todo = stages_for(scenario, targets)
-        # a key needs no data: every key, and whether the cache holds it, is known before any
-        # stage runs, so the prechecks of stages read from the cache are skipped (they read
-        # whole maps, and their stage passed them when it was computed)
-        versions: dict[str, str] = {}
-        entries: dict[str, CacheEntry | None] = {}
-        for st in todo:
-            versions[st.name] = st.code_version()
-            keys[st.name] = stage_key(st, scenario, [keys[d] for d in st.inputs]
-                                      + [keys.get(d, "absent") for d in st.optional_inputs], versions[st.name])
-            entries[st.name] = None if st.name in force else cache.get(st.name, keys[st.name])
-        if any(e is None for e in entries.values()):
-            cache.check_writable()   # a read-only or unusable cache: one error before any stage computes
         prechecks = [s for s in todo if s.precheck is not None and entries[s.name] is None]
         _run_prechecks(prechecks, todo, scenario, result.datasets)
         for i, st in enumerate(todo, 1):
@@ -489,6 +584,10 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
             code_version, key, entry = versions[st.name], keys[st.name], entries[st.name]
             hit = entry is not None
             if entry is None:
+                import xarray as xr
+
+                from skyroute.pipeline.verify import DatasetError, verify_dataset
+
                 log.info("stage=%s key=%s status=compute", st.name, key)
                 if progress:
                     print(f"[{i}/{len(todo)}] {st.name}: computing ({st.description})", file=sys.stderr, flush=True)
@@ -518,7 +617,7 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                 }, compute=compute)
             else:
                 log.info("stage=%s key=%s status=cache-hit", st.name, key)
-            result.datasets[st.name] = cache.open(entry)
+            result.datasets.defer(st.name, cache, entry)     # opened when first read
             result.records.append(StageRecord(st.name, key, hit, time.perf_counter() - t0, str(entry.path)))
             _run_prechecks(prechecks, todo, scenario, result.datasets)
     result.seconds = time.perf_counter() - t_all

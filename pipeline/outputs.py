@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from skyroute.pipeline.errors import InputError
-from skyroute.pipeline.graph import RunResult
+from skyroute.pipeline.graph import RunResult, stage_attrs
 from skyroute.stages.figures import add_map_furniture, image_extent
 
 
@@ -144,8 +144,8 @@ def stage_warnings(result: RunResult) -> list[str]:
     """The warnings every stage dataset of ``result`` carries (``attrs["warnings"]``, a
     JSON-encoded list of strings), in stage order, without repeats."""
     out: list[str] = []
-    for ds in result.datasets.values():
-        raw = ds.attrs.get("warnings")
+    for name in result.datasets:
+        raw = stage_attrs(result, name).get("warnings")   # a cached dataset is not opened for its attributes
         if raw is None or raw == "":
             continue
         try:
@@ -411,6 +411,20 @@ def _write_store(ds, dst: Path) -> None:
     _place_store(dst, lambda tmp: prepare_for_zarr(ds).to_zarr(tmp, mode="w", consolidated=False))
 
 
+OUTPUT_MODULES = ("skyroute.pipeline.outputs", "skyroute.pipeline.maps", "skyroute.pipeline.cli_coverage",
+                  "skyroute.pipeline.plan_exports", "skyroute.pipeline.planmap")
+
+
+def outputs_code_version() -> str:
+    """Hash of the code that draws and writes a run's outputs (:data:`OUTPUT_MODULES` and every
+    module they import, read with :func:`~skyroute.pipeline.graph.code_version_of`, nothing
+    imported): part of every figure, GeoTIFF and plan-file key, as a stage's code is part of its
+    key, so a warm run after an edit to a figure or an export rewrites it."""
+    from skyroute.pipeline.graph import code_version_of
+
+    return code_version_of(modules=OUTPUT_MODULES, salt="run-outputs")
+
+
 def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", link: bool = False,
                       extra: dict[str, Any] | None = None, also_files: tuple[str, ...] = ()) -> dict[str, Any]:
     """Write copies of the cached zarr datasets (symlinks into the cache with ``link``), GeoTIFFs,
@@ -420,12 +434,14 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
     writes into ``out_dir`` after this, e.g. ``report.html``, listed too).  Copies make the folder self-contained: it survives
     ``skyroute cache clear`` and can be archived or moved.
 
-    A GeoTIFF or figure is rewritten only when the stage key it was made from changed (or the
-    file is missing), so a warm re-run costs little more than reading the cache.
+    A GeoTIFF or figure is rewritten only when the stage keys it was made from or the output code
+    (:func:`outputs_code_version`) changed, or the file is missing, so a warm re-run costs little
+    more than deriving the keys.
     """
     out_dir = Path(out_dir)
     (out_dir / "datasets").mkdir(parents=True, exist_ok=True)
     (out_dir / "figures").mkdir(exist_ok=True)
+    code = outputs_code_version()
     previous = previous_summary(out_dir)
     prev_keys = previous.get("output_keys", {})
     prev_files = previous.get("files", [])
@@ -437,7 +453,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
 
     def produce(rel: str, stage: str | tuple[str, ...], make) -> None:
         stages = (stage,) if isinstance(stage, str) else tuple(stage)
-        key = "+".join(keys[s] for s in stages)
+        key = "+".join([*(keys[s] for s in stages), code])
         reusable = not uncached.intersection(stages)
         path = out_dir / rel
         if not (reusable and prev_keys.get(rel) == key and path.is_file()):
@@ -466,20 +482,26 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
                 lambda p: result["surface"]["surface"].rio.to_raster(p, compress="deflate"))
         produce("figures/surface.png", "surface", lambda p: plot_surface(result, p))
     if "surface" in result.datasets and "environment" in result.datasets:
-        from skyroute.pipeline.maps import plot_maps_panel
+        def draw_maps(p: Path) -> None:
+            from skyroute.pipeline.maps import plot_maps_panel
+
+            plot_maps_panel(result, p)
 
         drawn = tuple(s for s in ("surface", "environment", "wind", "clearance", "traffic") if s in keys)
-        produce("figures/maps.png", drawn, lambda p: plot_maps_panel(result, p))
+        produce("figures/maps.png", drawn, draw_maps)
     if "coverage" in result.datasets:
-        from skyroute.pipeline.cli_coverage import plot_coverage
+        def draw_coverage(p: Path) -> None:
+            from skyroute.pipeline.cli_coverage import plot_coverage
 
-        kind = str(result["coverage"].attrs.get("dop_kind", "DOP"))
-        produce(f"figures/coverage_{kind}.png", "coverage", lambda p: plot_coverage(result["coverage"], p))
+            plot_coverage(result["coverage"], p)
+
+        kind = str(stage_attrs(result, "coverage").get("dop_kind", "DOP"))
+        produce(f"figures/coverage_{kind}.png", "coverage", draw_coverage)
     sections: dict[str, Any] = {}
     if "plan" in result.datasets:
         from skyroute.pipeline.plan_exports import export_key
 
-        plan_key = f"{keys['plan']}+{export_key(result)}"   # the pilot exports also read data.ground
+        plan_key = f"{keys['plan']}+{export_key(result)}+{code}"   # the pilot exports also read data.ground
         old = [f for f in prev_files if f.startswith("plan/")]
         # (a folder written before plan.html existed gets its plan files rewritten once)
         reused = ("plan" not in uncached and prev_keys.get("plan/") == plan_key and old
@@ -491,10 +513,13 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
             plan_files = [Path(p).relative_to(out_dir).as_posix() for p in written.values()]
         output_keys["plan/"] = plan_key if "plan" not in uncached else ""
         files.extend(plan_files)
-        # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
-        from dask.local import get_sync
+        if reused and isinstance(previous.get("plan"), dict):   # same plan stage: same section (not read again)
+            sections["plan"] = previous["plan"]
+        else:
+            # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
+            from dask.local import get_sync
 
-        sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
+            sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
         if reused and isinstance(previous.get("exports"), dict):   # same plan, same exports: same section
             sections["exports"] = previous["exports"]
         else:

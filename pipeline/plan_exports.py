@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from skyroute.pipeline.errors import SkyrouteError
-from skyroute.pipeline.graph import RunResult
+from skyroute.pipeline.graph import RunResult, stage_attrs
 from skyroute.stages.geoid import HeightReference, height_reference
 
 __all__ = ["INTENT_TIME_BUFFER_S", "export_key", "exports_section", "intent_summary", "pilot_export_notes", "scenario_height_reference", "write_pilot_exports"]
@@ -36,9 +36,8 @@ def scenario_height_reference(scenario, surface_datum: str) -> HeightReference:
 
 
 def _reference_or_reason(result: RunResult) -> tuple[HeightReference | None, str | None]:
-    plan = result["plan"]
     try:
-        ref = scenario_height_reference(result.scenario, str(plan.attrs.get("vertical_datum", "")))
+        ref = scenario_height_reference(result.scenario, str(stage_attrs(result, "plan").get("vertical_datum", "")))
         ref.ellipsoidal_m(0.0, 0.0, 0.0)   # the geoid grid is on disk
         return ref, None
     except SkyrouteError as exc:
@@ -47,7 +46,7 @@ def _reference_or_reason(result: RunResult) -> tuple[HeightReference | None, str
 
 def pilot_export_notes(result: RunResult) -> list[str]:
     """Why plan.kml / intent.json were not written (empty when they were or no plan flies)."""
-    if "plan" not in result.datasets or int(result["plan"].attrs.get("chosen_level", -1)) < 0:
+    if "plan" not in result.datasets or int(stage_attrs(result, "plan").get("chosen_level", -1)) < 0:
         return []
     _, why = _reference_or_reason(result)
     if why is not None:
@@ -70,9 +69,13 @@ def export_key(result: RunResult) -> str:
 
     sc = result.scenario
     g = sc.data.ground
-    return stable_hash("pilot-exports-1", None if g is None else (g.height_m, g.vertical_datum),
-                       sc.constraints.sboa_k, INTENT_TIME_BUFFER_S, INTENT_MAX_VOLUME_S,
-                       pilot_export_notes(result))
+    # why absolute heights are missing (None: they are not), from the plan's attributes and the
+    # geoid grids on disk; the rest of :func:`pilot_export_notes` (no sigma_p) follows the plan
+    # stage's key, so the plan's data is not read here (a warm run reads no dataset)
+    flies = "plan" in result.datasets and int(stage_attrs(result, "plan").get("chosen_level", -1)) >= 0
+    why = _reference_or_reason(result)[1] if flies else None
+    return stable_hash("pilot-exports-2", None if g is None else (g.height_m, g.vertical_datum),
+                       sc.constraints.sboa_k, INTENT_TIME_BUFFER_S, INTENT_MAX_VOLUME_S, why)
 
 
 def exports_section(result: RunResult, files: list[str], out_dir: Path | None = None) -> dict:

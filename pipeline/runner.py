@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-
-import xarray as xr
+from typing import TYPE_CHECKING
 
 from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.errors import ScenarioError
-from skyroute.pipeline.graph import RunResult, run_pipeline
+from skyroute.pipeline.graph import RunResult, code_version_of, run_pipeline
+from skyroute.pipeline.model import stable_hash
 from skyroute.pipeline.settings import DEFAULT_SCENARIO, Scenario, load_scenario
+
+if TYPE_CHECKING:
+    import xarray as xr
 
 
 def check_mission(scenario: Scenario, surface: xr.Dataset) -> None:
@@ -42,8 +45,23 @@ def run_scenario(scenario: Scenario | str = DEFAULT_SCENARIO, *, cache: Cache | 
     Stage outputs come from the cache when their inputs, settings and code are unchanged.
     """
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    cache = cache or Cache()
     result = run_pipeline(sc, cache=cache, targets=targets, scheduler=scheduler, workers=workers,
                           progress=progress, force=force)
     if "surface" in result.datasets:
-        check_mission(sc, result.datasets["surface"])
+        # the check's result is a function of the (content-addressed) surface, the grid, the
+        # mission points and its code: once passed, a run with the same inputs reads no map
+        surf = next(r for r in result.records if r.name == "surface")
+        key = mission_check_key(sc, surf.key) if surf.path else None
+        if key is None or not cache.passed("mission", key):
+            check_mission(sc, result.datasets["surface"])
+            if key is not None:
+                cache.note_passed("mission", key)
     return result
+
+
+def mission_check_key(scenario: Scenario, surface_key: str) -> str:
+    """Key of :func:`check_mission` on the surface stage entry ``surface_key``: its code
+    (with the point and grid geometry it uses), the grid and the mission's start and goal."""
+    cv = code_version_of(check_mission, modules=("skyroute.pipeline.settings.schema", "skyroute.stages.gridspec"))
+    return stable_hash("check_mission", cv, surface_key, scenario.grid, scenario.mission.start, scenario.mission.goal)

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-
-import xarray as xr
+from typing import TYPE_CHECKING
 
 from skyroute.pipeline.graph import SKYROUTE_VERSION, Stage, register
 from skyroute.pipeline.model import FrozenModel
 from skyroute.pipeline.settings import Obstacle, Scenario
-from skyroute.stages.grid import Grid
+from skyroute.stages.gridspec import Grid
+
+if TYPE_CHECKING:
+    import xarray as xr
 
 
 class SurfaceSettings(FrozenModel):
@@ -119,16 +121,28 @@ def _satellites_settings(sc: Scenario) -> SatellitesSettings:
 
 def satellites_stage(*, settings: SatellitesSettings) -> xr.Dataset:
     """Satellite ECEF positions, true azimuth/elevation and open-sky DOP at the AOI centre,
-    dims (time, sat), at the scenario's GNSS epochs (mission start + window)."""
+    dims (time, sat), at the scenario's GNSS epochs (mission start + window); the almanac
+    readers' warnings (unhealthy satellites excluded) are also in ``attrs["warnings"]``."""
+    import warnings
+
     import numpy as np
 
     from skyroute.stages.almanac import sky_geometry
 
     times = np.array(settings.times_utc, dtype="datetime64[ns]")
-    ds = sky_geometry(list(settings.almanacs), times, settings.lat_deg, settings.lon_deg,
-                      settings.height_m, mask_deg=settings.mask_deg)
+    with warnings.catch_warnings(record=True) as caught:   # e.g. unhealthy satellites excluded
+        warnings.simplefilter("always")
+        ds = sky_geometry(list(settings.almanacs), times, settings.lat_deg, settings.lon_deg,
+                          settings.height_m, mask_deg=settings.mask_deg)
+    for w in caught:          # shown as before, and kept with the dataset: a warm run reports them too
+        warnings.warn(w.message, w.category, stacklevel=2)
     if settings.exclude:
         ds = _without_satellites(ds, settings.exclude)
+    own = str(Path(sky_geometry.__code__.co_filename).parent)    # skyroute's stages: the almanac readers
+    texts = [" ".join(str(w.message).split()) for w in caught
+             if issubclass(w.category, UserWarning) and str(w.filename).startswith(own)]
+    if texts:
+        ds.attrs["warnings"] = json.dumps(list(dict.fromkeys([*texts, *json.loads(ds.attrs.get("warnings", "[]"))])))
     return ds
 
 
@@ -565,6 +579,19 @@ def plan_arguments(s: PlanSettings, surface: xr.Dataset) -> dict:
                 time_budget_s=s.time_budget_s, seed=s.seed, max_tries=s.max_tries, step_cells=s.step_cells,
                 min_agl_m=s.min_agl_m, max_agl_m=s.max_agl_m, dop_kind=s.dop_kind, intruders=intr, d_c_m=s.d_c_m,
                 dt_c_s=s.dt_c_s, uere_m=s.uere_m, battery_reserve_pct=s.battery_reserve_pct)
+
+
+def plan_request(sc: Scenario, surface: xr.Dataset | None = None):
+    """The scenario's :class:`~skyroute.stages.planning.request.PlanRequest` as the plan stage
+    makes it from its settings (:func:`plan_arguments`; vehicle resolved once), for the replays
+    of ``skyroute fly``: without the safety bubble (the replay adds it with the plan's radius)
+    and, without ``surface``, without the known intruders (a replay gets them as tracks)."""
+    from skyroute.stages.planning.request import PlanRequest
+
+    s = _plan_settings_fixed(sc)
+    if surface is None:
+        s = s.model_copy(update={"intruders": ()})
+    return PlanRequest.of(**plan_arguments(s, surface))
 
 
 def sboa_levels(s: PlanSboaSettings, surface: xr.Dataset, environment: xr.Dataset,

@@ -7,6 +7,7 @@ trusted by a later stage or run.
 from __future__ import annotations
 
 import numpy as np
+import rioxarray  # noqa: F401  (registers the .rio accessor)
 import xarray as xr
 
 from skyroute.pipeline.errors import SkyrouteError

@@ -84,6 +84,48 @@ def test_every_catalog_scenario_flies(name, cache):
     assert np.all(chosen.alt_agl_m <= sc.constraints.max_altitude_agl_m + 1e-6)
 
 
+@pytest.mark.slow
+def test_san_gabriel_long_flies_20_to_25_km_within_the_usable_battery(cache):
+    """san-gabriel-long (issue 23): the written samples fly 20-25 km, and their energy, integrated
+    here from the samples (chord ground velocity, airspeed against the scenario's uniform wind,
+    rotor power of seed 000 eq. 5-10), is within the battery less the reserve computed from the
+    raw vehicle and scenario YAML (not through the loaders), and agrees with the plan's figure."""
+    import yaml
+
+    from skyroute.pipeline.settings import catalog_dir
+    from skyroute.stages.energy import rotor_power
+
+    raw_sc = _raw("san-gabriel-long")
+    raw_veh = yaml.safe_load((catalog_dir() / "vehicles" / f"{raw_sc['vehicle']}.yaml").read_text())
+    usable_j = (raw_veh["battery_capacity_mah"] * 3.6 * raw_veh["battery_voltage_v"]
+                * (1 - raw_sc["constraints"]["battery_reserve_pct"] / 100))
+    sc = load_scenario("san-gabriel-long")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = run_scenario(sc, cache=cache, targets=["plan"])
+    chosen, _ = plan_from_dataset(res["plan"].load())
+    assert chosen is not None and chosen.flyable
+    t, p = np.asarray(chosen.t_s), np.asarray(chosen.xyz_m)
+    d, dt = np.diff(p, axis=0), np.diff(t)
+    flown_m = float(np.linalg.norm(d, axis=1).sum())
+    a, b = raw_sc["mission"]["start"], raw_sc["mission"]["goal"]
+    straight_m = math.hypot(b["x"] - a["x"], b["y"] - a["y"])
+    assert 20_000.0 <= flown_m <= 25_000.0, flown_m
+    assert 18_000.0 <= straight_m <= flown_m
+    w = raw_sc["data"]["uniform_wind"]
+    to_rad = math.radians(w["direction_deg"] + 180.0)                    # meteorological: blows FROM
+    wind = w["speed_mps"] * np.array([math.sin(to_rad), math.cos(to_rad), 0.0])
+    ground = d / dt[:, None]
+    air = ground - wind
+    along = np.einsum("ij,ij->i", air, d / np.linalg.norm(d, axis=1)[:, None])
+    power = rotor_power(air, along, ground[:, 2], raw_sc["vehicle"])["total_W"]
+    energy_j = float(np.sum(power * dt))
+    assert energy_j <= usable_j, (energy_j / 3600, usable_j / 3600)
+    assert energy_j == pytest.approx(chosen.energy_J, rel=0.01)
+    # the M300 (627 Wh) could not fly it: its whole battery is a fifth of what this mission needs
+    assert energy_j > load_vehicle("dji-m300-rtk").battery_energy_j
+
+
 WEIGHT_SETS = ((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0))
 
 

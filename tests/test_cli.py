@@ -113,7 +113,7 @@ def test_run_default_scenario_writes_outputs(runner, tmp_path):
     assert summary2["plan"]["status"] == "flyable"
     # one summary line of the chosen plan, the numbers of summary.json and candidates.csv
     p = summary2["plan"]
-    assert json.loads(res2.output)["plan"] == "flyable"
+    assert json.loads(res2.stdout)["plan"] == "flyable"
     loud = runner.invoke(main, [a for a in args if a != "--quiet"])
     assert loud.exit_code == 0
     line = [ln for ln in loud.output.splitlines() if ln.startswith("plan ")]
@@ -169,4 +169,5 @@ def test_unknown_scenario_exit_2(runner):
     assert res.exit_code == 2
     assert res.output.strip() == ("error: unknown scenario 'atlantis'; known scenarios: helsinki-contingency, helsinki-crosstown, "
                                   "helsinki-medical, helsinki-tactical, helsinki-traffic, monaco-helipads, rotterdam-canyon, "
-                                  "rotterdam-tactical, san-gabriel-fixedwing, san-gabriel-fixedwing-local, san-gabriel-mountains")
+                                  "rotterdam-tactical, san-gabriel-fixedwing, san-gabriel-fixedwing-local, san-gabriel-long, "
+                                  "san-gabriel-mountains")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import signal
 import subprocess
@@ -20,6 +21,7 @@ from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.errors import UnknownNameError
 from skyroute.pipeline.graph import REGISTRY, Stage, register, run_pipeline
 from skyroute.pipeline.model import FrozenModel, stable_hash
+from skyroute.pipeline.settings import load_scenario
 
 HERE = Path(__file__).resolve().parent
 
@@ -198,7 +200,8 @@ def test_warm_run_imports_no_compute_only_modules(tmp_path):
             main()
         except SystemExit as exc:
             assert not exc.code, exc.code
-        heavy = ("numba", "matplotlib", "ompl", "distributed")
+        heavy = ("numba", "matplotlib", "ompl", "distributed", "xarray", "dask", "zarr", "pandas", "scipy",
+                 "rasterio", "rioxarray", "shapely", "folium")
         print("HEAVY", *[m for m in heavy if m in sys.modules])
     """)
     env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
@@ -221,7 +224,9 @@ def test_warm_run_imports_no_compute_only_modules(tmp_path):
 def test_warm_default_run_imports_no_compute_only_modules_and_reuses_its_outputs(tmp_path):
     """The whole default `skyroute run` (plan, pilot exports, map page, report), warm: no numba,
     matplotlib, ompl or dask.distributed (issue 25: reading a cached plan once looked up a
-    distributed client), and every output file is reused (the same modification times)."""
+    distributed client), and no xarray, dask, zarr, pandas, scipy, rasterio, shapely or folium
+    either (a warm run opens no dataset: keys, attributes and summary sections need none), and
+    every output file is reused (the same modification times)."""
     code = textwrap.dedent("""
         import sys
         from skyroute.pipeline.cli import main
@@ -230,18 +235,61 @@ def test_warm_default_run_imports_no_compute_only_modules_and_reuses_its_outputs
             main()
         except SystemExit as exc:
             assert not exc.code, exc.code
-        heavy = ("numba", "matplotlib", "ompl", "distributed")
+        heavy = ("numba", "matplotlib", "ompl", "distributed", "xarray", "dask", "zarr", "pandas", "scipy",
+                 "rasterio", "rioxarray", "shapely", "folium")
         print("HEAVY", *[m for m in heavy if m in sys.modules])
     """)
     env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
     out = tmp_path / "out"
-    runs, mtimes = [], []
+    runs, mtimes, warns = [], [], []
     for _ in range(2):
         runs.append(subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True, text=True, env=env,
                                    timeout=900))
         assert runs[-1].returncode == 0, runs[-1].stderr
         mtimes.append({p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and p.name not in
                        ("summary.json", "report.html")})
+        warns.append(json.loads((out / "summary.json").read_text())["warnings"])
+        printed = [ln for ln in runs[-1].stderr.splitlines() if ln.startswith("warning: ")]
+        assert len(printed) == len(set(printed)), printed     # each warning printed once
     warm = runs[1].stdout.split("HEAVY")[1].split()
     assert warm == [], warm
     assert mtimes[0] == mtimes[1]                 # nothing rewritten but the summary and the report
+    # the warnings of the stages (the almanac's unhealthy satellite) are the cold run's, on stderr too
+    assert warns[0] == warns[1] and any("unhealthy satellites excluded" in w for w in warns[1]), warns
+    assert any("unhealthy satellites excluded" in ln for ln in runs[1].stderr.splitlines())
+
+
+def test_a_warm_run_opens_no_dataset_and_still_checks_a_changed_mission(tmp_path):
+    """Issue 25: a cached stage's dataset is opened when first read, and its attributes come from
+    the store's metadata (equal to the opened dataset's); the mission check is kept by the
+    surface key, grid and mission points, so a warm run reads no map, and a mission moved into
+    a building is still refused on the cached surface."""
+    from skyroute.pipeline.errors import ScenarioError
+    from skyroute.pipeline.runner import run_scenario
+
+    cache = Cache(tmp_path / "c")
+    sc = load_scenario("helsinki-medical")
+    run_scenario(sc, cache=cache, targets=["surface"])
+    warm = run_scenario(sc, cache=cache, targets=["surface"])
+    assert warm.records[0].cache_hit and "surface" in warm.datasets and not warm.datasets.is_open("surface")
+    attrs = warm.datasets.attrs("surface")
+    assert attrs["skyroute_stage"] == "surface" and attrs == dict(warm["surface"].attrs)
+    assert warm.datasets.is_open("surface")
+    start = sc.mission.start.model_copy(update={"alt_agl_m": 10.0})
+    bad = sc.model_copy(update={"mission": sc.mission.model_copy(update={"start": start})})
+    with pytest.raises(ScenarioError, match="mission.start: altitude 10 m above ground is inside a building"):
+        run_scenario(bad, cache=cache, targets=["surface"])
+
+
+def test_output_keys_follow_the_output_code(monkeypatch):
+    """Issue 25: a run's figures, GeoTIFFs and plan files are keyed like a stage, on the stage keys
+    and the code that writes them (the output modules and every module they import), so an edit
+    to that code rewrites them on the next warm run."""
+    from skyroute.pipeline import outputs
+
+    base = outputs.outputs_code_version()
+    assert base == outputs.outputs_code_version()
+    real = graph._module_source
+    for edited in ("skyroute.pipeline.planmap", "skyroute.stages.figures"):   # an output module, one it imports
+        monkeypatch.setattr(graph, "_module_source", lambda m, e=edited: real(m) + (b"\n# edit" if m == e else b""))
+        assert outputs.outputs_code_version() != base, edited

@@ -238,6 +238,34 @@ def test_heuristic_is_admissible_and_tight_in_a_varying_wind():
     assert astar(pu, lat)["f"] == pytest.approx(_dijkstra_oracle(pu, lat), rel=1e-9)
 
 
+def test_parallel_energy_bound_of_each_direction_is_the_one_direction_bound():
+    """ratio_each_kernel (winds split in chunks over the cores) gives, per direction, exactly
+    the minimum ratio_kernel takes over the same winds for that direction alone, with headwinds
+    too strong to fly (skipped) and a direction with no flyable wind at all (inf)."""
+    from skyroute.stages.planning import kernels
+    from skyroute.stages.planning.heuristic import (
+        energy_ratio_lb_dense_dirs,
+    )
+
+    pr = make_problem(block=False, wind=(2.0, 1.0, 0.0))
+    _, _, veh, power = pr.seg_args
+    rng = np.random.default_rng(3)
+    winds = rng.normal(0.0, 6.0, size=(3 * kernels.RATIO_CHUNK + 17, 3))    # 4 chunks, some > max wind
+    winds[:, 2] *= 0.1
+    d = rng.normal(size=(30, 3))
+    d[:, 2] *= 0.2
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    each = kernels.ratio_each_kernel(d, winds, veh, power)
+    one = np.array([kernels.ratio_kernel(d[i:i + 1], winds, veh, power) for i in range(len(d))])
+    assert np.all(np.isfinite(one)) and np.array_equal(each, one)          # bit for bit
+    strong = np.array([[40.0, 0.0, 0.0]])                                   # above every vehicle's max wind
+    assert np.all(np.isinf(kernels.ratio_each_kernel(d[:3], strong, veh, power)))
+    # through the memoised problem API: the same numbers as one direction at a time
+    dirs = d[:5]
+    np.testing.assert_array_equal(pr.energy_ratio_lb_dense_each(dirs),
+                                  [energy_ratio_lb_dense_dirs(pr, dirs[i]) for i in range(len(dirs))])
+
+
 # ------------------------------------------------------------------ BIT*
 
 

@@ -199,6 +199,31 @@ def test_line_of_sight_windowed_equals_whole_map(problem, sky):
     assert 0.02 < 1 - vis_c[:, up_any].mean() < 0.9                  # occlusions are part of the test
 
 
+def test_line_of_sight_cache_stays_within_its_budget(problem, sky, monkeypatch):
+    """A cache keeps whole-map visibility heights only up to LOS_CACHE_MAX_BYTES (a tactical
+    replay on the 6 km Helsinki AOI kept 21 epochs of 0.8 GB, 17.8 GB); the samples of the
+    epochs beyond it are answered on their windows: the same answers, and the cache holds
+    what fits (here 2 epochs' worth), also on later calls."""
+    from skyroute.stages import sky_visibility
+
+    rng = np.random.default_rng(9)
+    n = 300
+    pts = np.column_stack([X0 + rng.uniform(-50, 1050, n), Y0 + rng.uniform(150, 560, n), rng.uniform(5, 60, n)])
+    t = np.sort(rng.uniform(-30.0, 400.0, n))
+    los_w, vis_w = line_of_sight(problem, sky, surface(), t, pts, START)
+    full: dict = {}
+    line_of_sight(problem, sky, surface(), t, pts, START, cache=full)
+    per_epoch = max(v.nbytes for v in full.values())
+    assert len(full) >= 4
+    monkeypatch.setattr(sky_visibility, "LOS_CACHE_MAX_BYTES", 2 * per_epoch + per_epoch // 2)
+    small: dict = {}
+    for _ in range(2):
+        los_c, vis_c = line_of_sight(problem, sky, surface(), t, pts, START, cache=small)
+        np.testing.assert_array_equal(vis_w, vis_c)
+        np.testing.assert_array_equal(los_w, los_c)
+        assert 1 <= len(small) <= 2 and sum(v.nbytes for v in small.values()) <= 2.5 * per_epoch
+
+
 def test_sigma_above_dp_max_is_not_flyable(sky):
     veh = load_vehicle("dji-m300-rtk").model_copy(update={"max_position_error_m": 0.3})
     prob = make_problem(vehicle=veh)

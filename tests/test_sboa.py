@@ -269,13 +269,17 @@ def test_helsinki_medical_with_the_bubble_flies_clear_of_it(cache):
 
 
 def test_fly_params_refuse_a_bad_bubble():
-    """The replay's safety-bubble parameters (``constraints.clearance: sboa`` in ``skyroute fly``)."""
+    """The replay's safety bubble (``constraints.clearance: sboa`` in ``skyroute fly``) is its
+    plan request's (issue 25: the request is the one home of the planning settings)."""
     from skyroute.stages.base import InputError
+    from skyroute.stages.planning.request import PlanRequest
     from skyroute.stages.tactical.replay import FlyParams
 
-    assert FlyParams().bubble is None
-    assert FlyParams(bubble_k=3.0, surface_uncertainty_m=1.0).bubble == (3.0, 1.0)
+    req = PlanRequest.of(start_xy=(0.0, 0.0), start_agl_m=30.0, goal_xy=(500.0, 0.0), goal_agl_m=30.0,
+                         start_time_utc="2020-01-03T10:00:00+00:00", vehicle="dji-m300-rtk")
+    assert FlyParams().bubble is None and FlyParams(request=req).bubble is None
+    assert FlyParams(request=req.with_(bubble=(3.0, 1.0))).bubble == (3.0, 1.0)
     with pytest.raises(InputError, match=r"safety bubble k -1\.0 must be > 0"):
-        FlyParams(bubble_k=-1.0)
+        FlyParams(request=req.with_(bubble=(-1.0, 0.0)))
     with pytest.raises(InputError, match=r"surface uncertainty -0\.5 m >= 0"):
-        FlyParams(bubble_k=3.0, surface_uncertainty_m=-0.5)
+        FlyParams(request=req.with_(bubble=(3.0, -0.5)))

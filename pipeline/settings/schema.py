@@ -415,7 +415,7 @@ class Scenario(FrozenModel):
     @cached_property
     def grid(self):
         """The scenario :class:`~skyroute.stages.grid.Grid` (CRS, bounds, resolution)."""
-        from skyroute.stages.grid import Grid, resolve_crs, utm_crs_for
+        from skyroute.stages.gridspec import Grid, resolve_crs, utm_crs_for
 
         a = self.aoi
         if a.bounds_lonlat is not None:

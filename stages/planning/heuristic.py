@@ -11,7 +11,9 @@ can meet.  That ratio can be below 1 (tail wind), so it is bounded from below by
   subsampled to <= 600 (:func:`wind_samples`), times :data:`ENERGY_LB_SAFETY` (0.9);
 * :func:`energy_ratio_lb_dense_dirs` -- a few given directions (the A* lattice edges), every
   wind of the map and :data:`WIND_INTERP_SAMPLES` level-to-level interpolations per gap
-  (:func:`wind_samples_dense`), times :data:`ENERGY_LB_DENSE_SAFETY` (0.99).
+  (:func:`wind_samples_dense`), times :data:`ENERGY_LB_DENSE_SAFETY` (0.99);
+  :func:`energy_ratio_lb_dense_each` the same bound for each direction of a set, in one
+  parallel pass.
 
 The coverage levels of one mission share the wind map and the vehicle, so the bounds are
 memoised (:class:`BoundMemo`) on the bytes of their inputs and computed once for all levels.
@@ -27,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from skyroute.stages.planning.kernels import ratio_kernel
+from skyroute.stages.planning.kernels import ratio_each_kernel, ratio_kernel
 
 if TYPE_CHECKING:
     from skyroute.stages.planning.problem import PlanningProblem
@@ -198,6 +200,24 @@ def energy_ratio_lb_dense_dirs(problem: PlanningProblem, dirs) -> float:
     return RATIO_MEMO.get(key, make) * ENERGY_LB_DENSE_SAFETY
 
 
+def energy_ratio_lb_dense_each(problem: PlanningProblem, dirs) -> np.ndarray:
+    """(m,): :func:`energy_ratio_lb_dense_dirs` of each unit direction of ``dirs`` (m, 3) alone
+    (the same numbers), in one pass over the winds on every core
+    (:func:`~skyroute.stages.planning.kernels.ratio_each_kernel`): the A* lattice's 24 edge
+    directions over the 0.3 M winds of the 6 km Helsinki map took 5.4 s one by one.  Memoised
+    on the bytes of (winds, vehicle, dirs)."""
+    d = np.ascontiguousarray(np.asarray(dirs, dtype=float).reshape(-1, 3))
+    wkey = _wind_key(problem)
+    _, _, veh, power = problem.seg_args
+    key = "denseeach" + hashlib.sha1(wkey.encode() + _params_bytes(veh, power, d)).hexdigest()
+
+    def make() -> np.ndarray:
+        winds = WINDS_MEMO.get("densewinds" + wkey, lambda: wind_samples_dense(problem.wind_uvw))
+        return np.array([_finite_ratio(r) for r in ratio_each_kernel(d, winds, veh, power)])
+
+    return RATIO_MEMO.get(key, make) * ENERGY_LB_DENSE_SAFETY
+
+
 def energy_ratio_lb(problem: PlanningProblem) -> float:
     """:func:`energy_ratio_lb_dirs` over every flyable direction (:func:`fibonacci_dirs`, 400
     points), once per problem."""
@@ -221,5 +241,5 @@ def cost_rate_lb(problem: PlanningProblem) -> float:
 
 
 __all__ = ["ENERGY_LB_DENSE_SAFETY", "ENERGY_LB_SAFETY", "WIND_INTERP_SAMPLES", "BoundMemo", "cost_rate_lb",
-           "energy_ratio_lb", "energy_ratio_lb_dense_dirs", "energy_ratio_lb_dirs", "fibonacci_dirs", "unique_rows",
+           "energy_ratio_lb", "energy_ratio_lb_dense_dirs", "energy_ratio_lb_dense_each", "energy_ratio_lb_dirs", "fibonacci_dirs", "unique_rows",
            "wind_samples", "wind_samples_dense"]

@@ -83,6 +83,7 @@ from skyroute.stages.planning.kernels import (
     segment_eval,
     segment_eval_if_valid,
     segments_kernel,
+    segments_kernel_if_valid,
     states_kernel,
     vehicle_params,
     wind_at,
@@ -237,6 +238,24 @@ class PlanningProblem:
         segments_kernel(a, b, want_cost, *self._seg_args, out, codes)
         return codes, out
 
+    def motion_f_if_valid(self, p0, p1) -> tuple[np.ndarray, np.ndarray]:
+        """(f per motion p0[i] -> p1[i] (n, 3) [m] (inf where invalid), valid (n,) bool): the
+        costs of :meth:`motion_codes` for the valid motions, none computed for the others (their
+        evaluation stops at the first invalidity found: the searches' and refinement's use)."""
+        if isinstance(self.vehicle, FixedWingProfile):
+            raise InputError(f"vehicle {self.vehicle.name!r} is fixed-wing: the rotor costs of this problem do not "
+                             "apply; use skyroute.stages.fixedwing_energy / the fixed-wing planners")
+        a, b = self._pts(p0, "p0"), self._pts(p1, "p1")
+        if a.shape != b.shape:
+            raise InputError(f"p0 and p1 must have the same shape, got {a.shape} and {b.shape}")
+        out = np.empty((a.shape[0], 6))
+        codes = np.empty(a.shape[0], dtype=np.int64)
+        segments_kernel_if_valid(a, b, *self._seg_args, out, codes)
+        ok = codes == OK
+        c = out[:, :4]
+        f = self.f_of(np.where(ok[:, None], np.where(np.isfinite(c), c, np.inf), 0.0))
+        return np.where(ok, f, np.inf), ok
+
     def motion_valid(self, p0, p1) -> np.ndarray:
         """bool (n,): every straight motion p0[i] -> p1[i] (n,3) valid (module docstring)."""
         return self.motion_codes(p0, p1)[0] == OK
@@ -364,6 +383,11 @@ class PlanningProblem:
         (:meth:`wind_samples_dense`), times :data:`ENERGY_LB_DENSE_SAFETY` (0.99); see
         :func:`skyroute.stages.planning.heuristic.energy_ratio_lb_dense_dirs`."""
         return _heuristic.energy_ratio_lb_dense_dirs(self, dirs)
+
+    def energy_ratio_lb_dense_each(self, dirs) -> np.ndarray:
+        """(m,): :meth:`energy_ratio_lb_dense_dirs` of each unit direction of ``dirs`` (m, 3),
+        in one parallel pass (:func:`skyroute.stages.planning.heuristic.energy_ratio_lb_dense_each`)."""
+        return _heuristic.energy_ratio_lb_dense_each(self, dirs)
 
     @property
     def cost_rate_lb(self) -> float:

@@ -271,7 +271,9 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
                               min_agl_m, max_agl_m, d, dop_kind=dop_kind, nofly=level_clearance(d)[1],
                               check_endpoints=False, shared=shared)
                 for d, floor_j in levels]
-    del shared
+    # the problems hold their own float64 maps: release the loaded rasters (1e8 cells: GBs)
+    levels = [(d, None) for d, _ in levels]
+    shared = clear = nofly = risk = land = environment = surf = cov = None
     if planner in FIXED_WING_PLANNERS:
         return _plan_fixedwing_levels(problems, levels, planner, time_budget_s, step_cells, t0, cost_warnings,
                                       seed=seed, intruders=intruders, d_c_m=d_c_m, dt_c_s=dt_c_s,

@@ -175,6 +175,134 @@ def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_0
     return out
 
 
+MAPS_STAGES = ("surface", "environment", "wind", "clearance", "satellites", "coverage")   # maps + coverage
+
+
+def _rss_mib() -> int:
+    try:
+        return int(Path("/proc/self/status").read_text().split("VmRSS:")[1].split()[0]) // 1024
+    except (OSError, IndexError, ValueError):
+        return 0
+
+
+def _main_stack(depth: int = 10) -> list[str]:
+    """The main thread's innermost ``depth`` frames, as "file:line function"."""
+    import threading
+    import traceback
+
+    frame = sys._current_frames().get(threading.main_thread().ident)
+    if frame is None:
+        return []
+    return [f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in traceback.extract_stack(frame)[-depth:]]
+
+
+def _rss_sampler(samples: list, stop, report: dict, period_s: float = 0.5, step_mib: int = 512,
+                 kill_mib: int = 0) -> None:
+    """Append (t [s], RSS [MiB]) of this process every ``period_s`` until ``stop`` is set.  With
+    tracemalloc on, at every new RSS high ``step_mib`` above the last one, record where the memory
+    is (the largest live allocations by line) and the main thread's stack; past ``kill_mib`` write
+    the report and stop the process (exit 3) before the machine runs out of memory."""
+    import tracemalloc
+
+    t0 = time.perf_counter()
+    last = 0
+    while not stop.wait(period_s):
+        rss = _rss_mib()
+        samples.append((round(time.perf_counter() - t0, 1), rss))
+        if rss >= last + step_mib:
+            last = rss
+            snap = {"t_s": samples[-1][0], "rss_MiB": rss, "stack": _main_stack()}
+            if tracemalloc.is_tracing():
+                top = tracemalloc.take_snapshot().statistics("lineno")[:12]
+                snap["traced_MiB"] = round(tracemalloc.get_traced_memory()[0] / 2 ** 20)
+                snap["largest"] = [f"{st.size / 2 ** 20:.0f} MiB in {st.count} blocks at "
+                                   f"{Path(st.traceback[0].filename).name}:{st.traceback[0].lineno}" for st in top]
+            report.setdefault("memory_highs", []).append(snap)
+        if kill_mib and rss > kill_mib:
+            report["killed"] = f"RSS {rss} MiB > {kill_mib} MiB at {samples[-1][0]} s"
+            report.update(ok=False, error=f"stopped: {report['killed']} (see memory_highs)", s=samples[-1][0],
+                          rss_MiB=rss)
+            print(json.dumps(report), flush=True)
+            os._exit(3)
+
+
+def stage_child(scenario: str, stage: str, cache_dir: str) -> dict:
+    """One pipeline stage of ``scenario`` (its inputs from the cache in ``cache_dir``, built before by
+    earlier children): wall time [s] and this process's peak RSS [MiB] (``ru_maxrss``: the stage,
+    reading its inputs and writing its zarr store)."""
+    import threading
+
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.runner import run_scenario
+
+    samples: list = []
+    stop = threading.Event()
+    out: dict = {"stage": stage}
+    if os.environ.get("BENCH_TRACEMALLOC"):
+        import tracemalloc
+
+        tracemalloc.start(1)
+    threading.Thread(target=_rss_sampler, args=(samples, stop, out),
+                     kwargs={"kill_mib": int(os.environ.get("BENCH_KILL_MIB", "0"))}, daemon=True).start()
+    t = time.perf_counter()
+    try:
+        res = run_scenario(scenario, cache=Cache(cache_dir), targets=[stage])
+        out["ok"] = True
+        if stage == "plan":
+            ds = res.datasets["plan"]
+            out["plan_attrs"] = {k: str(v)[:300] for k, v in ds.attrs.items() if k in ("chosen", "flyable", "warnings")}
+    except Exception as exc:  # reported, not raised: the benchmark goes on with the next stage
+        out.update(ok=False, error=f"{type(exc).__name__}: {str(exc)[:500]}")
+    stop.set()
+    out["s"] = round(time.perf_counter() - t, 1)
+    out["rss_MiB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    out["rss_samples"] = samples[:: max(1, len(samples) // 40)]
+    return out
+
+
+def mosaic_20km(out_dir: str, plan: bool = True, side_km: float = 20.0) -> list[dict]:
+    """Issue 23's benchmark city: generate the SYNTHETIC mosaic of translated real Helsinki blocks
+    (``skyroute.catalogs.generate_mosaic_city``) in ``out_dir`` unless it is there, then every map
+    stage of ``skyroute maps`` and ``skyroute coverage`` on a fresh cache (``out_dir/cache``), each
+    in its own process (cold: its inputs from the earlier ones), then the plan stage: per stage the
+    wall time, the peak RSS and the load average."""
+
+    out = Path(out_dir)
+    rows = []
+    if not (out / "mosaic-city.yaml").is_file():
+        t = time.perf_counter()
+        r = subprocess.run([sys.executable, "-c", "import resource, sys; from skyroute.catalogs.generate_mosaic_city "
+                            "import main; rc = main(sys.argv[1:]); print(resource.getrusage(resource.RUSAGE_SELF)"
+                            ".ru_maxrss // 1024); sys.exit(rc)", str(out), "--side-km", f"{side_km:g}", "--seed", "0"],
+                           capture_output=True, text=True, check=True)
+        rows.append({"stage": "generate", "ok": True, "s": round(time.perf_counter() - t, 1),
+                     "rss_MiB": int(r.stdout.strip().splitlines()[-1]), "load": os.getloadavg()})
+        print(json.dumps(rows[-1]), file=sys.stderr)
+    cache = out / "cache"
+    # the up-front estimate (pipeline/budget.py: 350 B per cell, calibrated on whole plans) refuses
+    # 1e8 cells; the stages are measured instead
+    env = {**os.environ, "SKYROUTE_MAX_MEMORY": os.environ.get("SKYROUTE_MAX_MEMORY", "64G")}
+    for stage in (*MAPS_STAGES, *(("plan",) if plan else ())):
+        # the plan child: where its memory goes (tracemalloc, stack at every 512 MiB high) and a stop at
+        # BENCH_KILL_MIB (default 11000 MiB) so that a blow-up is reported, not the machine's OOM killer
+        extra = {"BENCH_TRACEMALLOC": "1", "BENCH_KILL_MIB": os.environ.get("BENCH_KILL_MIB", "11000")} if stage == "plan" else {}
+        r = subprocess.run([sys.executable, __file__, "--stage-child", str(out / "mosaic-city.yaml"), stage, str(cache)],
+                           capture_output=True, text=True, check=False, env={**env, **extra})
+        try:
+            row = json.loads(r.stdout.strip().splitlines()[-1])
+        except (IndexError, json.JSONDecodeError):
+            row = {"stage": stage, "ok": False, "error": f"exit {r.returncode}: {r.stderr[-800:]}"}
+        row["load"] = os.getloadavg()
+        rows.append(row)
+        print(json.dumps(row), file=sys.stderr)
+    print("| stage | ok | wall [s] | peak RSS [MiB] | load average (1, 5, 15 min) |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['stage']} | {'yes' if r.get('ok') else 'NO: ' + r.get('error', '')[:120]} | {r.get('s', '-')} | "
+              f"{r.get('rss_MiB', '-')} | {', '.join(f'{x:.1f}' for x in r['load'])} |")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sides", type=float, nargs="+", default=[2, 6], help="AOI sides [km] (of 2, 6, 12, 20)")
@@ -192,7 +320,20 @@ def main() -> None:
     ap.add_argument("--helsinki-6km", metavar="CACHE_DIR",
                     help="only the real-map case: issue 23's 6 x 6 km Helsinki AOI (maps built in CACHE_DIR: "
                          "about 2 min and 3 GB the first time), level D=4, multires vs full-resolution A*")
+    ap.add_argument("--mosaic-20km", metavar="OUTDIR",
+                    help="issue 23's benchmark city (SYNTHETIC mosaic of translated real Helsinki blocks): generate "
+                         "it in OUTDIR, build the maps and coverage on a fresh cache OUTDIR/cache stage by stage "
+                         "(time, peak RSS), then plan its 15 km mission")
+    ap.add_argument("--mosaic-side-km", type=float, default=20.0, help=argparse.SUPPRESS)
+    ap.add_argument("--no-plan", action="store_true", help="--mosaic-20km: maps and coverage only")
+    ap.add_argument("--stage-child", nargs=3, help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.stage_child:
+        print(json.dumps(stage_child(*a.stage_child)))
+        return
+    if a.mosaic_20km:
+        mosaic_20km(a.mosaic_20km, plan=not a.no_plan, side_km=a.mosaic_side_km)
+        return
     if a.helsinki_6km:
         sys.path.insert(0, str(ROOT / "benchmarks"))
         print(json.dumps(helsinki_6km(a.helsinki_6km, full_max=a.full_max_expansions), indent=1))

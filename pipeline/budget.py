@@ -6,7 +6,8 @@ The estimate is deliberately simple and on the safe side; it counts
 * a fixed :data:`BASE_BYTES` (Python, numpy, dask, numba, GDAL loaded and the vector data read);
 * **cells** ``nx * ny`` of the scenario grid (``aoi.bounds`` / ``aoi.resolution_m``): every
   stage keeps a few dozen 2-D layers (surface, terrain, risk, landing, clearance, costs, the
-  planner's lattice), :data:`BYTES_PER_CELL` in all.  Measured: the peak resident memory of a
+  planner's lattice), :data:`BYTES_PER_CELL` in all; a request without the plan stage (``maps``,
+  ``coverage``) :data:`BYTES_PER_CELL_MAPS` per cell and no per-level planner arrays.  Measured: the peak resident memory of a
   cold ``skyroute plan helsinki-medical`` is 639 MB at 2 m (460 598 cells) and 1 115 MB at 1 m
   (1 842 392 cells): 344 B per cell over 480 MB; the constants round both up;
 * **levels**: the DOP thresholds D_j (``gnss.dop_thresholds``), each one coverage floor and one
@@ -30,6 +31,10 @@ from skyroute.pipeline.errors import InputError
 
 BASE_BYTES = 512 << 20        # measured 480 MB (see the module docstring)
 BYTES_PER_CELL = 350           # measured 344 B per cell with 3 DOP levels
+#: Map stages only (no plan: ``skyroute maps`` / ``coverage``; their layers are chunked or one
+#: stage's numpy arrays at a time): the 20 km mosaic city (1e8 cells, issue 23) peaked at 5.9 GB in
+#: its environment stage (59 B per cell), 5.1 GB in its surface stage, 2.4 GB in coverage.
+BYTES_PER_CELL_MAPS = 64
 BYTES_PER_CELL_LEVEL = 32      # a float32 floor, a bool mask and the planner's per-level float64 costs
 BYTES_PER_EPOCH_SAT = 96       # ECEF x, y, z, az, el, visible, ... per satellite and epoch
 BYTES_PER_TASK = 4096          # one dask task of the coverage graph (block x epoch)
@@ -120,8 +125,9 @@ def _cells(sc) -> float:
         return math.inf
 
 
-def scenario_footprint(sc) -> Footprint:
-    """The counts and the memory estimate of ``sc`` (see the module docstring)."""
+def scenario_footprint(sc, maps_only: bool = False) -> Footprint:
+    """The counts and the memory estimate of ``sc`` (see the module docstring); ``maps_only``: a
+    request that does not plan."""
     cells = _cells(sc)
     g = sc.gnss
     ratio = g.window_min / g.step_min
@@ -132,17 +138,18 @@ def scenario_footprint(sc) -> Footprint:
     blocks = max(1.0, math.ceil(cells / chunk)) if math.isfinite(cells) else math.inf
     return Footprint(
         cells=cells, levels=levels, epochs=epochs, satellites=sats,
-        bytes_cells=cells * BYTES_PER_CELL,
-        bytes_levels=cells * levels * BYTES_PER_CELL_LEVEL,
+        bytes_cells=cells * (BYTES_PER_CELL_MAPS if maps_only else BYTES_PER_CELL),
+        bytes_levels=0.0 if maps_only else cells * levels * BYTES_PER_CELL_LEVEL,
         bytes_epochs=epochs * (sats * BYTES_PER_EPOCH_SAT + min(blocks, 8.0) * BYTES_PER_TASK),
     )
 
 
-def check_scenario(sc, limit_bytes: int | None = None) -> Footprint:
+def check_scenario(sc, limit_bytes: int | None = None, maps_only: bool = False) -> Footprint:
     """InputError (exit 2) naming the number and the key to change when ``sc`` needs more than
-    the limit; else the footprint.  Cheap: nothing is allocated."""
+    the limit; else the footprint (``maps_only``: a request without the plan stage).  Cheap:
+    nothing is allocated."""
     limit = max_memory_bytes() if limit_bytes is None else limit_bytes
-    fp = scenario_footprint(sc)
+    fp = scenario_footprint(sc, maps_only)
     if fp.bytes <= limit:
         return fp
     fix = f"or raise --max-memory (now {_gib(limit)})"

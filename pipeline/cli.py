@@ -560,7 +560,7 @@ def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) ->
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "coverage")
     result = run_scenario(sc, cache=Cache(cache_dir), targets=["coverage"], scheduler=scheduler, workers=workers,
                           progress=not quiet and sys.stderr.isatty())
-    cov = result["coverage"].load()
+    cov = result["coverage"]   # lazy: the GeoTIFFs are written chunk by chunk, the figure from a reduced view
     files = write_coverage_outputs(cov, out_dir)
     _folder_summary(out_dir, "coverage", result, files, {"coverage": {
         "dop_kind": str(cov.attrs.get("dop_kind", "")),

@@ -40,9 +40,10 @@ def write_coverage_outputs(ds: xr.Dataset, out_dir: Path) -> list[Path]:
         raise InputError("coverage Dataset carries no CRS; build it from a surface with a CRS")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    from skyroute.pipeline.maps import display_view, write_raster_chunked
+
     kind = str(ds.attrs.get("dop_kind", "DOP"))
-    ds = ds.compute()
-    floor = ds["coverage_floor"].astype(np.float32)
+    floor = ds["coverage_floor"].astype(np.float32)    # lazy when ds is: written chunk by chunk
     unfly = ds["unflyable"] if "unflyable" in ds else xr.zeros_like(floor, dtype=bool)
     paths: list[Path] = []
     for thr in floor["threshold"].values:
@@ -53,22 +54,27 @@ def write_coverage_outputs(ds: xr.Dataset, out_dir: Path) -> list[Path]:
                        "vertical_datum": str(floor.attrs.get("vertical_datum", "")),
                        "window": _window_text(ds), "nodata_meaning": "unflyable or no surface data"}
         path = out_dir / f"coverage_{kind}_{_threshold_label(float(thr))}.tif"
-        layer.rio.to_raster(path, dtype="float32", compress="deflate")
-        paths.append(path)
-    paths.append(_figure(floor, unfly, kind, _window_text(ds), out_dir / f"coverage_{kind}.png"))
+        paths.append(write_raster_chunked(layer, path, dtype="float32", compress="deflate"))
+    (fv, k), (uv, _) = display_view(floor), display_view(unfly)
+    pct = 100 * np.asarray(unfly.mean(("y", "x")).values, float)     # of the cells, not of the blocks shown
+    paths.append(_figure(fv.load(), uv.load(), kind, _window_text(ds), out_dir / f"coverage_{kind}.png", k, pct))
     return paths
 
 
 def plot_coverage(ds: xr.Dataset, path: Path) -> Path:
     """``path``: the PNG of the coverage floors of ``ds`` (one panel per threshold D_j, unflyable
     cells grey), as ``skyroute coverage`` draws it."""
-    ds = ds.compute()
+    from skyroute.pipeline.maps import display_view
+
     floor = ds["coverage_floor"].astype(np.float32)
     unfly = ds["unflyable"] if "unflyable" in ds else xr.zeros_like(floor, dtype=bool)
-    return _figure(floor, unfly, str(ds.attrs.get("dop_kind", "DOP")), _window_text(ds), Path(path))
+    (fv, k), (uv, _) = display_view(floor), display_view(unfly)
+    pct = 100 * np.asarray(unfly.mean(("y", "x")).values, float)
+    return _figure(fv.load(), uv.load(), str(ds.attrs.get("dop_kind", "DOP")), _window_text(ds), Path(path), k, pct)
 
 
-def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, path: Path) -> Path:
+def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, path: Path, k: int = 1,
+            unflyable_pct=None) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -90,7 +96,8 @@ def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, pa
         if bad.any():
             ax.imshow(np.where(bad, 1.0, np.nan), extent=extent, origin="upper",
                       cmap=ListedColormap(["0.55"]), vmin=0, vmax=1, interpolation="nearest")
-        ax.set_title(f"{kind} < {thr[j]:g}  ({100 * bad.mean():.1f}% unflyable)")
+        pct = 100 * bad.mean() if unflyable_pct is None else unflyable_pct[j]
+        ax.set_title(f"{kind} < {thr[j]:g}  ({pct:.1f}% unflyable)")
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         ax.ticklabel_format(useOffset=False, style="plain")
@@ -101,6 +108,8 @@ def _figure(floor: xr.DataArray, unfly: xr.DataArray, kind: str, window: str, pa
     fig.colorbar(im, ax=axes[0].tolist(), label="coverage floor [m]" + (f"\n{datum}" if datum else ""),
                  shrink=0.85)
     title = f"GNSS coverage maps, {kind}; {window}; grey = unflyable"
+    if k > 1:
+        title += f"; shown as the max over {k} x {k} cells"
     fig.suptitle("\n".join(textwrap.wrap(title, max(40, int(11 * (4.2 * n + 0.8))))))   # one narrow panel: wrap
     grow_until_unclipped(fig)   # a long suptitle over few narrow panels
     fig.savefig(path, dpi=110)

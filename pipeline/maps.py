@@ -9,6 +9,34 @@ import numpy as np
 from skyroute.pipeline.graph import RunResult
 from skyroute.stages.figures import add_map_furniture, image_extent
 
+#: Figures show at most this many cells along a side: a larger map is reduced for display by the
+#: max over k x k blocks (no-fly, risk, heights and floors: the worst of the block is shown).
+DISPLAY_MAX_CELLS = 2000
+
+
+def display_view(obj, max_cells: int = DISPLAY_MAX_CELLS):
+    """``obj`` (a Dataset or DataArray on (y, x), numpy or dask) as a figure shows it: unchanged up to
+    ``max_cells`` cells a side, else the max over k x k blocks (``coarsen``, lazy on dask, the last
+    partial block dropped) so that a city-scale map is never drawn (nor loaded) whole; returns
+    ``(view, k)``."""
+    if "y" not in obj.dims or "x" not in obj.dims:
+        return obj, 1
+    k = int(np.ceil(max(obj.sizes["y"], obj.sizes["x"]) / max_cells))
+    if k <= 1:
+        return obj, 1
+    return obj.coarsen(y=k, x=k, boundary="trim").max(), k
+
+
+def write_raster_chunked(da, path: Path, **kwargs) -> Path:
+    """``da`` to a tiled GeoTIFF; a dask-backed raster is written chunk by chunk (never whole in memory)."""
+    import threading
+
+    if da.chunks is not None:
+        da.rio.to_raster(path, tiled=True, lock=threading.Lock(), **kwargs)
+    else:
+        da.rio.to_raster(path, **kwargs)
+    return path
+
 
 def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50.0) -> Path:
     """Risk levels, landing cost, wind arrows over buildings, no-fly and one traffic slice."""
@@ -22,8 +50,11 @@ def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50
     from skyroute.stages.risk import plot_risk_levels
 
     sc = result.scenario
-    surface = result["surface"].load()
-    env = result["environment"].load() if "environment" in result.datasets else None
+    surface, k = display_view(result["surface"][["surface", "terrain"]])
+    surface = surface.load()
+    env = display_view(result["environment"])[0].load() if "environment" in result.datasets else None
+    clear = display_view(result["clearance"][["nofly", "min_altitude_m"]])[0].load() \
+        if "clearance" in result.datasets else None
     fig, axes = plt.subplots(2, 3, figsize=(17, 11), dpi=90)
     axes = axes.ravel()
     if env is not None:
@@ -53,14 +84,15 @@ def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50
     # no-fly cells (dilated by r_p) and the wind no-fly mask
     ax = axes[3]
     nofly = np.zeros(surface["surface"].shape, dtype=float)
-    if "clearance" in result.datasets:
-        nofly = np.where(result["clearance"]["nofly"].values, 1.0, 0.0)
+    if clear is not None:
+        nofly = np.where(clear["nofly"].values, 1.0, 0.0)
     ax.imshow(height > 0, extent=ext, cmap="Greys", alpha=0.35, interpolation="nearest")
     ax.imshow(np.ma.masked_equal(nofly, 0), extent=ext, cmap="autumn", interpolation="nearest", vmin=0, vmax=1)
     n_wind = 0
     if "wind" in result.datasets:
         n_wind = int(result["wind"]["wind_nofly"].any().values)
-    ax.set_title(f"no-fly cells (dilated by r_p), {int(nofly.sum())} cells; wind no-fly: {'yes' if n_wind else 'none'}")
+    ax.set_title(f"no-fly cells (dilated by r_p), {int(nofly.sum())} {'cells' if k == 1 else f'{k} x {k} blocks'}; "
+                 f"wind no-fly: {'yes' if n_wind else 'none'}")
     ax.set_aspect("equal")
     # one occupancy slice of the known traffic
     ax = axes[4]
@@ -82,8 +114,8 @@ def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50
     ax.set_aspect("equal")
     # clearance floor above ground
     ax = axes[5]
-    if "clearance" in result.datasets:
-        fl = result["clearance"]["min_altitude_m"].values - surface["terrain"].values
+    if clear is not None:
+        fl = clear["min_altitude_m"].values - surface["terrain"].values
         im = ax.imshow(fl, extent=ext, cmap="magma", interpolation="nearest")
         fig.colorbar(im, ax=ax, shrink=0.8, label="lowest allowed altitude [m AGL]")
         ax.set_title(f"obstacle clearance floor, r_p = {result['clearance'].attrs.get('radius_m', '?')} m")
@@ -96,7 +128,8 @@ def plot_maps_panel(result: RunResult, path: Path, wind_height_agl_m: float = 50
         a.tick_params(labelsize=7)
         a.locator_params(axis="x", nbins=4)   # 7-digit UTM eastings on a narrow panel
         add_map_furniture(a)
-    fig.suptitle(f"{sc.name}: environment maps ({sc.grid.crs.name}, {sc.grid.resolution_m:g} m cells)")
+    shown = "" if k == 1 else f"; shown as the max over {k} x {k} cells"
+    fig.suptitle(f"{sc.name}: environment maps ({sc.grid.crs.name}, {sc.grid.resolution_m:g} m cells{shown})")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -113,11 +146,9 @@ def write_map_geotiffs(result: RunResult, out_dir: Path) -> list[Path]:
     crs = result["surface"]["surface"].rio.crs
     for stage, var in layers:
         if stage in result.datasets and var in result[stage]:
-            da = result[stage][var].load()
+            da = result[stage][var]
             if da.dtype == bool:
                 da = da.astype("uint8")
             da = da.rio.write_crs(crs)
-            p = out_dir / f"{var}.tif"
-            da.rio.to_raster(p, compress="deflate")
-            written.append(p)
+            written.append(write_raster_chunked(da, out_dir / f"{var}.tif", compress="deflate"))
     return written

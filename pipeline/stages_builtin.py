@@ -307,15 +307,52 @@ def _raster_source(paths: tuple[Path, ...]) -> Path | list[Path]:
     return list(paths) if len(paths) > 1 else paths[0]
 
 
+def _dsm_on_grid_lattice(paths: tuple[Path, ...], grid: Grid) -> bool:
+    """True when the DSM is one raster whose pixels are the grid's cells (same CRS, pixel side =
+    ``resolution_m``, origin on the grid's lattice) and none lies outside the grid: then the
+    surface stage's footprint max copied every (filled) DSM pixel onto its cell, and the DSM's floor
+    on its own prisms (:func:`~skyroute.stages.clearance.dsm_obstacle_floor`) is exactly the floor of
+    the surface (the floor of a max is the max of the floors), which is computed chunk by chunk."""
+    import numpy as np
+    import rasterio
+    from pyproj import CRS
+
+    if len(paths) != 1:
+        return False
+    try:
+        with rasterio.open(paths[0]) as src:
+            t, crs, (h, w) = src.transform, src.crs, src.shape
+    except rasterio.errors.RasterioIOError:
+        return False   # the surface stage reported it
+    r = grid.resolution_m
+    if crs is None or CRS.from_user_input(crs) != grid.crs or t.b != 0 or t.d != 0:
+        return False
+    if not (np.isclose(t.a, r, rtol=1e-9) and np.isclose(-t.e, r, rtol=1e-9)):
+        return False
+    ox, oy = (t.c - grid.x0) / r, (grid.y1 - t.f) / r
+    if not (np.isclose(ox, round(ox), atol=1e-6) and np.isclose(oy, round(oy), atol=1e-6)):
+        return False
+    c0, r0 = round(ox), round(oy)
+    return c0 >= 0 and r0 >= 0 and c0 + w <= grid.nx and r0 + h <= grid.ny
+
+
 def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: ClearanceSettings) -> xr.Dataset:
     """Obstacle clearance for the vehicle sphere r_p (seed 000 eq. 13): lowest allowed
-    sphere-centre altitude, AGL ceiling, dilated no-fly cells and altitude-limited volumes."""
+    sphere-centre altitude, AGL ceiling, dilated no-fly cells and altitude-limited volumes.
+    Chunked (dask ``map_overlap``) unless a DSM off the grid's lattice needs its own-prism floor."""
     import numpy as np
 
     from skyroute.stages.clearance import clearance_dataset, dsm_obstacle_floor
 
-    terrain = surface["terrain"].load()
-    terrain_min = surface["terrain_min"].load() if "terrain_min" in surface else terrain
+    grid = Grid.from_dataarray(surface["surface"])
+    native = bool(settings.surface_paths) and not _dsm_on_grid_lattice(settings.surface_paths, grid)
+    c = surface["surface"].chunksizes if surface["surface"].chunks is not None else None
+
+    def lazy(da: xr.DataArray) -> xr.DataArray:
+        return da.chunk({k: v[0] for k, v in c.items()}) if c and da.chunks is None else da
+
+    terrain = lazy(surface["terrain"])
+    terrain_min = lazy(surface["terrain_min"]) if "terrain_min" in surface else terrain
     env = environment[["nofly", "nofly_floor_m", "nofly_ceiling_m"]].load()
     floor, ceil = env["nofly_floor_m"].values, env["nofly_ceiling_m"].values
     unlimited = env["nofly"].values & (np.nan_to_num(floor, nan=0.0) <= 0) & np.isinf(ceil)
@@ -328,12 +365,13 @@ def clearance_stage(surface: xr.Dataset, environment: xr.Dataset, *, settings: C
             # AGL band -> absolute altitudes with the mean terrain of the zone (exact on flat ground)
             base = float(t[m].mean())
             volumes.append((env["nofly"].copy(data=m), base + lo, base + hi))
-    ds = clearance_dataset(surface["surface"].load(), settings.radius_m, terrain=terrain,
+    surf = surface["surface"].load() if native else lazy(surface["surface"])
+    ds = clearance_dataset(surf, settings.radius_m, terrain=terrain,
                            terrain_min=terrain_min, min_agl_m=settings.min_agl_m, max_agl_m=settings.max_agl_m,
                            nofly=env["nofly"].copy(data=unlimited), volumes=volumes or None,
                            obstacle_floor=dsm_obstacle_floor(surface, _raster_source(settings.surface_paths),
                                                              settings.radius_m, settings.surface_nodata,
-                                                             settings.has_dem) if settings.surface_paths else None)
+                                                             settings.has_dem) if native else None)
     datum = surface["surface"].attrs.get("vertical_datum", "")
     for v in ds.data_vars.values():
         v.attrs.setdefault("units", "1" if v.dtype == bool else "m")

@@ -264,9 +264,10 @@ def clearance_dataset(surface: xr.DataArray, radius_m: float, terrain: xr.DataAr
         lo, hi = terrain + float(min_agl_m), xr.full_like(terrain, np.inf, dtype=float)
     ds = xr.Dataset(coords={k: surface.coords[k] for k in ("y", "x")})
     ds["obstacle_floor_m"] = floor
-    ds["min_altitude_m"] = xr.DataArray(np.maximum(floor.values, np.asarray(lo.values, float)), dims=("y", "x"),
+    # .data: numpy or dask (chunked rasters stay lazy, computed block by block when stored)
+    ds["min_altitude_m"] = xr.DataArray(np.maximum(floor.data, lo.data.astype(float)), dims=("y", "x"),
                                         attrs={"units": "m", "long_name": "lowest allowed sphere-centre altitude"})
-    ds["max_altitude_m"] = xr.DataArray(np.asarray(hi.values, float), dims=("y", "x"),
+    ds["max_altitude_m"] = xr.DataArray(hi.data.astype(float), dims=("y", "x"),
                                         attrs={"units": "m", "long_name": "highest allowed sphere-centre altitude"})
     if nofly is not None:
         ds["nofly"] = (("y", "x"), dilate_nofly(nofly, r, mode).values, {"long_name": "dilated no-fly cells"})

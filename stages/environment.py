@@ -76,7 +76,7 @@ def environment_risk_dataset(
         ds["landing_site"] = grid.dataarray(np.zeros(grid.shape, bool), "landing_site", units="1")
         ds["landing_distance_m"] = grid.dataarray(np.full(grid.shape, np.inf, np.float32), "landing_distance_m", units="m")
         ds["landing_cost"] = grid.dataarray(np.ones(grid.shape, np.float32), "landing_cost", units="1")
-    ds = ds.rio.write_crs(grid.crs)
+    ds = ds.rio.write_crs(grid.crs, inplace=True)   # ds is ours: no copy of every layer
     ds.attrs.update({"title": "skyroute ground risk, no-fly and landing-site maps", "Conventions": "CF-1.10",
                      "resolution_m": grid.resolution_m, "level5_nofly": int(level5_nofly),
                      "risk_sources": levels.attrs.get("sources", ""), "tag_table": table.source,

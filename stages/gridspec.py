@@ -268,7 +268,7 @@ class Grid:
         import xarray as xr
 
         da = xr.DataArray(values, dims=("y", "x"), coords=self.coords(), name=name, attrs=attrs)
-        return da.rio.write_crs(self.crs)
+        return da.rio.write_crs(self.crs, inplace=True)   # a new object: no copy of ``values``
 
     def index_of(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """(row, col) of the cells containing map points (x, y) [m]; may fall outside the grid.

@@ -410,6 +410,24 @@ def _to_grid_geoms(geoms, src_crs: CRS, grid: Grid):
     return [shapely.transform(g, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1]))) for g in geoms]
 
 
+def osm_building_footprints(path: str | Path, storey_height_m: float = STOREY_HEIGHT_M
+                            ) -> tuple[list[int], list[float], list[str], list]:
+    """The building footprints of an OSM extract: (OSM ids, heights above ground [m], height
+    sources, shapely footprints in WGS 84 lon/lat [deg]); every area tagged ``building`` or
+    ``building:part``, heights from :func:`osm_building_height` (the one reading of building
+    heights: :func:`osm_buildings` and the mosaic-city generator use it)."""
+    ids, hs, srcs, geoms = [], [], [], []
+    for f in read_osm(path, keys=["building", "building:part"]):
+        if f.kind != "area":
+            continue
+        h, src = osm_building_height(f.tags, storey_height_m)
+        ids.append(f.osm_id)
+        hs.append(h)
+        srcs.append(src)
+        geoms.append(f.geometry)
+    return ids, hs, srcs, geoms
+
+
 def osm_buildings(path: str | Path, grid: Grid, storey_height_m: float = STOREY_HEIGHT_M) -> BuildingRaster:
     """Rasterise the building footprints of an OSM extract with their heights above ground.
 
@@ -435,15 +453,8 @@ def osm_buildings(path: str | Path, grid: Grid, storey_height_m: float = STOREY_
     DataError
         When the OSM file is missing or unreadable.
     """
-    feats = [f for f in read_osm(path, keys=["building", "building:part"]) if f.kind == "area"]
+    ids, hs, srcs, geoms = osm_building_footprints(path, storey_height_m)
     xmin, ymin, xmax, ymax = grid.bounds
-    ids, hs, srcs, geoms = [], [], [], []
-    for f in feats:
-        h, src = osm_building_height(f.tags, storey_height_m)
-        ids.append(f.osm_id)
-        hs.append(h)
-        srcs.append(src)
-        geoms.append(f.geometry)
     geoms = _to_grid_geoms(geoms, CRS.from_epsg(4326), grid)
     keep = [i for i, g in enumerate(geoms) if g.intersects(shapely.box(xmin, ymin, xmax, ymax))]
     return _rasterize_flat(grid, [geoms[i] for i in keep], np.array(hs)[keep] if keep else np.zeros(0),
@@ -887,11 +898,13 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
     if msg:
         raise DataError(msg)
     filled = fill_holes(win, holes, nodata if nodata != "error" else "fill-max")
-    surface = footprint_resample(filled, win.transform, win.crs, grid, "max")
-    surface_min = footprint_resample(filled, win.transform, win.crs, grid, "min")
     n, n_edge = regions_in_aoi(win, holes, grid)
-    notes = f"NoData regions filled under the AOI: {n} ({nodata}, {n_edge} touching the raster's edge)"
     share = filled_share(win, holes, grid)
+    transform, crs = win.transform, win.crs
+    del win, holes   # the raw window and its hole labels: not needed past here (city-scale memory)
+    surface = footprint_resample(filled, transform, crs, grid, "max")
+    surface_min = footprint_resample(filled, transform, crs, grid, "min")
+    notes = f"NoData regions filled under the AOI: {n} ({nodata}, {n_edge} touching the raster's edge)"
     how = ("the highest height on each region's rim within the raster" if nodata == "fill-max"
            else "the nearest valid pixel")
     warns = (f"{key}: {n} NoData region(s) of the DSM ({n_edge} touching its edge) cover "
@@ -899,13 +912,13 @@ def dsm_on_grid(path, grid: Grid, *, nodata: str = "fill-max", derive_ground: bo
              f"{', '.join(p for p in NODATA_POLICIES if p != nodata)})",) if share > 0 else ()
     if not derive_ground:
         return DsmRaster(surface, surface_min, None, None, None, n, notes, warns)
-    px = abs(win.transform.a)
+    px = abs(transform.a)
     ok = np.isfinite(filled)
     g_src = ground_from_dsm(filled, px, ground_window_m)
-    ground = footprint_resample(g_src, win.transform, win.crs, grid, "max")
-    ground_min = footprint_resample(g_src, win.transform, win.crs, grid, "min")
+    ground = footprint_resample(g_src, transform, crs, grid, "max")
+    ground_min = footprint_resample(g_src, transform, crs, grid, "min")
     high = np.where(ok, (filled - g_src > building_threshold_m).astype(np.float64), np.nan)
-    building = footprint_resample(high, win.transform, win.crs, grid, "min") > 0.5
+    building = footprint_resample(high, transform, crs, grid, "min") > 0.5
     notes += (f"; ground derived from the DSM by a grey opening with a {ground_window_m:g} m square window "
               f"({int(np.ceil(ground_window_m / px)) | 1} px of {px:g} m); buildings: more than "
               f"{building_threshold_m:g} m above it over the whole cell (tall vegetation is not told apart)")
@@ -1033,6 +1046,7 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
         warns.extend(dem.warnings)
         datum = vertical_datum or "EGM96 geoid"
         ground_src = dem.notes
+        del dem
     elif dsm is not None:
         terrain, terrain_min = dsm.ground, dsm.ground_min
         datum = surface_datum
@@ -1061,25 +1075,30 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
         has = braster.index >= 0
         top = braster.top if braster.absolute else terrain + braster.top
         surface[has] = np.maximum(terrain[has], top[has])
+    dsm_building = None
     if dsm is not None:
-        surface = np.maximum(surface, dsm.surface)
-    zattrs = {"units": "m", "vertical_datum": datum}
-    ds = xr.Dataset({
-        "terrain": grid.dataarray(terrain.astype(np.float32), "terrain",
-                                  long_name="ground height (highest over the cell)", **zattrs),
-        "terrain_min": grid.dataarray(terrain_min.astype(np.float32), "terrain_min",
-                                      long_name="ground height (lowest over the cell)", **zattrs),
-        "surface": grid.dataarray(surface.astype(np.float32), "surface",
-                                  long_name="top of terrain and buildings (flat-topped prism per cell)", **zattrs),
-        "building_id": grid.dataarray(
-            (braster.index if braster is not None else np.full(grid.shape, -1, np.int32)).astype(np.int32),
-            "building_id", units="1", long_name="index into the building dimension, -1 where no building"),
-    })
-    if dsm is not None:
+        np.maximum(surface, dsm.surface, out=surface)
         # with a DEM: the lowest DSM point of the cell above its highest ground point
-        building = dsm.building if dsm.building is not None else dsm.surface_min - terrain > building_threshold_m
+        dsm_building = dsm.building if dsm.building is not None else dsm.surface_min - terrain > building_threshold_m
+        dsm_notes = dsm.notes
+        dsm = True   # its float64 rasters are no longer needed (city-scale memory)
+    # float32 one layer at a time, each float64 original released before the next (city-scale memory)
+    zattrs = {"units": "m", "vertical_datum": datum}
+    ds = xr.Dataset()
+    ds["terrain"] = grid.dataarray(terrain.astype(np.float32), "terrain",
+                                   long_name="ground height (highest over the cell)", **zattrs)
+    ds["terrain_min"] = grid.dataarray(terrain_min.astype(np.float32), "terrain_min",
+                                       long_name="ground height (lowest over the cell)", **zattrs)
+    del terrain, terrain_min
+    ds["surface"] = grid.dataarray(surface.astype(np.float32), "surface",
+                                   long_name="top of terrain and buildings (flat-topped prism per cell)", **zattrs)
+    del surface
+    ds["building_id"] = grid.dataarray(
+        (braster.index if braster is not None else np.full(grid.shape, -1, np.int32)).astype(np.int32),
+        "building_id", units="1", long_name="index into the building dimension, -1 where no building")
+    if dsm_building is not None:
         ds["dsm_building"] = grid.dataarray(
-            building, "dsm_building", units="1",
+            dsm_building, "dsm_building", units="1",
             long_name=f"DSM more than {building_threshold_m:g} m above the ground over the whole cell")
     if braster is not None:
         ds["building_osm_id"] = ("building", braster.ids, {"units": "1", "long_name": "OSM id (or CityJSON index)"})
@@ -1089,7 +1108,7 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
     ds.attrs.update({"title": "skyroute surface model", "vertical_datum": datum,
                      "resolution_m": grid.resolution_m, "Conventions": "CF-1.10", "ground_source": ground_src})
     if dsm is not None:
-        ds.attrs["dsm"] = dsm.notes
+        ds.attrs["dsm"] = dsm_notes
     if warns:
         ds.attrs["warnings"] = json.dumps(warns)
     return ds

@@ -412,10 +412,25 @@ def _to_grid_geoms(geoms, src_crs: CRS, grid: Grid):
 
 def osm_building_footprints(path: str | Path, storey_height_m: float = STOREY_HEIGHT_M
                             ) -> tuple[list[int], list[float], list[str], list]:
-    """The building footprints of an OSM extract: (OSM ids, heights above ground [m], height
-    sources, shapely footprints in WGS 84 lon/lat [deg]); every area tagged ``building`` or
-    ``building:part``, heights from :func:`osm_building_height` (the one reading of building
-    heights: :func:`osm_buildings` and the mosaic-city generator use it)."""
+    """The building footprints of an OSM extract.
+
+    Every area tagged ``building`` or ``building:part``, heights from
+    :func:`osm_building_height` (the one reading of building heights: :func:`osm_buildings`
+    and the mosaic-city generator use it).
+
+    Parameters
+    ----------
+    path : str or Path
+        OSM extract (``.osm.pbf`` or ``.osm``).
+    storey_height_m : float
+        Height of one storey [m], for buildings tagged with ``building:levels`` only.
+
+    Returns
+    -------
+    tuple of list
+        (OSM ids, heights above ground [m], height sources, shapely footprints in WGS 84
+        lon/lat [deg]), one entry per footprint.
+    """
     ids, hs, srcs, geoms = [], [], [], []
     for f in read_osm(path, keys=["building", "building:part"]):
         if f.kind != "area":

@@ -348,27 +348,34 @@ def _segment_eval(x0, y0, z0, x1, y1, z1, want_cost, valid_only, maps, wind, veh
 
 
 @numba.njit(cache=True, nogil=True)
-def segments_kernel(p0, p1, want_cost, maps, wind, vehicle, power, out, codes):
-    """:func:`segment_eval` of each motion p0[i] -> p1[i] (n, 3) [m]: ``out`` (n, 6), ``codes`` (n,)."""
+def segments_kernel(p0, p1, want_cost, valid_only, maps, wind, vehicle, power, out, codes):
+    """:func:`segment_eval` (``valid_only``: :func:`segment_eval_if_valid`, the costs of the
+    valid motions only, an invalid one costing no energy evaluation) of each motion p0[i] ->
+    p1[i] (n, 3) [m]: ``out`` (n, 6), ``codes`` (n,)."""
     buf = np.empty(6)
     for i in range(p0.shape[0]):
-        codes[i] = segment_eval(p0[i, 0], p0[i, 1], p0[i, 2], p1[i, 0], p1[i, 1], p1[i, 2], want_cost,
-                                maps, wind, vehicle, power, buf)
+        codes[i] = _segment_eval(p0[i, 0], p0[i, 1], p0[i, 2], p1[i, 0], p1[i, 1], p1[i, 2], want_cost,
+                                 valid_only, maps, wind, vehicle, power, buf)
         for k in range(6):
             out[i, k] = buf[k]
 
 
 @numba.njit(cache=True, nogil=True)
-def segments_kernel_if_valid(p0, p1, maps, wind, vehicle, power, out, codes):
-    """:func:`segment_eval_if_valid` of each motion p0[i] -> p1[i] (n, 3) [m]: ``codes`` (n,)
-    (0 = valid), ``out`` (n, 6) the costs of the valid motions (incomplete for the others, which
-    cost no energy evaluation)."""
-    buf = np.empty(6)
-    for i in range(p0.shape[0]):
-        codes[i] = segment_eval_if_valid(p0[i, 0], p0[i, 1], p0[i, 2], p1[i, 0], p1[i, 1], p1[i, 2],
-                                         maps, wind, vehicle, power, buf)
-        for k in range(6):
-            out[i, k] = buf[k]
+def _still_air_power(dirs, vehicle, power):
+    """(m,): the power [W] of E_0 for each unit direction dirs[i]: still air, cruise speed."""
+    vc = vehicle.cruise_speed_mps
+    p0 = np.empty(dirs.shape[0])
+    va = np.empty((1, 3))
+    vs = np.empty(1)
+    vz = np.empty(1)
+    pw = np.empty((1, 8))
+    for i in range(dirs.shape[0]):
+        va[0, 0], va[0, 1], va[0, 2] = vc * dirs[i, 0], vc * dirs[i, 1], vc * dirs[i, 2]
+        vs[0] = vc
+        vz[0] = vc * dirs[i, 2]
+        power_kernel(va, vs, vz, power, pw)
+        p0[i] = pw[0, 4]
+    return p0
 
 
 @numba.njit(cache=True, nogil=True)
@@ -377,42 +384,20 @@ def ratio_kernel(dirs, winds, vehicle, power):
     (flyable pairs only; inf when none is).  The still-air power of a direction is computed
     once per direction (the rows of ``power_kernel`` are independent: the same numbers as
     computing it per wind, in half the time)."""
-    vc, vmax, vmin = vehicle.cruise_speed_mps, vehicle.max_airspeed_mps, vehicle.min_ground_speed_mps
-    wmax = vehicle.max_wind_mps
-    best = np.inf
-    va = np.empty((1, 3))
-    vs = np.empty(1)
-    vz = np.empty(1)
-    pw = np.empty((1, 8))
-    for i in range(dirs.shape[0]):
-        sx, sy, sz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
-        va[0, 0], va[0, 1], va[0, 2] = vc * sx, vc * sy, vc * sz      # E_0: still air, cruise speed
-        vs[0] = vc
-        vz[0] = vc * sz
-        power_kernel(va, vs, vz, power, pw)
-        p0 = pw[0, 4]
-        for j in range(winds.shape[0]):
-            u, v, w = winds[j, 0], winds[j, 1], winds[j, 2]
-            if math.sqrt(u * u + v * v + w * w) > wmax:
-                continue
-            g = eq3_ground_speed(sx, sy, sz, u, v, w, vc, vmax)
-            if math.isnan(g) or g < vmin or g <= 0:
-                continue
-            va[0, 0], va[0, 1], va[0, 2] = g * sx - u, g * sy - v, g * sz - w
-            vs[0] = va[0, 0] * sx + va[0, 1] * sy + va[0, 2] * sz
-            vz[0] = g * sz
-            power_kernel(va, vs, vz, power, pw)
-            ratio = (pw[0, 4] / g) / (p0 / vc)
-            if ratio < best:
-                best = ratio
-    return best
+    best = np.full(dirs.shape[0], np.inf)
+    _ratio_rows(dirs, _still_air_power(dirs, vehicle, power), winds, 0, winds.shape[0], vehicle, power, best)
+    out = np.inf
+    for i in range(best.shape[0]):
+        if best[i] < out:
+            out = best[i]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
 def _ratio_rows(dirs, p0, winds, j0, j1, vehicle, power, best):
     """``best[i]`` = min(best[i], min over winds[j0:j1] of the one-sub-segment E_w/E_0 of
-    direction dirs[i]) (flyable pairs only), ``p0[i]`` its still-air power: the inner loop of
-    :func:`ratio_kernel`, the same arithmetic in the same order."""
+    direction dirs[i]) (flyable pairs only), ``p0[i]`` its still-air power
+    (:func:`_still_air_power`): the loop of :func:`ratio_kernel` and :func:`ratio_each_kernel`."""
     vc, vmax, vmin = vehicle.cruise_speed_mps, vehicle.max_airspeed_mps, vehicle.min_ground_speed_mps
     wmax = vehicle.max_wind_mps
     va = np.empty((1, 3))
@@ -448,19 +433,8 @@ def ratio_each_kernel(dirs, winds, vehicle, power):
     E_w/E_0 (flyable pairs only; inf when none is): :func:`ratio_kernel` of each direction alone,
     the same numbers (a minimum does not depend on the order it is taken in), the winds split in
     chunks of :data:`RATIO_CHUNK` over the cores."""
-    vc = vehicle.cruise_speed_mps
     nd = dirs.shape[0]
-    p0 = np.empty(nd)
-    va = np.empty((1, 3))
-    vs = np.empty(1)
-    vz = np.empty(1)
-    pw = np.empty((1, 8))
-    for i in range(nd):
-        va[0, 0], va[0, 1], va[0, 2] = vc * dirs[i, 0], vc * dirs[i, 1], vc * dirs[i, 2]
-        vs[0] = vc
-        vz[0] = vc * dirs[i, 2]
-        power_kernel(va, vs, vz, power, pw)
-        p0[i] = pw[0, 4]
+    p0 = _still_air_power(dirs, vehicle, power)
     nw = winds.shape[0]
     nchunk = max(1, (nw + RATIO_CHUNK - 1) // RATIO_CHUNK)
     part = np.full((nchunk, nd), np.inf)
@@ -475,5 +449,5 @@ def ratio_each_kernel(dirs, winds, vehicle, power):
 
 
 __all__ = ["GridParams", "MapParams", "SegmentArgs", "VehicleParams", "WindParams", "entry_point", "grid_params",
-           "ratio_each_kernel", "ratio_kernel", "segment_eval", "segment_eval_if_valid", "segments_kernel", "segments_kernel_if_valid", "state_code", "states_kernel",
+           "ratio_each_kernel", "ratio_kernel", "segment_eval", "segment_eval_if_valid", "segments_kernel", "state_code", "states_kernel",
            "vehicle_params", "wind_at"]

@@ -83,7 +83,6 @@ from skyroute.stages.planning.kernels import (
     segment_eval,
     segment_eval_if_valid,
     segments_kernel,
-    segments_kernel_if_valid,
     states_kernel,
     vehicle_params,
     wind_at,
@@ -226,7 +225,11 @@ class PlanningProblem:
         """bool (n,): state inside the AOI, between floor and ceiling, wind <= max."""
         return self.state_codes(xyz) == OK
 
-    def motion_codes(self, p0, p1, want_cost: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def motion_codes(self, p0, p1, want_cost: bool = False,
+                     valid_only: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(codes (n,), costs (n, 6)) of each straight motion p0[i] -> p1[i] (n, 3) [m];
+        ``valid_only``: the costs of the valid motions only (an invalid one stops at the first
+        invalidity found and costs no energy evaluation; its row is incomplete)."""
         if want_cost and isinstance(self.vehicle, FixedWingProfile):
             raise InputError(f"vehicle {self.vehicle.name!r} is fixed-wing: the rotor costs of this problem do not "
                              "apply; use skyroute.stages.fixedwing_energy / the fixed-wing planners")
@@ -235,22 +238,14 @@ class PlanningProblem:
             raise InputError(f"p0 and p1 must have the same shape, got {a.shape} and {b.shape}")
         out = np.empty((a.shape[0], 6))
         codes = np.empty(a.shape[0], dtype=np.int64)
-        segments_kernel(a, b, want_cost, *self._seg_args, out, codes)
+        segments_kernel(a, b, want_cost, valid_only, *self._seg_args, out, codes)
         return codes, out
 
     def motion_f_if_valid(self, p0, p1) -> tuple[np.ndarray, np.ndarray]:
         """(f per motion p0[i] -> p1[i] (n, 3) [m] (inf where invalid), valid (n,) bool): the
-        costs of :meth:`motion_codes` for the valid motions, none computed for the others (their
-        evaluation stops at the first invalidity found: the searches' and refinement's use)."""
-        if isinstance(self.vehicle, FixedWingProfile):
-            raise InputError(f"vehicle {self.vehicle.name!r} is fixed-wing: the rotor costs of this problem do not "
-                             "apply; use skyroute.stages.fixedwing_energy / the fixed-wing planners")
-        a, b = self._pts(p0, "p0"), self._pts(p1, "p1")
-        if a.shape != b.shape:
-            raise InputError(f"p0 and p1 must have the same shape, got {a.shape} and {b.shape}")
-        out = np.empty((a.shape[0], 6))
-        codes = np.empty(a.shape[0], dtype=np.int64)
-        segments_kernel_if_valid(a, b, *self._seg_args, out, codes)
+        costs of :meth:`motion_codes` for the valid motions, none computed for the others (the
+        searches' and refinement's use)."""
+        codes, out = self.motion_codes(p0, p1, want_cost=True, valid_only=True)
         ok = codes == OK
         c = out[:, :4]
         f = self.f_of(np.where(ok[:, None], np.where(np.isfinite(c), c, np.inf), 0.0))

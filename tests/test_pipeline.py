@@ -189,13 +189,14 @@ def test_prechecks_run_only_for_stages_that_compute(helsinki, cache, scaled_stag
     assert CALLS == ["precheck", "scaled", "precheck", "scaled"]
 
 
-def test_warm_run_imports_no_compute_only_modules(tmp_path):
-    """A warm `skyroute run` (every stage cached, outputs unchanged) imports neither numba nor
-    matplotlib, ompl or dask.distributed: they load only where a stage computes or a figure is drawn."""
-    code = textwrap.dedent("""
+def _probe_code(*options: str) -> str:
+    """A script running `skyroute run helsinki-medical [options] --out ARGV1 -q` in-process, then
+    printing ``HEAVY`` and the compute-only modules it imported."""
+    opts = "".join(f"{o!r}, " for o in options)
+    return textwrap.dedent(f"""
         import sys
         from skyroute.pipeline.cli import main
-        sys.argv = ["skyroute", "run", "helsinki-medical", "--stage", "environment", "--out", sys.argv[1], "-q"]
+        sys.argv = ["skyroute", "run", "helsinki-medical", {opts}"--out", sys.argv[1], "-q"]
         try:
             main()
         except SystemExit as exc:
@@ -204,6 +205,12 @@ def test_warm_run_imports_no_compute_only_modules(tmp_path):
                  "rasterio", "rioxarray", "shapely", "folium")
         print("HEAVY", *[m for m in heavy if m in sys.modules])
     """)
+
+
+def test_warm_run_imports_no_compute_only_modules(tmp_path):
+    """A warm `skyroute run` (every stage cached, outputs unchanged) imports neither numba nor
+    matplotlib, ompl or dask.distributed: they load only where a stage computes or a figure is drawn."""
+    code = _probe_code("--stage", "environment")
     env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
     report = tmp_path / "out" / "report.html"
     runs = []
@@ -227,18 +234,7 @@ def test_warm_default_run_imports_no_compute_only_modules_and_reuses_its_outputs
     distributed client), and no xarray, dask, zarr, pandas, scipy, rasterio, shapely or folium
     either (a warm run opens no dataset: keys, attributes and summary sections need none), and
     every output file is reused (the same modification times)."""
-    code = textwrap.dedent("""
-        import sys
-        from skyroute.pipeline.cli import main
-        sys.argv = ["skyroute", "run", "helsinki-medical", "--out", sys.argv[1], "-q"]
-        try:
-            main()
-        except SystemExit as exc:
-            assert not exc.code, exc.code
-        heavy = ("numba", "matplotlib", "ompl", "distributed", "xarray", "dask", "zarr", "pandas", "scipy",
-                 "rasterio", "rioxarray", "shapely", "folium")
-        print("HEAVY", *[m for m in heavy if m in sys.modules])
-    """)
+    code = _probe_code()
     env = {**os.environ, "SKYROUTE_CACHE_DIR": str(tmp_path / "cache")}
     out = tmp_path / "out"
     runs, mtimes, warns = [], [], []

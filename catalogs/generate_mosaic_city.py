@@ -398,6 +398,8 @@ def generate(out_dir: str | Path, *, side_km: float = 20.0, seed: int = 0, resol
                          f"whole number of {resolution_m:g} m cells (e.g. --side-km 20 --tile-m 250)")
     if not 0 <= green_share <= 1:
         raise InputError(f"--green-share {green_share} must be within 0..1")
+    if not 0 <= int(seed) < 2**32:
+        raise InputError(f"--seed {seed} must be an integer in 0..2**32-1 (e.g. --seed 0)")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     src = read_source(source)

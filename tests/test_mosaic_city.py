@@ -211,3 +211,15 @@ def test_map_commands_are_estimated_without_the_planner(mosaic):
     k = 1e8 / maps.cells       # the same scenario at 20 km: 1e8 cells
     big = budget.BASE_BYTES + k * maps.bytes_cells + maps.bytes_epochs
     assert big < 0.8 * (16 << 30) < budget.BASE_BYTES + k * (full.bytes_cells + full.bytes_levels)
+
+
+def test_bad_arguments_are_one_error_line(tmp_path, capsys):
+    from skyroute.stages.base import InputError
+
+    with pytest.raises(InputError, match=r"--seed -3 must be an integer in 0\.\.2\*\*32-1"):
+        M.generate(tmp_path, side_km=0.5, seed=-3)
+    with pytest.raises(InputError, match="must be positive"):
+        M.generate(tmp_path, side_km=float("nan"))
+    assert M.main([str(tmp_path / "o"), "--side-km", "0.5", "--seed", "-3"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --seed -3") and "Traceback" not in err

@@ -213,6 +213,11 @@ def test_signal_during_a_fleet_exits_130_or_143_without_a_traceback(tmp_path):
         p.send_signal(sig)
         rc = p.wait(timeout=60)
         err = p.stderr.read().decode()
+        if rc == -int(sig) and (tmp_path / f"k{i}" / "summary.json").is_file():
+            # the command had finished (summary.json is written last): the signal met the
+            # interpreter's exit, outside the command's handlers; nothing was cut short
+            assert "Traceback" not in err, err[-2000:]
+            continue
         landed += 1
         assert rc == 128 + int(sig), (rc, err[-2000:])
         assert "Traceback" not in err and err.strip().splitlines()[-1] == "interrupted", err[-2000:]

@@ -85,6 +85,8 @@ class StrategicPlan:
     step2: list[Step2Result | None] = field(default_factory=list)
     compute_s: float = 0.0
     warnings: list[str] = field(default_factory=list)   # degenerate cost terms, planner caps hit
+    window_xy: tuple[float, float, float, float] | None = None   # planning window [m] (None: the whole AOI)
+    window_widenings: int = 0
 
     @property
     def reason(self) -> str:
@@ -571,8 +573,11 @@ def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_ut
         ``y_m``, ``z_m``, ``alt_agl_m`` [m], ``speed_mps`` [m/s], ``sigma_p_m`` [m],
         ``n_visible``, its ``waypoints`` ``(waypoint, xyz)`` [m] and the exact trajectory
         (:func:`trajectory_to_dataset`).  Attrs: ``chosen_level`` (-1: none), ``crs``,
-        ``vertical_datum``, ``start_time_utc``, ``compute_s``, ``reason``, ``warnings`` (JSON) and
-        ``skyroute_not_cacheable`` when a level stopped at its wall-clock cap.
+        ``vertical_datum``, ``start_time_utc``, ``compute_s``, ``reason``, ``warnings`` (JSON),
+        ``planning_window_xy_m`` (JSON ``[xmin, ymin, xmax, ymax]`` [m], null: the whole AOI) and
+        ``planning_window_widenings`` when the plan was made in a window
+        (:mod:`~skyroute.stages.planning.window`), and ``skyroute_not_cacheable`` when a level
+        stopped at its wall-clock cap.
     """
     cands = plan.candidates
     ds = xr.Dataset(coords={"level": np.arange(len(cands))})
@@ -593,6 +598,10 @@ def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_ut
                      "start_time_utc": pd.Timestamp(start_time_utc).isoformat(), "compute_s": plan.compute_s,
                      "reason": plan.reason, "title": "skyroute strategic plan",
                      "warnings": json.dumps(list(plan.warnings))})
+    if plan.window_xy is not None or plan.window_widenings:    # planning window (stages/planning/window.py)
+        ds.attrs["planning_window_xy_m"] = json.dumps(None if plan.window_xy is None
+                                                      else [round(float(v), 3) for v in plan.window_xy])
+        ds.attrs["planning_window_widenings"] = int(plan.window_widenings)
     if plan.wallclock_capped:      # a load-dependent result: the pipeline never caches it
         ds.attrs["skyroute_not_cacheable"] = ("the planner stopped at its wall-clock safety cap on "
                                               + ", ".join(plan.wallclock_capped))
@@ -749,9 +758,36 @@ def plan_strategic(maps: Maps, request: PlanRequest, *, heuristic_cache: dict | 
     ----------
     Seed 000 (the strategic planner, STEP I-III).
     """
-    return plan_levels(maps.surface, maps.environment, maps.wind, maps.clearance, maps.coverage, maps.satellites,
-                       maps.traffic, clearance_by_level=maps.clearance_by_level, heuristic_cache=heuristic_cache,
-                       edge_cache=edge_cache, **request.kwargs())
+    from skyroute.stages.gridspec import Grid
+    from skyroute.stages.planning.window import crop_maps, planning_windows
+
+    def on(m: Maps) -> StrategicPlan:
+        return plan_levels(m.surface, m.environment, m.wind, m.clearance, m.coverage, m.satellites, m.traffic,
+                           clearance_by_level=m.clearance_by_level, heuristic_cache=heuristic_cache,
+                           edge_cache=edge_cache, **request.kwargs())
+
+    if heuristic_cache is not None or edge_cache is not None:   # a fleet's shared lattices: the whole AOI
+        return on(maps)
+    grid = Grid.from_dataarray(maps.surface["terrain"])
+    windows = planning_windows(grid, request.start_xy, request.goal_xy)
+    t0 = time.perf_counter()
+    for i, win in enumerate(windows):
+        plan = on(maps if win is None else crop_maps(maps, *win))
+        if win is not None:
+            rows, cols = win
+            res = float(grid.resolution_m)
+            plan.window_xy = (grid.x0 + cols.start * res, grid.y1 - rows.stop * res,
+                              grid.x0 + cols.stop * res, grid.y1 - rows.start * res)
+        plan.window_widenings = i
+        retry = plan.chosen is None and any(not s1.solved for s1 in plan.step1)
+        if not retry or i == len(windows) - 1:
+            break
+    plan.compute_s = time.perf_counter() - t0
+    if plan.window_widenings:
+        where = "the whole AOI" if plan.window_xy is None else "a wider window"
+        plan.warnings.append(f"the planning window around the mission held no path on some level: widened "
+                             f"{plan.window_widenings} time(s), planned on {where}")
+    return plan
 
 
 __all__ = ["PlanningError", "StrategicPlan", "plan_from_dataset", "plan_levels", "plan_strategic", "plan_to_dataset",

@@ -7,7 +7,10 @@ The estimate is deliberately simple and on the safe side; it counts
 * **cells** ``nx * ny`` of the scenario grid (``aoi.bounds`` / ``aoi.resolution_m``): every
   stage keeps a few dozen 2-D layers (surface, terrain, risk, landing, clearance, costs, the
   planner's lattice), :data:`BYTES_PER_CELL` in all; a request without the plan stage (``maps``,
-  ``coverage``) :data:`BYTES_PER_CELL_MAPS` per cell and no per-level planner arrays.  Measured: the peak resident memory of a
+  ``coverage``) :data:`BYTES_PER_CELL_MAPS` per cell and no per-level planner arrays.  On a
+  city-scale AOI the plan stage reads only its planning window
+  (:mod:`skyroute.stages.planning.window`): the planner's bytes count the window's cells, the
+  map stages' the AOI's (the larger of the two).  Measured: the peak resident memory of a
   cold ``skyroute plan helsinki-medical`` is 639 MB at 2 m (460 598 cells) and 1 115 MB at 1 m
   (1 842 392 cells): 344 B per cell over 480 MB; the constants round both up;
 * **levels**: the DOP thresholds D_j (``gnss.dop_thresholds``), each one coverage floor and one
@@ -125,6 +128,19 @@ def _cells(sc) -> float:
         return math.inf
 
 
+def _plan_cells(sc, cells: float) -> float:
+    """The cells the plan stage reads: its planning window's on a city-scale AOI
+    (:func:`skyroute.stages.planning.window.plan_cells`), else every cell."""
+    from skyroute.stages.planning.window import WINDOW_MIN_CELLS, plan_cells
+
+    if not (math.isfinite(cells) and cells >= WINDOW_MIN_CELLS):
+        return cells
+    try:
+        return float(plan_cells(sc.grid, sc.point_xy(sc.mission.start), sc.point_xy(sc.mission.goal)))
+    except Exception:  # noqa: BLE001 -- an unusable mission is reported by the scenario checks, not here
+        return cells
+
+
 def scenario_footprint(sc, maps_only: bool = False) -> Footprint:
     """The counts and the memory estimate of ``sc`` (see the module docstring); ``maps_only``: a
     request that does not plan."""
@@ -136,10 +152,12 @@ def scenario_footprint(sc, maps_only: bool = False) -> Footprint:
     levels = len(g.dop_thresholds)
     chunk = float(sc.aoi.chunk_cells) ** 2
     blocks = max(1.0, math.ceil(cells / chunk)) if math.isfinite(cells) else math.inf
+    pcells = cells if maps_only else _plan_cells(sc, cells)
     return Footprint(
         cells=cells, levels=levels, epochs=epochs, satellites=sats,
-        bytes_cells=cells * (BYTES_PER_CELL_MAPS if maps_only else BYTES_PER_CELL),
-        bytes_levels=0.0 if maps_only else cells * levels * BYTES_PER_CELL_LEVEL,
+        bytes_cells=(cells * BYTES_PER_CELL_MAPS if maps_only
+                     else max(cells * BYTES_PER_CELL_MAPS, pcells * BYTES_PER_CELL)),
+        bytes_levels=0.0 if maps_only else pcells * levels * BYTES_PER_CELL_LEVEL,
         bytes_epochs=epochs * (sats * BYTES_PER_EPOCH_SAT + min(blocks, 8.0) * BYTES_PER_TASK),
     )
 

@@ -576,7 +576,11 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
     with (scheduler_context(scheduler, workers) if computes or scheduler not in LOCAL_SCHEDULERS
           else _check_scheduler(scheduler)) as client:
         compute = _computer(client, progress)
-        prechecks = [s for s in todo if s.precheck is not None and entries[s.name] is None]
+        # a precheck saves the work of the OTHER stages computed before its stage: with every other
+        # stage cached it would only repeat the stage's own check (the plan stage's degenerate-cost
+        # check reads the maps of its planning window: seconds on a city)
+        prechecks = [s for s in todo if s.precheck is not None and entries[s.name] is None
+                     and any(entries[t.name] is None for t in todo if t is not s)]
         _run_prechecks(prechecks, todo, scenario, result.datasets)
         for i, st in enumerate(todo, 1):
             control.check()

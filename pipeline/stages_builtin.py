@@ -460,6 +460,40 @@ register(Stage("coverage", coverage_stage, _coverage_settings, inputs=("surface"
                description="GNSS coverage floors per DOP threshold (worst case over the window)"))
 
 
+# --------------------------------------------------------------------------- energy-bound tiles
+class WindBoundsSettings(FrozenModel):
+    vehicle_profile: dict   # the profile's content
+    resolution_m: float
+    step_cells: int
+
+
+def _wind_bounds_settings(sc: Scenario) -> WindBoundsSettings:
+    from skyroute.stages.vehicle import load_vehicle
+
+    return WindBoundsSettings(vehicle_profile=load_vehicle(sc.vehicle).model_dump(mode="json"),
+                              resolution_m=sc.aoi.resolution_m, step_cells=sc.planner.step_cells)
+
+
+def wind_bounds_stage(wind: xr.Dataset, *, settings: WindBoundsSettings) -> xr.Dataset:
+    """The A* heuristic's energy-ratio bounds per wind tile and lattice edge direction
+    (:func:`~skyroute.stages.planning.wind_bounds.wind_ratio_tiles`): computed once per wind map,
+    vehicle and lattice step, read by every plan on those maps."""
+    from skyroute.stages.planning.wind_bounds import wind_ratio_tiles
+    from skyroute.stages.vehicle import vehicle_from_dict
+
+    return wind_ratio_tiles(wind, vehicle_from_dict(settings.vehicle_profile), settings.resolution_m,
+                            settings.step_cells)
+
+
+register(Stage("wind_bounds", wind_bounds_stage, _wind_bounds_settings, inputs=("wind",),
+               applies=lambda sc: ((sc.data.wind is not None or sc.data.uniform_wind is not None)
+                                   and sc.planner.name == "astar" and sc.planner.weights[3] > 0),
+               code_modules=("skyroute.stages.planning.wind_bounds", "skyroute.stages.planning.heuristic",
+                             "skyroute.stages.planning.kernels", "skyroute.stages.planning.grid_planner",
+                             "skyroute.stages.energy", "skyroute.stages.vehicle"),
+               description="A* energy-ratio bounds per wind tile (reused by every plan on these maps)"))
+
+
 # --------------------------------------------------------------------------- strategic plan
 class PlanSettings(FrozenModel):
     start_xy: tuple[float, float]
@@ -519,8 +553,8 @@ def _plan_settings_fixed(sc: Scenario) -> PlanSettings:
 
 
 def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Dataset, wind: xr.Dataset | None,
-               coverage: xr.Dataset | None, satellites: xr.Dataset | None, traffic: xr.Dataset | None, *,
-               settings: PlanSettings) -> xr.Dataset:
+               coverage: xr.Dataset | None, satellites: xr.Dataset | None, traffic: xr.Dataset | None,
+               wind_bounds: xr.Dataset | None = None, *, settings: PlanSettings) -> xr.Dataset:
     """Strategic plan (seed 000 III): STEP I-III for every coverage level and the choice."""
     from skyroute.stages.planning.request import Maps, PlanRequest
     from skyroute.stages.planning.strategic import plan_strategic, plan_to_dataset
@@ -532,7 +566,7 @@ def plan_stage(surface: xr.Dataset, environment: xr.Dataset, clearance: xr.Datas
         extra["clearance_by_level"] = sb["clearance_by_level"]
         kw["bubble"] = sb["bubble"]
     maps = Maps(surface=surface, clearance=clearance, environment=environment, wind=wind, coverage=coverage,
-                satellites=satellites, traffic=traffic, **extra)
+                satellites=satellites, traffic=traffic, wind_bounds=wind_bounds, **extra)
     plan = plan_strategic(maps, PlanRequest.of(**kw))
     ds = plan_to_dataset(plan, surface["surface"].rio.crs, surface["surface"].attrs.get("vertical_datum", ""),
                          settings.start_time_utc)
@@ -617,12 +651,18 @@ def plan_precheck(sc: Scenario, datasets: dict[str, xr.Dataset]) -> None:
     cost terms (:mod:`skyroute.stages.planning.degenerate`; the plan stage repeats the check
     and lists the degenerate terms in its ``warnings``)."""
     from skyroute.stages.planning.degenerate import check_cost_terms, degenerate_cost_terms
+    from skyroute.stages.planning.window import planning_windows
 
-    check_cost_terms(sc.planner.weights, degenerate_cost_terms(datasets.get("environment"), datasets.get("wind")))
+    env = datasets.get("environment")
+    if env is not None:     # on a city-scale AOI the maps of the first planning window, as the planner sees them
+        win = planning_windows(sc.grid, sc.point_xy(sc.mission.start), sc.point_xy(sc.mission.goal))[0]
+        if win is not None:
+            env = env.isel(y=win[0], x=win[1])
+    check_cost_terms(sc.planner.weights, degenerate_cost_terms(env, datasets.get("wind")))
 
 
 register(Stage("plan", plan_stage, _plan_settings, inputs=("surface", "environment", "clearance"),
-               optional_inputs=("wind", "coverage", "satellites", "traffic"),
+               optional_inputs=("wind", "coverage", "satellites", "traffic", "wind_bounds"),
                precheck=plan_precheck, precheck_after=("environment", "wind"),
                code_modules=("skyroute.stages.planning.strategic", "skyroute.stages.planning.problem",
                              "skyroute.stages.planning.kernels", "skyroute.stages.planning.heuristic",

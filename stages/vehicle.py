@@ -386,6 +386,25 @@ def known_vehicles() -> list[str]:
 _PARSED: dict[bytes, AnyVehicle] = {}   # YAML text -> profile (parsing takes ~10 ms; planners load per call)
 
 
+def profile_hash(vehicle) -> str:
+    """A hash of a vehicle profile's content (16 hex digits): BLAKE2b (8 bytes) of its sorted
+    JSON (the plan request's ``vehicle_hash``; the ``wind_bounds`` stage's tiles carry it).
+
+    Parameters
+    ----------
+    vehicle : VehicleProfile or FixedWingProfile
+
+    Returns
+    -------
+    str
+    """
+    import hashlib
+    import json
+
+    doc = json.dumps(vehicle.model_dump(mode="json"), sort_keys=True, default=str)
+    return hashlib.blake2b(doc.encode(), digest_size=8).hexdigest()
+
+
 def load_vehicle(name_or_path: str | Path | AnyVehicle) -> AnyVehicle:
     """A :class:`VehicleProfile` (multirotor) or :class:`FixedWingProfile` by catalog name
     (``"dji-m300-rtk"``, ``"skywalker-x8"``) or YAML file path.

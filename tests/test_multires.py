@@ -276,4 +276,41 @@ def test_build_problem_shared_levels_identical():
             ca, cb = coarse_problem(a, 4, optimistic=opt), coarse_problem(b, 4, optimistic=opt)
             for name in ("terrain_m", "floor_m", "ceiling_m", "risk_cost", "landing_cost"):
                 assert np.array_equal(getattr(ca, name), getattr(cb, name)), name
-    assert len(together[0]._block_memo) == 2 * (4 + 3)   # max and min of 4 shared maps + 3 floors
+    assert len(together[0]._block_memo) == 4 + 3   # (max, min) of 4 shared maps + 3 floors
+
+
+def test_block_minmax_equals_reduceat():
+    """The one-pass parallel block max / min (coarse_problem's) against numpy's reduceat, bit
+    for bit: uneven last blocks, +-inf and NaN (propagates), float32 and float64, bool."""
+    rng = np.random.default_rng(5)
+    for shape, f in (((37, 53), 8), ((64, 64), 16), ((5, 3), 8), ((100, 17), 1)):
+        for dtype in (np.float64, np.float32):
+            a = rng.normal(size=shape).astype(dtype)
+            a[rng.random(shape) < 0.05] = np.inf
+            a[rng.random(shape) < 0.05] = -np.inf
+            a[rng.random(shape) < 0.01] = np.nan
+            hi, lo = multires.block_minmax(a, f)
+            np.testing.assert_array_equal(hi, multires._block_reduce(a, f, np.maximum))
+            np.testing.assert_array_equal(lo, multires._block_reduce(a, f, np.minimum))
+            assert hi.dtype == a.dtype
+
+
+def test_level_floor_kernel_equals_the_numpy_formula():
+    """build_problem's one-pass level floor against the numpy expression it replaces: no-fly
+    cells +inf, NaN / inf coverage floors never reachable, NaN floors propagate."""
+    from skyroute.stages.planning.kernels import level_floor_kernel
+
+    rng = np.random.default_rng(2)
+    floor = rng.uniform(0, 50, (31, 47))
+    floor[rng.random(floor.shape) < 0.03] = np.nan
+    floor[rng.random(floor.shape) < 0.03] = np.inf
+    cover = rng.uniform(0, 80, floor.shape)
+    cover[rng.random(floor.shape) < 0.1] = np.nan
+    cover[rng.random(floor.shape) < 0.05] = -np.inf
+    nf = rng.random(floor.shape) < 0.1
+    for cv in (cover, None):
+        ref = floor if cv is None else np.maximum(floor, np.where(np.isfinite(cv), cv, np.inf))
+        ref = np.where(nf, np.inf, ref)
+        out = np.empty_like(floor)
+        level_floor_kernel(floor, np.zeros((0, 0)) if cv is None else cv, nf, out)
+        np.testing.assert_array_equal(out, ref)

@@ -175,7 +175,8 @@ def test_graph_module_exposes_registry():
 
 def test_prechecks_run_only_for_stages_that_compute(helsinki, cache, scaled_stage):
     """A stage read from the cache passed its precheck when it was computed: the runner knows
-    every key before any stage runs and skips the precheck (it would read whole maps)."""
+    every key before any stage runs and skips the precheck (it would read whole maps); so does
+    a stage computed alone (every other stage cached: the precheck would save no work)."""
     def precheck(sc, datasets):
         assert "surface" in datasets
         CALLS.append("precheck")
@@ -185,8 +186,11 @@ def test_prechecks_run_only_for_stages_that_compute(helsinki, cache, scaled_stag
     assert CALLS == ["precheck", "scaled"]
     r = run_pipeline(helsinki, cache=cache, targets=["scaled"])
     assert [x.cache_hit for x in r.records] == [True, True] and CALLS == ["precheck", "scaled"]
+    # recomputed with every other stage cached: no work for the precheck to save, the stage checks itself
     run_pipeline(helsinki, cache=cache, targets=["scaled"], force=["scaled"])
-    assert CALLS == ["precheck", "scaled", "precheck", "scaled"]
+    assert CALLS == ["precheck", "scaled", "scaled"]
+    run_pipeline(helsinki, cache=cache, targets=["scaled"], force=["scaled", "surface"])
+    assert CALLS == ["precheck", "scaled", "scaled", "precheck", "scaled"]
 
 
 def _probe_code(*options: str) -> str:

@@ -80,14 +80,15 @@ def test_window_cells_brute_force(monkeypatch):
 
 def test_crop_keeps_every_value(city):
     """The cropped maps hold the AOI's values at the same map coordinates; the wind on its own
-    grid is not cropped."""
+    (400 m) grid keeps the cells around the window."""
     maps = _maps(city)
     rows, cols = slice(100, 300), slice(50, 420)
     c = crop_maps(maps, rows, cols)
     np.testing.assert_array_equal(c.clearance["min_altitude_m"].values, city["clearance"][rows, cols])
     np.testing.assert_array_equal(c.environment["risk_cost"].values, city["risk"][rows, cols])
     np.testing.assert_array_equal(c.surface["x"].values, maps.surface["x"].values[cols])
-    assert c.wind is maps.wind
+    assert c.wind.sizes["x"] <= maps.wind.sizes["x"] and c.wind.sizes["y"] <= maps.wind.sizes["y"]
+    np.testing.assert_array_equal(c.wind["u"].values, maps.wind["u"].sel(x=c.wind["x"], y=c.wind["y"]).values)
 
 
 def test_windowed_plan_is_valid_on_the_whole_aoi_and_near_the_whole_aoi_plan(city, monkeypatch):
@@ -139,3 +140,30 @@ def test_a_window_without_a_path_widens(city, monkeypatch):
                          clearance_floor_m=city["clearance"], nofly=nofly, min_agl_m=0.0, max_agl_m=80.0,
                          start_xyz=(*s, 30.0), goal_xyz=(*e, 30.0))
     assert viol == []
+
+
+def test_cropped_wind_gives_every_point_of_the_window_its_wind_column(city):
+    """The wind map on its own 400 m grid, cropped to a window: every point of the window falls
+    in a cropped wind cell holding the same (u, v, w) as its cell of the whole map (the
+    planner's nearest-column rule, kernels.wind_at)."""
+    from skyroute.stages.planning.window import crop_wind
+
+    wind = city_wind(city, 3)
+    full = Grid.from_dataarray(wind)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        x0, y0 = rng.uniform(full.x0, full.x0 + 1200), rng.uniform(full.y1 - 1150, full.y1 - 450)
+        box = (x0, y0, x0 + rng.uniform(10, 400), y0 + rng.uniform(10, 400))
+        cw = crop_wind(wind, box)
+        cut = Grid.from_dataarray(cw)
+        assert cw.sizes["x"] <= wind.sizes["x"] and cw.sizes["y"] <= wind.sizes["y"]
+        px, py = rng.uniform(box[0], box[2], 200), rng.uniform(box[1], box[3], 200)
+        for g, ds, out in ((full, wind, []), (cut, cw, [])):
+            c = np.floor((px - g.x0) / g.resolution_m).astype(int)
+            r = np.floor((g.y1 - py) / g.resolution_m).astype(int)
+            assert (c >= 0).all() and (c < g.nx).all() and (r >= 0).all() and (r < g.ny).all()
+            out.append(ds["u"].values[:, r, c])
+            if ds is wind:
+                ref = out[0]
+            else:
+                np.testing.assert_array_equal(out[0], ref)

@@ -39,11 +39,10 @@ TERMS: dict[str, tuple[str, str, str]] = {
 }
 
 
-def _uniform(values: np.ndarray, atol: float) -> float | None:
-    """The common value of ``values`` (None if they differ by more than ``atol`` or are empty)."""
-    if values.size == 0:
+def _uniform_range(lo: float, hi: float, atol: float) -> float | None:
+    """``lo`` when [lo, hi] is at most ``atol`` wide, None when wider or NaN (no value)."""
+    if not (np.isfinite(lo) and np.isfinite(hi)):
         return None
-    lo, hi = float(np.min(values)), float(np.max(values))
     return lo if hi - lo <= atol else None
 
 
@@ -72,25 +71,30 @@ def degenerate_cost_terms(environment: xr.Dataset | None, wind=None, *, atol: fl
         out["C_r"] = "there is no risk map (risk cost 0 everywhere)"
         out["C_d"] = "there is no landing-site map (landing cost 0 everywhere)"
     else:
-        risk = np.asarray(environment["risk_cost"].values, dtype=float)
+        # chunk by chunk (a zarr-backed dataset is never loaded whole: 1e8 cells of a city), in
+        # the rasters' own dtype: the min and max of float32 values are exact
+        risk = environment["risk_cost"]
         fly = np.isfinite(risk)
         if "nofly" in environment:   # cells forbidden at every altitude (not altitude-limited zones)
-            nofly = np.asarray(environment["nofly"].values, dtype=bool)
+            nofly = environment["nofly"].astype(bool)
             if "nofly_floor_m" in environment and "nofly_ceiling_m" in environment:
-                lo = np.asarray(environment["nofly_floor_m"].values, dtype=float)
-                nofly = nofly & ~(lo > 0) & np.isinf(np.asarray(environment["nofly_ceiling_m"].values, dtype=float))
-            fly &= ~nofly
-        r = _uniform(risk[fly], atol)
+                nofly = nofly & ~(environment["nofly_floor_m"] > 0) & np.isinf(environment["nofly_ceiling_m"])
+            fly = fly & ~nofly
+        red = {"r_lo": risk.where(fly).min(), "r_hi": risk.where(fly).max(),
+               "d_lo": environment["landing_cost"].where(fly).min(), "d_hi": environment["landing_cost"].where(fly).max()}
+        got = {k: float(v) for k, v in xr.Dataset(red).compute().data_vars.items()}
+        r = _uniform_range(got["r_lo"], got["r_hi"], atol)
         if r is not None:
             levels = ""
             if "risk_level" in environment:
-                lv = np.unique(np.asarray(environment["risk_level"].values)[fly]).astype(int).tolist()
+                lv = np.unique(np.asarray(environment["risk_level"].where(fly).values)).tolist()
+                lv = [int(v) for v in lv if np.isfinite(v)]
                 levels = f", every flyable cell at level {lv[0]}" if len(lv) == 1 else f", levels {lv}"
             src = str(environment.attrs.get("risk_sources", "")) or "unknown"
             why = "no land use" if src.startswith("none") else f"risk sources: {src}"
             out["C_r"] = (f"the risk map is uniform ({why}{levels}: risk cost {r:g} on every flyable cell, "
                           f"so C_r = {r:g} x C_l)")
-        d = _uniform(np.asarray(environment["landing_cost"].values, dtype=float)[fly], atol)
+        d = _uniform_range(got["d_lo"], got["d_hi"], atol)
         if d is not None:
             n = int(environment.attrs.get("n_landing_sites", -1))
             why = "there are no landing sites" if n == 0 else "the landing-site map is uniform"

@@ -101,15 +101,17 @@ def make_lattice(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: f
     step = int(step_cells)
     h = step * g.resolution_m
     if dz_m is None:
-        dz_m = 0.98 * h * math.tan(math.radians(problem.vehicle.max_flight_path_angle_deg))
+        dz_m = lattice_dz_m(h, problem.vehicle.max_flight_path_angle_deg)
     if not dz_m > 0:
         raise InputError(f"dz_m {dz_m} must be > 0 [m]")
     cols = np.arange(step // 2, g.nx, step)
     rows = np.arange(step // 2, g.ny, step)
     x = g.x[cols]
     y = g.y[rows]
-    fin = problem.floor_m[np.isfinite(problem.floor_m)]
-    zlo = float(fin.min()) if fin.size else float(problem.terrain_m.min())
+    zlo = float(np.min(problem.floor_m))     # finite: no NaN or -inf, so the lowest finite floor
+    if not math.isfinite(zlo):               # (+inf cells do not lower it); else the slow way
+        fin = problem.floor_m[np.isfinite(problem.floor_m)]
+        zlo = float(fin.min()) if fin.size else float(problem.terrain_m.min())
     zhi = float(problem.ceiling_m.max())
     if z_anchor_m is None:
         zs = problem.start_xyz[2]
@@ -259,6 +261,32 @@ def _astar_kernel(nodes, search, stop, edges, maps, wind, vehicle, power):
 _MOVES = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]
 
 
+def lattice_edge_dirs(step_m: float, dz_m: float, max_flight_path_angle_deg: float
+                      ) -> tuple[list[tuple[int, int, float]], np.ndarray]:
+    """The flyable edge directions of an A* lattice of horizontal step ``step_m`` [m] and level
+    spacing ``dz_m`` [m]: ``(edges, dirs)``, per edge (move index of :data:`_MOVES`, dk index
+    0/1/2 for -1/0/+1 level, 3-D length [m]) and its unit direction (k, 3) [-] (the directions
+    :func:`_move_rates` bounds the energy ratio on; edges steeper than the flight-path angle
+    are left out)."""
+    sin_max = math.sin(math.radians(max_flight_path_angle_deg))
+    edges, dirs = [], []
+    for m, (di, dj) in enumerate(_MOVES):
+        for k, dk in enumerate((-1, 0, 1)):
+            v = np.array([dj * step_m, -di * step_m, dk * dz_m])
+            l3 = float(np.linalg.norm(v))
+            if abs(v[2]) > l3 * sin_max + 1e-9:
+                continue
+            edges.append((m, k, l3))
+            dirs.append(v / l3)
+    return edges, np.array(dirs).reshape(-1, 3)
+
+
+def lattice_dz_m(step_m: float, max_flight_path_angle_deg: float) -> float:
+    """The default level spacing [m] of an A* lattice of horizontal step ``step_m`` [m]: 98 %
+    of the climb the flight-path angle allows over one step (:func:`make_lattice`)."""
+    return 0.98 * step_m * math.tan(math.radians(max_flight_path_angle_deg))
+
+
 def _move_rates(problem: PlanningProblem, lattice: Lattice) -> tuple[np.ndarray, float, float]:
     """Per horizontal move m (:data:`_MOVES`) the length + energy weight per horizontal metre
     ``rho_m`` [-], and the altitude rates ``b_up``, ``c_down`` [-] (per metre of climb / of
@@ -270,20 +298,10 @@ def _move_rates(problem: PlanningProblem, lattice: Lattice) -> tuple[np.ndarray,
     (z - z_goal)+, phi(z_u) - phi(z_v) <= b_up dz+ + c_down dz- on every edge u -> v: adding phi
     to a consistent 2-D heuristic keeps it consistent."""
     wl, _, _, we = problem.weights
-    sin_max = math.sin(math.radians(problem.vehicle.max_flight_path_angle_deg))
     cost = np.full((len(_MOVES), 3), np.inf)     # w_l L + w_e lb(C_e) of the edge (move, dk)
-    lh = np.empty(len(_MOVES))
-    edges, dirs = [], []
-    for m, (di, dj) in enumerate(_MOVES):
-        lh[m] = lattice.step_m * math.hypot(di, dj)
-        for k, dk in enumerate((-1, 0, 1)):
-            v = np.array([dj * lattice.step_m, -di * lattice.step_m, dk * lattice.dz_m])
-            l3 = float(np.linalg.norm(v))
-            if abs(v[2]) > l3 * sin_max + 1e-9:
-                continue
-            edges.append((m, k, l3))
-            dirs.append(v / l3)
-    e = problem.energy_ratio_lb_dense_each(np.array(dirs)) if we > 0 and dirs else np.zeros(len(dirs))
+    lh = np.array([lattice.step_m * math.hypot(di, dj) for di, dj in _MOVES])
+    edges, dirs = lattice_edge_dirs(lattice.step_m, lattice.dz_m, problem.vehicle.max_flight_path_angle_deg)
+    e = problem.energy_ratio_lb_dense_each(dirs) if we > 0 and len(dirs) else np.zeros(len(dirs))
     for (m, k, l3), e_mk in zip(edges, e, strict=True):
         cost[m, k] = (wl + we * float(e_mk)) * l3
     flat = cost[:, 1]
@@ -593,5 +611,6 @@ def plan_grid(problem: PlanningProblem, step_cells: int = STEP_CELLS, dz_m: floa
             "compute_s": time.perf_counter() - t0, "stopped_by": stopped}
 
 
-__all__ = ["ASTAR_MAX_EXPANSIONS", "STEP_CELLS", "EdgeCache", "Lattice", "astar", "heuristic_2d", "make_lattice", "plan_grid", "refine_path",
+__all__ = ["ASTAR_MAX_EXPANSIONS", "STEP_CELLS", "EdgeCache", "Lattice", "astar", "heuristic_2d", "lattice_dz_m",
+           "lattice_edge_dirs", "make_lattice", "plan_grid", "refine_path",
            "relax_vertices", "shared_heuristic", "shortcut", "vertical_rates"]

@@ -205,8 +205,18 @@ def energy_ratio_lb_dense_each(problem: PlanningProblem, dirs) -> np.ndarray:
     (the same numbers), in one pass over the winds on every core
     (:func:`~skyroute.stages.planning.kernels.ratio_each_kernel`): the A* lattice's 24 edge
     directions over the 0.3 M winds of the 6 km Helsinki map took 5.4 s one by one.  Memoised
-    on the bytes of (winds, vehicle, dirs)."""
+    on the bytes of (winds, vehicle, dirs).  A problem carrying the ``wind_bounds`` stage's
+    tiles (``_ratio_tiles``, attached by the strategic planner; the same vehicle and lattice
+    directions) takes the minimum over the tiles that meet its wind map instead
+    (:func:`~skyroute.stages.planning.wind_bounds.ratio_lb_over`)."""
     d = np.ascontiguousarray(np.asarray(dirs, dtype=float).reshape(-1, 3))
+    tiles = problem.__dict__.get("_ratio_tiles")      # the wind_bounds stage's (plan_levels attaches them)
+    if tiles is not None and problem.wind_grid is not None:
+        from skyroute.stages.planning.wind_bounds import ratio_lb_over
+
+        r = ratio_lb_over(tiles, problem.wind_grid.bounds, d)
+        if r is not None:
+            return r * ENERGY_LB_DENSE_SAFETY
     wkey = _wind_key(problem)
     _, _, veh, power = problem.seg_args
     key = "denseeach" + hashlib.sha1(wkey.encode() + _params_bytes(veh, power, d)).hexdigest()

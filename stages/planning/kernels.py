@@ -451,3 +451,25 @@ def ratio_each_kernel(dirs, winds, vehicle, power):
 __all__ = ["GridParams", "MapParams", "SegmentArgs", "VehicleParams", "WindParams", "entry_point", "grid_params",
            "ratio_each_kernel", "ratio_kernel", "segment_eval", "segment_eval_if_valid", "segments_kernel", "state_code", "states_kernel",
            "vehicle_params", "wind_at"]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def level_floor_kernel(floor, cover, nofly, out):   # pragma: no cover - compiled
+    """``out`` (ny, nx) = +inf where ``nofly``, else ``np.maximum(floor, cover)`` with a
+    non-finite ``cover`` taken as +inf (never reachable), NaN floors propagating as in numpy;
+    ``cover`` of shape (0, 0): no coverage floor.  One pass of :func:`build_problem`'s three."""
+    ny, nx = floor.shape
+    has_cover = cover.shape[0] > 0
+    for r in numba.prange(ny):
+        for c in range(nx):
+            if nofly[r, c]:
+                out[r, c] = np.inf
+                continue
+            f = floor[r, c]
+            if has_cover:
+                v = cover[r, c]
+                if not np.isfinite(v):
+                    v = np.inf
+                if f == f and v > f:
+                    f = v
+            out[r, c] = f

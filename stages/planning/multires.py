@@ -56,6 +56,7 @@ import dataclasses
 import math
 import time
 
+import numba
 import numpy as np
 
 from skyroute.stages import control
@@ -102,6 +103,41 @@ def _block_reduce(a: np.ndarray, f: int, how: np.ufunc) -> np.ndarray:
     return how.reduceat(how.reduceat(a, rows, axis=0), cols, axis=1)
 
 
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _block_minmax_kernel(a, f, hi, lo):   # pragma: no cover - compiled
+    nby, nbx = hi.shape
+    ny, nx = a.shape
+    for bi in numba.prange(nby):
+        r0 = bi * f
+        r1 = min(r0 + f, ny)
+        for bj in range(nbx):
+            c0 = bj * f
+            c1 = min(c0 + f, nx)
+            m = a[r0, c0]
+            n = m
+            for r in range(r0, r1):
+                for c in range(c0, c1):
+                    v = a[r, c]
+                    if m == m and (v != v or v > m):      # NaN propagates, as np.maximum
+                        m = v
+                    if n == n and (v != v or v < n):
+                        n = v
+            hi[bi, bj] = m
+            lo[bi, bj] = n
+
+
+def block_minmax(a: np.ndarray, f: int) -> tuple[np.ndarray, np.ndarray]:
+    """(max, min) over each block of ``f`` x ``f`` cells of the 2-D ``a`` in one parallel pass:
+    :func:`_block_reduce` with ``np.maximum`` and ``np.minimum``, the same values (NaN
+    propagates, the last blocks hold the cells left over)."""
+    a = np.ascontiguousarray(a)
+    shape = (-(-a.shape[0] // f), -(-a.shape[1] // f))
+    hi = np.empty(shape, a.dtype)
+    lo = np.empty(shape, a.dtype)
+    _block_minmax_kernel(a, int(f), hi, lo)
+    return hi, lo
+
+
 def _endpoint_cells(grid: Grid, pts, radius: int) -> np.ndarray:
     """(ny, nx) bool: the cells of ``grid`` within ``radius`` cells of each point (x, y)."""
     m = np.zeros(grid.shape, bool)
@@ -130,15 +166,15 @@ def coarse_problem(problem: PlanningProblem, factor: int, optimistic: bool = Fal
         names = ("terrain_m", "floor_m", "ceiling_m", "risk_cost", "landing_cost")
         shared = problem.__dict__.get("_block_memo")    # the coverage levels' (build_problem(shared=))
 
-        def reduce(a: np.ndarray, how: np.ufunc) -> np.ndarray:
+        def reduce(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             if shared is None:
-                return _block_reduce(a, f, how)
+                return block_minmax(a, f)
             # keyed on the array's id: the entry holds the array, so the id is not reused meanwhile
-            return shared.get(f"{id(a)}:{f}:{how.__name__}", lambda: (a, _block_reduce(a, f, how)))[1]
+            return shared.get(f"{id(a)}:{f}:minmax", lambda: (a, block_minmax(a, f)))[1]
 
         memo.clear()
-        memo[f] = ({name: reduce(getattr(problem, name), np.maximum) for name in names},
-                   {name: reduce(getattr(problem, name), np.minimum) for name in names})
+        both = {name: reduce(getattr(problem, name)) for name in names}
+        memo[f] = ({name: b[0] for name, b in both.items()}, {name: b[1] for name, b in both.items()})
     hi, lo = memo[f]
     opt = dict(terrain_m=hi["terrain_m"], floor_m=lo["floor_m"], ceiling_m=hi["ceiling_m"],
                risk_cost=lo["risk_cost"], landing_cost=lo["landing_cost"])
@@ -149,13 +185,16 @@ def coarse_problem(problem: PlanningProblem, factor: int, optimistic: bool = Fal
                     risk_cost=hi["risk_cost"], landing_cost=hi["landing_cost"])
         ends = _endpoint_cells(gc, (problem.start_xyz, problem.goal_xyz), endpoint_radius)
         maps = {k: np.where(ends, opt[k], v) for k, v in maps.items()}
-    return PlanningProblem(grid=gc, **maps, wind_uvw=problem.wind_uvw, vehicle=problem.vehicle,
+    cp = PlanningProblem(grid=gc, **maps, wind_uvw=problem.wind_uvw, vehicle=problem.vehicle,
                            weights=problem.weights, start_xyz=problem.start_xyz, goal_xyz=problem.goal_xyz,
                            dop_threshold=problem.dop_threshold,
                            label=f"{problem.label} (coarse {gc.resolution_m:g} m)",
                            wind_z_agl_m=problem.wind_z_agl_m, wind_grid=problem.wind_grid,
                            min_agl_m=problem.min_agl_m, max_agl_m=problem.max_agl_m, dop_kind=problem.dop_kind,
                            subsegment_m=problem.subsegment_m)
+    if "_ratio_tiles" in problem.__dict__:     # the same wind and vehicle: the same energy-bound tiles
+        object.__setattr__(cp, "_ratio_tiles", problem.__dict__["_ratio_tiles"])
+    return cp
 
 
 def corridor_columns(lattice: Lattice, coarse_grid: Grid, path_xyz: np.ndarray, half_width: int) -> np.ndarray:

@@ -80,6 +80,7 @@ from skyroute.stages.planning.kernels import (
     SegmentArgs,
     WindParams,
     grid_params,
+    level_floor_kernel,
     segment_eval,
     segment_eval_if_valid,
     segments_kernel,
@@ -527,9 +528,11 @@ def build_problem(surface_ds: xr.Dataset, clearance_floor, coverage_floor_j, ris
     nf = once(("nofly", nofly, risk_cost), nofly_of)
     floor = once(("floor", clearance_floor, float(min_agl_m)) + sid,
                  lambda: np.maximum(clear, terrain + float(min_agl_m)))
-    if cover is not None:
-        floor = np.maximum(floor, np.where(np.isfinite(cover), cover, np.inf))
-    floor = np.where(nf, np.inf, floor)
+    # np.where(nf, inf, np.maximum(floor, np.where(np.isfinite(cover), cover, inf))) in one pass
+    level_floor = np.empty_like(floor)
+    level_floor_kernel(np.ascontiguousarray(floor), np.zeros((0, 0)) if cover is None else np.ascontiguousarray(cover),
+                       np.ascontiguousarray(nf), level_floor)
+    floor = level_floor
     # maximum AGL: relative to the LOWEST ground in the cell (``terrain_min`` where the surface
     # stage has it), so the ceiling holds at every point of the cell
     ceiling = once(("ceiling", float(max_agl_m)) + sid, lambda: (

@@ -11,8 +11,6 @@ reloaded by name further down.
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, ClassVar
@@ -53,6 +51,9 @@ class Maps:
         Known intruders' occupancy.
     clearance_by_level : mapping of float to xarray.Dataset, optional
         The safety bubble's clearance per DOP threshold.
+    wind_bounds : xarray.Dataset, optional
+        The ``wind_bounds`` stage's energy-ratio bounds per wind tile
+        (:func:`~skyroute.stages.planning.wind_bounds.wind_ratio_tiles`).
     """
 
     STAGES: ClassVar[tuple[str, ...]] = PLANNER_STAGES
@@ -65,6 +66,7 @@ class Maps:
     satellites: xr.Dataset | None = None
     traffic: Any = None
     clearance_by_level: Mapping[float, xr.Dataset] | None = None
+    wind_bounds: xr.Dataset | None = None
 
     @classmethod
     def from_datasets(cls, datasets: Mapping[str, Any], **extra) -> Maps:
@@ -225,8 +227,9 @@ class PlanRequest:
         str
             BLAKE2b (8 bytes) of the profile's sorted JSON, in hex.
         """
-        doc = json.dumps(self.vehicle.model_dump(mode="json"), sort_keys=True, default=str)
-        return hashlib.blake2b(doc.encode(), digest_size=8).hexdigest()
+        from skyroute.stages.vehicle import profile_hash
+
+        return profile_hash(self.vehicle)
 
     def kwargs(self) -> dict[str, Any]:
         """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_levels`.

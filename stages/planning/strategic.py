@@ -117,7 +117,7 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
                    clearance_by_level: Mapping[float, xr.Dataset] | None = None,
                    bubble: tuple[float, float] | None = None,
                    heuristic_cache: dict | None = None, edge_cache: dict | None = None,
-                   step2_max_iter: int = STEP2_MAX_ITER) -> StrategicPlan:
+                   step2_max_iter: int = STEP2_MAX_ITER, wind_bounds: xr.Dataset | None = None) -> StrategicPlan:
     """Plan the mission for every coverage level of ``coverage`` (one level without GNSS data).
 
     STEP I (optimised polygonal chain), STEP II (deconfliction against known traffic) and STEP III
@@ -213,6 +213,10 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
         the traffic, so a mission planned again (a later departure) reuses its chain.
     step2_max_iter : int, default :data:`~skyroute.stages.planning.deconflict.MAX_ITER`
         K, the STEP II RRT's iterations (its reproducible stop rule).
+    wind_bounds : xarray.Dataset, optional
+        The ``wind_bounds`` stage's energy-ratio bounds per wind tile
+        (:mod:`~skyroute.stages.planning.wind_bounds`): used by the A* heuristic instead of
+        bounding every wind again when they fit the vehicle and ``step_cells``.
 
     Returns
     -------
@@ -236,27 +240,33 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
     Seed 000 section III (STEP I-III); seed 003 (safety bubble).
     """
     t0 = time.perf_counter()
-    wind_map = wind.load() if wind is not None else None
-    if environment is not None:     # read once: the cost-term check and the planning maps
-        environment = environment[[v for v in ("risk_cost", "landing_cost", "nofly", "nofly_floor_m",
-                                               "nofly_ceiling_m", "risk_level") if v in environment]].load()
-    cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
+    import dask
+
     veh = load_vehicle(vehicle)
     check_planner_vehicle(planner, veh, PLANNERS)
-    surf = surface[[v for v in ("terrain", "terrain_min", "surface") if v in surface]].load()
+    # every map read in one dask computation (the chunks of all of them decompressed in parallel:
+    # on a city's planning window GBs); risk_level stays lazy (read only for a uniform risk map)
+    env = (None if environment is None else environment[[v for v in ("risk_cost", "landing_cost", "nofly",
+           "nofly_floor_m", "nofly_ceiling_m") if v in environment]])
+    clear_ds = clearance[[v for v in ("min_altitude_m", "nofly") if v in clearance]]
+    wind_map, env, surf, clear_ds, cov, sky = dask.compute(
+        wind, env, surface[[v for v in ("terrain", "terrain_min", "surface") if v in surface]], clear_ds,
+        None if coverage is None else coverage["coverage_floor"], satellites)
+    if env is not None and "risk_level" in environment:
+        env["risk_level"] = environment["risk_level"]
+    environment = env
+    cost_warnings = check_cost_terms(weights, degenerate_cost_terms(environment, wind_map))
     surface_2d = surf["surface"].values
-    clear = clearance["min_altitude_m"].load()
-    nofly = clearance["nofly"].load() if "nofly" in clearance else None
-    risk = environment["risk_cost"].load() if environment is not None else None
-    land = environment["landing_cost"].load() if environment is not None else None
-    sky = satellites.load() if satellites is not None else None
+    clear = clear_ds["min_altitude_m"]
+    nofly = clear_ds["nofly"] if "nofly" in clear_ds else None
+    risk = environment["risk_cost"] if environment is not None else None
+    land = environment["landing_cost"] if environment is not None else None
     occ = (traffic if isinstance(traffic, TrafficOccupancy) or traffic is None
            else TrafficOccupancy.from_dataset(traffic.load()))
     start = xyz_from_agl(surf, *start_xy, start_agl_m)
     goal = xyz_from_agl(surf, *goal_xy, goal_agl_m)
     levels: list[tuple[float | None, xr.DataArray | None]]
-    if coverage is not None:
-        cov = coverage["coverage_floor"].load()
+    if cov is not None:
         levels = [(float(d), cov.sel(threshold=d)) for d in cov["threshold"].values]
     else:
         levels = [(None, None)]
@@ -273,6 +283,12 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
                               min_agl_m, max_agl_m, d, dop_kind=dop_kind, nofly=level_clearance(d)[1],
                               check_endpoints=False, shared=shared)
                 for d, floor_j in levels]
+    from skyroute.stages.planning.wind_bounds import tiles_fit
+
+    if planner == "astar" and tiles_fit(wind_bounds, veh, step_cells):
+        tiles = wind_bounds.load()
+        for p in problems:         # the A* heuristic's energy bound (heuristic.energy_ratio_lb_dense_each)
+            object.__setattr__(p, "_ratio_tiles", tiles)
     # the problems hold their own float64 maps: release the loaded rasters (1e8 cells: GBs)
     levels = [(d, None) for d, _ in levels]
     shared = clear = nofly = risk = land = environment = surf = cov = None
@@ -763,7 +779,8 @@ def plan_strategic(maps: Maps, request: PlanRequest, *, heuristic_cache: dict | 
 
     def on(m: Maps) -> StrategicPlan:
         return plan_levels(m.surface, m.environment, m.wind, m.clearance, m.coverage, m.satellites, m.traffic,
-                           clearance_by_level=m.clearance_by_level, heuristic_cache=heuristic_cache,
+                           clearance_by_level=m.clearance_by_level, wind_bounds=m.wind_bounds,
+                           heuristic_cache=heuristic_cache,
                            edge_cache=edge_cache, **request.kwargs())
 
     if heuristic_cache is not None or edge_cache is not None:   # a fleet's shared lattices: the whole AOI

@@ -25,14 +25,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
-import numpy as np
-import xarray as xr
+if TYPE_CHECKING:     # light at import (the memory estimate of a warm run calls window_slices)
+    from skyroute.stages.gridspec import Grid
 
-from skyroute.stages.gridspec import Grid
-
-__all__ = ["MAX_WINDOW_WIDENINGS", "WINDOW_MARGIN_FRAC", "WINDOW_MARGIN_MIN_M", "WINDOW_MAX_FRACTION",
-           "WINDOW_MIN_CELLS", "crop_maps", "planning_windows", "window_margin_m", "window_slices"]
+__all__ = ["MAX_WINDOW_WIDENINGS", "plan_cells", "WINDOW_MARGIN_FRAC", "WINDOW_MARGIN_MIN_M", "WINDOW_MAX_FRACTION",
+           "WINDOW_MIN_CELLS", "crop_maps", "crop_wind", "planning_windows", "window_margin_m", "window_slices"]
 
 WINDOW_MIN_CELLS = 16_000_000     # AOIs with fewer grid cells (every shipped scenario) plan on the whole AOI
 WINDOW_MARGIN_MIN_M = 1000.0      # [m] smallest margin around the endpoints' bounding box
@@ -126,7 +125,30 @@ def planning_windows(grid: Grid, start_xy, goal_xy) -> list[tuple[slice, slice] 
     return out
 
 
+def plan_cells(grid: Grid, start_xy, goal_xy) -> int:
+    """The grid cells a plan of this mission reads first: its first window's
+    (:func:`planning_windows`), else the whole AOI's.
+
+    Parameters
+    ----------
+    grid : Grid
+        The AOI's grid.
+    start_xy, goal_xy : tuple of float
+        Mission endpoints, map (x, y) [m].
+
+    Returns
+    -------
+    int
+    """
+    w = planning_windows(grid, start_xy, goal_xy)[0]
+    if w is None:
+        return grid.nx * grid.ny
+    return (w[0].stop - w[0].start) * (w[1].stop - w[1].start)
+
+
 def _crop(ds, rows: slice, cols: slice):
+    import xarray as xr
+
     if not isinstance(ds, (xr.Dataset, xr.DataArray)):
         return ds
     sel = {d: s for d, s in (("y", rows), ("x", cols)) if d in ds.dims}
@@ -151,16 +173,58 @@ def crop_maps(maps, rows: slice, cols: slice):
     -------
     Maps
     """
-    grid_y = np.asarray(maps.surface["y"].values)
-    grid_x = np.asarray(maps.surface["x"].values)
+    import xarray as xr
+
+    ny, nx = maps.surface.sizes["y"], maps.surface.sizes["x"]
 
     def on_grid(ds):       # a dataset on the AOI's grid (not the wind's own, coarser one)
         return (ds is not None and isinstance(ds, (xr.Dataset, xr.DataArray)) and "x" in ds.dims and "y" in ds.dims
-                and ds.sizes["x"] == grid_x.size and ds.sizes["y"] == grid_y.size)
+                and ds.sizes["x"] == nx and ds.sizes["y"] == ny)
 
     def crop(ds):
         return _crop(ds, rows, cols) if on_grid(ds) else ds
 
+    x = maps.surface["x"].values
+    y = maps.surface["y"].values
+    res = abs(float(x[1] - x[0])) if x.size > 1 else abs(float(y[1] - y[0]))
+    box = (float(x[cols][0]) - res / 2, float(y[rows][-1]) - res / 2, float(x[cols][-1]) + res / 2,
+           float(y[rows][0]) + res / 2)
     by_level = None if maps.clearance_by_level is None else {k: crop(v) for k, v in maps.clearance_by_level.items()}
     return replace(maps, surface=crop(maps.surface), clearance=crop(maps.clearance), environment=crop(maps.environment),
-                   wind=crop(maps.wind), coverage=crop(maps.coverage), clearance_by_level=by_level)
+                   wind=crop(maps.wind) if on_grid(maps.wind) else crop_wind(maps.wind, box),
+                   coverage=crop(maps.coverage), clearance_by_level=by_level)
+
+
+def crop_wind(wind, box: tuple[float, float, float, float]):
+    """A wind map on its own grid (cells of ``horizontal_step_m``, dims ``y``, ``x``) cropped to
+    the wind cells that meet ``box`` = (xmin, ymin, xmax, ymax) [m] plus one cell on every side
+    (clipped to the map): every point of the box keeps the wind column it is given on the whole
+    map (its nearest column, which the added cells keep away from the clipped edge), and the
+    energy bound of the A* heuristic (the minimum over every wind of the map) is taken over the
+    winds a plan in the window can meet.  Other winds (uniform, a vector, None, a map of one
+    column) are returned as they are.
+
+    Parameters
+    ----------
+    wind : xarray.Dataset or other
+        The wind stage's map (``u``, ``v``, ``w`` on ``z``, ``y``, ``x``).
+    box : tuple of float
+        The window's bounds [m].
+
+    Returns
+    -------
+    xarray.Dataset or other
+    """
+    import numpy as np
+    import xarray as xr
+
+    if not (isinstance(wind, xr.Dataset) and "x" in wind.dims and "y" in wind.dims
+            and wind.sizes["x"] >= 2 and wind.sizes["y"] >= 2):
+        return wind
+    wx, wy = np.asarray(wind["x"].values, float), np.asarray(wind["y"].values, float)
+    rx, ry = abs(wx[1] - wx[0]), abs(wy[1] - wy[0])
+    kx = np.nonzero((wx + 1.5 * rx > box[0]) & (wx - 1.5 * rx < box[2]))[0]
+    ky = np.nonzero((wy + 1.5 * ry > box[1]) & (wy - 1.5 * ry < box[3]))[0]
+    if kx.size < 2 or ky.size < 2:
+        return wind
+    return wind.isel(x=slice(int(kx[0]), int(kx[-1]) + 1), y=slice(int(ky[0]), int(ky[-1]) + 1))

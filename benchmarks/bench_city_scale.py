@@ -175,7 +175,8 @@ def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_0
     return out
 
 
-MAPS_STAGES = ("surface", "environment", "wind", "clearance", "satellites", "coverage")   # maps + coverage
+MAPS_STAGES = ("surface", "environment", "wind", "clearance", "satellites", "coverage",   # maps + coverage
+               "wind_bounds")                                  # + the A* energy bound per wind tile
 
 
 def _rss_mib() -> int:
@@ -246,11 +247,14 @@ def stage_child(scenario: str, stage: str, cache_dir: str) -> dict:
                      kwargs={"kill_mib": int(os.environ.get("BENCH_KILL_MIB", "0"))}, daemon=True).start()
     t = time.perf_counter()
     try:
-        res = run_scenario(scenario, cache=Cache(cache_dir), targets=[stage])
+        # the stage itself is computed even when cached (its inputs come from the cache)
+        res = run_scenario(scenario, cache=Cache(cache_dir), targets=[stage], force=[stage])
         out["ok"] = True
         if stage == "plan":
             ds = res.datasets["plan"]
-            out["plan_attrs"] = {k: str(v)[:300] for k, v in ds.attrs.items() if k in ("chosen", "flyable", "warnings")}
+            out["plan_attrs"] = {k: str(v)[:300] for k, v in ds.attrs.items()
+                                 if k in ("chosen_level", "warnings", "planning_window_xy_m", "reason")}
+            out["plan_f_m"] = [round(float(v), 1) for v in ds["f"].values]
     except Exception as exc:  # reported, not raised: the benchmark goes on with the next stage
         out.update(ok=False, error=f"{type(exc).__name__}: {str(exc)[:500]}")
     stop.set()

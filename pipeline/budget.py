@@ -38,6 +38,10 @@ BYTES_PER_CELL = 350           # measured 344 B per cell with 3 DOP levels
 #: stage's numpy arrays at a time): the 20 km mosaic city (1e8 cells, issue 23) peaked at 5.9 GB in
 #: its environment stage (59 B per cell), 5.1 GB in its surface stage, 2.4 GB in coverage.
 BYTES_PER_CELL_MAPS = 64
+#: A plan in a planning window of a city-scale AOI (its maps cached, read window by window): the
+#: 20 km mosaic city's 15 km mission peaked at 7.4 GB for 46.3 M window cells and 3 levels
+#: (160 B per cell); with BYTES_PER_CELL_LEVEL per level the estimate is 196 B per cell there.
+BYTES_PER_WINDOW_CELL = 100
 BYTES_PER_CELL_LEVEL = 32      # a float32 floor, a bool mask and the planner's per-level float64 costs
 BYTES_PER_EPOCH_SAT = 96       # ECEF x, y, z, az, el, visible, ... per satellite and epoch
 BYTES_PER_TASK = 4096          # one dask task of the coverage graph (block x epoch)
@@ -153,10 +157,11 @@ def scenario_footprint(sc, maps_only: bool = False) -> Footprint:
     chunk = float(sc.aoi.chunk_cells) ** 2
     blocks = max(1.0, math.ceil(cells / chunk)) if math.isfinite(cells) else math.inf
     pcells = cells if maps_only else _plan_cells(sc, cells)
+    per_plan_cell = BYTES_PER_WINDOW_CELL if pcells < cells else BYTES_PER_CELL
     return Footprint(
         cells=cells, levels=levels, epochs=epochs, satellites=sats,
         bytes_cells=(cells * BYTES_PER_CELL_MAPS if maps_only
-                     else max(cells * BYTES_PER_CELL_MAPS, pcells * BYTES_PER_CELL)),
+                     else max(cells * BYTES_PER_CELL_MAPS, pcells * per_plan_cell)),
         bytes_levels=0.0 if maps_only else pcells * levels * BYTES_PER_CELL_LEVEL,
         bytes_epochs=epochs * (sats * BYTES_PER_EPOCH_SAT + min(blocks, 8.0) * BYTES_PER_TASK),
     )

@@ -173,7 +173,7 @@ def test_editing_the_vehicle_yaml_changes_the_plan_key(tmp_path):
         sc2 = parse_scenario(raw, base=sc.source_path.parent)
         keys.append({n: stable_hash(st.select(sc2)) for n, st in REGISTRY.items() if st.applies(sc2)})
     changed = {n for n in keys[0] if keys[0][n] != keys[1][n]}
-    assert changed == {"plan"}
+    assert changed == {"plan", "wind_bounds"}   # wind_bounds: the vehicle's A* energy bound
 
 
 def test_a_damaged_chunk_is_dropped_and_recomputed(tmp_path, helsinki, caplog):
@@ -309,9 +309,9 @@ def _all_keys(sc) -> dict[str, str]:
 
 @pytest.mark.parametrize(("edit", "expected"), [
     ("risk_tags", {"environment", "clearance", "plan"}),   # clearance takes the no-fly cells
-    ("wind_file", {"wind", "plan"}),
+    ("wind_file", {"wind", "wind_bounds", "plan"}),
     ("almanac", {"satellites", "coverage", "plan"}),
-    ("buildings_file", {"surface", "environment", "wind", "clearance", "coverage", "traffic", "plan"}),
+    ("buildings_file", {"surface", "environment", "wind", "wind_bounds", "clearance", "coverage", "traffic", "plan"}),
 ])
 def test_editing_one_input_recomputes_exactly_its_dependants(tmp_path, edit, expected):
     """Each input kind, edited in place (same path, new content), changes the keys of exactly

@@ -283,7 +283,7 @@ def test_wind_event_changes_only_the_wind_keys():
     before, after = _keys(sc), _keys(scenario_at(sc, 40.0))
     assert {"surface", "satellites", "coverage", "environment", "clearance", "traffic", "wind"} <= set(before)
     changed = {n for n in before if before[n] != after[n]}
-    assert changed == {"wind", "plan"}
+    assert changed == {"wind", "wind_bounds", "plan"}     # wind_bounds: the A* energy bound of the wind map
     assert _keys(scenario_at(sc, 29.0)) == before
 
 

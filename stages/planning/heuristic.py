@@ -36,6 +36,7 @@ if TYPE_CHECKING:
 
 ENERGY_LB_SAFETY = 0.9
 ENERGY_LB_DENSE_SAFETY = 0.99   # margin of the dense bound for wind between its interpolation samples
+DIRS_ATOL = 1e-12               # wind_bounds tiles' directions matched to a lattice's within this [-]
 WIND_INTERP_SAMPLES = 8         # samples per gap between two wind levels of the dense bound
 
 
@@ -212,8 +213,6 @@ def energy_ratio_lb_dense_each(problem: PlanningProblem, dirs) -> np.ndarray:
     d = np.ascontiguousarray(np.asarray(dirs, dtype=float).reshape(-1, 3))
     tiles = problem.__dict__.get("_ratio_tiles")      # the wind_bounds stage's (plan_levels attaches them)
     if tiles is not None and problem.wind_grid is not None:
-        from skyroute.stages.planning.wind_bounds import ratio_lb_over
-
         r = ratio_lb_over(tiles, problem.wind_grid.bounds, d)
         if r is not None:
             return r * ENERGY_LB_DENSE_SAFETY
@@ -250,6 +249,38 @@ def cost_rate_lb(problem: PlanningProblem) -> float:
     return wl + wr * max(rmin, 0.0) + wd * max(dmin, 0.0) + we * e
 
 
-__all__ = ["ENERGY_LB_DENSE_SAFETY", "ENERGY_LB_SAFETY", "WIND_INTERP_SAMPLES", "BoundMemo", "cost_rate_lb",
+__all__ = ["DIRS_ATOL", "ENERGY_LB_DENSE_SAFETY", "ENERGY_LB_SAFETY", "WIND_INTERP_SAMPLES", "BoundMemo", "cost_rate_lb", "ratio_lb_over",
            "energy_ratio_lb", "energy_ratio_lb_dense_dirs", "energy_ratio_lb_dense_each", "energy_ratio_lb_dirs", "fibonacci_dirs", "unique_rows",
            "wind_samples", "wind_samples_dense"]
+
+
+def ratio_lb_over(tiles, bounds: tuple[float, float, float, float], dirs) -> np.ndarray | None:
+    """(k,): per direction of ``dirs`` the minimum of ``ratio_lb`` over the tiles that meet the
+    map box ``bounds`` = (xmin, ymin, xmax, ymax) [m] (a wind map's extent; 1 where no wind is
+    flyable, as :func:`~.heuristic.energy_ratio_lb_dense_each`), or None when
+    ``dirs`` are not the tiles' directions (within :data:`DIRS_ATOL`) or no tile meets the box.
+
+    Parameters
+    ----------
+    tiles : xarray.Dataset
+        :func:`wind_ratio_tiles` output.
+    bounds : tuple of float
+        The box [m].
+    dirs : array_like
+        Unit directions (k, 3) [-].
+
+    Returns
+    -------
+    numpy.ndarray or None
+    """
+    d = np.asarray(dirs, float).reshape(-1, 3)
+    td = np.asarray(tiles["dirs"].values, float)
+    if td.shape != d.shape or not np.allclose(td, d, rtol=0.0, atol=DIRS_ATOL):
+        return None
+    xmin, ymin, xmax, ymax = bounds
+    kx = (np.asarray(tiles["x_max_m"].values) > xmin) & (np.asarray(tiles["x_min_m"].values) < xmax)
+    ky = (np.asarray(tiles["y_max_m"].values) > ymin) & (np.asarray(tiles["y_min_m"].values) < ymax)
+    if not (kx.any() and ky.any()):
+        return None
+    r = np.asarray(tiles["ratio_lb"].values)[np.ix_(ky, kx)]
+    return np.array([_finite_ratio(v) for v in r.reshape(-1, d.shape[0]).min(axis=0)])

@@ -77,6 +77,11 @@ class StrategicPlan:
         Wall time of the planning [s].
     warnings : list of str
         Degenerate cost terms, planner caps hit.
+    window_xy : tuple of float or None
+        The planning window (xmin, ymin, xmax, ymax) [m] (:mod:`~skyroute.stages.planning.window`;
+        None: the whole AOI).
+    window_widenings : int
+        How many times the window was widened.
     """
 
     chosen: Candidate | None
@@ -249,9 +254,12 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
     env = (None if environment is None else environment[[v for v in ("risk_cost", "landing_cost", "nofly",
            "nofly_floor_m", "nofly_ceiling_m") if v in environment]])
     clear_ds = clearance[[v for v in ("min_altitude_m", "nofly") if v in clearance]]
-    wind_map, env, surf, clear_ds, cov, sky = dask.compute(
-        wind, env, surface[[v for v in ("terrain", "terrain_min", "surface") if v in surface]], clear_ds,
-        None if coverage is None else coverage["coverage_floor"], satellites)
+    objs = (wind, env, surface[[v for v in ("terrain", "terrain_min", "surface") if v in surface]], clear_ds,
+            None if coverage is None else coverage["coverage_floor"], satellites)
+    if any(_lazy(o) for o in objs):
+        wind_map, env, surf, clear_ds, cov, sky = dask.compute(*objs)
+    else:                   # in memory already (a fleet's maps): no dask scheduler
+        wind_map, env, surf, clear_ds, cov, sky = (None if o is None else o.load() for o in objs)
     if env is not None and "risk_level" in environment:
         env["risk_level"] = environment["risk_level"]
     environment = env
@@ -522,6 +530,13 @@ def _same(a: np.ndarray | None, b: np.ndarray | None, rows: int = 64) -> bool:
     if a.shape != b.shape:
         return False
     return all(np.array_equal(a[i:i + rows], b[i:i + rows], equal_nan=True) for i in range(0, max(len(a), 1), rows))
+
+
+def _lazy(obj) -> bool:
+    """True when ``obj`` (an xarray object or None) holds dask-backed data."""
+    if isinstance(obj, xr.Dataset):
+        return any(v.chunks is not None for v in obj.variables.values())
+    return isinstance(obj, xr.DataArray) and obj.chunks is not None
 
 
 def _identical_levels(problems: list[PlanningProblem]) -> list[int]:

@@ -22,14 +22,13 @@ import xarray as xr
 
 from skyroute.stages.energy import power_params
 from skyroute.stages.planning.grid_planner import lattice_dz_m, lattice_edge_dirs
-from skyroute.stages.planning.heuristic import _finite_ratio, wind_samples_dense
+from skyroute.stages.planning.heuristic import wind_samples_dense
 from skyroute.stages.planning.kernels import ratio_each_kernel, vehicle_params
 from skyroute.stages.vehicle import profile_hash
 
-__all__ = ["DIRS_ATOL", "TILE_COLS", "lattice_dirs", "ratio_lb_over", "tiles_fit", "wind_ratio_tiles"]
+__all__ = ["TILE_COLS", "lattice_dirs", "tiles_fit", "wind_ratio_tiles"]
 
 TILE_COLS = 8          # wind columns per tile side (800 m on the usual 100 m wind grid)
-DIRS_ATOL = 1e-12      # directions of the cached tiles matched to a lattice's within this [-]
 
 
 def lattice_dirs(vehicle, resolution_m: float, step_cells: int) -> np.ndarray:
@@ -100,38 +99,6 @@ def wind_ratio_tiles(wind: xr.Dataset, vehicle, resolution_m: float, step_cells:
          "y_max_m": ("tile_y", [float(v.max() + ry / 2) for v in ys], {"units": "m"})},
         attrs={"tile_cols": t, "step_cells": int(step_cells), "resolution_m": float(resolution_m),
                "vehicle": getattr(vehicle, "name", ""), "vehicle_hash": profile_hash(vehicle)})
-
-
-def ratio_lb_over(tiles: xr.Dataset, bounds: tuple[float, float, float, float], dirs) -> np.ndarray | None:
-    """(k,): per direction of ``dirs`` the minimum of ``ratio_lb`` over the tiles that meet the
-    map box ``bounds`` = (xmin, ymin, xmax, ymax) [m] (a wind map's extent; 1 where no wind is
-    flyable, as :func:`~.heuristic.energy_ratio_lb_dense_each`), or None when
-    ``dirs`` are not the tiles' directions (within :data:`DIRS_ATOL`) or no tile meets the box.
-
-    Parameters
-    ----------
-    tiles : xarray.Dataset
-        :func:`wind_ratio_tiles` output.
-    bounds : tuple of float
-        The box [m].
-    dirs : array_like
-        Unit directions (k, 3) [-].
-
-    Returns
-    -------
-    numpy.ndarray or None
-    """
-    d = np.asarray(dirs, float).reshape(-1, 3)
-    td = np.asarray(tiles["dirs"].values, float)
-    if td.shape != d.shape or not np.allclose(td, d, rtol=0.0, atol=DIRS_ATOL):
-        return None
-    xmin, ymin, xmax, ymax = bounds
-    kx = (np.asarray(tiles["x_max_m"].values) > xmin) & (np.asarray(tiles["x_min_m"].values) < xmax)
-    ky = (np.asarray(tiles["y_max_m"].values) > ymin) & (np.asarray(tiles["y_min_m"].values) < ymax)
-    if not (kx.any() and ky.any()):
-        return None
-    r = np.asarray(tiles["ratio_lb"].values)[np.ix_(ky, kx)]
-    return np.array([_finite_ratio(v) for v in r.reshape(-1, d.shape[0]).min(axis=0)])
 
 
 def tiles_fit(tiles: xr.Dataset | None, vehicle, step_cells: int) -> bool:

@@ -453,14 +453,14 @@ __all__ = ["GridParams", "MapParams", "SegmentArgs", "VehicleParams", "WindParam
            "vehicle_params", "wind_at"]
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def level_floor_kernel(floor, cover, nofly, out):   # pragma: no cover - compiled
     """``out`` (ny, nx) = +inf where ``nofly``, else ``np.maximum(floor, cover)`` with a
     non-finite ``cover`` taken as +inf (never reachable), NaN floors propagating as in numpy;
     ``cover`` of shape (0, 0): no coverage floor.  One pass of :func:`build_problem`'s three."""
     ny, nx = floor.shape
     has_cover = cover.shape[0] > 0
-    for r in numba.prange(ny):
+    for r in range(ny):
         for c in range(nx):
             if nofly[r, c]:
                 out[r, c] = np.inf

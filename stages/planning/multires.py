@@ -103,11 +103,11 @@ def _block_reduce(a: np.ndarray, f: int, how: np.ufunc) -> np.ndarray:
     return how.reduceat(how.reduceat(a, rows, axis=0), cols, axis=1)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _block_minmax_kernel(a, f, hi, lo):   # pragma: no cover - compiled
     nby, nbx = hi.shape
     ny, nx = a.shape
-    for bi in numba.prange(nby):
+    for bi in range(nby):
         r0 = bi * f
         r1 = min(r0 + f, ny)
         for bj in range(nbx):
@@ -127,7 +127,7 @@ def _block_minmax_kernel(a, f, hi, lo):   # pragma: no cover - compiled
 
 
 def block_minmax(a: np.ndarray, f: int) -> tuple[np.ndarray, np.ndarray]:
-    """(max, min) over each block of ``f`` x ``f`` cells of the 2-D ``a`` in one parallel pass:
+    """(max, min) over each block of ``f`` x ``f`` cells of the 2-D ``a`` in one pass (serial: safe in forked fleet workers):
     :func:`_block_reduce` with ``np.maximum`` and ``np.minimum``, the same values (NaN
     propagates, the last blocks hold the cells left over)."""
     a = np.ascontiguousarray(a)

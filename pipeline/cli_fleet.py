@@ -24,6 +24,10 @@ from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, ma
               help="Output folder (default: ./skyroute-out/SCENARIO/fleet).")
 @click.option("--window-min", type=FiniteFloat(min=0.0, min_open=True), default=120.0, show_default=True,
               help="Departures of drawn missions uniform over this window [min].")
+@click.option("--min-km", type=FiniteFloat(min=0.0), default=0.2, show_default=True,
+              help="Shortest drawn mission (start-goal distance) [km].")
+@click.option("--max-km", type=FiniteFloat(min=0.0, min_open=True), default=1.5, show_default=True,
+              help="Longest drawn mission [km] (a city-wide day: --min-km 1 --max-km 15).")
 @click.option("--max-delay-min", type=FiniteFloat(min=0.0), default=10.0, show_default=True,
               help="Longest departure delay before a mission is rejected [min].")
 @click.option("--delay-step-s", type=FiniteFloat(min=1.0), default=60.0, show_default=True,
@@ -46,7 +50,8 @@ from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, ma
                    "missions get ids s<SEED>-m0001... Default: a new OUT/airspace.sqlite.")
 @click.option("-q", "--quiet", is_flag=True, help="No per-mission lines.")
 @max_memory_option
-def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max_delay_min, delay_step_s, ground_m,
+def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, min_km, max_km, max_delay_min,
+                  delay_step_s, ground_m,
                   no_preempt, cache_dir, scheduler, workers, depth, airspace_file, quiet) -> None:
     """Plan many operators' missions in SCENARIO first-come-first-served (issue 15): each at one
     DOP level, every accepted mission's ASTM F3548 intent volumes as traffic in STEP II; a
@@ -73,6 +78,8 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
 
     if (fleet_file is None) == (missions is None):
         raise InputError("give either --fleet FILE or --missions N (with --seed S)")
+    if min_km > max_km:
+        raise InputError(f"--min-km {min_km:g} is above --max-km {max_km:g}: give the shortest mission first")
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
     if ground_m is not None:
         sc = sc.model_copy(update={"data": sc.data.model_copy(
@@ -111,7 +118,8 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
         store = AirspaceStore.create(airspace_file, crs, sc.mission.start_time_utc)
     warnings: list[str] = []
     if tasks is None:
-        tasks = draw_missions(sc, maps, missions, seed, window_min * 60.0, notes=warnings)
+        tasks = draw_missions(sc, maps, missions, seed, window_min * 60.0, min_km=min_km, max_km=max_km,
+                              notes=warnings)
         if airspace_file is not None:   # ids unique across the draws added to one airspace
             tasks = [dataclasses.replace(t, id=f"s{seed}-{t.id}") for t in tasks]
     level = default_level(maps)
@@ -145,7 +153,8 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, max
     if Path(os.path.abspath(store.path)).is_relative_to(os.path.abspath(out_dir)):   # listed: never removed as stale
         files.append(Path(store.path))
     section.update({"default_dop_level": level, "scheduler": scheduler,
-                    "source": str(fleet_file) if fleet_file else f"--missions {missions} --seed {seed}",
+                    "source": str(fleet_file) if fleet_file else (f"--missions {missions} --seed {seed} "
+                                                                  f"--min-km {min_km:g} --max-km {max_km:g}"),
                     "window_min": window_min, "max_delay_min": max_delay_min, "delay_step_s": delay_step_s,
                     "options": dataclasses.asdict(opt)})
     for w in warnings:

@@ -71,8 +71,14 @@ _MAPS: dict[str, dict] = {}
 
 
 def fleet_maps(sc: Scenario, cache_dir: Path | str | None, scheduler: str = "threads") -> dict:
-    """The scenario's map datasets (loaded in memory) and the plan stage's dataset, from the
-    cache (computed once when absent); memoised per process (each dask worker loads them once)."""
+    """The scenario's map datasets and the plan stage's dataset, from the cache (computed once
+    when absent); memoised per process (each dask worker loads them once).
+
+    The maps are loaded in memory, except on a city-scale AOI (at least
+    :data:`~skyroute.stages.planning.window.WINDOW_MIN_CELLS` cells), where the datasets on the
+    AOI's grid stay lazy on the cache's zarr stores: every plan reads only its planning window's
+    chunks (:mod:`~skyroute.stages.planning.window`), so a worker holds one plan's window, not
+    the city (1e8 cells: about 10 GB in memory)."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.graph import stages_for
     from skyroute.pipeline.model import stable_hash
@@ -81,9 +87,18 @@ def fleet_maps(sc: Scenario, cache_dir: Path | str | None, scheduler: str = "thr
     key = stable_hash("fleet-maps-1", sc.model_dump(mode="json"), str(cache_dir))
     if key in _MAPS:
         return _MAPS[key]
-    names = [s.name for s in stages_for(sc) if s.name in (*MAP_STAGES, "plan")]
+    from skyroute.stages.planning.window import WINDOW_MIN_CELLS
+
+    names = [s.name for s in stages_for(sc) if s.name in (*MAP_STAGES, "wind_bounds", "plan")]
     res = run_scenario(sc, cache=Cache(cache_dir), targets=names, scheduler=scheduler)
-    maps: dict[str, Any] = {k: res[k].load() for k in names if k in res.datasets}
+    ny, nx = res["surface"].sizes["y"], res["surface"].sizes["x"]
+    city = ny * nx >= WINDOW_MIN_CELLS
+
+    def on_grid(ds) -> bool:
+        return "x" in ds.dims and "y" in ds.dims and ds.sizes["x"] == nx and ds.sizes["y"] == ny
+
+    maps: dict[str, Any] = {k: res[k] if city and on_grid(res[k]) else res[k].load()
+                            for k in names if k in res.datasets}
     maps["_result"] = res
     from skyroute.pipeline.plan_exports import scenario_height_reference
 
@@ -156,6 +171,7 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
     """Plan ``task`` departing ``departure_s`` [s after the scenario start] at DOP ``level``
     with ``obstacles`` ((owner, Volume4 in the surface datum, fleet time)) as STEP II / III
     traffic; the intent volumes of the plan (see the module docstring)."""
+    import dask
     import pandas as pd
 
     from skyroute.stages.base import SkyrouteError
@@ -193,18 +209,24 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
             uere_m=sc.gnss.uere_m, workers=1, battery_reserve_pct=sc.constraints.battery_reserve_pct,
             step2_max_iter=opt.step2_max_iter)
         area = Maps(surface=maps["surface"], clearance=maps["clearance"], environment=maps.get("environment"),
-                    wind=maps.get("wind"), coverage=cov, satellites=maps.get("satellites"), traffic=occ)
-        plan = plan_strategic(area, request, heuristic_cache=maps.setdefault("_heuristics", {}),
-                         edge_cache=maps.setdefault("_edges", {}))
+                    wind=maps.get("wind"), coverage=cov, satellites=maps.get("satellites"), traffic=occ,
+                    wind_bounds=maps.get("wind_bounds"))
+        with dask.config.set(scheduler=_map_scheduler()):    # a city's lazy maps: the plan's window is read
+            plan = plan_strategic(area, request, heuristic_cache=maps.setdefault("_heuristics", {}),
+                                  edge_cache=maps.setdefault("_edges", {}))
     except SkyrouteError as exc:
         return Attempt(task.id, departure_s, False, f"planner: {exc}", compute_s=time.perf_counter() - t_start,
                        seen=seen)
     c = plan.chosen
     if c is None:
-        static = all(s1 is not None and not s1.solved and s1.info.get("stopped_by") != "time"
-                     for s1 in plan.step1)   # STEP I failed: the same at any departure
+        # STEP I failed: it depends on neither the departure nor the traffic, so a later departure
+        # repeats the same search (also one cut by the wall-clock safety net: said in the reason)
+        static = all(s1 is not None and not s1.solved for s1 in plan.step1)
+        capped = any(s1 is not None and s1.info.get("stopped_by") == "time" for s1 in plan.step1)
         s2 = plan.step2[0] if len(plan.step2) == 1 else None
-        return Attempt(task.id, departure_s, False, plan.reason or "no flyable plan",
+        reason = (plan.reason or "no flyable plan") + (
+            " (STEP I was stopped by the wall-clock safety net)" if capped else "")
+        return Attempt(task.id, departure_s, False, reason,
                        compute_s=time.perf_counter() - t_start, seen=seen, static=static,
                        step2_status=s2.status if s2 is not None else "",
                        free_legs=s2.free_legs if s2 is not None and s2.status == "failed" else None)
@@ -241,6 +263,19 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
                    float(c.flight_time_s), time.perf_counter() - t_start, seen,
                    s2.status if s2 is not None else "", None if s2 is None else (s2.waypoints, s2.times_s),
                    (traj, t0), free_legs=None if s2 is None else s2.free_legs)
+
+
+def _map_scheduler() -> str:
+    """The dask scheduler reading a plan's window of lazy maps: this process's threads, or only
+    the calling thread inside a dask worker (one thread per worker process: a fleet's scale-out
+    is measured in processes)."""
+    try:
+        from distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return "threads"
+    return "synchronous"
 
 
 def _obstacle(v, ring_xy_m: np.ndarray, to_ll, ref):

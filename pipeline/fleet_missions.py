@@ -221,37 +221,42 @@ def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, 
     else:
         sx = sy = np.zeros(0)
 
+    import xarray as xr
     from scipy import ndimage
 
-    floor_all = np.asarray(clear["min_altitude_m"].values, float)
-    ceil_all = np.asarray(clear["max_altitude_m"].values, float)
-    nofly_all = np.asarray(clear["nofly"].values, bool) if "nofly" in clear else np.zeros(g.shape, bool)
+    # the maps may be lazy (a city's zarr stores, 1e8 cells): whole-grid work is one boolean mask,
+    # values are read at the candidate sites only
+    floor_da, ceil_da = clear["min_altitude_m"], clear["max_altitude_m"]
+    nofly_da = clear["nofly"].astype(bool) if "nofly" in clear else None
     # cells where the vehicle may be at some altitude, and their 8-connected regions: a pair of
     # sites in two regions has no path at all
-    region, _ = ndimage.label(np.isfinite(floor_all) & (floor_all <= ceil_all) & ~nofly_all, np.ones((3, 3), bool))
+    free = np.isfinite(floor_da) & (floor_da <= ceil_da)
+    region, _ = ndimage.label(np.asarray((free if nofly_da is None else free & ~nofly_da).values), np.ones((3, 3), bool))
+
+    def at(da, r, c) -> np.ndarray:
+        return np.asarray(da.isel(y=xr.DataArray(r, dims="site"), x=xr.DataArray(c, dims="site")).values)
 
     def usable_pairs(sx, sy):
         r, c = g.cell_of(sx, sy)
-        top = np.asarray(surf["terrain"].values)[r, c] + alt     # the mission's start / goal altitude
-        ok = np.isfinite(floor_all[r, c]) & (floor_all[r, c] <= top) & (top <= ceil_all[r, c]) & ~nofly_all[r, c]
+        top = at(surf["terrain"], r, c) + alt     # the mission's start / goal altitude
+        fl, ce = at(floor_da, r, c).astype(float), at(ceil_da, r, c).astype(float)
+        nf = np.zeros(r.shape, bool) if nofly_da is None else at(nofly_da, r, c)
+        ok = np.isfinite(fl) & (fl <= top) & (top <= ce) & ~nf
         idx = np.flatnonzero(ok)
-        d = np.hypot(sx[idx, None] - sx[None, idx], sy[idx, None] - sy[None, idx])
-        lab = region[r[idx], c[idx]]
-        ii, jj = np.nonzero((d >= min_km * 1e3) & (d <= max_km * 1e3) & (lab[:, None] == lab[None, :]))
-        return idx, ii, jj
+        return idx, _Pairs(sx[idx], sy[idx], region[r[idx], c[idx]], min_km * 1e3, max_km * 1e3)
 
-    idx, ii, jj = usable_pairs(sx, sy)
-    if ii.size == 0:
+    idx, pairs = usable_pairs(sx, sy)
+    if pairs.size == 0:
         from skyroute.stages.landing import OPEN_GROUND_SPACING_M, open_ground_sites
 
-        nofly = nofly_all
+        nofly = np.zeros(g.shape, bool) if nofly_da is None else np.asarray(nofly_da.values, bool)
         ox, oy, level = open_ground_sites(
             terrain=np.asarray(surf["terrain"].values, float), surface=np.asarray(surf["surface"].values, float),
             obstacle_floor=np.asarray(clear["obstacle_floor_m"].values, float),
             risk_level=np.asarray(env["risk_level"].values), nofly=nofly, grid=g,
             radius_m=float(clear.attrs.get("radius_m", 0.0)))
-        idx, ii, jj = usable_pairs(ox, oy)
-        if ii.size == 0:
+        idx, pairs = usable_pairs(ox, oy)
+        if pairs.size == 0:
             raise InputError(f"no pair of usable landing sites of {sc.name} lies {min_km}-{max_km} km apart, nor of "
                              "candidate sites on open ground; give data.landing_sites (a GeoJSON) or a fleet file "
                              "(--fleet)")
@@ -263,17 +268,42 @@ def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, 
                          f"from open ground (no obstacle within r_p, not no-fly, risk level {level}, one per "
                          f"{OPEN_GROUND_SPACING_M:g} m block); give data.landing_sites (a GeoJSON) for real ones")
     rng = np.random.default_rng(seed)
-    pick = rng.integers(0, ii.size, n)
+    pick = rng.integers(0, pairs.size, n)
     dep = np.sort(rng.uniform(0.0, window_s, n))
     ops = rng.integers(1, operators + 1, n)
     pri = (rng.random(n) < priority_share).astype(int)
     out = []
     for k in range(n):
-        a, b = idx[ii[pick[k]]], idx[jj[pick[k]]]
+        i, j = pairs[int(pick[k])]
+        a, b = idx[i], idx[j]
         out.append(FleetTask(k, f"m{k + 1:04d}", f"op-{ops[k]}", (float(sx[a]), float(sy[a])), alt,
                              (float(sx[b]), float(sy[b])), alt, round(float(dep[k]), 1), int(pri[k]), sc.vehicle,
                              None))
     return out
+
+
+class _Pairs:
+    """The ordered pairs (i, j) of sites ``lo_m``-``hi_m`` [m] apart in one region, in row-major
+    order (that of ``np.nonzero`` on the (n, n) matrix), without the matrix: a city's tens of
+    thousands of sites would need GBs.  Rows are evaluated in blocks of :attr:`BLOCK`."""
+
+    BLOCK = 256
+
+    def __init__(self, x: np.ndarray, y: np.ndarray, label: np.ndarray, lo_m: float, hi_m: float):
+        self.x, self.y, self.label, self.lo_m, self.hi_m = x, y, label, lo_m, hi_m
+        n = x.size
+        counts = [self._rows(i, min(i + self.BLOCK, n)).sum(axis=1) for i in range(0, n, self.BLOCK)]
+        self.first = np.concatenate([[0], np.cumsum(np.concatenate(counts) if counts else [])]).astype(np.int64)
+        self.size = int(self.first[-1])
+
+    def _rows(self, i0: int, i1: int) -> np.ndarray:
+        d = np.hypot(self.x[i0:i1, None] - self.x[None, :], self.y[i0:i1, None] - self.y[None, :])
+        return (d >= self.lo_m) & (d <= self.hi_m) & (self.label[i0:i1, None] == self.label[None, :])
+
+    def __getitem__(self, k: int) -> tuple[int, int]:
+        """The k-th pair (i, j), 0 <= k < size."""
+        i = int(np.searchsorted(self.first, k, side="right")) - 1
+        return i, int(np.flatnonzero(self._rows(i, i + 1)[0])[k - self.first[i]])
 
 
 # ---------------------------------------------------------------------------------- one attempt

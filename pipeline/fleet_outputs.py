@@ -138,7 +138,7 @@ def plot_fleet(res: FleetResult, sc: Scenario, maps: dict, path: Path) -> Path:
     s = maps["surface"]["surface"]
     x, y = np.asarray(s["x"].values), np.asarray(s["y"].values)
     step = max(1, int(max(x.size, y.size) / 800))
-    im = ax.imshow(np.asarray(s.values)[::step, ::step], extent=(x.min(), x.max(), y.min(), y.max()), origin="upper"
+    im = ax.imshow(np.asarray(s[::step, ::step].values), extent=(x.min(), x.max(), y.min(), y.max()), origin="upper"
                    if y[0] > y[-1] else "lower", cmap="Greys", interpolation="nearest")
     fig.colorbar(im, ax=ax, shrink=0.7, label="surface [m]")
     cmap = plt.get_cmap("tab20")

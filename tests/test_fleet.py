@@ -124,3 +124,28 @@ def test_plan_intents_conflict_only_when_they_meet_in_time():
     dec, _ = accept_fcfs([("a", first), ("same", volumes_of_plan(vols())), ("later", later), ("side", side)])
     assert [d.accepted for d in dec] == [True, False, True, True]
     assert dec[1].conflicts_with == ("a",)
+
+
+def test_site_pairs_without_the_matrix_equal_nonzero():
+    """draw_missions' pairs (blocks of rows, no n x n matrix: a city has tens of thousands of
+    sites) are np.nonzero's of the whole distance matrix, in the same order."""
+    import numpy as np
+
+    from skyroute.pipeline.fleet_missions import _Pairs
+
+    rng = np.random.default_rng(5)
+    for n, block in ((1, 256), (37, 4), (600, 256), (600, 7)):
+        x, y = rng.uniform(0, 3000, n), rng.uniform(0, 3000, n)
+        lab = rng.integers(1, 3, n)
+        d = np.hypot(x[:, None] - x[None, :], y[:, None] - y[None, :])
+        ii, jj = np.nonzero((d >= 500.0) & (d <= 1500.0) & (lab[:, None] == lab[None, :]))
+        _Pairs.BLOCK = block
+        try:
+            p = _Pairs(x, y, lab, 500.0, 1500.0)
+        finally:
+            _Pairs.BLOCK = 256
+        assert p.size == ii.size
+        for k in rng.integers(0, max(ii.size, 1), 50) if ii.size else []:
+            assert p[int(k)] == (ii[k], jj[k])
+        if ii.size:
+            assert p[0] == (ii[0], jj[0]) and p[ii.size - 1] == (ii[-1], jj[-1])

@@ -669,3 +669,10 @@ def test_sigkill_at_random_points_leaves_a_checked_store_that_continues(tmp_path
     print(f"{kills} kills ({partial} with some missions decided), {completed} runs completed, "
           f"{time.perf_counter() - t0:.1f} s")
     assert partial >= 3                       # the kills land while missions are being decided
+
+
+def test_min_km_above_max_km_one_error_line(tmp_path):
+    res = CliRunner().invoke(main, ["fleet", "helsinki-medical", "--missions", "3", "--min-km", "2", "--max-km", "1",
+                                    "--out", str(tmp_path / "f")])
+    assert res.exit_code == 2 and res.output.count("\n") == 1 and res.output.startswith("error: ")
+    assert "--min-km 2 is above --max-km 1" in res.output

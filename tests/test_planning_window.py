@@ -142,6 +142,52 @@ def test_a_window_without_a_path_widens(city, monkeypatch):
     assert viol == []
 
 
+def test_an_energy_infeasible_plan_does_not_widen(city, monkeypatch):
+    """A level whose best path in the window needs more than the battery found a path: the
+    window is not widened (the wind and the battery are the same on a wider one)."""
+    monkeypatch.setattr(window, "WINDOW_MIN_CELLS", 1000)
+    monkeypatch.setattr(window, "WINDOW_MARGIN_MIN_M", 150.0)
+    s, e = street_point(city, 0.3, 0.3), street_point(city, 0.62, 0.7)
+    req = PlanRequest.of(vehicle="dji-m300-rtk", start_xy=s, start_agl_m=30.0, goal_xy=e, goal_agl_m=30.0,
+                         start_time_utc="2020-01-03T10:00:00Z", max_agl_m=80.0, workers=1, battery_reserve_pct=99.9)
+    plan = plan_strategic(_maps(city), req)
+    assert plan.chosen is None and plan.step1[0].status == "energy_infeasible"
+    assert plan.window_xy is not None and plan.window_widenings == 0
+    assert not any("widened" in w for w in plan.warnings)
+
+
+def test_a_fleets_caches_are_kept_per_window(city, monkeypatch):
+    """A fleet (heuristic_cache, edge_cache) plans in the window too; its cached heuristic tables and
+    STEP I results are keyed by the window: the wall case still widens to a path (the failed first
+    window's STEP I result is not served for the wider one), a second plan served from the caches
+    is identical to the first, and both stay valid on the whole AOI's maps."""
+    monkeypatch.setattr(window, "WINDOW_MIN_CELLS", 1000)
+    monkeypatch.setattr(window, "WINDOW_MARGIN_MIN_M", 60.0)
+    s, e = street_point(city, 0.3, 0.45), street_point(city, 0.6, 0.55)
+    g = city["grid"]
+    xm = 0.5 * (s[0] + e[0])
+    xc = g.x0 + (np.arange(g.nx) + 0.5) * 2.0
+    yc = g.y1 - (np.arange(g.ny) + 0.5) * 2.0
+    wall = (np.abs(xc - xm) < 6.0)[None, :] & (np.abs(yc - 0.5 * (s[1] + e[1])) < 200.0)[:, None]
+    nofly = city["nofly"] | wall
+    hc: dict = {}
+    ec: dict = {}
+    plans = [plan_strategic(_maps(city, nofly), _request(s, e), heuristic_cache=hc, edge_cache=ec) for _ in range(2)]
+    for plan in plans:
+        assert plan.window_xy is not None or plan.window_widenings == len(planning_windows(g, s, e)) - 1
+        assert plan.window_widenings >= 1 and plan.step1[0].solved
+        viol = validate_plan(plan.candidates[0], grid=g, terrain_m=np.zeros(g.shape), vehicle="dji-m300-rtk",
+                             clearance_floor_m=city["clearance"], nofly=nofly, min_agl_m=0.0, max_agl_m=80.0,
+                             start_xyz=(*s, 30.0), goal_xyz=(*e, 30.0))
+        assert viol == []
+    np.testing.assert_array_equal(plans[0].step1[0].waypoints, plans[1].step1[0].waypoints)
+    assert plans[0].candidates[0].f == plans[1].candidates[0].f
+    memo = ec["step1"]
+    scopes = {k[-1] for k in memo}
+    assert len(scopes) == plans[0].window_widenings + 1            # one STEP I result per window tried
+    assert any(not r.solved for r in memo.values()) and any(r.solved for r in memo.values())
+
+
 def test_cropped_wind_gives_every_point_of_the_window_its_wind_column(city):
     """The wind map on its own 400 m grid, cropped to a window: every point of the window falls
     in a cropped wind cell holding the same (u, v, w) as its cell of the whole map (the

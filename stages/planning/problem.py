@@ -423,6 +423,34 @@ def _raster(a, shape, name: str, default: float | None = None) -> np.ndarray:
     return v
 
 
+def wind_uvw(wind: xr.Dataset) -> np.ndarray:
+    """The wind vectors of a wind map, stacked.
+
+    Parameters
+    ----------
+    wind : xarray.Dataset
+        A :func:`~skyroute.stages.wind.wind_on_grid` map: ``u``, ``v`` (and ``w``, else 0) [m/s]
+        on ``(z, y, x)`` in any order.
+
+    Returns
+    -------
+    numpy.ndarray
+        (nz, ny, nx, 3) [m/s], the maps' dtype.
+
+    Raises
+    ------
+    InputError
+        When ``u`` or ``v`` is missing.
+    """
+    for k in ("u", "v"):
+        if k not in wind:
+            raise InputError(f"wind dataset needs variables u, v (and w) on (z, y, x); missing {k}")
+    u = wind["u"].transpose("z", "y", "x").values
+    v = wind["v"].transpose("z", "y", "x").values
+    w = wind["w"].transpose("z", "y", "x").values if "w" in wind else np.zeros_like(u)
+    return np.stack([u, v, w], axis=-1)
+
+
 def _wind_arrays(wind, grid: Grid):
     """(wind_uvw, wind_z_agl_m, wind_grid) from a wind map, a UniformWind or a (3,) vector."""
     if wind is None:
@@ -430,12 +458,7 @@ def _wind_arrays(wind, grid: Grid):
     if hasattr(wind, "components") and callable(wind.components):
         return np.asarray(wind.components(), dtype=float), np.zeros(1), None
     if isinstance(wind, xr.Dataset):
-        for k in ("u", "v"):
-            if k not in wind:
-                raise InputError(f"wind dataset needs variables u, v (and w) on (z, y, x); missing {k}")
-        u = wind["u"].transpose("z", "y", "x").values
-        v = wind["v"].transpose("z", "y", "x").values
-        w = wind["w"].transpose("z", "y", "x").values if "w" in wind else np.zeros_like(u)
+        uvw = wind_uvw(wind)
         z = np.asarray(wind["z"].values, dtype=float)
         x = np.asarray(wind["x"].values, dtype=float)
         y = np.asarray(wind["y"].values, dtype=float)
@@ -444,7 +467,7 @@ def _wind_arrays(wind, grid: Grid):
         else:
             res = float(wind.attrs.get("horizontal_step_m", grid.resolution_m))
             wg = Grid(grid.crs_wkt, float(x[0] - res / 2), float(y[0] + res / 2), x.size, y.size, res)
-        return np.stack([u, v, w], axis=-1), z, wg
+        return uvw, z, wg
     a = np.asarray(wind, dtype=float)
     if a.shape == (3,):
         return a, np.zeros(1), None
@@ -570,4 +593,4 @@ def xyz_from_agl(surface_ds: xr.Dataset, x: float, y: float, alt_agl_m: float) -
 
 
 __all__ = ["COST_NAMES", "ENERGY_LB_DENSE_SAFETY", "ENERGY_LB_SAFETY", "PlanningProblem", "build_problem",
-           "check_weights", "segment_eval", "segment_eval_if_valid", "xyz_from_agl"]
+           "check_weights", "segment_eval", "segment_eval_if_valid", "wind_uvw", "xyz_from_agl"]

@@ -57,6 +57,7 @@ from skyroute.stages.vehicle import FixedWingProfile, VehicleProfile, load_vehic
 
 LATTICE_ANCHOR_M = 0.0   # [m] the altitude shared A* lattices are aligned on (``edge_cache``)
 STEP1_MEMO = 256         # STEP I results kept in an ``edge_cache`` dict
+HEURISTIC_MEMO = 64      # A* heuristic tables kept in a ``heuristic_cache`` dict (oldest dropped first)
 
 
 @dataclass
@@ -122,7 +123,8 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
                    clearance_by_level: Mapping[float, xr.Dataset] | None = None,
                    bubble: tuple[float, float] | None = None,
                    heuristic_cache: dict | None = None, edge_cache: dict | None = None,
-                   step2_max_iter: int = STEP2_MAX_ITER, wind_bounds: xr.Dataset | None = None) -> StrategicPlan:
+                   step2_max_iter: int = STEP2_MAX_ITER, wind_bounds: xr.Dataset | None = None,
+                   cache_scope: tuple = ()) -> StrategicPlan:
     """Plan the mission for every coverage level of ``coverage`` (one level without GNSS data).
 
     STEP I (optimised polygonal chain), STEP II (deconfliction against known traffic) and STEP III
@@ -222,6 +224,12 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
         The ``wind_bounds`` stage's energy-ratio bounds per wind tile
         (:mod:`~skyroute.stages.planning.wind_bounds`): used by the A* heuristic instead of
         bounding every wind again when they fit the vehicle and ``step_cells``.
+    cache_scope : tuple, default ()
+        What else the maps are, for ``heuristic_cache`` and the STEP I results of ``edge_cache``:
+        :func:`plan_strategic` passes the planning window (rows, cols), so that a fleet's plans in
+        different windows of one AOI never share a heuristic table or a STEP I result
+        (:class:`~skyroute.stages.planning.grid_planner.EdgeCache` keys lattices by their nodes'
+        coordinates already).
 
     Returns
     -------
@@ -314,11 +322,13 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
         if loosest is not None and not loosest.endpoint_problem() and not use_multires(loosest):
             zkey = ("anchor", anchor) if anchor is not None else round(float(start[2]), 6)   # the lattice levels
             hkey = (tuple(np.round(goal, 6)), zkey, loosest.dop_threshold, veh.name, tuple(weights), step_cells,
-                    min_agl_m, max_agl_m, dop_kind, battery_reserve_pct)
+                    min_agl_m, max_agl_m, dop_kind, battery_reserve_pct, cache_scope)
             h2 = None if heuristic_cache is None else heuristic_cache.get(hkey)
             if h2 is None:
                 h2 = shared_heuristic(loosest, step_cells, z_anchor_m=anchor)
                 if heuristic_cache is not None:
+                    while len(heuristic_cache) >= HEURISTIC_MEMO:      # oldest first
+                        heuristic_cache.pop(next(iter(heuristic_cache)), None)
                     heuristic_cache[hkey] = h2
 
     def level_key(d) -> tuple:        # what a level's lattice edge costs depend on, given the maps
@@ -336,7 +346,8 @@ def plan_levels(surface: xr.Dataset, environment: xr.Dataset | None, wind: xr.Da
         if edge_cache is not None and planner == "astar":
             ec = edge_cache.setdefault(level_key(d), EdgeCache())
             memo = edge_cache.setdefault("step1", {})        # the STEP I results, oldest first
-            s1key = (level_key(d), problem.start_xyz, problem.goal_xyz, max_tries, battery_reserve_pct, time_budget_s)
+            s1key = (level_key(d), problem.start_xyz, problem.goal_xyz, max_tries, battery_reserve_pct, time_budget_s,
+                     cache_scope)
             s1 = memo.get(s1key)
         if s1 is None:
             s1 = plan_step1(problem, planner=planner, time_budget_s=time_budget_s, seed=seed, max_tries=max_tries,
@@ -773,7 +784,9 @@ def plan_strategic(maps: Maps, request: PlanRequest, *, heuristic_cache: dict | 
         (:class:`~skyroute.stages.planning.request.PlanRequest`).
     heuristic_cache, edge_cache : dict, optional
         Dicts kept by a caller planning many missions on the same maps (``skyroute fleet``);
-        see :func:`plan_levels`.
+        see :func:`plan_levels`.  On a city-scale AOI each plan is made in its planning window
+        (:mod:`~skyroute.stages.planning.window`), fleets included, and the cached heuristic
+        tables and STEP I results are kept per window.
 
     Returns
     -------
@@ -790,28 +803,29 @@ def plan_strategic(maps: Maps, request: PlanRequest, *, heuristic_cache: dict | 
     Seed 000 (the strategic planner, STEP I-III).
     """
     from skyroute.stages.gridspec import Grid
-    from skyroute.stages.planning.window import crop_maps, planning_windows
+    from skyroute.stages.planning.window import crop_maps, planning_windows, window_box
 
-    def on(m: Maps) -> StrategicPlan:
+    def on(m: Maps, scope: tuple) -> StrategicPlan:
         return plan_levels(m.surface, m.environment, m.wind, m.clearance, m.coverage, m.satellites, m.traffic,
                            clearance_by_level=m.clearance_by_level, wind_bounds=m.wind_bounds,
-                           heuristic_cache=heuristic_cache,
-                           edge_cache=edge_cache, **request.kwargs())
+                           heuristic_cache=heuristic_cache, edge_cache=edge_cache, cache_scope=scope,
+                           **request.kwargs())
 
-    if heuristic_cache is not None or edge_cache is not None:   # a fleet's shared lattices: the whole AOI
-        return on(maps)
     grid = Grid.from_dataarray(maps.surface["terrain"])
     windows = planning_windows(grid, request.start_xy, request.goal_xy)
     t0 = time.perf_counter()
     for i, win in enumerate(windows):
-        plan = on(maps if win is None else crop_maps(maps, *win))
+        # a fleet's caches (heuristic tables, STEP I results) are kept per window
+        scope = () if win is None else ("window", win[0].start, win[0].stop, win[1].start, win[1].stop)
+        plan = on(maps if win is None else crop_maps(maps, *win), scope)
         if win is not None:
-            rows, cols = win
-            res = float(grid.resolution_m)
-            plan.window_xy = (grid.x0 + cols.start * res, grid.y1 - rows.stop * res,
-                              grid.x0 + cols.stop * res, grid.y1 - rows.start * res)
+            plan.window_xy = window_box(grid, *win)
         plan.window_widenings = i
-        retry = plan.chosen is None and any(not s1.solved for s1 in plan.step1)
+        # widen only when a level's complete search found no path in the window (an energy-infeasible
+        # level found one: a wider window does not bring the wind down; a search stopped by the
+        # wall-clock safety net would only cost more on a wider one)
+        retry = plan.chosen is None and any(s1.status == "no_solution" and s1.info.get("stopped_by") != "time"
+                                            for s1 in plan.step1)
         if not retry or i == len(windows) - 1:
             break
     plan.compute_s = time.perf_counter() - t0

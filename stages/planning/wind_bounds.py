@@ -24,6 +24,7 @@ from skyroute.stages.energy import power_params
 from skyroute.stages.planning.grid_planner import lattice_dz_m, lattice_edge_dirs
 from skyroute.stages.planning.heuristic import wind_samples_dense
 from skyroute.stages.planning.kernels import ratio_each_kernel, vehicle_params
+from skyroute.stages.planning.problem import wind_uvw
 from skyroute.stages.vehicle import profile_hash
 
 __all__ = ["TILE_COLS", "lattice_dirs", "tiles_fit", "wind_ratio_tiles"]
@@ -38,13 +39,6 @@ def lattice_dirs(vehicle, resolution_m: float, step_cells: int) -> np.ndarray:
     step_m = int(step_cells) * float(resolution_m)
     deg = vehicle.max_flight_path_angle_deg
     return lattice_edge_dirs(step_m, lattice_dz_m(step_m, deg), deg)[1]
-
-
-def _uvw(wind: xr.Dataset) -> np.ndarray:
-    u = wind["u"].transpose("z", "y", "x").values
-    v = wind["v"].transpose("z", "y", "x").values
-    w = wind["w"].transpose("z", "y", "x").values if "w" in wind else np.zeros_like(u)
-    return np.stack([u, v, w], axis=-1).astype(np.float64)
 
 
 def wind_ratio_tiles(wind: xr.Dataset, vehicle, resolution_m: float, step_cells: int,
@@ -73,7 +67,7 @@ def wind_ratio_tiles(wind: xr.Dataset, vehicle, resolution_m: float, step_cells:
         ``xyz``) [-], and the tiles' map extents ``x_min_m``, ``x_max_m`` (``tile_x``) and
         ``y_min_m``, ``y_max_m`` (``tile_y``) [m].
     """
-    uvw = _uvw(wind)
+    uvw = wind_uvw(wind).astype(np.float64)
     x = np.asarray(wind["x"].values, float)
     y = np.asarray(wind["y"].values, float)
     rx = abs(x[1] - x[0]) if x.size > 1 else float(wind.attrs.get("horizontal_step_m", resolution_m))

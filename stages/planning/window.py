@@ -18,7 +18,9 @@ When no coverage level gives a flyable plan and some level's STEP I found no pat
 doubled (a counted widening, never timed) up to :data:`MAX_WINDOW_WIDENINGS` times, and the last
 attempt is the whole AOI.  A window larger than :data:`WINDOW_MAX_FRACTION` of the AOI's cells
 is not worth it: the whole AOI is used.  Every shipped scenario is smaller than
-:data:`WINDOW_MIN_CELLS` and plans on its whole AOI as before.
+:data:`WINDOW_MIN_CELLS` and plans on its whole AOI as before.  A fleet (``skyroute fleet``)
+plans each mission in its window as well; its cached heuristic tables and STEP I results are
+kept per window (``cache_scope`` of :func:`~skyroute.stages.planning.strategic.plan_levels`).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:     # light at import (the memory estimate of a warm run calls window_slices)
     from skyroute.stages.gridspec import Grid
 
-__all__ = ["MAX_WINDOW_WIDENINGS", "plan_cells", "WINDOW_MARGIN_FRAC", "WINDOW_MARGIN_MIN_M", "WINDOW_MAX_FRACTION",
+__all__ = ["MAX_WINDOW_WIDENINGS", "plan_cells", "window_box", "WINDOW_MARGIN_FRAC", "WINDOW_MARGIN_MIN_M", "WINDOW_MAX_FRACTION",
            "WINDOW_MIN_CELLS", "crop_maps", "crop_wind", "planning_windows", "window_margin_m", "window_slices"]
 
 WINDOW_MIN_CELLS = 16_000_000     # AOIs with fewer grid cells (every shipped scenario) plan on the whole AOI
@@ -125,6 +127,26 @@ def planning_windows(grid: Grid, start_xy, goal_xy) -> list[tuple[slice, slice] 
     return out
 
 
+def window_box(grid: Grid, rows: slice, cols: slice) -> tuple[float, float, float, float]:
+    """The bounds (xmin, ymin, xmax, ymax) [m] of the cells ``rows``, ``cols`` of ``grid``
+    (row 0 at the top, ``grid.y1``).
+
+    Parameters
+    ----------
+    grid : Grid
+        The AOI's grid.
+    rows, cols : slice
+        The window (:func:`window_slices`).
+
+    Returns
+    -------
+    tuple of float
+    """
+    res = float(grid.resolution_m)
+    return (grid.x0 + cols.start * res, grid.y1 - rows.stop * res, grid.x0 + cols.stop * res,
+            grid.y1 - rows.start * res)
+
+
 def plan_cells(grid: Grid, start_xy, goal_xy) -> int:
     """The grid cells a plan of this mission reads first: its first window's
     (:func:`planning_windows`), else the whole AOI's.
@@ -175,6 +197,8 @@ def crop_maps(maps, rows: slice, cols: slice):
     """
     import xarray as xr
 
+    from skyroute.stages.gridspec import Grid
+
     ny, nx = maps.surface.sizes["y"], maps.surface.sizes["x"]
 
     def on_grid(ds):       # a dataset on the AOI's grid (not the wind's own, coarser one)
@@ -184,11 +208,7 @@ def crop_maps(maps, rows: slice, cols: slice):
     def crop(ds):
         return _crop(ds, rows, cols) if on_grid(ds) else ds
 
-    x = maps.surface["x"].values
-    y = maps.surface["y"].values
-    res = abs(float(x[1] - x[0])) if x.size > 1 else abs(float(y[1] - y[0]))
-    box = (float(x[cols][0]) - res / 2, float(y[rows][-1]) - res / 2, float(x[cols][-1]) + res / 2,
-           float(y[rows][0]) + res / 2)
+    box = window_box(Grid.from_dataarray(maps.surface["terrain"]), rows, cols)
     by_level = None if maps.clearance_by_level is None else {k: crop(v) for k, v in maps.clearance_by_level.items()}
     return replace(maps, surface=crop(maps.surface), clearance=crop(maps.clearance), environment=crop(maps.environment),
                    wind=crop(maps.wind) if on_grid(maps.wind) else crop_wind(maps.wind, box),

@@ -76,6 +76,10 @@ def _decisions(res) -> list:
             for o in res.outcomes]
 
 
+def _reason(res, mission: str) -> str:
+    return next((o.reason for o in res.outcomes if o.task.id == mission), "")
+
+
 def _load() -> str:
     return "load average {:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
 
@@ -162,6 +166,11 @@ def main() -> None:
                 print(f"speed-up with {kind} ({cfg}): "
                       f"{seq.seconds / par.seconds:.2f}x (worker setup {par.speculative['worker_setup_s']:.1f} s not "
                       f"counted); same decisions: {same}; {_load()}", flush=True)
+                if not same:
+                    for d1, d2 in zip(_decisions(seq), _decisions(par), strict=True):
+                        if d1 != d2:
+                            print(f"  differs: {d1[:4]} sequential, {d2[:4]} parallel; reasons "
+                                  f"{_reason(seq, d1[0])!r} / {_reason(par, d2[0])!r}", flush=True)
                 assert same, "the parallel driver decided otherwise than the sequential one"
 
 

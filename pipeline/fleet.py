@@ -202,7 +202,8 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
     try:
         request = PlanRequest.of(
             start_xy=task.start_xy, start_agl_m=task.start_agl_m, goal_xy=task.goal_xy, goal_agl_m=task.goal_agl_m,
-            start_time_utc=t0_utc, vehicle=veh, weights=p.weights, planner="astar", time_budget_s=opt.time_budget_s,
+            start_time_utc=t0_utc, vehicle=veh, weights=p.weights, planner="astar",
+            time_budget_s=opt.budget_s(task.start_xy, task.goal_xy),
             seed=_seed(opt.seed, task.id, departure_s), max_tries=p.max_tries, step_cells=p.step_cells,
             min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,
             dop_kind=sc.gnss.dop_kind, d_c_m=sc.traffic.margin_m, dt_c_s=sc.traffic.time_margin_s,

@@ -80,7 +80,12 @@ class FleetOptions:
     ``horizon_s``);
     ``preempt``: allow priority preemption; ``step2_max_iter``: K of each attempt's STEP II RRT
     (the seed's 5000, as ``skyroute plan``; a failed deconfliction costs all K iterations, on
-    Helsinki 0.14 s, before the mission is tried at a later departure)."""
+    Helsinki 0.14 s, before the mission is tried at a later departure); ``time_budget_s`` [s]:
+    the planner's time budget of a mission up to :data:`BUDGET_KM` long, in proportion to the
+    length beyond (:meth:`budget_s`).  Planners stop on counted work; the budget only sets the
+    wall-clock safety net (x ``WALLCLOCK_CAP_FACTOR``), which must not cut a city-wide
+    mission's plan short: a cut plan would depend on the machine's load, and a speculative
+    plan on a worker could differ from the sequential one."""
 
     delay_step_s: float = 60.0
     max_delay_s: float = 600.0
@@ -95,6 +100,15 @@ class FleetOptions:
     preempt: bool = True
     time_budget_s: float = 5.0
     step2_max_iter: int = 5000
+
+    def budget_s(self, start_xy, goal_xy) -> float:
+        """The time budget [s] of a mission from ``start_xy`` to ``goal_xy`` [m]:
+        ``time_budget_s x max(1, distance / BUDGET_KM)``."""
+        d_km = math.hypot(goal_xy[0] - start_xy[0], goal_xy[1] - start_xy[1]) / 1000.0
+        return self.time_budget_s * max(1.0, d_km / BUDGET_KM)
+
+
+BUDGET_KM = 1.5      # [km] missions up to this long get FleetOptions.time_budget_s; longer ones in proportion
 
 
 # ---------------------------------------------------------------------------------- fleet input

@@ -108,7 +108,14 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     problems = check_event_times(sc, float(t0 + traj.duration_s))
     if problems:
         raise InputError("; ".join(problems))
-    surface = result["surface"].load()
+    import numpy as np
+
+    from skyroute.stages.gridspec import Grid
+    from skyroute.stages.planning.window import path_window
+
+    surface = result["surface"]     # lazy: a city's maps are read in the flight's window
+    # on a city-scale AOI the replay knows the maps of the window around the planned path
+    window = path_window(Grid.from_dataarray(surface["terrain"]), np.asarray(chosen.xyz_m)[:, :2])
     events = tactical_events(sc, surface)
     updates: list[RunResult] = []
     targets = [s for s in MAP_STAGES if s in result.datasets]
@@ -116,11 +123,11 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     def world_at(t_s: float):
         res = run_scenario(scenario_at(sc, t_s), cache=cache, targets=targets, scheduler=scheduler, progress=False)
         updates.append(res)
-        return _world(res, sc, radius)
+        return _world(res, sc, radius, window)
 
     strategic = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else []
     goal = chosen.xyz_m[-1]
-    log = replay(traj, t0, goal_xyz=goal, world=_world(result, sc, radius), world_at=world_at, events=events,
+    log = replay(traj, t0, goal_xyz=goal, world=_world(result, sc, radius, window), world_at=world_at, events=events,
                  strategic_intruders=strategic, vehicle=params.request.vehicle, params=params,
                  start_time_utc=sc.mission.start_time_utc.isoformat(), dop_threshold=chosen.dop_threshold,
                  scenario=sc.name, crs_wkt=str(surface["surface"].rio.crs),

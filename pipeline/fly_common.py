@@ -26,14 +26,23 @@ class FlyResult:
     map_updates: list      # RunResult of each map update
 
 
-def _world(result: RunResult, sc: Scenario | None = None, radius_m: float | None = None):
+def _world(result: RunResult, sc: Scenario | None = None, radius_m: float | None = None,
+           window: tuple[slice, slice] | None = None):
     """The replay's maps from a run's stages.  With ``radius_m`` (the safety bubble's r_j of
     the plan's level, ``constraints.clearance: sboa``) the clearance maps are the clearance
-    stage's for r_j, as the plan stage used them, instead of the cached ones for r_p."""
+    stage's for r_j, as the plan stage used them, instead of the cached ones for r_p.  With a
+    ``window`` (rows, cols; :func:`~skyroute.stages.planning.window.path_window`, a city-scale
+    AOI) the maps on the AOI's grid are read cropped to it: cropping keeps every cell's value."""
+    from skyroute.stages.planning.window import crop_on_grid
     from skyroute.stages.tactical.replay import World
 
+    shape = (result["surface"].sizes["y"], result["surface"].sizes["x"])
+
+    def crop(ds):
+        return ds if window is None or ds is None else crop_on_grid(ds, *window, shape)
+
     def get(name):
-        return result.datasets[name].load() if name in result.datasets else None
+        return crop(result.datasets[name]).load() if name in result.datasets else None
 
     surf = result["surface"]
     clearance = get("clearance")
@@ -42,8 +51,8 @@ def _world(result: RunResult, sc: Scenario | None = None, radius_m: float | None
 
         clearance = clearance_stage(surf, result["environment"],
                                     settings=_clearance_settings(sc).model_copy(update={"radius_m": float(radius_m)}))
-        clearance = clearance.load()
-    return World(surface=surf[[v for v in ("terrain", "terrain_min", "surface") if v in surf]].load(),
+        clearance = crop(clearance).load()
+    return World(surface=crop(surf[[v for v in ("terrain", "terrain_min", "surface") if v in surf]]).load(),
                  environment=get("environment"), clearance=clearance, wind=get("wind"),
                  coverage=get("coverage"), satellites=get("satellites"))
 

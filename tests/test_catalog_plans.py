@@ -392,3 +392,57 @@ def test_fly_with_the_safety_bubble_keeps_r_j_from_the_surface(cache, tmp_path):
     d = _surface_distance_m(p, float(x[0] - cell / 2), float(y[0] + cell / 2), cell,
                             np.asarray(surf.values, float), window_m=r_j + 2 * cell)
     assert d.min() >= r_j - 1e-6, (float(d.min()), r_j)
+
+
+def test_fly_on_a_city_reads_the_window_of_the_plan(cache, tmp_path, monkeypatch):
+    """On a city-scale AOI ``skyroute fly`` knows the maps of the window around the planned path
+    (stages/planning/window.path_window; here forced on helsinki-contingency with a 250 m
+    margin): the window is a real crop, the contingency landing still lands (at a site inside
+    it), and every flown sample is at or above the clearance floor of its cell on the WHOLE
+    AOI's maps."""
+    import csv
+    import json
+
+    from click.testing import CliRunner
+
+    from skyroute.pipeline.cli import main
+    from skyroute.stages.gridspec import Grid
+    from skyroute.stages.planning import window
+
+    real, seen = window.path_window, []
+
+    def forced(grid, xy):
+        with monkeypatch.context() as m:
+            m.setattr(window, "WINDOW_MIN_CELLS", 1000)
+            m.setattr(window, "WINDOW_MARGIN_MIN_M", 250.0)
+            seen.append(real(grid, xy))
+        return seen[-1]
+
+    monkeypatch.setattr(window, "path_window", forced)
+    from skyroute.pipeline import fly as fly_mod
+
+    worlds = []
+    real_world = fly_mod._world
+
+    def world(*a, **k):
+        worlds.append(real_world(*a, **k))
+        return worlds[-1]
+
+    monkeypatch.setattr(fly_mod, "_world", world)
+    out = tmp_path / "fly"
+    res = CliRunner().invoke(main, ["fly", "helsinki-contingency", "--out", str(out), "--cache-dir", str(cache.root),
+                                    "-q"])
+    assert res.exit_code == 0, res.output
+    maps = run_scenario(load_scenario("helsinki-contingency"), cache=cache, targets=["clearance"])
+    g = Grid.from_dataarray(maps["clearance"]["min_altitude_m"])
+    (rows_w, cols_w), = seen
+    assert 0 < (rows_w.stop - rows_w.start) * (cols_w.stop - cols_w.start) < 0.9 * g.nx * g.ny
+    assert worlds and all(w.surface.sizes["y"] == rows_w.stop - rows_w.start and w.clearance.sizes["x"] ==
+                          cols_w.stop - cols_w.start for w in worlds)        # the replay knew the window's maps
+    assert json.loads((out / "summary.json").read_text())["fly"]["outcome"] == "landed"
+    rows = list(csv.DictReader((out / "flown.csv").open()))
+    p = np.array([[float(r["x_m"]), float(r["y_m"]), float(r["z_m"])] for r in rows])
+    r, c = g.cell_of(p[:, 0], p[:, 1])
+    assert ((r >= rows_w.start) & (r < rows_w.stop) & (c >= cols_w.start) & (c < cols_w.stop)).all()
+    floor = np.asarray(maps["clearance"]["min_altitude_m"].values, float)[r, c]
+    assert np.all(p[:, 2] >= floor - 1e-6), float(np.min(p[:, 2] - floor))

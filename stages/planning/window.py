@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:     # light at import (the memory estimate of a warm run calls window_slices)
     from skyroute.stages.gridspec import Grid
 
-__all__ = ["MAX_WINDOW_WIDENINGS", "plan_cells", "window_box", "WINDOW_MARGIN_FRAC", "WINDOW_MARGIN_MIN_M", "WINDOW_MAX_FRACTION",
+__all__ = ["MAX_WINDOW_WIDENINGS", "crop_on_grid", "path_window", "plan_cells", "window_box", "WINDOW_MARGIN_FRAC", "WINDOW_MARGIN_MIN_M", "WINDOW_MAX_FRACTION",
            "WINDOW_MIN_CELLS", "crop_maps", "crop_wind", "planning_windows", "window_margin_m", "window_slices"]
 
 WINDOW_MIN_CELLS = 16_000_000     # AOIs with fewer grid cells (every shipped scenario) plan on the whole AOI
@@ -177,6 +177,56 @@ def _crop(ds, rows: slice, cols: slice):
     return ds.isel(sel) if sel else ds
 
 
+def path_window(grid: Grid, xy) -> tuple[slice, slice] | None:
+    """The window of a flight along the path ``xy`` (k, 2) [m] (``skyroute fly`` on a city):
+    the path's bounding box widened by the first planning window's margin of its ends
+    (:func:`window_margin_m`), so a tactical replan or a contingency landing near the path stays
+    inside; None on an AOI below :data:`WINDOW_MIN_CELLS` cells (or when the window would hold
+    more than :data:`WINDOW_MAX_FRACTION` of them).
+
+    Parameters
+    ----------
+    grid : Grid
+        The AOI's grid.
+    xy : array_like
+        (k, 2) map points [m] of the path, k >= 1.
+
+    Returns
+    -------
+    tuple of slice or None
+    """
+    import numpy as np
+
+    p = np.asarray(xy, float).reshape(-1, 2)
+    return window_slices(grid, tuple(p.min(axis=0)), tuple(p.max(axis=0)), window_margin_m(p[0], p[-1]))
+
+
+def crop_on_grid(ds, rows: slice, cols: slice, shape: tuple[int, int]):
+    """``ds`` cropped to ``rows``, ``cols`` when it lies on the AOI's grid of ``shape`` (ny, nx)
+    (lazily for a zarr-backed dataset); any other object (a wind map on its own grid, the
+    satellites, None) as it is.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset, xarray.DataArray or other
+        A map.
+    rows, cols : slice
+        The window (:func:`window_slices`).
+    shape : tuple of int
+        The AOI grid's (ny, nx).
+
+    Returns
+    -------
+    Same type as ``ds``.
+    """
+    import xarray as xr
+
+    if (isinstance(ds, (xr.Dataset, xr.DataArray)) and "x" in ds.dims and "y" in ds.dims
+            and (ds.sizes["y"], ds.sizes["x"]) == tuple(shape)):
+        return _crop(ds, rows, cols)
+    return ds
+
+
 def crop_maps(maps, rows: slice, cols: slice):
     """``maps`` (:class:`~skyroute.stages.planning.request.Maps`) with every dataset on the AOI's
     grid cropped to ``rows`` and ``cols`` (lazily: a zarr-backed dataset reads only those chunks).
@@ -195,24 +245,20 @@ def crop_maps(maps, rows: slice, cols: slice):
     -------
     Maps
     """
-    import xarray as xr
 
     from skyroute.stages.gridspec import Grid
 
-    ny, nx = maps.surface.sizes["y"], maps.surface.sizes["x"]
-
-    def on_grid(ds):       # a dataset on the AOI's grid (not the wind's own, coarser one)
-        return (ds is not None and isinstance(ds, (xr.Dataset, xr.DataArray)) and "x" in ds.dims and "y" in ds.dims
-                and ds.sizes["x"] == nx and ds.sizes["y"] == ny)
+    shape = (maps.surface.sizes["y"], maps.surface.sizes["x"])
 
     def crop(ds):
-        return _crop(ds, rows, cols) if on_grid(ds) else ds
+        return crop_on_grid(ds, rows, cols, shape)
 
-    box = window_box(Grid.from_dataarray(maps.surface["terrain"]), rows, cols)
+    wind = crop(maps.wind)
+    if wind is maps.wind:       # not on the AOI's grid: its own (coarser) grid, or no grid
+        wind = crop_wind(maps.wind, window_box(Grid.from_dataarray(maps.surface["terrain"]), rows, cols))
     by_level = None if maps.clearance_by_level is None else {k: crop(v) for k, v in maps.clearance_by_level.items()}
     return replace(maps, surface=crop(maps.surface), clearance=crop(maps.clearance), environment=crop(maps.environment),
-                   wind=crop(maps.wind) if on_grid(maps.wind) else crop_wind(maps.wind, box),
-                   coverage=crop(maps.coverage), clearance_by_level=by_level)
+                   wind=wind, coverage=crop(maps.coverage), clearance_by_level=by_level)
 
 
 def crop_wind(wind, box: tuple[float, float, float, float]):

@@ -87,17 +87,13 @@ def fleet_maps(sc: Scenario, cache_dir: Path | str | None, scheduler: str = "thr
     key = stable_hash("fleet-maps-1", sc.model_dump(mode="json"), str(cache_dir))
     if key in _MAPS:
         return _MAPS[key]
-    from skyroute.stages.planning.window import WINDOW_MIN_CELLS
+    from skyroute.stages.planning.window import WINDOW_MIN_CELLS, on_aoi_grid
 
     names = [s.name for s in stages_for(sc) if s.name in (*MAP_STAGES, "wind_bounds", "plan")]
     res = run_scenario(sc, cache=Cache(cache_dir), targets=names, scheduler=scheduler)
-    ny, nx = res["surface"].sizes["y"], res["surface"].sizes["x"]
-    city = ny * nx >= WINDOW_MIN_CELLS
-
-    def on_grid(ds) -> bool:
-        return "x" in ds.dims and "y" in ds.dims and ds.sizes["x"] == nx and ds.sizes["y"] == ny
-
-    maps: dict[str, Any] = {k: res[k] if city and on_grid(res[k]) else res[k].load()
+    shape = (res["surface"].sizes["y"], res["surface"].sizes["x"])
+    city = shape[0] * shape[1] >= WINDOW_MIN_CELLS
+    maps: dict[str, Any] = {k: res[k] if city and on_aoi_grid(res[k], shape) else res[k].load()
                             for k in names if k in res.datasets}
     maps["_result"] = res
     from skyroute.pipeline.plan_exports import scenario_height_reference

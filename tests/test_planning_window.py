@@ -119,18 +119,24 @@ def test_windowed_plan_is_valid_on_the_whole_aoi_and_near_the_whole_aoi_plan(cit
     assert ds.attrs["planning_window_widenings"] == 0
 
 
-def test_a_window_without_a_path_widens(city, monkeypatch):
-    """A no-fly wall across the first window (but not across the AOI): the margin doubles until
-    the path goes round it; the plan says so and stays valid on the whole AOI."""
+def _walled(city, monkeypatch):
+    """Small windows (60 m margin) and a mission whose first window a no-fly wall crosses (the
+    AOI does not): (start, goal, nofly)."""
     monkeypatch.setattr(window, "WINDOW_MIN_CELLS", 1000)
     monkeypatch.setattr(window, "WINDOW_MARGIN_MIN_M", 60.0)
     s, e = street_point(city, 0.3, 0.45), street_point(city, 0.6, 0.55)
     g = city["grid"]
-    xm = 0.5 * (s[0] + e[0])
     xc = g.x0 + (np.arange(g.nx) + 0.5) * 2.0
     yc = g.y1 - (np.arange(g.ny) + 0.5) * 2.0
-    wall = (np.abs(xc - xm) < 6.0)[None, :] & (np.abs(yc - 0.5 * (s[1] + e[1])) < 200.0)[:, None]
-    nofly = city["nofly"] | wall
+    wall = (np.abs(xc - 0.5 * (s[0] + e[0])) < 6.0)[None, :] & (np.abs(yc - 0.5 * (s[1] + e[1])) < 200.0)[:, None]
+    return s, e, city["nofly"] | wall
+
+
+def test_a_window_without_a_path_widens(city, monkeypatch):
+    """A no-fly wall across the first window (but not across the AOI): the margin doubles until
+    the path goes round it; the plan says so and stays valid on the whole AOI."""
+    s, e, nofly = _walled(city, monkeypatch)
+    g = city["grid"]
     plan = plan_strategic(_maps(city, nofly), _request(s, e))
     assert plan.window_widenings >= 1
     assert any("widened" in w for w in plan.warnings)
@@ -161,15 +167,8 @@ def test_a_fleets_caches_are_kept_per_window(city, monkeypatch):
     STEP I results are keyed by the window: the wall case still widens to a path (the failed first
     window's STEP I result is not served for the wider one), a second plan served from the caches
     is identical to the first, and both stay valid on the whole AOI's maps."""
-    monkeypatch.setattr(window, "WINDOW_MIN_CELLS", 1000)
-    monkeypatch.setattr(window, "WINDOW_MARGIN_MIN_M", 60.0)
-    s, e = street_point(city, 0.3, 0.45), street_point(city, 0.6, 0.55)
+    s, e, nofly = _walled(city, monkeypatch)
     g = city["grid"]
-    xm = 0.5 * (s[0] + e[0])
-    xc = g.x0 + (np.arange(g.nx) + 0.5) * 2.0
-    yc = g.y1 - (np.arange(g.ny) + 0.5) * 2.0
-    wall = (np.abs(xc - xm) < 6.0)[None, :] & (np.abs(yc - 0.5 * (s[1] + e[1])) < 200.0)[:, None]
-    nofly = city["nofly"] | wall
     hc: dict = {}
     ec: dict = {}
     plans = [plan_strategic(_maps(city, nofly), _request(s, e), heuristic_cache=hc, edge_cache=ec) for _ in range(2)]

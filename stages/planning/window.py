@@ -32,8 +32,9 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:     # light at import (the memory estimate of a warm run calls window_slices)
     from skyroute.stages.gridspec import Grid
 
-__all__ = ["MAX_WINDOW_WIDENINGS", "crop_on_grid", "path_window", "plan_cells", "window_box", "WINDOW_MARGIN_FRAC", "WINDOW_MARGIN_MIN_M", "WINDOW_MAX_FRACTION",
-           "WINDOW_MIN_CELLS", "crop_maps", "crop_wind", "planning_windows", "window_margin_m", "window_slices"]
+__all__ = ["MAX_WINDOW_WIDENINGS", "WINDOW_MARGIN_FRAC", "WINDOW_MARGIN_MIN_M", "WINDOW_MAX_FRACTION",
+           "WINDOW_MIN_CELLS", "crop_maps", "crop_on_grid", "crop_wind", "on_aoi_grid", "path_window", "plan_cells",
+           "planning_windows", "window_box", "window_margin_m", "window_slices"]
 
 WINDOW_MIN_CELLS = 16_000_000     # AOIs with fewer grid cells (every shipped scenario) plan on the whole AOI
 WINDOW_MARGIN_MIN_M = 1000.0      # [m] smallest margin around the endpoints' bounding box
@@ -219,12 +220,16 @@ def crop_on_grid(ds, rows: slice, cols: slice, shape: tuple[int, int]):
     -------
     Same type as ``ds``.
     """
+    return _crop(ds, rows, cols) if on_aoi_grid(ds, shape) else ds
+
+
+def on_aoi_grid(ds, shape: tuple[int, int]) -> bool:
+    """True when ``ds`` is an xarray map on the AOI's grid of ``shape`` (ny, nx): dims ``y`` and
+    ``x`` of those sizes (a wind map on its own coarser grid, the satellites or None: False)."""
     import xarray as xr
 
-    if (isinstance(ds, (xr.Dataset, xr.DataArray)) and "x" in ds.dims and "y" in ds.dims
-            and (ds.sizes["y"], ds.sizes["x"]) == tuple(shape)):
-        return _crop(ds, rows, cols)
-    return ds
+    return (isinstance(ds, (xr.Dataset, xr.DataArray)) and "x" in ds.dims and "y" in ds.dims
+            and (ds.sizes["y"], ds.sizes["x"]) == tuple(shape))
 
 
 def crop_maps(maps, rows: slice, cols: slice):

@@ -175,6 +175,88 @@ def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_0
     return out
 
 
+MOSAIC_LENGTHS_KM = (1.0, 5.0, 10.0, 15.0)
+
+
+def mosaic_case(scenario: str, cache_dir: str, length_km: float, threshold: float = 4.0,
+                full_max: int = 3_000_000) -> dict:
+    """One mission of ``length_km`` [km] on the 20 km mosaic city (maps cached in ``cache_dir``):
+    on the line of the scenario's SE -> NW mission, centred on its midpoint (downwind, so
+    energy-feasible at every length), at the scenario's start height AGL, each endpoint moved to
+    the nearest valid state within 200 m.  The planning window the plan stage reads first
+    (:func:`~skyroute.stages.planning.window.planning_windows`, cropped lazily from the cache),
+    then STEP I at D=``threshold`` by multires and by full-resolution A* (stopped after
+    ``full_max`` expansions, a count) on that window, both cold, with the cached wind_bounds
+    tiles attached as the plan stage attaches them."""
+    import dataclasses
+
+    import numpy as np
+    from bench_planner import find_valid
+
+    from skyroute.pipeline.fleet import fleet_maps
+    from skyroute.pipeline.settings.io import load_scenario
+    from skyroute.pipeline.stages_builtin import plan_request
+    from skyroute.stages.gridspec import Grid
+    from skyroute.stages.planning.grid_planner import plan_grid
+    from skyroute.stages.planning.multires import plan_multires
+    from skyroute.stages.planning.problem import build_problem, xyz_from_agl
+    from skyroute.stages.planning.window import crop_wind, planning_windows, window_box
+
+    sc = load_scenario(scenario)
+    req = plan_request(sc)
+    maps = fleet_maps(sc, cache_dir)
+    grid = Grid.from_dataarray(maps["surface"]["terrain"])
+    a, b = np.asarray(req.start_xy, float), np.asarray(req.goal_xy, float)
+    mid, u = 0.5 * (a + b), (b - a) / np.linalg.norm(b - a)
+    s_xy, g_xy = mid - 500.0 * length_km * u, mid + 500.0 * length_km * u
+    rows, cols = planning_windows(grid, tuple(s_xy), tuple(g_xy))[0] or (slice(0, grid.ny), slice(0, grid.nx))
+    box = window_box(grid, rows, cols)
+    t = time.perf_counter()
+    win = {k: maps[k].isel(y=rows, x=cols) for k in ("surface", "clearance", "environment")}
+    surf = win["surface"][["terrain", "surface"]].load()
+    cov = maps["coverage"]["coverage_floor"].sel(threshold=threshold).isel(y=rows, x=cols).load()
+    clear, nofly = win["clearance"]["min_altitude_m"].load(), win["clearance"]["nofly"].load()
+    risk, land = win["environment"]["risk_cost"].load(), win["environment"]["landing_cost"].load()
+    wind = crop_wind(maps["wind"], box).load()
+    agl = float(req.start_agl_m)
+    p0 = xyz_from_agl(surf, *s_xy, agl)
+    pr = build_problem(surf, clear, cov, risk, land, wind, req.vehicle, req.weights, p0, p0, req.min_agl_m,
+                       req.max_agl_m, threshold, nofly=nofly, check_endpoints=False)
+    s_xy, g_xy = find_valid(pr, surf, *s_xy, agl), find_valid(pr, surf, *g_xy, agl)
+    pr = dataclasses.replace(pr, start_xyz=xyz_from_agl(surf, *s_xy, agl), goal_xyz=xyz_from_agl(surf, *g_xy, agl))
+    maps_s = time.perf_counter() - t
+    tiles = maps["wind_bounds"].load()
+
+    def cold():
+        _cold(pr)
+        object.__setattr__(pr, "_ratio_tiles", tiles)
+
+    out = {"case": f"mosaic 20 km, {length_km:g} km, D={threshold:g}", "side_km": grid.nx * grid.resolution_m / 1000,
+           "aoi_cells": grid.nx * grid.ny, "cells": pr.grid.nx * pr.grid.ny, "window_xy_m": [round(v) for v in box],
+           "mission_km": math.dist(s_xy, g_xy) / 1000.0, "window_read_s": maps_s, "load_average_1min": os.getloadavg()[0]}
+    cold()
+    t, c = time.perf_counter(), time.process_time()
+    mr = plan_multires(pr)
+    out.update(multires_s=time.perf_counter() - t, multires_cpu_s=time.process_time() - c,
+               multires_expanded=mr["expanded"], widenings=mr["multires"]["widenings"],
+               corridor_fraction=mr["multires"]["corridor_fraction"])
+    if mr["waypoints"] is not None:
+        pc = pr.path_costs(mr["waypoints"])
+        out.update(multires_f=pc["f"], multires_valid=bool(pc["valid"]))
+    out["rss_multires_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if full_max > 0:
+        cold()
+        t, c = time.perf_counter(), time.process_time()
+        fr = plan_grid(pr, max_expansions=full_max)
+        out.update(full_s=time.perf_counter() - t, full_cpu_s=time.process_time() - c, full_expanded=fr["expanded"])
+        if fr["waypoints"] is not None:
+            out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
+            out["ratio"] = out.get("multires_f", math.nan) / out["full_f"]
+        out["rss_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out["load_average_1min"] = max(out["load_average_1min"], os.getloadavg()[0])
+    return out
+
+
 MAPS_STAGES = ("surface", "environment", "wind", "clearance", "satellites", "coverage",   # maps + coverage
                "wind_bounds")                                  # + the A* energy bound per wind tile
 
@@ -330,6 +412,10 @@ def main() -> None:
                          "(time, peak RSS), then plan its 15 km mission")
     ap.add_argument("--mosaic-side-km", type=float, default=20.0, help=argparse.SUPPRESS)
     ap.add_argument("--no-plan", action="store_true", help="--mosaic-20km: maps and coverage only")
+    ap.add_argument("--mosaic-missions", metavar="OUTDIR",
+                    help="missions of 1, 5, 10 and 15 km on the mosaic city of OUTDIR (--mosaic-20km built its maps): "
+                         "multires and full-resolution A* on each planning window, each mission in its own process")
+    ap.add_argument("--mosaic-case", nargs=2, help=argparse.SUPPRESS)
     ap.add_argument("--stage-child", nargs=3, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.stage_child:
@@ -337,6 +423,27 @@ def main() -> None:
         return
     if a.mosaic_20km:
         mosaic_20km(a.mosaic_20km, plan=not a.no_plan, side_km=a.mosaic_side_km)
+        return
+    if a.mosaic_case:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        print(json.dumps(mosaic_case(str(Path(a.mosaic_case[0]) / "mosaic-city.yaml"), str(Path(a.mosaic_case[0]) / "cache"),
+                                     float(a.mosaic_case[1]), full_max=a.full_max_expansions)))
+        return
+    if a.mosaic_missions:
+        rows = []
+        for length in MOSAIC_LENGTHS_KM:
+            r = subprocess.run([sys.executable, __file__, "--mosaic-case", a.mosaic_missions, str(length),
+                                "--full-max-expansions", str(a.full_max_expansions)],
+                               capture_output=True, text=True, check=False,
+                               env={**os.environ, "SKYROUTE_MAX_MEMORY": os.environ.get("SKYROUTE_MAX_MEMORY", "64G")})
+            if r.returncode != 0:
+                print(f"mosaic mission {length} km failed:\n{r.stderr[-2000:]}", file=sys.stderr)
+                continue
+            rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
+            print(json.dumps(rows[-1]), file=sys.stderr)
+        if a.json:
+            Path(a.json).write_text(json.dumps(rows, indent=1))
+        _table(rows)
         return
     if a.helsinki_6km:
         sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -361,6 +468,17 @@ def main() -> None:
                 print(json.dumps(rows[-1]), file=sys.stderr)
         if a.json:
             Path(a.json).write_text(json.dumps(rows, indent=1))
+    _table(rows)
+    if len(rows) >= 2:
+        print(f"\nlog-log slope of multires plan time against grid cells: {loglog_slope(rows, 'multires_s'):.2f} "
+              f"(wall), {loglog_slope(rows, 'multires_cpu_s'):.2f} (CPU seconds)")
+    if a.figure:
+        figure(rows, a.figure, a.figure_time)
+        print(f"figure: {a.figure}")
+
+
+def _table(rows: list[dict]) -> None:
+    """The markdown table of the rows (cells: the planned grid's, the window's on the mosaic city)."""
     print("| AOI side [km] | cells [M] | mission [km] | multires plan [s] | expansions | widenings | corridor [%] "
           "| full A* [s] | full expansions | f multires / f full | peak RSS [MiB] |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
@@ -371,12 +489,6 @@ def main() -> None:
         print(f"| {r['side_km']:g} | {r['cells'] / 1e6:.1f} | {r['mission_km']:.2f} | {r['multires_s']:.1f} | "
               f"{r['multires_expanded']:,} | {r['widenings']} | {100 * r['corridor_fraction']:.1f} | {full} | {ratio} | "
               f"{r.get('rss_MiB', r['rss_multires_MiB']):.0f} |")
-    if len(rows) >= 2:
-        print(f"\nlog-log slope of multires plan time against grid cells: {loglog_slope(rows, 'multires_s'):.2f} "
-              f"(wall), {loglog_slope(rows, 'multires_cpu_s'):.2f} (CPU seconds)")
-    if a.figure:
-        figure(rows, a.figure, a.figure_time)
-        print(f"figure: {a.figure}")
 
 
 def loglog_slope(rows: list[dict], key: str) -> float:

@@ -14,11 +14,13 @@ from skyroute.stages.figures import add_map_furniture, image_extent
 DISPLAY_MAX_CELLS = 2000
 
 
-def display_view(obj, max_cells: int = DISPLAY_MAX_CELLS):
+def display_view(obj, max_cells: int | None = None):
     """``obj`` (a Dataset or DataArray on (y, x), numpy or dask) as a figure shows it: unchanged up to
-    ``max_cells`` cells a side, else the max over k x k blocks (``coarsen``, lazy on dask, the last
-    partial block dropped) so that a city-scale map is never drawn (nor loaded) whole; returns
-    ``(view, k)``."""
+    ``max_cells`` (default :data:`DISPLAY_MAX_CELLS`) cells a side, else the max over k x k blocks
+    (``coarsen``, lazy on dask, the last partial block dropped) so that a city-scale map is never
+    drawn (nor loaded) whole; returns ``(view, k)``."""
+    if max_cells is None:
+        max_cells = DISPLAY_MAX_CELLS
     if "y" not in obj.dims or "x" not in obj.dims:
         return obj, 1
     k = int(np.ceil(max(obj.sizes["y"], obj.sizes["x"]) / max_cells))

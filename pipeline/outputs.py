@@ -24,14 +24,19 @@ def plot_surface(result: RunResult, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from skyroute.pipeline.maps import display_view
+    from skyroute.stages.gridspec import Grid
+
     sc = result.scenario
-    ds = result["surface"]
     g = sc.grid
+    ds, k = display_view(result["surface"][["surface", "terrain"]])   # a city: its k x k block maxima
+    ds = ds.load()
+    view = g if k == 1 else Grid.from_dataarray(ds["surface"])
     z = np.asarray(ds["surface"].values, dtype=float)
     terr = np.asarray(ds["terrain"].values, dtype=float)
     extent = image_extent(ds["surface"])
     fig, ax = plt.subplots(figsize=(7.5, 7.5 * g.ny / max(g.nx, 1) * 0.9 + 0.8), dpi=110)
-    dy, dx = np.gradient(z, g.resolution_m)
+    dy, dx = np.gradient(z, view.resolution_m)
     shade = 0.5 + 0.5 * (-dx - dy) / np.sqrt(2 + dx**2 + dy**2 + 1e-9)
     im = ax.imshow(z, extent=extent, cmap="terrain" if np.ptp(terr) > 20 else "viridis", interpolation="nearest")
     ax.imshow(shade, extent=extent, cmap="gray", alpha=0.25, interpolation="nearest")
@@ -68,25 +73,18 @@ def write_plan_outputs(result: RunResult, out_dir: Path, map_page: bool = True) 
 
     ds = result["plan"].load()
     chosen, cands = plan_from_dataset(ds)
-    surface = result["surface"].load()
-    floor = None
-    if "clearance" in result.datasets:
-        floor = result["clearance"]["min_altitude_m"].values
-    if chosen is not None and "coverage" in result.datasets and chosen.dop_threshold is not None:
-        import numpy as np
-
-        cov = result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold).values
-        floor = np.fmax(floor, cov) if floor is not None else cov
     if chosen is not None:
         problems = revalidate(result, chosen)
         if problems:
             raise PlanningError("refusing to write a plan that fails validation: " + "; ".join(problems))
-    cost = result["environment"]["risk_cost"].values if "environment" in result.datasets else None
-    files = write_plan(chosen, cands, result.scenario.grid, Path(out_dir), ds.attrs["start_time_utc"],
-                       ds.attrs.get("vertical_datum", ""), surface_m=surface["surface"].values,
-                       terrain_m=surface["terrain"].values, floor_m=floor, cost_m=cost,
-                       cost_label="ground risk cost (normalised, 0-1) [-]", bubble=_bubble_params(result.scenario),
-                       provenance=plan_provenance_of(ds))
+    grid, surface, terrain, floor, cost, profile = result.scenario.grid, None, None, None, None, None
+    if chosen is not None:         # (no flyable plan: candidates.csv alone, no figure)
+        grid, surface, terrain, floor, cost = plan_figure_rasters(result, chosen)
+        profile = plan_profile(result, chosen)
+    files = write_plan(chosen, cands, grid, Path(out_dir), ds.attrs["start_time_utc"],
+                       ds.attrs.get("vertical_datum", ""), surface_m=surface, terrain_m=terrain, floor_m=floor,
+                       cost_m=cost, cost_label="ground risk cost (normalised, 0-1) [-]",
+                       bubble=_bubble_params(result.scenario), provenance=plan_provenance_of(ds), profile=profile)
     if chosen is not None:
         from skyroute.pipeline.plan_exports import write_pilot_exports
 
@@ -96,6 +94,74 @@ def write_plan_outputs(result: RunResult, out_dir: Path, map_page: bool = True) 
 
         files["plan.html"] = write_plan_map(result, Path(out_dir) / "plan.html", chosen, cands)
     return files
+
+
+def _path_crop(result: RunResult, candidates) -> tuple[Any, Any]:
+    """(grid, crop) for reading ``result``'s maps along the paths of ``candidates``: on a
+    city-scale AOI (:func:`~skyroute.stages.planning.window.path_window`) the window around the
+    paths and a function cropping a dataset on the AOI's grid to it (lazily: only its chunks are
+    read), else the scenario's grid and the identity.  Every point of the paths lies in the window,
+    so what is read at them is what the whole maps hold there."""
+    from skyroute.stages.gridspec import Grid
+    from skyroute.stages.planning.window import crop_on_grid, path_window
+
+    grid = result.scenario.grid
+    xy = [np.asarray(c.xyz_m, float)[:, :2] for c in candidates if c is not None and len(c.xyz_m)]
+    window = path_window(grid, np.concatenate(xy)) if xy else None
+    if window is None:
+        return grid, lambda ds: ds
+    rows, cols = window
+
+    def crop(ds):
+        return crop_on_grid(ds, rows, cols, (grid.ny, grid.nx))
+    return Grid.from_dataarray(crop(result["surface"]["terrain"])), crop
+
+
+def plan_figure_rasters(result: RunResult, chosen) -> tuple[Any, Any, Any, Any, Any]:
+    """(grid, surface, terrain, floor, cost) [m, m, m, -] the plan's top view is drawn over: the
+    maps as they are up to :data:`~skyroute.pipeline.maps.DISPLAY_MAX_CELLS` cells a side, else
+    (a city) their k x k block maxima on the coarser grid of that view (never the whole AOI in
+    memory); floor: the clearance floor and, for ``chosen``'s level, the coverage floor (their
+    maximum)."""
+    from skyroute.pipeline.maps import display_view
+    from skyroute.stages.gridspec import Grid
+
+    def view(da):
+        return display_view(da)[0].values
+
+    surf, k = display_view(result["surface"][["surface", "terrain"]])
+    surf = surf.load()
+    grid = result.scenario.grid if k == 1 else Grid.from_dataarray(surf["terrain"])
+    floor = view(result["clearance"]["min_altitude_m"]) if "clearance" in result.datasets else None
+    if chosen is not None and "coverage" in result.datasets and chosen.dop_threshold is not None:
+        cov = view(result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold))
+        floor = np.fmax(floor, cov) if floor is not None else cov
+    cost = view(result["environment"]["risk_cost"]) if "environment" in result.datasets else None
+    return grid, surf["surface"].values, surf["terrain"].values, floor, cost
+
+
+def plan_profile(result: RunResult, chosen) -> dict[str, np.ndarray]:
+    """The maps at the cells of ``chosen``'s points, read at full resolution (only the chunks
+    those cells lie in): ``surface``, ``terrain`` and ``floor`` (clearance floor and the
+    coverage floor of its level, their maximum) [m], one value per point, for the profile figure."""
+    import xarray as xr
+
+    grid = result.scenario.grid
+    p = np.asarray(chosen.xyz_m, float)
+    row, col = grid.cell_of(p[:, 0], p[:, 1])
+    at = {"y": xr.DataArray(np.asarray(row), dims="k"), "x": xr.DataArray(np.asarray(col), dims="k")}
+
+    def sample(da):
+        return np.asarray(da.isel(at).values, float)
+
+    out = {"surface": sample(result["surface"]["surface"]), "terrain": sample(result["surface"]["terrain"])}
+    floor = sample(result["clearance"]["min_altitude_m"]) if "clearance" in result.datasets else None
+    if "coverage" in result.datasets and chosen.dop_threshold is not None:
+        cov = sample(result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold))
+        floor = np.fmax(floor, cov) if floor is not None else cov
+    if floor is not None:
+        out["floor"] = floor
+    return out
 
 
 def _bubble_params(sc) -> tuple[float, float, float]:
@@ -114,22 +180,23 @@ def revalidate(result: RunResult, chosen) -> list[str]:
     from skyroute.stages.wind import sample_wind
 
     sc = result.scenario
-    surface = result["surface"].load()
-    clear = result["clearance"].load()
+    grid, crop = _path_crop(result, [chosen])
+    surface = crop(result["surface"]).load()
+    clear = crop(result["clearance"]).load()
     gnss = None
     if "coverage" in result.datasets and chosen.dop_threshold is not None:
-        gnss = result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold).values
+        gnss = crop(result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold)).values
     wind = None
     if "wind" in result.datasets:
         wmap = result["wind"].load()
         terrain = surface["terrain"]
 
         def wind(p):  # noqa: E306 - heights above ground for the wind map
-            g = sc.grid
-            agl = p[:, 2] - terrain.values[g.cell_of(p[:, 0], p[:, 1])]
+            agl = p[:, 2] - terrain.values[grid.cell_of(p[:, 0], p[:, 1])]
             return np.column_stack(sample_wind(wmap, p[:, 0], p[:, 1], agl))
-    intr = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else ()
-    return validate_plan(chosen, grid=sc.grid, terrain_m=surface["terrain"].values, vehicle=sc.vehicle,
+    intr = (intruders_for([i.model_dump() for i in sc.traffic.intruders], result["surface"])
+            if sc.traffic.intruders else ())
+    return validate_plan(chosen, grid=grid, terrain_m=surface["terrain"].values, vehicle=sc.vehicle,
                          terrain_min_m=surface["terrain_min"].values if "terrain_min" in surface else None,
                          clearance_floor_m=clear["obstacle_floor_m"].values, gnss_floor_m=gnss,
                          min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,

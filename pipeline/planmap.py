@@ -212,20 +212,27 @@ def plan_map_html(*, title: str, grid, chosen, candidates, intruders=(), nofly=N
 def write_plan_map(result, path: Path, chosen, candidates) -> Path:
     """``plan.html`` of a run result (:class:`~skyroute.pipeline.graph.RunResult` with the plan
     stage): the candidates, the scenario's intruders, the no-fly cells and the coverage floors."""
+    from skyroute.pipeline.maps import display_view
+    from skyroute.stages.gridspec import Grid
+
     sc = result.scenario
     surface = result["surface"]
-    terrain = np.asarray(surface["terrain"].values, float)
+    # the overlays are a few hundred pixels a side: a city's maps are read as their k x k block
+    # maxima (pipeline.maps.display_view), never whole
+    terrain, k = display_view(surface["terrain"])
+    grid = sc.grid if k == 1 else Grid.from_dataarray(terrain)
+    terrain = np.asarray(terrain.values, float)
     intr = ()
     if sc.traffic.intruders:
         from skyroute.stages.traffic import intruders_for
 
-        intr = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface.load())
-    nofly = result["clearance"]["nofly"].values if "clearance" in result.datasets else None
+        intr = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface)
+    nofly = display_view(result["clearance"]["nofly"])[0].values if "clearance" in result.datasets else None
     coverage = None
     if "coverage" in result.datasets:
         cf = result["coverage"]["coverage_floor"]
-        coverage = {float(t): cf.sel(threshold=t).values for t in cf["threshold"].values}
-    html = plan_map_html(title=f"skyroute plan map: {sc.name}", grid=sc.grid, chosen=chosen, candidates=candidates,
+        coverage = {float(t): display_view(cf.sel(threshold=t))[0].values for t in cf["threshold"].values}
+    html = plan_map_html(title=f"skyroute plan map: {sc.name}", grid=grid, chosen=chosen, candidates=candidates,
                          intruders=intr, nofly=nofly, coverage=coverage, terrain_m=terrain,
                          max_agl_m=sc.constraints.max_altitude_agl_m)
     path = Path(path)

@@ -446,3 +446,68 @@ def test_fly_on_a_city_reads_the_window_of_the_plan(cache, tmp_path, monkeypatch
     assert ((r >= rows_w.start) & (r < rows_w.stop) & (c >= cols_w.start) & (c < cols_w.stop)).all()
     floor = np.asarray(maps["clearance"]["min_altitude_m"].values, float)[r, c]
     assert np.all(p[:, 2] >= floor - 1e-6), float(np.min(p[:, 2] - floor))
+
+
+def test_plan_outputs_on_a_city_read_the_window_and_block_maxima(cache, tmp_path, monkeypatch):
+    """On a city-scale AOI the plan's outputs never hold the whole maps (the 20 km city's
+    `skyroute plan` peaked at 17.5 GB in them): the revalidation reads the window around the
+    paths (forced here on helsinki-medical), the top view and the map page block maxima
+    (DISPLAY_MAX_CELLS forced to 100), the profile the full-resolution cells under the path.
+    Checked against the whole AOI's maps: the window is a real crop, the profile equals the
+    whole rasters at the path's cells, and a path pushed 60 m down into the buildings still
+    fails the windowed revalidation."""
+    import dataclasses
+
+    from click.testing import CliRunner
+
+    from skyroute.pipeline import maps as maps_mod
+    from skyroute.pipeline import outputs as out_mod
+    from skyroute.pipeline.cli import main
+    from skyroute.stages.planning import validate, window
+
+    real, seen = window.path_window, []
+
+    def forced(grid, xy):
+        with monkeypatch.context() as m:
+            m.setattr(window, "WINDOW_MIN_CELLS", 1000)
+            m.setattr(window, "WINDOW_MARGIN_MIN_M", 150.0)
+            seen.append(real(grid, xy))
+        return seen[-1]
+
+    monkeypatch.setattr(window, "path_window", forced)
+    monkeypatch.setattr(maps_mod, "DISPLAY_MAX_CELLS", 100)
+    grids, real_validate = [], validate.validate_plan
+
+    def spy(chosen, **kw):
+        grids.append(kw["grid"])
+        return real_validate(chosen, **kw)
+
+    monkeypatch.setattr(validate, "validate_plan", spy)
+    rasters, real_rasters = [], out_mod.plan_figure_rasters
+    monkeypatch.setattr(out_mod, "plan_figure_rasters", lambda *a: rasters.append(real_rasters(*a)) or rasters[-1])
+    out = tmp_path / "plan"
+    res = CliRunner().invoke(main, ["plan", "helsinki-medical", "--out", str(out), "--cache-dir", str(cache.root),
+                                    "-q"])
+    assert res.exit_code == 0, res.output
+    for f in ("top_view.png", "profile.png", "plan.html", "plan.geojson"):
+        assert (out / f).stat().st_size > 0
+    result = run_scenario(load_scenario("helsinki-medical"), cache=cache)
+    g = result.scenario.grid
+    (rows, cols), = seen[:1]
+    assert grids and grids[0].nx == cols.stop - cols.start and grids[0].ny == rows.stop - rows.start
+    assert grids[0].nx * grids[0].ny < 0.9 * g.nx * g.ny
+    top_grid, surf_v, _, floor_v, cost_v = rasters[0]
+    k = math.ceil(max(g.nx, g.ny) / 100)
+    assert surf_v.shape == floor_v.shape == cost_v.shape == (g.ny // k, g.nx // k) == (top_grid.ny, top_grid.nx)
+    whole = np.asarray(result["surface"]["surface"].values)
+    assert surf_v.max() == whole[: k * (g.ny // k), : k * (g.nx // k)].max()      # block maxima, not a sample
+    chosen, _ = plan_from_dataset(result["plan"].load())
+    prof = out_mod.plan_profile(result, chosen)
+    r, c = g.cell_of(chosen.xyz_m[:, 0], chosen.xyz_m[:, 1])
+    floor = np.fmax(result["clearance"]["min_altitude_m"].values[r, c],
+                    result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold).values[r, c])
+    np.testing.assert_array_equal(prof["surface"], whole[r, c])
+    np.testing.assert_array_equal(prof["floor"], floor)
+    assert revalidate(result, chosen) == []
+    low = dataclasses.replace(chosen, xyz_m=chosen.xyz_m - [0.0, 0.0, 60.0])
+    assert revalidate(result, low) != []

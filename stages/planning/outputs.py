@@ -131,7 +131,7 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
                vertical_datum: str, *, surface_m=None, terrain_m=None, floor_m=None, cost_m=None,
                cost_label: str = "cost [-]",
                figures: bool = True, bubble: tuple[float, float, float] | None = None,
-               provenance: dict | None = None) -> dict[str, Path]:
+               provenance: dict | None = None, profile: dict | None = None) -> dict[str, Path]:
     """Write ``plan.geojson``, ``waypoints.csv``, ``candidates.csv`` and the figures to ``out_dir``.
     ``provenance``: how the plan was made (the plan stage's ``provenance`` attribute): in
     plan.geojson's properties and as the :data:`PROVENANCE_COLUMNS` of candidates.csv.
@@ -144,6 +144,9 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
     coverage floor), ``cost_m`` (dimensionless cost map for the top view).  ``bubble``: (k,
     surface uncertainty [m], r_p [m]) for ``bubble.png``, the safety bubble
     ``max(r_p, k sigma_p + surface uncertainty)`` along the chosen trajectory (seed 003).
+    ``profile``: optional ``{"surface", "terrain", "floor"}`` arrays [m], one value per point of
+    ``candidate``, drawn in the profile instead of the rasters' cells under its points (a city's
+    figures are drawn over block maxima: the profile keeps the full-resolution values).
     Returns the paths.
     """
     out = Path(out_dir)
@@ -185,7 +188,7 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
     write_csv(files["waypoints.csv"], WAYPOINT_COLUMNS, wrows)
     if figures:
         files.update(_figures(candidate, candidates, grid, out, vertical_datum, surface_m, terrain_m, floor_m,
-                              cost_m, cost_label))
+                              cost_m, cost_label, profile))
         if bubble is not None:
             files["bubble.png"] = _bubble_figure(candidate, *bubble, out / "bubble.png")
     return files
@@ -197,7 +200,7 @@ def raster_values(a):
 
 
 def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_m,
-             cost_label: str = "cost [-]") -> dict[str, Path]:
+             cost_label: str = "cost [-]", profile: dict | None = None) -> dict[str, Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -239,16 +242,19 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
     # vertical profile
     dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1))])
     fig, ax = plt.subplots(figsize=(9, 4), dpi=100)
-    if grid is not None:
+    if profile is None and grid is not None:
         row, col = grid.cell_of(p[:, 0], p[:, 1])
-        for ras, style, lab in ((raster_values(surface_m), dict(color="0.5", alpha=0.5), "surface (buildings)"),
-                                (raster_values(terrain_m), dict(color="saddlebrown", alpha=0.6), "terrain")):
-            if ras is not None:
-                ax.fill_between(dist, np.nanmin(ras) - 5, ras[row, col], step="mid", label=lab, **style)
-        fl = raster_values(floor_m)
-        if fl is not None:
-            ax.plot(dist, np.where(np.isfinite(fl[row, col]), fl[row, col], np.nan), "b--", lw=1,
-                    label="admissible floor")
+        profile = {k: raster_values(r)[row, col] for k, r in (("surface", surface_m), ("terrain", terrain_m),
+                                                               ("floor", floor_m)) if r is not None}
+    if profile is not None:
+        bottom = [float(np.nanmin(profile[k])) for k in ("surface", "terrain") if k in profile]
+        for k, style, lab in (("surface", dict(color="0.5", alpha=0.5), "surface (buildings)"),
+                              ("terrain", dict(color="saddlebrown", alpha=0.6), "terrain")):
+            if k in profile:
+                ax.fill_between(dist, min(bottom) - 5, profile[k], step="mid", label=lab, **style)
+        if "floor" in profile:
+            fl = np.asarray(profile["floor"], float)
+            ax.plot(dist, np.where(np.isfinite(fl), fl, np.nan), "b--", lw=1, label="admissible floor")
     ax.plot(dist, p[:, 2], "k-", lw=2, label=f"trajectory {cand.label}")
     ax.set_xlabel("horizontal distance along the path [m]")
     ax.set_ylabel("altitude [m]\n" + "\n".join(textwrap.wrap(datum, 32)[:2]), fontsize=8)

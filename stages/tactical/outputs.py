@@ -459,6 +459,10 @@ def _window(z) -> str:
     return f"t {z.start_s:.0f}-{z.end_s:.0f} s"
 
 
+CITY_VIEW_M = 4000.0   # a top view wider than this [m] draws faint, unlabelled floor contours
+MANY_SITES = 150       # more landing sites than this in the view: small marks
+
+
 def _window_of(grid, box, max_cells: int = 1200):
     """The raster window of ``grid`` covering ``box`` (xmin, xmax, ymin, ymax) [m], strided to
     at most ``max_cells`` per side (figures only): ``(slices, imshow extent, x, y)``."""
@@ -563,9 +567,13 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
                 ax.contourf(gxs, gys, (~fin).astype(float), levels=[0.5, 1.5], colors="none",
                             hatches=["xxx"], zorder=2)
             if fin.any() and np.nanmax(np.where(fin, fl, np.nan)) > np.nanmin(np.where(fin, fl, np.nan)):
+                # a city-wide view (more than CITY_VIEW_M a side): thin faint contours, unlabelled,
+                # so that the flight stays readable over thousands of buildings
+                wide = max(x1 - x0, y1 - y0) > CITY_VIEW_M
                 cs = ax.contour(gxs, gys, np.where(fin, fl, np.nan), levels=6, colors="steelblue",
-                                linewidths=0.7, zorder=3)
-                ax.clabel(cs, fontsize=6, fmt="%.0f m")
+                                linewidths=0.25 if wide else 0.7, alpha=0.45 if wide else 1.0, zorder=3)
+                if not wide:
+                    ax.clabel(cs, fontsize=6, fmt="%.0f m")
             dop = f" (DOP < {log.dop_threshold:g})" if log.dop_threshold is not None else ""
             ax.plot([], [], color="steelblue", lw=0.7, label=f"coverage floor{dop} [m] contours")
             if (~fin).any():
@@ -621,7 +629,14 @@ def _figures(log: FlightLog, out: Path) -> dict[str, Path]:
                         fontweight="bold", zorder=8, annotation_clip=True)
     if log.landing_xy is not None and np.size(log.landing_xy):
         lx = np.asarray(log.landing_xy, float).reshape(-1, 2)
-        ax.plot(lx[:, 0], lx[:, 1], "^", color="darkorange", mec="k", ms=7, ls="none", label="landing sites", zorder=6)
+        n = int(np.count_nonzero((lx[:, 0] >= x0) & (lx[:, 0] <= x1) & (lx[:, 1] >= y0) & (lx[:, 1] <= y1)))
+        if n <= MANY_SITES:
+            ax.plot(lx[:, 0], lx[:, 1], "^", color="darkorange", mec="k", ms=7, ls="none", label="landing sites",
+                    zorder=6)
+        else:       # thousands in a city-wide view: small marks under the flight, not a carpet over it
+            ax.plot(lx[:, 0], lx[:, 1], "^", color="darkorange", mec="none", alpha=0.6,
+                    ms=max(1.5, 7.0 * math.sqrt(MANY_SITES / n)), ls="none", label=f"landing sites ({n} in view)",
+                    zorder=3)
     start = planned[0] if planned.shape[0] else p[0]
     ax.plot(start[0], start[1], "go", ms=9, label="start", zorder=8)
     if planned.shape[0]:

@@ -7,6 +7,8 @@ varying 3-D wind map; procedural, not real data), 2 m cells, DJI M300, weights (
     python benchmarks/bench_city_scale.py --sides 2 6 12        # + 12 km (about 4 GB per case)
     python benchmarks/bench_city_scale.py --full-max-expansions 0   # multires only
     python benchmarks/bench_city_scale.py --helsinki-6km CACHE_DIR  # real maps: issue 23's 6 km AOI
+    python benchmarks/bench_city_scale.py --mosaic-20km OUTDIR     # the 20 km mosaic city: map stages
+    python benchmarks/bench_city_scale.py --mosaic-missions OUTDIR # its 1-15 km missions, multires vs full
     python benchmarks/bench_city_scale.py --sides 2 6 12 --json rows.json --figure city_scale.png
     python benchmarks/bench_city_scale.py --from-json rows.json --figure city_scale.png  # redraw only
 

@@ -432,17 +432,10 @@ def main() -> None:
                                      float(a.mosaic_case[1]), full_max=a.full_max_expansions)))
         return
     if a.mosaic_missions:
-        rows = []
-        for length in MOSAIC_LENGTHS_KM:
-            r = subprocess.run([sys.executable, __file__, "--mosaic-case", a.mosaic_missions, str(length),
-                                "--full-max-expansions", str(a.full_max_expansions)],
-                               capture_output=True, text=True, check=False,
-                               env={**os.environ, "SKYROUTE_MAX_MEMORY": os.environ.get("SKYROUTE_MAX_MEMORY", "64G")})
-            if r.returncode != 0:
-                print(f"mosaic mission {length} km failed:\n{r.stderr[-2000:]}", file=sys.stderr)
-                continue
-            rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
-            print(json.dumps(rows[-1]), file=sys.stderr)
+        env = {**os.environ, "SKYROUTE_MAX_MEMORY": os.environ.get("SKYROUTE_MAX_MEMORY", "64G")}
+        rows = [r for length in MOSAIC_LENGTHS_KM
+                if (r := _child_row(["--mosaic-case", a.mosaic_missions, str(length)], a.full_max_expansions,
+                                    f"mosaic mission {length} km", env))]
         if a.json:
             Path(a.json).write_text(json.dumps(rows, indent=1))
         _table(rows)
@@ -457,17 +450,9 @@ def main() -> None:
     if a.from_json:
         rows = json.loads(Path(a.from_json).read_text())
     else:
-        rows = []
-        for side in a.sides:
-            for length in CASES.get(int(side), (min(5.0, side * 0.7),)):
-                r = subprocess.run([sys.executable, __file__, "--case", str(side), str(length),
-                                    "--full-max-expansions", str(a.full_max_expansions)],
-                                   capture_output=True, text=True, check=False)
-                if r.returncode != 0:
-                    print(f"side {side} km, mission {length} km failed:\n{r.stderr[-2000:]}", file=sys.stderr)
-                    continue
-                rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
-                print(json.dumps(rows[-1]), file=sys.stderr)
+        rows = [r for side in a.sides for length in CASES.get(int(side), (min(5.0, side * 0.7),))
+                if (r := _child_row(["--case", str(side), str(length)], a.full_max_expansions,
+                                    f"side {side} km, mission {length} km"))]
         if a.json:
             Path(a.json).write_text(json.dumps(rows, indent=1))
     _table(rows)
@@ -477,6 +462,19 @@ def main() -> None:
     if a.figure:
         figure(rows, a.figure, a.figure_time)
         print(f"figure: {a.figure}")
+
+
+def _child_row(args: list[str], full_max: int, what: str, env: dict | None = None) -> dict | None:
+    """One case of this script in its own process (its peak RSS is the case's): the JSON row it
+    prints last, or None (the failure reported on stderr)."""
+    r = subprocess.run([sys.executable, __file__, *args, "--full-max-expansions", str(full_max)],
+                       capture_output=True, text=True, check=False, env=env)
+    if r.returncode != 0:
+        print(f"{what} failed:\n{r.stderr[-2000:]}", file=sys.stderr)
+        return None
+    row = json.loads(r.stdout.strip().splitlines()[-1])
+    print(json.dumps(row), file=sys.stderr)
+    return row
 
 
 def _table(rows: list[dict]) -> None:

@@ -66,7 +66,7 @@ def tactical_events(sc: Scenario, surface: xr.Dataset) -> list:
     from skyroute.stages.traffic import intruders_for
 
     g = Grid.from_dataarray(surface["terrain"])
-    terrain = np.asarray(surface["terrain"].values, float)
+    terrain = surface["terrain"]      # (lazy on a city: only each zone's box is read)
     out = []
     for n, ev in enumerate(sc.events):
         ident = getattr(ev, "id", None) or f"{ev.kind}-{n}"
@@ -81,7 +81,7 @@ def tactical_events(sc: Scenario, surface: xr.Dataset) -> list:
             poly = np.asarray(ev.polygon_xy(sc), float)
             r, c = g.cell_of(poly[:, 0], poly[:, 1])
             r0, r1, c0, c1 = r.min(), r.max(), c.min(), c.max()
-            t_box = terrain[r0:r1 + 1, c0:c1 + 1]
+            t_box = np.asarray(terrain[r0:r1 + 1, c0:c1 + 1].values, float)
             start = float(ev.start_s if ev.start_s is not None else ev.t_s)
             end = float(ev.end_s) if ev.end_s is not None else math.inf
             zone = NoFlyZone(ident, poly, float(np.min(t_box) + ev.min_agl_m), float(np.max(t_box) + ev.max_agl_m),

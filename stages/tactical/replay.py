@@ -199,6 +199,20 @@ class World:
     satellites: xr.Dataset | None
     los_cache: dict = field(default_factory=dict)   # visibility heights per sky epoch (STEP III)
     problems: dict = field(default_factory=dict)    # planning problems built on these maps
+    # the float64 rasters build_problem derives from these maps, shared by all those problems
+    # (``build_problem(shared=)``: the same problems; a city's window holds 46 M cells, 370 MB a raster)
+    derived: dict = field(default_factory=dict)
+
+    def layer(self, dataset: str, name: str) -> xr.DataArray | None:
+        """``getattr(self, dataset)[name]`` as one object per world (``build_problem(shared=)``
+        keys on the objects it is given), None when the dataset is absent."""
+        ds = getattr(self, dataset)
+        if ds is None:
+            return None
+        key = ("layer", dataset, name)
+        if key not in self.derived:
+            self.derived[key] = ds[name]
+        return self.derived[key]
 
 
 def encounter_geometry(own_velocity_mps, intruder_velocity_mps) -> tuple[str, float]:
@@ -320,7 +334,7 @@ class _Replay:
     def _build_problem(self, start, goal, gnss: bool, zones_from_s: float) -> PlanningProblem:
         w = self.world
         surf = w.surface
-        clear = w.clearance["min_altitude_m"]
+        clear = w.layer("clearance", "min_altitude_m")
         nofly = w.clearance["nofly"].values.astype(bool) if "nofly" in w.clearance else None
         zmask = self._zone_mask(zones_from_s)
         if zmask is not None:
@@ -328,14 +342,14 @@ class _Replay:
         floor_j = None
         if gnss and w.coverage is not None and self.dop is not None:
             floor_j = w.coverage["coverage_floor"].sel(threshold=self.dop)
-        risk = w.environment["risk_cost"] if w.environment is not None else None
-        land = w.environment["landing_cost"] if w.environment is not None else None
+        risk = w.layer("environment", "risk_cost")
+        land = w.layer("environment", "landing_cost")
         wl, _wr, _wd, we = self.p.weights
         if wl == 0 and we == 0:
             wl = 1.0
         return build_problem(surf, clear, floor_j, risk, land, w.wind, self.veh, (wl, 0.0, 0.0, we),
                              tuple(start), tuple(goal), self.p.min_agl_m, self.p.max_agl_m, self.dop,
-                             dop_kind=self.p.dop_kind, nofly=nofly, check_endpoints=False)
+                             dop_kind=self.p.dop_kind, nofly=nofly, check_endpoints=False, shared=w.derived)
 
     def _zone_mask(self, t_from_s: float) -> np.ndarray | None:
         zones = [z for z in self.known.zones if z.end_s > t_from_s]

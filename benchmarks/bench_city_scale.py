@@ -60,6 +60,37 @@ def _cold(problem) -> None:
         del problem.__dict__[k]
 
 
+def _compare(pr, full_max: int, cold=None) -> dict:
+    """STEP I of ``pr`` by multires, then by full-resolution A* (stopped after ``full_max``
+    expansions, a count; none when 0), each after ``cold(pr)`` (default :func:`_cold`): times
+    (wall and CPU) [s], expansions, widenings, corridor share, f of each, their ratio, and
+    this process's peak RSS [MiB] after each."""
+    from skyroute.stages.planning.grid_planner import plan_grid
+    from skyroute.stages.planning.multires import plan_multires
+
+    cold = cold or _cold
+    cold(pr)
+    t, c = time.perf_counter(), time.process_time()
+    mr = plan_multires(pr)
+    out = {"multires_s": time.perf_counter() - t, "multires_cpu_s": time.process_time() - c,
+           "multires_expanded": mr["expanded"], "widenings": mr["multires"]["widenings"],
+           "stage": mr["multires"]["stage"], "corridor_fraction": mr["multires"]["corridor_fraction"]}
+    if mr["waypoints"] is not None:
+        pc = pr.path_costs(mr["waypoints"])
+        out.update(multires_f=pc["f"], multires_valid=bool(pc["valid"]))
+    out["rss_multires_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if full_max > 0:
+        cold(pr)
+        t, c = time.perf_counter(), time.process_time()
+        fr = plan_grid(pr, max_expansions=full_max)
+        out.update(full_s=time.perf_counter() - t, full_cpu_s=time.process_time() - c, full_expanded=fr["expanded"])
+        if fr["waypoints"] is not None:
+            out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
+            out["ratio"] = out.get("multires_f", math.nan) / out["full_f"]
+        out["rss_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
+
+
 def run_case(side_km: float, length_km: float, full_max: int) -> dict:
     from _city import city_problem
 
@@ -75,31 +106,10 @@ def run_case(side_km: float, length_km: float, full_max: int) -> dict:
     pr, _ = city_problem((side, side), s, g, seed=1)
     build_s = time.perf_counter() - t
     straight = math.dist(pr.start_xyz[:2], pr.goal_xyz[:2])
-    _cold(pr)
     load = os.getloadavg()[0]
-    t, c = time.perf_counter(), time.process_time()
-    mr = plan_multires(pr)
-    mr_s, mr_cpu_s = time.perf_counter() - t, time.process_time() - c
     out = {"side_km": side_km, "cells": pr.grid.nx * pr.grid.ny, "mission_km": straight / 1000.0,
-           "maps_s": build_s, "multires_s": mr_s, "multires_cpu_s": mr_cpu_s, "load_average_1min": load,
-           "multires_expanded": mr["expanded"],
-           "widenings": mr["multires"]["widenings"], "stage": mr["multires"]["stage"],
-           "corridor_fraction": mr["multires"]["corridor_fraction"]}
-    if mr["waypoints"] is not None:
-        pc = pr.path_costs(mr["waypoints"])
-        out.update(multires_f=pc["f"], multires_valid=pc["valid"])
-    out["rss_multires_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    if full_max > 0:
-        _cold(pr)
-        t, c = time.perf_counter(), time.process_time()
-        fr = plan_grid(pr, max_expansions=full_max)
-        out["full_s"], out["full_cpu_s"] = time.perf_counter() - t, time.process_time() - c
-        out["load_average_1min"] = max(load, os.getloadavg()[0])
-        out["full_expanded"] = fr["expanded"]
-        if fr["waypoints"] is not None:
-            out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
-            out["ratio"] = out.get("multires_f", math.nan) / out["full_f"]
-        out["rss_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+           "maps_s": build_s, **_compare(pr, full_max)}
+    out["load_average_1min"] = max(load, os.getloadavg()[0])
     return out
 
 
@@ -141,8 +151,6 @@ def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_0
 
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.stages_builtin import plan_arguments
-    from skyroute.stages.planning.grid_planner import plan_grid
-    from skyroute.stages.planning.multires import plan_multires
     from skyroute.stages.planning.problem import build_problem, xyz_from_agl
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -159,22 +167,8 @@ def helsinki_6km(cache_dir: str, threshold: float = 4.0, full_max: int = 3_000_0
                        d["environment"]["risk_cost"].load(), d["environment"]["landing_cost"].load(), d["wind"].load(),
                        args["vehicle"], args["weights"], start, goal, args["min_agl_m"], args["max_agl_m"], threshold,
                        nofly=d["clearance"]["nofly"].load(), check_endpoints=False)
-    out = {"case": f"helsinki 6 km, D={threshold:g}", "cells": pr.grid.nx * pr.grid.ny,
-           "mission_km": math.dist(start[:2], goal[:2]) / 1000.0, "maps_s": maps_s}
-    _cold(pr)
-    t = time.perf_counter()
-    mr = plan_multires(pr)
-    out.update(multires_s=time.perf_counter() - t, multires_expanded=mr["expanded"],
-               multires_f=pr.path_costs(mr["waypoints"])["f"], multires_valid=pr.path_costs(mr["waypoints"])["valid"])
-    _cold(pr)
-    t = time.perf_counter()
-    fr = plan_grid(pr, max_expansions=full_max)
-    out.update(full_s=time.perf_counter() - t, full_expanded=fr["expanded"])
-    if fr["waypoints"] is not None:
-        out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
-        out["ratio"] = out["multires_f"] / out["full_f"]
-    out["rss_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    return out
+    return {"case": f"helsinki 6 km, D={threshold:g}", "cells": pr.grid.nx * pr.grid.ny,
+            "mission_km": math.dist(start[:2], goal[:2]) / 1000.0, "maps_s": maps_s, **_compare(pr, full_max)}
 
 
 MOSAIC_LENGTHS_KM = (1.0, 5.0, 10.0, 15.0)
@@ -199,8 +193,6 @@ def mosaic_case(scenario: str, cache_dir: str, length_km: float, threshold: floa
     from skyroute.pipeline.settings.io import load_scenario
     from skyroute.pipeline.stages_builtin import plan_request
     from skyroute.stages.gridspec import Grid
-    from skyroute.stages.planning.grid_planner import plan_grid
-    from skyroute.stages.planning.multires import plan_multires
     from skyroute.stages.planning.problem import build_problem, xyz_from_agl
     from skyroute.stages.planning.window import crop_wind, planning_windows, window_box
 
@@ -229,33 +221,15 @@ def mosaic_case(scenario: str, cache_dir: str, length_km: float, threshold: floa
     maps_s = time.perf_counter() - t
     tiles = maps["wind_bounds"].load()
 
-    def cold():
-        _cold(pr)
-        object.__setattr__(pr, "_ratio_tiles", tiles)
+    def cold(problem):
+        _cold(problem)
+        object.__setattr__(problem, "_ratio_tiles", tiles)
 
+    load = os.getloadavg()[0]
     out = {"case": f"mosaic 20 km, {length_km:g} km, D={threshold:g}", "side_km": grid.nx * grid.resolution_m / 1000,
            "aoi_cells": grid.nx * grid.ny, "cells": pr.grid.nx * pr.grid.ny, "window_xy_m": [round(v) for v in box],
-           "mission_km": math.dist(s_xy, g_xy) / 1000.0, "window_read_s": maps_s, "load_average_1min": os.getloadavg()[0]}
-    cold()
-    t, c = time.perf_counter(), time.process_time()
-    mr = plan_multires(pr)
-    out.update(multires_s=time.perf_counter() - t, multires_cpu_s=time.process_time() - c,
-               multires_expanded=mr["expanded"], widenings=mr["multires"]["widenings"],
-               corridor_fraction=mr["multires"]["corridor_fraction"])
-    if mr["waypoints"] is not None:
-        pc = pr.path_costs(mr["waypoints"])
-        out.update(multires_f=pc["f"], multires_valid=bool(pc["valid"]))
-    out["rss_multires_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    if full_max > 0:
-        cold()
-        t, c = time.perf_counter(), time.process_time()
-        fr = plan_grid(pr, max_expansions=full_max)
-        out.update(full_s=time.perf_counter() - t, full_cpu_s=time.process_time() - c, full_expanded=fr["expanded"])
-        if fr["waypoints"] is not None:
-            out["full_f"] = pr.path_costs(fr["waypoints"])["f"]
-            out["ratio"] = out.get("multires_f", math.nan) / out["full_f"]
-        out["rss_MiB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    out["load_average_1min"] = max(out["load_average_1min"], os.getloadavg()[0])
+           "mission_km": math.dist(s_xy, g_xy) / 1000.0, "window_read_s": maps_s, **_compare(pr, full_max, cold)}
+    out["load_average_1min"] = max(load, os.getloadavg()[0])
     return out
 
 

@@ -29,6 +29,14 @@ def display_view(obj, max_cells: int | None = None):
     return obj.coarsen(y=k, x=k, boundary="trim").max(), k
 
 
+def display_grid(grid, view, k: int):
+    """The grid a figure draws ``view`` (a :func:`display_view` result of a map on ``grid``,
+    block side ``k``) on: ``grid`` itself when ``k == 1``, else the view's coarser grid."""
+    from skyroute.stages.gridspec import Grid
+
+    return grid if k == 1 else Grid.from_dataarray(view)
+
+
 def write_raster_chunked(da, path: Path, **kwargs) -> Path:
     """``da`` to a tiled GeoTIFF; a dask-backed raster is written chunk by chunk (never whole in memory)."""
     import threading

@@ -24,14 +24,13 @@ def plot_surface(result: RunResult, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from skyroute.pipeline.maps import display_view
-    from skyroute.stages.gridspec import Grid
+    from skyroute.pipeline.maps import display_grid, display_view
 
     sc = result.scenario
     g = sc.grid
     ds, k = display_view(result["surface"][["surface", "terrain"]])   # a city: its k x k block maxima
     ds = ds.load()
-    view = g if k == 1 else Grid.from_dataarray(ds["surface"])
+    view = display_grid(g, ds["surface"], k)
     z = np.asarray(ds["surface"].values, dtype=float)
     terr = np.asarray(ds["terrain"].values, dtype=float)
     extent = image_extent(ds["surface"])
@@ -96,18 +95,18 @@ def write_plan_outputs(result: RunResult, out_dir: Path, map_page: bool = True) 
     return files
 
 
-def _path_crop(result: RunResult, candidates) -> tuple[Any, Any]:
-    """(grid, crop) for reading ``result``'s maps along the paths of ``candidates``: on a
-    city-scale AOI (:func:`~skyroute.stages.planning.window.path_window`) the window around the
-    paths and a function cropping a dataset on the AOI's grid to it (lazily: only its chunks are
-    read), else the scenario's grid and the identity.  Every point of the paths lies in the window,
-    so what is read at them is what the whole maps hold there."""
+def _path_crop(result: RunResult, chosen) -> tuple[Any, Any]:
+    """(grid, crop) for reading ``result``'s maps along ``chosen``'s path: on a city-scale AOI
+    (:func:`~skyroute.stages.planning.window.path_window`) the window around the path and a
+    function cropping a dataset on the AOI's grid to it (lazily: only its chunks are read), else
+    the scenario's grid and the identity.  Every point of the path lies in the window, so what is
+    read at them is what the whole maps hold there."""
     from skyroute.stages.gridspec import Grid
     from skyroute.stages.planning.window import crop_on_grid, path_window
 
     grid = result.scenario.grid
-    xy = [np.asarray(c.xyz_m, float)[:, :2] for c in candidates if c is not None and len(c.xyz_m)]
-    window = path_window(grid, np.concatenate(xy)) if xy else None
+    xy = np.asarray(chosen.xyz_m, float)[:, :2]
+    window = path_window(grid, xy) if len(xy) else None
     if window is None:
         return grid, lambda ds: ds
     rows, cols = window
@@ -123,21 +122,16 @@ def plan_figure_rasters(result: RunResult, chosen) -> tuple[Any, Any, Any, Any, 
     (a city) their k x k block maxima on the coarser grid of that view (never the whole AOI in
     memory); floor: the clearance floor and, for ``chosen``'s level, the coverage floor (their
     maximum)."""
-    from skyroute.pipeline.maps import display_view
-    from skyroute.stages.gridspec import Grid
+    from skyroute.pipeline.maps import display_grid, display_view
 
     def view(da):
         return display_view(da)[0].values
 
     surf, k = display_view(result["surface"][["surface", "terrain"]])
     surf = surf.load()
-    grid = result.scenario.grid if k == 1 else Grid.from_dataarray(surf["terrain"])
-    floor = view(result["clearance"]["min_altitude_m"]) if "clearance" in result.datasets else None
-    if chosen is not None and "coverage" in result.datasets and chosen.dop_threshold is not None:
-        cov = view(result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold))
-        floor = np.fmax(floor, cov) if floor is not None else cov
+    grid = display_grid(result.scenario.grid, surf["terrain"], k)
     cost = view(result["environment"]["risk_cost"]) if "environment" in result.datasets else None
-    return grid, surf["surface"].values, surf["terrain"].values, floor, cost
+    return grid, surf["surface"].values, surf["terrain"].values, _admissible_floor(result, chosen, view), cost
 
 
 def plan_profile(result: RunResult, chosen) -> dict[str, np.ndarray]:
@@ -155,13 +149,21 @@ def plan_profile(result: RunResult, chosen) -> dict[str, np.ndarray]:
         return np.asarray(da.isel(at).values, float)
 
     out = {"surface": sample(result["surface"]["surface"]), "terrain": sample(result["surface"]["terrain"])}
-    floor = sample(result["clearance"]["min_altitude_m"]) if "clearance" in result.datasets else None
-    if "coverage" in result.datasets and chosen.dop_threshold is not None:
-        cov = sample(result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold))
-        floor = np.fmax(floor, cov) if floor is not None else cov
+    floor = _admissible_floor(result, chosen, sample)
     if floor is not None:
         out["floor"] = floor
     return out
+
+
+def _admissible_floor(result: RunResult, chosen, read) -> np.ndarray | None:
+    """The lowest admissible altitude [m] the plan figures draw, as ``read`` (DataArray ->
+    ndarray: a display view, or samples at points) gives it: the clearance floor and, for
+    ``chosen``'s DOP level, the coverage floor, their maximum (``np.fmax``); None without either."""
+    floor = read(result["clearance"]["min_altitude_m"]) if "clearance" in result.datasets else None
+    if chosen is not None and "coverage" in result.datasets and chosen.dop_threshold is not None:
+        cov = read(result["coverage"]["coverage_floor"].sel(threshold=chosen.dop_threshold))
+        floor = np.fmax(floor, cov) if floor is not None else cov
+    return floor
 
 
 def _bubble_params(sc) -> tuple[float, float, float]:
@@ -180,7 +182,7 @@ def revalidate(result: RunResult, chosen) -> list[str]:
     from skyroute.stages.wind import sample_wind
 
     sc = result.scenario
-    grid, crop = _path_crop(result, [chosen])
+    grid, crop = _path_crop(result, chosen)
     surface = crop(result["surface"]).load()
     clear = crop(result["clearance"]).load()
     gnss = None

@@ -212,15 +212,14 @@ def plan_map_html(*, title: str, grid, chosen, candidates, intruders=(), nofly=N
 def write_plan_map(result, path: Path, chosen, candidates) -> Path:
     """``plan.html`` of a run result (:class:`~skyroute.pipeline.graph.RunResult` with the plan
     stage): the candidates, the scenario's intruders, the no-fly cells and the coverage floors."""
-    from skyroute.pipeline.maps import display_view
-    from skyroute.stages.gridspec import Grid
+    from skyroute.pipeline.maps import display_grid, display_view
 
     sc = result.scenario
     surface = result["surface"]
     # the overlays are a few hundred pixels a side: a city's maps are read as their k x k block
     # maxima (pipeline.maps.display_view), never whole
     terrain, k = display_view(surface["terrain"])
-    grid = sc.grid if k == 1 else Grid.from_dataarray(terrain)
+    grid = display_grid(sc.grid, terrain, k)
     terrain = np.asarray(terrain.values, float)
     intr = ()
     if sc.traffic.intruders:

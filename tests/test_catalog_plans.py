@@ -394,6 +394,24 @@ def test_fly_with_the_safety_bubble_keeps_r_j_from_the_surface(cache, tmp_path):
     assert d.min() >= r_j - 1e-6, (float(d.min()), r_j)
 
 
+def _force_path_window(monkeypatch, margin_m: float) -> list:
+    """``window.path_window`` as on a city-scale AOI (WINDOW_MIN_CELLS 1000, the first window's
+    margin at least ``margin_m`` [m]); returns the list of the windows it gives."""
+    from skyroute.stages.planning import window
+
+    real, seen = window.path_window, []
+
+    def forced(grid, xy):
+        with monkeypatch.context() as m:
+            m.setattr(window, "WINDOW_MIN_CELLS", 1000)
+            m.setattr(window, "WINDOW_MARGIN_MIN_M", margin_m)
+            seen.append(real(grid, xy))
+        return seen[-1]
+
+    monkeypatch.setattr(window, "path_window", forced)
+    return seen
+
+
 def test_fly_on_a_city_reads_the_window_of_the_plan(cache, tmp_path, monkeypatch):
     """On a city-scale AOI ``skyroute fly`` knows the maps of the window around the planned path
     (stages/planning/window.path_window; here forced on helsinki-contingency with a 250 m
@@ -407,18 +425,8 @@ def test_fly_on_a_city_reads_the_window_of_the_plan(cache, tmp_path, monkeypatch
 
     from skyroute.pipeline.cli import main
     from skyroute.stages.gridspec import Grid
-    from skyroute.stages.planning import window
 
-    real, seen = window.path_window, []
-
-    def forced(grid, xy):
-        with monkeypatch.context() as m:
-            m.setattr(window, "WINDOW_MIN_CELLS", 1000)
-            m.setattr(window, "WINDOW_MARGIN_MIN_M", 250.0)
-            seen.append(real(grid, xy))
-        return seen[-1]
-
-    monkeypatch.setattr(window, "path_window", forced)
+    seen = _force_path_window(monkeypatch, 250.0)
     from skyroute.pipeline import fly as fly_mod
 
     worlds = []
@@ -463,18 +471,9 @@ def test_plan_outputs_on_a_city_read_the_window_and_block_maxima(cache, tmp_path
     from skyroute.pipeline import maps as maps_mod
     from skyroute.pipeline import outputs as out_mod
     from skyroute.pipeline.cli import main
-    from skyroute.stages.planning import validate, window
+    from skyroute.stages.planning import validate
 
-    real, seen = window.path_window, []
-
-    def forced(grid, xy):
-        with monkeypatch.context() as m:
-            m.setattr(window, "WINDOW_MIN_CELLS", 1000)
-            m.setattr(window, "WINDOW_MARGIN_MIN_M", 150.0)
-            seen.append(real(grid, xy))
-        return seen[-1]
-
-    monkeypatch.setattr(window, "path_window", forced)
+    seen = _force_path_window(monkeypatch, 150.0)
     monkeypatch.setattr(maps_mod, "DISPLAY_MAX_CELLS", 100)
     grids, real_validate = [], validate.validate_plan
 

@@ -268,6 +268,19 @@ def _watch(fd: int, grace_s: float, stop: threading.Event) -> None:
                 return
 
 
+def _unraisable(previous):
+    """An ``sys.unraisablehook`` that stays silent about the :class:`Interrupted` our signal
+    handler raised where Python cannot propagate it (a weakref callback or ``__del__`` the signal
+    happened to land in: Python would print "Exception ignored in ..." and a traceback): the
+    cancel is already requested, so the command still ends with one ``interrupted`` line (its
+    next check, or the watchdog).  Anything else goes to ``previous``."""
+    def hook(unraisable) -> None:
+        if isinstance(unraisable.exc_value, Interrupted) and cancelled():
+            return
+        previous(unraisable)
+    return hook
+
+
 @contextlib.contextmanager
 def signal_handlers(grace_s: float = 1.6) -> Iterator[None]:
     """Within the block, SIGINT and SIGTERM request a cancel and raise :class:`Interrupted` in
@@ -292,6 +305,8 @@ def signal_handlers(grace_s: float = 1.6) -> Iterator[None]:
         return
     for s in old:
         signal.signal(s, _handler)
+    old_hook = sys.unraisablehook
+    sys.unraisablehook = _unraisable(old_hook)
     watcher = threading.Thread(target=_watch, args=(r, grace_s, stop), name="skyroute-signals", daemon=True)
     watcher.start()
     try:
@@ -299,6 +314,7 @@ def signal_handlers(grace_s: float = 1.6) -> Iterator[None]:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+        sys.unraisablehook = old_hook
         signal.set_wakeup_fd(old_fd)
         if _signum is None:
             stop.set()

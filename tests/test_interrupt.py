@@ -222,3 +222,35 @@ def test_signal_during_a_fleet_exits_130_or_143_without_a_traceback(tmp_path):
         assert rc == 128 + int(sig), (rc, err[-2000:])
         assert "Traceback" not in err and err.strip().splitlines()[-1] == "interrupted", err[-2000:]
     assert landed >= 2
+
+
+def test_an_interrupt_raised_where_python_cannot_propagate_it_prints_no_traceback(monkeypatch):
+    """The signal handler's Interrupted can land in a weakref callback or ``__del__`` (CI once
+    printed "Exception ignored in: <function WeakSet.__init__.<locals>._remove ...>" and a
+    traceback before the one ``interrupted`` line): under ``signal_handlers``, once the cancel is
+    requested, that unraisable Interrupted never reaches the reporting hook; any other unraisable
+    exception still does, and the hook is restored after the block."""
+    import gc
+    import sys
+
+    from skyroute.stages import control
+
+    class Noisy:
+        def __init__(self, exc):
+            self.exc = exc
+
+        def __del__(self):
+            raise self.exc
+
+    reported: list = []
+    monkeypatch.setattr(sys, "unraisablehook", reported.append)
+    with control.signal_handlers():
+        control.request_cancel()
+        Noisy(control.Interrupted("interrupted"))
+        gc.collect()
+        assert reported == []
+        Noisy(ValueError("a real bug"))
+        gc.collect()
+        assert [type(u.exc_value) for u in reported] == [ValueError]
+    control.reset()
+    assert sys.unraisablehook == reported.append

@@ -561,8 +561,11 @@ class _Planner:
             return plan_attempt(*args)
         # the attempt the driver waits for first, then the speculative ones in mission order
         prefer = self.affinity == "all" or (self.affinity == "speculative" and not urgent)
+        workers = self._worker_of(task) if prefer else None
+        # dask refuses allow_other_workers= without workers= (ValueError): none is known once
+        # every worker is lost, and the driver must then reach its 'every worker was lost' error
         return self.client.submit(plan_attempt, *args, pure=False, priority=10**9 if urgent else -task.index,
-                                  workers=self._worker_of(task) if prefer else None, allow_other_workers=prefer)
+                                  workers=workers, allow_other_workers=workers is not None)
 
     def run(self, task, dep, seen, obst) -> Attempt:
         self.stats["attempts"] += 1

@@ -82,3 +82,25 @@ def test_tiles_fit_only_their_vehicle_and_step(setup):
     assert not tiles_fit(None, veh, 8)
     assert ratio_lb_over(tiles, (0, 0, 1, 1), tiles["dirs"].values) is None           # no tile there
     assert ratio_lb_over(tiles, Grid.from_dataarray(setup[1]).bounds, tiles["dirs"].values[:5]) is None
+
+
+def test_a_reweighted_problem_keeps_the_tiles_and_its_bounds(setup, monkeypatch):
+    """STEP I's re-plans with a larger w_l (``with_weights``) keep the weight-free memos: the
+    tiles' bound, not the dense pass over the window's winds (7 s per refused 15 km city
+    mission before), and the same numbers as a fresh problem of those weights given the tiles."""
+    import skyroute.stages.planning.heuristic as heuristic
+
+    maps, wind, veh, tiles = setup
+    pr, _ = city_problem(SIZE, (0.1, 0.1), (0.9, 0.9), res_m=4.0, seed=1, wind=wind, maps=maps)
+    object.__setattr__(pr, "_ratio_tiles", tiles)
+    dirs = tiles["dirs"].values
+    p2 = pr.with_weights((2.0, 1.0, 1.0, 1.0))
+    assert p2.weights == (2.0, 1.0, 1.0, 1.0) and pr.weights != p2.weights
+    assert p2.__dict__["_ratio_tiles"] is tiles
+    fresh, _ = city_problem(SIZE, (0.1, 0.1), (0.9, 0.9), res_m=4.0, seed=1, wind=wind, maps=maps)
+    fresh = fresh.with_weights((2.0, 1.0, 1.0, 1.0))
+    object.__setattr__(fresh, "_ratio_tiles", tiles)
+    monkeypatch.setattr(heuristic, "ratio_each_kernel",
+                        lambda *a: pytest.fail("the dense pass over the winds ran: the tiles were lost"))
+    np.testing.assert_array_equal(energy_ratio_lb_dense_each(p2, dirs), energy_ratio_lb_dense_each(fresh, dirs))
+    assert heuristic.cost_rate_lb(p2) == heuristic.cost_rate_lb(fresh)

@@ -111,6 +111,11 @@ _REASONS = {
 }
 
 
+# private memos a problem carries that depend on its maps, wind and vehicle but not on its
+# weights (kept by PlanningProblem.with_weights)
+_WEIGHT_FREE_MEMOS = ("_ratio_tiles", "_block_memo", "_coarse_blocks", "_wind_key", "_winds_cache", "_lb_cache")
+
+
 @dataclass(frozen=True, eq=False)
 class PlanningProblem:
     """One STEP I problem (one coverage level D_j); see the module docstring.
@@ -211,8 +216,15 @@ class PlanningProblem:
         return np.ascontiguousarray(a)
 
     def with_weights(self, weights) -> PlanningProblem:
-        """A copy with other cost weights (w_l, w_r, w_d, w_e)."""
-        return dataclasses.replace(self, weights=check_weights(weights))
+        """A copy with other cost weights (w_l, w_r, w_d, w_e), keeping the memos that do not
+        depend on them (:data:`_WEIGHT_FREE_MEMOS`: the wind-bound tiles, block minima and
+        wind samples; STEP I's re-plans with a larger w_l recomputed them, 7 s per refused
+        15 km city mission)."""
+        p = dataclasses.replace(self, weights=check_weights(weights))
+        for k in _WEIGHT_FREE_MEMOS:
+            if k in self.__dict__:
+                object.__setattr__(p, k, self.__dict__[k])
+        return p
 
     # ------------------------------------------------------------------ validity
     def state_codes(self, xyz) -> np.ndarray:

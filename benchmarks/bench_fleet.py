@@ -84,6 +84,22 @@ def _load() -> str:
     return "load average {:.2f} {:.2f} {:.2f}".format(*os.getloadavg())
 
 
+def _peak_rss_gb() -> float:
+    """This process's peak resident memory so far [GB] (Linux ``ru_maxrss`` is in KiB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9
+
+
+def _peaks(client=None) -> str:
+    """The driver's peak resident memory and, given a dask ``client``, each worker's [GB]."""
+    txt = f"peak memory: driver {_peak_rss_gb():.2f} GB"
+    if client is not None:
+        w = client.run(_peak_rss_gb)
+        txt += ", workers " + " / ".join(f"{v:.2f}" for _, v in sorted(w.items())) + " GB"
+    return txt
+
+
 def main() -> None:
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.fleet import (
@@ -145,6 +161,7 @@ def main() -> None:
               f"{_load()}")
         seq = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level)
         s1 = report("sequential", seq, Path(tmp) / "seq")
+        print(_peaks(), flush=True)
         target = "met" if s1["throughput_plans_per_min"] >= 100 else "NOT met"
         print(f"target >= 100 plans/min (sequential, this machine): {target}"
               + (" (--quick: a few cold-cache plans, not the target's measure)" if a.quick else ""))
@@ -162,6 +179,7 @@ def main() -> None:
                 par = run_fleet(sc, tasks, cache_dir=cache.root, options=opt, default_dop=level, client=client,
                                 depth=int(depth), affinity=affinity, later_departures=later != ["nolater"])
                 report(f"{kind}, {cfg}", par, Path(tmp) / f"par{i}")
+                print(_peaks(client) + " (the driver's peak includes its sequential run)", flush=True)
                 same = _decisions(seq) == _decisions(par)
                 print(f"speed-up with {kind} ({cfg}): "
                       f"{seq.seconds / par.seconds:.2f}x (worker setup {par.speculative['worker_setup_s']:.1f} s not "

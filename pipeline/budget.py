@@ -18,7 +18,13 @@ The estimate is deliberately simple and on the safe side; it counts
 * **epochs**: ``gnss.window_min / gnss.step_min + 1`` GNSS epochs, each one row of satellite
   geometry per satellite (:data:`BYTES_PER_EPOCH_SAT`) and, in the coverage stage, one dask task
   per (block, epoch) (:data:`BYTES_PER_TASK`);
-* **ticks** of ``skyroute fly``: the flight's duration / ``--tick``, :data:`BYTES_PER_TICK` each.
+* **ticks** of ``skyroute fly``: the flight's duration / ``--tick``, :data:`BYTES_PER_TICK` each;
+* **missions** of ``skyroute fleet``: :data:`BYTES_PER_MISSION` each (its accepted attempt: the
+  trajectory sampled every 0.05 s, the intent volumes and the F3548 document, its rows of the
+  outputs) up to :data:`MISSION_KM` long, in proportion beyond, over the maps' footprint
+  (:func:`check_fleet`);
+* **run-epochs** of ``skyroute navsim``: runs x epochs of the flight at ``navsim.rate_hz``,
+  :data:`BYTES_PER_RUN_EPOCH` each, over the plan's footprint (:func:`check_navsim`).
 
 The limit is ``--max-memory`` (e.g. ``8G``), else ``$SKYROUTE_MAX_MEMORY``, else
 :data:`DEFAULT_FRACTION` of the machine's memory (the cgroup limit when lower).
@@ -47,6 +53,15 @@ BYTES_PER_EPOCH_SAT = 96       # ECEF x, y, z, az, el, visible, ... per satellit
 BYTES_PER_TASK = 4096          # one dask task of the coverage graph (block x epoch)
 BYTES_PER_TICK = 512           # one sample of the flight log and its timeline (positions, checks, costs)
 SATS_PER_ALMANAC = 40          # GPS 32, Galileo 36, GLONASS 24, BeiDou up to 60
+#: One fleet mission up to MISSION_KM long: its attempt's trajectory (0.05 s samples, 32 B each:
+#: 100 KB for 1.5 km at 10 m/s), intent volumes (shapely outlines, obstacles) and F3548 document
+#: (~100 KB), the STEP II chain and the output rows, rounded up.
+BYTES_PER_MISSION = 512 << 10
+MISSION_KM = 1.5
+#: navsim: measured (tracemalloc, 400 runs x 600 epochs, 24 satellites) 93 B per run and epoch in
+#: simulate(), 147 B in its summary, 266 B writing navsim.csv and the figures.
+BYTES_PER_RUN_EPOCH = 320
+MAX_NAVSIM_RUNS = 100_000      # navsim.runs / --runs (the schema's bound)
 DEFAULT_FRACTION = 0.8
 ENV = "SKYROUTE_MAX_MEMORY"
 
@@ -205,6 +220,45 @@ def check_ticks(duration_s: float, tick_s: float, limit_bytes: int | None = None
     return n
 
 
+def check_fleet(sc, missions: int, max_km: float = MISSION_KM, limit_bytes: int | None = None,
+                key: str = "--missions") -> float:
+    """InputError (exit 2) when a fleet of ``missions`` missions up to ``max_km`` [km] long in
+    ``sc`` needs more than the limit (the maps' footprint + :data:`BYTES_PER_MISSION` per
+    mission, in proportion beyond :data:`MISSION_KM`); returns the estimate [bytes].  Cheap:
+    call it before the maps are built."""
+    limit = max_memory_bytes() if limit_bytes is None else limit_bytes
+    maps = scenario_footprint(sc).bytes
+    km = max_km if math.isfinite(max_km) else math.inf
+    per = BYTES_PER_MISSION * max(1.0, km / MISSION_KM)
+    need = maps + float(missions) * per
+    if need > limit:
+        fit = max(0, math.floor((limit - maps) / per)) if math.isfinite(per) else 0
+        raise InputError(
+            f"a fleet of {missions:,} missions needs about {_gib(need)} of memory ({per / 1024:,.0f} KiB per mission up to "
+            f"{max(km, MISSION_KM):g} km, over {_gib(maps)} for the maps of scenario {sc.name!r}): give fewer "
+            f"missions ({key}; {fit:,} fit) or raise --max-memory (now {_gib(limit)})")
+    return need
+
+
+def check_navsim(sc, runs: int, epochs: float, limit_bytes: int | None = None, at_least: bool = False) -> float:
+    """InputError (exit 2) when ``runs`` Monte Carlo runs of a flight of ``epochs`` epochs
+    (``at_least``: a lower bound, before the plan exists) need more than the limit (the plan's
+    footprint + :data:`BYTES_PER_RUN_EPOCH` per run and epoch); returns the estimate [bytes]."""
+    limit = max_memory_bytes() if limit_bytes is None else limit_bytes
+    base = scenario_footprint(sc).bytes
+    need = base + float(runs) * float(epochs) * BYTES_PER_RUN_EPOCH
+    if need > limit:
+        per_run = float(epochs) * BYTES_PER_RUN_EPOCH
+        fit = max(0, math.floor((limit - base) / per_run)) if per_run > 0 else 0
+        rate = sc.navsim.rate_hz
+        raise InputError(
+            f"navsim of {runs:,} runs x {'at least ' if at_least else ''}{epochs:,.0f} epochs (the flight at "
+            f"navsim.rate_hz {rate:g} Hz) needs about {_gib(need)} of memory ({BYTES_PER_RUN_EPOCH} B per run and "
+            f"epoch, over {_gib(base)} for the plan of scenario {sc.name!r}): give fewer --runs ({fit:,} fit) or "
+            f"lower navsim.rate_hz, or raise --max-memory (now {_gib(limit)})")
+    return need
+
+
 _SIZE_UNITS = {"": 1, "B": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
 
 
@@ -216,3 +270,10 @@ def parse_size(text: str, option: str = "--max-size") -> int:
     if not m:
         raise InputError(f"{option} {text!r} is not a size: give e.g. 10G, 500M or a number of bytes")
     return int(float(m.group(1)) * _SIZE_UNITS[m.group(2).upper()])
+
+
+# the readers of stages size their allocations from a file's header against this limit
+# (stages never import the pipeline: the limit is handed down through stages.base)
+from skyroute.stages import base as _stages_base  # noqa: E402
+
+_stages_base.memory_limit_hook = max_memory_bytes

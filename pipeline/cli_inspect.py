@@ -6,10 +6,13 @@ import sys
 
 import click
 
+from skyroute.pipeline.cli import max_memory_option
+
 
 @click.command("inspect")
 @click.argument("target")
 @click.option("--json", "as_json", is_flag=True, help="One JSON document on stdout instead of the screen.")
+@max_memory_option
 def inspect_command(target: str, as_json: bool) -> None:
     """What skyroute will make of TARGET, in seconds, computing nothing heavy: a DSM or DEM
     (GeoTIFF, VRT), a CityJSON file, an OSM extract, or a scenario (catalog name or YAML) for its

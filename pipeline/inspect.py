@@ -77,61 +77,61 @@ def _crs_text(crs) -> str:
 def _raster(ins: Inspection, paths: list[Path], grid, *, role: str, key: str, datum: str | None,
             nodata: str = "fill-max") -> dict | None:
     """Facts of a DSM (``role="surface"``) or DEM (``role="terrain"``) over ``grid`` (None: the
-    file's own extent)."""
-    import rasterio
+    file's own extent).  The header checks, the memory check of the window and the height check
+    are the readers' own (:func:`~skyroute.stages.grid.raster_headers`,
+    :func:`~skyroute.stages.grid.read_window_holes`): inspect refuses what ``plan`` refuses."""
     import rasterio.warp
-    from pyproj import CRS
 
+    import skyroute.pipeline.budget  # noqa: F401  (registers --max-memory for the readers' memory check)
     from skyroute.stages.grid import (
         Grid,
-        SourceWindow,
+        check_heights,
+        check_read_bytes,
         coverage_problem,
         filled_share,
-        find_holes,
+        raster_headers,
+        read_window_holes,
         regions_in_aoi,
+        window_box,
     )
 
-    for p in paths:
-        if not p.is_file():
-            ins.error(f"{key}.path", f"file not found: {p}")
-            return None
+    what = {"surface": "surface DSM", "terrain": "terrain DEM"}.get(role, "DSM / DEM")
+    src = paths if len(paths) > 1 else paths[0]
     try:
-        srcs = [rasterio.open(p) for p in paths]
-    except rasterio.errors.RasterioIOError as exc:
-        ins.error(f"{key}.path", f"cannot read the raster: {exc}")
+        heads = raster_headers(paths, what)
+    except SkyrouteError as exc:
+        ins.error(f"{key}.path", str(exc))
         return None
-    try:
-        s0 = srcs[0]
-        crs = CRS.from_user_input(s0.crs) if s0.crs else None
-        left = min(s.bounds.left for s in srcs)
-        right = max(s.bounds.right for s in srcs)
-        bottom = min(s.bounds.bottom for s in srcs)
-        top = max(s.bounds.top for s in srcs)
+    h0 = heads[0]
+    crs = h0.crs
+    left = min(hd.bounds[0] for hd in heads)
+    bottom = min(hd.bounds[1] for hd in heads)
+    right = max(hd.bounds[2] for hd in heads)
+    top = max(hd.bounds[3] for hd in heads)
+    px = h0.res[0]
+    with rasterio.open(paths[0]) as s0:
+        ovr = bool(s0.overviews(1))
         aop = str(s0.tags().get("AREA_OR_POINT") or "Area")
-        units = s0.units[0] if s0.units and s0.units[0] else ""
-        px = abs(s0.transform.a)
-        ins.facts["file"] = (f"{', '.join(p.name for p in paths)}: {s0.driver}, "
-                             f"{sum(s.width for s in srcs) if len(srcs) > 1 else s0.width} x {s0.height} px of "
-                             f"{px:g} x {abs(s0.transform.e):g}, {s0.dtypes[0]}, nodata {s0.nodata}")
-        ins.facts["CRS"] = _crs_text(crs)
-        if crs is None:
-            ins.error(f"{key}.path", "the raster has no CRS; assign one (gdal_edit.py -a_srs EPSG:...)")
-            return None
         vdat = _raster_vertical_datum(s0)
-        ins.facts["vertical datum"] = (datum if datum else "not given") + (
-            f" (the file says: {vdat})" if vdat else " (the file names none)")
-        if datum is None and role == "surface":
-            ins.warning(f"{key}.vertical_datum", "give the datum of the DSM's heights (e.g. 'NAP', 'EGM96 geoid'): "
-                        "it is required")
-        ins.facts["extent"] = (f"x {left:.1f}..{right:.1f}, y {bottom:.1f}..{top:.1f} [m] "
-                               f"({(right - left) / 1e3:.2f} x {(top - bottom) / 1e3:.2f} km)")
-        ins.data[f"{role}_extent"] = [left, bottom, right, top]
-        if units and units not in ("m", "metre", "meter", "metres"):
-            ins.warning(f"{key}.path", f"band units are {units!r}; skyroute reads heights in metres")
-    finally:
-        for s in srcs:
-            s.close()
-    if grid is None:
+        rio_crs = s0.crs
+    ins.facts["file"] = (f"{', '.join(p.name for p in paths)}: {h0.driver}, "
+                         f"{sum(hd.width for hd in heads) if len(heads) > 1 else h0.width} x {h0.height} px of "
+                         f"{px:g} x {h0.res[1]:g}, {h0.dtype}, nodata {h0.nodata}"
+                         + (", stored bottom-up (read flipped)" if h0.flipped else ""))
+    ins.facts["CRS"] = _crs_text(crs)
+    ins.facts["vertical datum"] = (datum if datum else "not given") + (
+        f" (the file says: {vdat})" if vdat else " (the file names none)")
+    ins.facts["vertical unit"] = (h0.z_unit + (f": heights x {h0.z_scale:.10g} to metres" if h0.z_scale != 1.0 else "")
+                                  + (f" + {h0.z_offset:g} m" if h0.z_offset else ""))
+    ins.data[f"{role}_vertical_unit"] = {"unit": h0.z_unit, "metres_per_unit": h0.z_scale, "offset_m": h0.z_offset}
+    if datum is None and role == "surface":
+        ins.warning(f"{key}.vertical_datum", "give the datum of the DSM's heights (e.g. 'NAP', 'EGM96 geoid'): "
+                    "it is required")
+    ins.facts["extent"] = (f"x {left:.1f}..{right:.1f}, y {bottom:.1f}..{top:.1f} [m] "
+                           f"({(right - left) / 1e3:.2f} x {(top - bottom) / 1e3:.2f} km)")
+    ins.data[f"{role}_extent"] = [left, bottom, right, top]
+    whole = grid is None
+    if whole:
         r = max(px, 1.0)
         grid = Grid.from_bounds(crs, left, bottom, right, top, r, inward=True)
     dsm = "DSM: each cell the highest pixel of its footprint (flat-topped pixels)"
@@ -141,25 +141,46 @@ def _raster(ins: Inspection, paths: list[Path], grid, *, role: str, key: str, da
     if role != "surface":
         from skyroute.stages.surface import dem_sample_offset_px
 
-        _, where = dem_sample_offset_px(paths if len(paths) > 1 else paths[0])
+        _, where = dem_sample_offset_px(src)
         reading += f" ({where})"
     ins.facts["reading"] = reading + (f"; AREA_OR_POINT={aop}" if role == "surface" else "")
     # the window under the AOI (decimated beyond MAX_PIXELS)
-    b = rasterio.warp.transform_bounds(grid.crs, crs, *grid.bounds, densify_pts=21)
+    b = rasterio.warp.transform_bounds(grid.crs, rio_crs, *grid.bounds, densify_pts=21)
     if b[0] >= right or b[2] <= left or b[1] >= top or b[3] <= bottom:
         ins.error("aoi.bounds", f"the AOI does not intersect the {role} raster (extent x {left:.0f}..{right:.0f}, "
                   f"y {bottom:.0f}..{top:.0f} in {_crs_text(crs)}); fix aoi or {key}.path")
         return None
-    n_px = (b[2] - b[0]) * (b[3] - b[1]) / px ** 2
+    _, _, wh, ww, _ = window_box(heads, b, 32)
+    n_px = float(wh) * float(ww)
     step = max(int(np.ceil(np.sqrt(n_px / MAX_PIXELS))), 1)
-    if step == 1:
-        from skyroute.stages.grid import read_window
+    ins.data[f"{role}_window_px"] = [ww, wh]
+    try:
+        if step == 1:
+            # the stage's own read: the memory check, the window grown over NoData, the height check
+            win, holes = read_window_holes(src, grid, what=what)
+        else:
+            if not whole:   # the stage reads this window whole: the same memory check, before any read
+                check_read_bytes((wh, ww), what, src)
+            elif not ovr:
+                # no AOI and no overviews: GDAL would decode every block of the raster to decimate it
+                from skyroute.pipeline.budget import _gib
+                from skyroute.stages.base import memory_limit_bytes
+                from skyroute.stages.grid import READ_BYTES_PER_PX
 
-        win = read_window(paths if len(paths) > 1 else paths[0], grid, what=f"{role} raster", margin_px=2)
-    else:
-        win = _decimated_window(paths, grid, step)
-        ins.facts["reading"] += f" [inspected every {step} px]"
-    holes = find_holes(win)
+                need, limit = float(wh) * ww * READ_BYTES_PER_PX, memory_limit_bytes()
+                if need > limit:
+                    ins.facts["heights"] = ins.facts["NoData"] = "not inspected (the raster is too large to scan)"
+                    ins.warning(f"{key}.path", f"heights and NoData not inspected: the raster is {ww:,} x {wh:,} px "
+                                f"without overviews, scanning it needs about {_gib(need)}, more than --max-memory "
+                                f"({_gib(limit)}); inspect a scenario using it (only the window over its AOI is "
+                                "read) or build overviews (gdaladdo)")
+                    return {"crs": crs, "grid": grid, "extent": (left, bottom, right, top)}
+            win, holes = _decimated_window(paths, heads, grid, step, what)
+            check_heights(win.values, src, what)
+            ins.facts["reading"] += f" [inspected every {step} px]"
+    except SkyrouteError as exc:
+        ins.error(f"{key}.path", str(exc))
+        return None
     vals = win.values[np.isfinite(win.values)]
     if vals.size:
         ins.facts["heights"] = f"{vals.min():.2f} .. {vals.max():.2f} m"
@@ -188,31 +209,45 @@ def _raster(ins: Inspection, paths: list[Path], grid, *, role: str, key: str, da
         msg = coverage_problem(win, holes, grid, what=f"{role} raster", key=key)
         if msg:
             ins.error("aoi.bounds", msg.split(": ", 1)[1])
-    elif not isinstance(win, SourceWindow):   # pragma: no cover - _decimated_window returns one
-        pass
     return {"crs": crs, "grid": grid, "extent": (left, bottom, right, top)}
 
 
-def _decimated_window(paths: list[Path], grid, step: int):
-    """:class:`~skyroute.stages.grid.SourceWindow` of the first tile over the AOI, every ``step``
-    pixels (nearest), for an estimate of the NoData share of very large rasters."""
+def _decimated_window(paths: list[Path], heads: list, grid, step: int, what: str):
+    """(:class:`~skyroute.stages.grid.SourceWindow`, its holes) of the first tile over the AOI,
+    every ``step`` pixels (nearest), heights in metres, for an estimate of the NoData share of
+    very large rasters; GDAL's block cache is bounded (one row of blocks, at least 256 MB)."""
     import rasterio
+    import rasterio.errors
     import rasterio.warp
     import rasterio.windows
     from affine import Affine
-    from pyproj import CRS
 
-    from skyroute.stages.grid import SourceWindow
+    from skyroute.stages.grid import SourceWindow, find_holes, raster_read_error
 
+    hd = heads[0]
     with rasterio.open(paths[0]) as s:
+        bh = s.block_shapes[0][0] if s.block_shapes else 256
+    cache_mb = max(256, int(2 * hd.width * bh * np.dtype(hd.dtype).itemsize) >> 20)
+    with rasterio.Env(GDAL_CACHEMAX=cache_mb), rasterio.open(paths[0]) as s:
         b = rasterio.warp.transform_bounds(grid.crs, s.crs, *grid.bounds, densify_pts=21)
-        w = rasterio.windows.from_bounds(*b, transform=s.transform).round_offsets().round_lengths()
-        w = w.intersection(rasterio.windows.Window(0, 0, s.width, s.height))
+        w = rasterio.windows.from_bounds(*b, transform=hd.transform).round_offsets().round_lengths()
+        w = w.intersection(rasterio.windows.Window(0, 0, hd.width, hd.height))
         shape = (max(int(w.height // step), 1), max(int(w.width // step), 1))
-        a = s.read(1, window=w, out_shape=shape, masked=True)
-        vals = np.where(np.ma.getmaskarray(a), np.nan, np.ma.getdata(a).astype(float))
-        t = s.window_transform(w) * Affine.scale(w.width / shape[1], w.height / shape[0])
-        return SourceWindow(vals, np.ones(vals.shape, bool), t, CRS.from_user_input(s.crs), False)
+        sw = (rasterio.windows.Window(w.col_off, hd.height - w.row_off - w.height, w.width, w.height)
+              if hd.flipped else w)
+        try:
+            a = s.read(1, window=sw, out_shape=shape, masked=True)
+        except rasterio.errors.RasterioIOError as exc:
+            raise raster_read_error(what, paths[0], exc) from exc
+    if hd.flipped:
+        a = a[::-1]
+    vals = np.where(np.ma.getmaskarray(a), np.nan, np.ma.getdata(a).astype(float))
+    vals[~np.isfinite(vals)] = np.nan
+    vals = vals * hd.z_scale + hd.z_offset
+    t = (hd.transform * Affine.translation(w.col_off, w.row_off)
+         * Affine.scale(w.width / shape[1], w.height / shape[0]))
+    win = SourceWindow(vals, np.ones(vals.shape, bool), t, hd.crs, False)
+    return win, find_holes(win)
 
 
 def _raster_vertical_datum(src) -> str | None:
@@ -232,10 +267,12 @@ def _raster_vertical_datum(src) -> str | None:
 def _cityjson(ins: Inspection, path: Path, grid, key: str) -> dict | None:
     from pyproj import CRS, Transformer
 
-    from skyroute.stages.cityjson import cityjson_crs, read_cityjson, surface_rings, vertices_in
+    from skyroute.stages.cityjson import Z_RANGE_M, cityjson_crs, load_cityjson, surface_rings
 
     try:
-        cj = read_cityjson(path)
+        # the one strict reading the surface and risk stages use: what it refuses, inspect refuses
+        doc = load_cityjson(path)
+        cj = doc.doc
         crs = cityjson_crs(cj)
     except SkyrouteError as exc:
         ins.error(f"{key}.path", str(exc))
@@ -251,7 +288,7 @@ def _cityjson(ins: Inspection, path: Path, grid, key: str) -> dict | None:
             vdat = full.sub_crs_list[1].name
     except Exception:  # noqa: BLE001
         vdat = None
-    V = vertices_in(cj)
+    V = doc.vertices
     objs = cj["CityObjects"]
     kinds: dict[str, int] = {}
     for o in objs.values():
@@ -313,9 +350,17 @@ def _cityjson(ins: Inspection, path: Path, grid, key: str) -> dict | None:
               "the lowest ground surface of each building (its parts included), interpolated"
               if n_ground else "none in the file: flat 0 m")
     ins.facts["ground"] = ground
+    ins.facts["checked"] = (f"transform, {len(V)} vertices (finite, heights {Z_RANGE_M[0]:g} .. {Z_RANGE_M[1]:g} m), "
+                            "boundary nesting, vertex indices, semantics"
+                            + (f"; {doc.instances} GeometryInstance(s) placed from geometry-templates"
+                               if doc.instances else "")
+                            + (f"; {len(doc.warnings)} coercion warning(s)" if doc.warnings else ""))
     ins.data["cityjson"] = {"buildings": n_b, "building_parts": n_p, "ground_surfaces": n_ground,
                             "stacked_part_grounds": stacked, "tin_relief": has_tin, "terrain_height": n_th,
-                            "vertical_datum": vdat}
+                            "vertical_datum": vdat, "geometry_instances": doc.instances,
+                            "coercions": dict(doc.counts)}
+    for w in doc.warnings:
+        ins.warning(key, w)
     if not (has_tin or n_th or n_ground):
         ins.warning("data.terrain", "the CityJSON holds no ground (no TINRelief, GroundSurface or TerrainHeight): "
                     "roof heights are taken above a flat 0 m; give data.terrain (a DEM in the same datum)")
@@ -324,10 +369,12 @@ def _cityjson(ins: Inspection, path: Path, grid, key: str) -> dict | None:
 
 # ------------------------------------------------------------------------------ OSM
 def _osm(ins: Inspection, path: Path, grid, key: str, landing: bool = True) -> dict | None:
+    from skyroute.stages.base import file_problem
     from skyroute.stages.osm import read_osm
 
-    if not path.is_file():
-        ins.error(f"{key}.path", f"file not found: {path}")
+    why = file_problem(path, "OSM")
+    if why is not None:
+        ins.error(f"{key}.path", why)
         return None
     try:
         feats = read_osm(path, keys=["building", "building:part", "ele"])
@@ -345,6 +392,14 @@ def _osm(ins: Inspection, path: Path, grid, key: str, landing: bool = True) -> d
         box = shapely.Polygon(list(zip(lon, lat, strict=True)))
     bld = [f for f in feats if f.kind == "area" and ("building" in f.tags or "building:part" in f.tags)
            and (box is None or f.geometry.intersects(box))]
+    from skyroute.stages.surface import osm_building_height, osm_height_warnings
+
+    problems: list[tuple[int, str]] = []
+    for f in bld:   # the stage's own reading of the height tags: the same warnings, before any work
+        why: list[str] = []
+        osm_building_height(f.tags, problems=why)
+        if why:
+            problems.append((f.osm_id, ", ".join(why)))
     n_h = sum(1 for f in bld if "height" in f.tags)
     n_l = sum(1 for f in bld if "building:levels" in f.tags and "height" not in f.tags)
     ele = [float(f.tags["ele"]) for f in feats if "ele" in f.tags and _is_float(f.tags["ele"])
@@ -357,7 +412,12 @@ def _osm(ins: Inspection, path: Path, grid, key: str, landing: bool = True) -> d
     ins.facts["ground"] = "flat 0 m (OSM has no terrain)" + (
         f"; {len(ele)} OSM ele points in the AOI span {min(ele):.1f}..{max(ele):.1f} m (EGM96)" if ele else "")
     ins.data["osm"] = {"buildings": len(bld), "with_height": n_h, "with_levels": n_l,
-                       "ele_points": len(ele), "ele_range_m": [min(ele), max(ele)] if ele else None}
+                       "ele_points": len(ele), "ele_range_m": [min(ele), max(ele)] if ele else None,
+                       "height_tags_coerced": len(problems), "height_tags_coerced_ids": [i for i, _ in problems]}
+    if problems:
+        ins.facts["buildings"] += f"; {len(problems)} with an unusable or implausible height tag (coerced)"
+    for w in osm_height_warnings(problems, key=None):
+        ins.warning(key, w)
     if grid is not None and not bld:
         ins.error("aoi.bounds", f"the AOI does not intersect any building of {path.name}; check aoi.bounds")
     return {"ele": ele}

@@ -14,6 +14,17 @@ broadcast ephemerides alike.
   that is not more than one year after ``reference_date`` (default: today).
 * Unhealthy satellites (health != 0) are dropped with a ``warnings.warn`` naming them.
 * Malformed files raise :class:`~skyroute.stages.base.DataError` naming file and line.
+* Every file is read through :func:`~skyroute.stages.base.read_limited`: at most
+  :data:`MAX_ALMANAC_BYTES` (64 MB; a day of mixed RINEX 3 navigation is a few MB), a FIFO or
+  device (``/dev/urandom``) is refused before it is read.
+* Every record is checked (:func:`check_elements`) before it is used: finite values, a
+  plausible GNSS orbit -- semi-major axis A = sqrt(A)^2 in 10,000..50,000 km (MEO 25,500-29,600
+  km, IGSO/GEO 42,164 km), eccentricity in [0, 1) with the perigee A (1 - e) above the Earth's
+  surface (a counted warning above :data:`E_WARN` = 0.2: GPS < 0.03, the eccentric Galileo E14/E18
+  0.16), inclination in [0, pi] rad, angles within [-2 pi, 2 pi] rad, rates (node rate, delta
+  n, di/dt) within 1e-6 rad/s, seconds of week in [0, 604800] s, week numbers integers in
+  0..5000 (up to 2075), health and PRN non-negative integers (PRN 1..99).  A value outside is
+  one DataError naming the file, line, satellite and field.
 """
 
 from __future__ import annotations
@@ -27,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from skyroute.stages.base import DataError, InputError
+from skyroute.stages.base import DataError, InputError, read_limited
 from skyroute.stages.orbits import (
     GPS_EPOCH,
     SECONDS_PER_WEEK,
@@ -63,8 +74,90 @@ _HARMONIC = ("delta_n_rad_s", "idot_rad_s", "cuc_rad", "cus_rad", "crc_m", "crs_
 _DS_UNITS = "SI: m, s, rad (per-variable 'units' attributes)"
 
 
+MAX_ALMANAC_BYTES = 64 * 1024 * 1024
+"""The largest almanac / RINEX navigation file read [bytes]."""
+E_WARN = 0.2
+"""Eccentricity above which a record is kept with a warning (unusual for a GNSS orbit)."""
+_A_MIN_M, _A_MAX_M = 10.0e6, 50.0e6        # plausible GNSS semi-major axes [m]
+_EARTH_RADIUS_M = 6_378_137.0               # WGS 84 equatorial radius [m]
+_MAX_RATE_RAD_S = 1.0e-6                    # |node rate|, |delta n|, |di/dt| [rad/s]
+_MAX_WEEK = 5000                            # a full GPS week in 2075
+_TWO_PI = 2.0 * np.pi + 1e-9
+# (record key, name in messages, lower bound, upper bound, units): a closed range [lo, hi]
+_RANGES = (
+    ("i0_rad", "inclination", 0.0, np.pi + 1e-9, "rad"),
+    ("omega0_rad", "longitude of the ascending node", -_TWO_PI, _TWO_PI, "rad"),
+    ("argp_rad", "argument of perigee", -_TWO_PI, _TWO_PI, "rad"),
+    ("m0_rad", "mean anomaly", -_TWO_PI, _TWO_PI, "rad"),
+    ("omega_dot_rad_s", "rate of right ascension", -_MAX_RATE_RAD_S, _MAX_RATE_RAD_S, "rad/s"),
+    ("delta_n_rad_s", "mean motion difference delta n", -_MAX_RATE_RAD_S, _MAX_RATE_RAD_S, "rad/s"),
+    ("idot_rad_s", "rate of inclination", -_MAX_RATE_RAD_S, _MAX_RATE_RAD_S, "rad/s"),
+    ("toe_s", "time of applicability / ephemeris", 0.0, float(SECONDS_PER_WEEK), "s of week"),
+    ("crs_m", "radius correction crs", -1.0e4, 1.0e4, "m"),
+    ("crc_m", "radius correction crc", -1.0e4, 1.0e4, "m"),
+    ("cuc_rad", "latitude correction cuc", -0.1, 0.1, "rad"),
+    ("cus_rad", "latitude correction cus", -0.1, 0.1, "rad"),
+    ("cic_rad", "inclination correction cic", -0.1, 0.1, "rad"),
+    ("cis_rad", "inclination correction cis", -0.1, 0.1, "rad"),
+)
+
+
 def _path_text(path: str | Path) -> str:
     return str(path)
+
+
+def check_elements(rec: dict, path: str, lines: dict[str, int] | int, sat: str | None = None) -> None:
+    """Refuse a record whose orbital elements cannot be a GNSS orbit (see the module docstring).
+
+    ``rec``: the record's elements (keys as in the Datasets: ``sqrt_a``, ``e``, ``i0_rad`` ...;
+    ``week``, ``health``, ``prn`` as read, before any week resolution); ``lines``: the line of
+    each key in the file (or one line for all); ``sat``: the satellite's name in messages.
+    Raises one :class:`DataError` ``path:line: satellite: field ... (the limit)``; warns
+    (``warnings.warn``, counted in a run's warnings) for an eccentricity above :data:`E_WARN`.
+    """
+    who = sat or (f"PRN {rec['prn']:g}" if isinstance(rec.get("prn"), int | float) else "record")
+
+    def line(key: str) -> int:
+        return lines if isinstance(lines, int) else lines.get(key, min(lines.values(), default=0))
+
+    def bad(key: str, what: str) -> DataError:
+        return DataError(f"{path}:{line(key)}: {who}: {what}; the almanac is corrupt or not a GNSS almanac "
+                         "(fix or replace the file)")
+
+    for key, v in rec.items():
+        if isinstance(v, float) and not np.isfinite(v) and key not in ("line",):
+            raise bad(key, f"{key} is not a finite number ({v})")
+    if "prn" in rec:
+        prn = rec["prn"]
+        if not (float(prn) == int(prn) and 1 <= int(prn) <= 99):
+            raise bad("prn", f"satellite number (PRN) {prn:g} is not an integer in 1..99")
+    if "health" in rec:
+        h = rec["health"]
+        if not (float(h) == int(h) and h >= 0):
+            raise bad("health", f"health {h:g} is not a non-negative integer (0 = healthy)")
+    if "week" in rec:
+        w = rec["week"]
+        if not (float(w) == int(w) and 0 <= w <= _MAX_WEEK):
+            raise bad("week", f"week number {w:g} is not an integer in 0..{_MAX_WEEK}")
+    sqrt_a = float(rec["sqrt_a"])
+    lo, hi = np.sqrt(_A_MIN_M), np.sqrt(_A_MAX_M)
+    if not lo <= sqrt_a <= hi:
+        raise bad("sqrt_a", f"sqrt(A) {sqrt_a:g} m^0.5 (semi-major axis {sqrt_a ** 2 / 1e3:,.0f} km) is outside "
+                            f"{lo:.1f}..{hi:.1f} m^0.5 (A = {_A_MIN_M / 1e3:,.0f}..{_A_MAX_M / 1e3:,.0f} km: "
+                            "GNSS orbits are 25,500..42,164 km)")
+    e = float(rec["e"])
+    if not 0.0 <= e < 1.0:
+        raise bad("e", f"eccentricity {e:g} is not in [0, 1) (an ellipse; GPS orbits have e < 0.03)")
+    perigee = sqrt_a ** 2 * (1.0 - e)
+    if perigee <= _EARTH_RADIUS_M:
+        raise bad("e", f"eccentricity {e:g} puts the perigee A (1 - e) = {perigee / 1e3:,.0f} km inside the Earth "
+                       f"(radius {_EARTH_RADIUS_M / 1e3:,.0f} km)")
+    for key, name, vlo, vhi, units in _RANGES:
+        if key in rec and not vlo <= float(rec[key]) <= vhi:
+            raise bad(key, f"{name} ({key}) {float(rec[key]):g} {units} is outside {vlo:.6g}..{vhi:.6g} {units}")
+    if e > E_WARN:
+        warnings.warn(f"{path}:{line('e')}: {who}: eccentricity {e:g} is unusual for a GNSS orbit (GPS < 0.03, "
+                      f"Galileo E14/E18 0.16); check the almanac", stacklevel=3)
 
 
 # --------------------------------------------------------------------------------------------
@@ -196,7 +289,7 @@ def parse_yuma(text: str, path: str = "<yuma>", reference_date=None, system: str
     if not blocks:
         raise DataError(f"{path}: no YUMA almanac records found")
     records = []
-    for head, prn, vals, _lines in blocks:
+    for head, prn, vals, lines in blocks:
         missing = [k for k in _YUMA_REQUIRED if k not in vals]
         if "omega0_rad" not in vals and "omega_toa_rad" not in vals:
             missing.append("right ascen")
@@ -205,7 +298,10 @@ def parse_yuma(text: str, path: str = "<yuma>", reference_date=None, system: str
         if missing:
             raise DataError(f"{path}:{head}: YUMA record starting here is incomplete or truncated "
                             f"(missing {', '.join(missing)})")
-        vals["prn"] = int(prn if prn is not None else vals["id"])
+        number = prn if prn is not None else vals["id"]
+        lines.setdefault("prn", lines.get("id", head))
+        check_elements({**vals, "prn": number}, path, lines, f"PRN {number:g}")
+        vals["prn"] = int(number)
         vals["health"] = int(vals["health"])
         vals["week"] = int(vals["week"])
         records.append(vals)
@@ -237,11 +333,19 @@ def parse_sem(text: str, path: str = "<sem>", reference_date=None, system: str |
     if len(lines) < 2:
         raise DataError(f"{path}: too short for a SEM almanac (needs a count line and a week/toa line)")
     (l1, t1), (l2, t2) = lines[0], lines[1]
-    n = int(_float(t1[0], path, l1, "number of records"))
+    n = _float(t1[0], path, l1, "number of records")
     if len(t2) < 2:
         raise DataError(f"{path}:{l2}: expected 'week toa' on the second line")
-    week = resolve_gps_week(int(_float(t2[0], path, l2, "week")), reference_date)
+    week_read = _float(t2[0], path, l2, "week")
     toa = _float(t2[1], path, l2, "time of applicability")
+    if not (week_read == int(week_read) and 0 <= week_read <= _MAX_WEEK):
+        raise DataError(f"{path}:{l2}: week number {week_read:g} is not an integer in 0..{_MAX_WEEK}")
+    if not 0.0 <= toa <= float(SECONDS_PER_WEEK):
+        raise DataError(f"{path}:{l2}: time of applicability {toa:g} s is outside 0..{SECONDS_PER_WEEK} s of week")
+    if not (n == int(n) and n >= 1):
+        raise DataError(f"{path}:{l1}: the number of records {n:g} is not a positive integer")
+    n = int(n)
+    week = resolve_gps_week(int(week_read), reference_date)
     body = lines[2:]
     if len(body) < 8 * n:
         raise DataError(f"{path}:{body[-1][0] if body else l2}: SEM almanac truncated: header "
@@ -257,6 +361,13 @@ def parse_sem(text: str, path: str = "<sem>", reference_date=None, system: str |
         v = [_float(t, path, ln, "SEM value") for ln, toks in rec_lines for t in toks]
         prn, _svn, _ura, e, di, odot, sqrt_a, om0, argp, m0, af0, af1, health, _cfg = v
         letter = system or "G"
+        ln = [x[0] for x in rec_lines]
+        check_elements({"prn": prn, "health": health, "sqrt_a": sqrt_a, "e": e, "i0_rad": (SEM_I_REF + di) * GPS_PI,
+                        "omega_dot_rad_s": odot * GPS_PI, "omega0_rad": om0 * GPS_PI, "argp_rad": argp * GPS_PI,
+                        "m0_rad": m0 * GPS_PI},
+                       path, {"prn": ln[0], "e": ln[3], "i0_rad": ln[3], "omega_dot_rad_s": ln[3], "sqrt_a": ln[4],
+                              "omega0_rad": ln[4], "argp_rad": ln[4], "m0_rad": ln[5], "health": ln[6]},
+                       f"PRN {prn:g}")
         out.append({"sat": f"{letter}{int(prn):02d}", "system": letter, "prn": int(prn),
                     "health": int(health), "week": week, "toe_s": toa, "sqrt_a": sqrt_a, "e": e,
                     "i0_rad": (SEM_I_REF + di) * GPS_PI, "omega_dot_rad_s": odot * GPS_PI,
@@ -270,6 +381,11 @@ def parse_sem(text: str, path: str = "<sem>", reference_date=None, system: str |
 # --------------------------------------------------------------------------------------------
 
 _KEPLER_SYSTEMS = ("G", "E", "J", "C", "I")
+# value index in a RINEX navigation record -> element key (for the line of a refused value)
+_RINEX_FIELDS = {0: "af0_s", 1: "af1_s_s", 4: "crs_m", 5: "delta_n_rad_s", 6: "m0_rad", 7: "cuc_rad", 8: "e",
+                 9: "cus_rad", 10: "sqrt_a", 11: "toe_s", 12: "cic_rad", 13: "omega0_rad", 14: "cis_rad",
+                 15: "i0_rad", 16: "crc_m", 17: "argp_rad", 18: "omega_dot_rad_s", 19: "idot_rad_s",
+                 21: "week", 24: "health"}
 _BDS_WEEK_OFFSET, _BDS_GPS_OFFSET_S = 1356, 14.0
 
 
@@ -346,8 +462,12 @@ def parse_rinex_nav(text: str, path: str = "<rinex>") -> list[dict]:
                "m0_rad": vals[6], "cuc_rad": vals[7], "e": vals[8], "cus_rad": vals[9],
                "sqrt_a": vals[10], "toe_s": vals[11], "cic_rad": vals[12], "omega0_rad": vals[13],
                "cis_rad": vals[14], "i0_rad": vals[15], "crc_m": vals[16], "argp_rad": vals[17],
-               "omega_dot_rad_s": vals[18], "idot_rad_s": vals[19], "week": int(vals[21]),
-               "health": int(vals[24])}
+               "omega_dot_rad_s": vals[18], "idot_rad_s": vals[19], "week": vals[21],
+               "health": vals[24]}
+        at = {key: raw[j][0] for j, key in _RINEX_FIELDS.items()}
+        check_elements({k: v for k, v in rec.items() if k not in ("sat", "system", "line")}, path,
+                       {**at, "prn": lineno}, f"{letter}{prn:02d} (record at line {lineno})")
+        rec["week"], rec["health"] = int(rec["week"]), int(rec["health"])
         if letter == "C":  # BDT: week offset 1356, BDT = GPST - 14 s
             rec["t_ref_gps_s"] = ((rec["week"] + _BDS_WEEK_OFFSET) * float(SECONDS_PER_WEEK)
                                   + rec["toe_s"] + _BDS_GPS_OFFSET_S)
@@ -364,9 +484,15 @@ def parse_rinex_nav(text: str, path: str = "<rinex>") -> list[dict]:
 
 
 def _read_text(path: str | Path) -> str:
+    """The text of an almanac / navigation file, read through :func:`read_limited` (at most
+    :data:`MAX_ALMANAC_BYTES`; FIFOs and devices refused)."""
     p = Path(path)
+    if not p.exists():
+        raise DataError(f"cannot read almanac/navigation file {p}: not found; check the path")
     try:
-        return p.read_text(encoding="ascii", errors="replace")
+        return read_limited(p, MAX_ALMANAC_BYTES, "almanac").decode("ascii", errors="replace")
+    except DataError:
+        raise
     except OSError as exc:
         raise DataError(f"cannot read almanac/navigation file {p}: {exc.strerror or exc}") from exc
 

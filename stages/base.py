@@ -151,3 +151,101 @@ class ClusterError(SkyrouteError):
 class DegenerateCostError(InputError):
     """The cost weights select only terms that are the same per metre everywhere (e.g. risk with
     no land use): every path would score alike; the message names the data source to add."""
+
+
+def read_limited(path, max_bytes: int, what: str = "input") -> bytes:
+    """The bytes of a user's file, never more than ``max_bytes`` [bytes]: the limit holds for
+    streams whose size the file system does not know (``/dev/zero``, ``/dev/urandom``, a FIFO,
+    a file that grows while it is read), which are read in chunks and refused once they pass it.
+    A FIFO, socket or device is refused before it is opened (opening a FIFO with no writer would
+    wait forever).  Raises :class:`DataError` naming the file: not found, a folder, not a regular
+    file, unreadable, or too large (with the limit)."""
+    import os
+
+    p = os.fspath(path)
+    limit = int(max_bytes)
+    note_input(p)
+    why = file_problem(p, what)
+    if why is not None:
+        raise DataError(why if "regular file" not in why else f"{why} (at most {limit:,} bytes)")
+    try:
+        with open(p, "rb") as f:
+            chunks: list[bytes] = []
+            n = 0
+            while True:
+                b = f.read(min(1 << 20, limit + 1 - n))
+                if not b:
+                    break
+                chunks.append(b)
+                n += len(b)
+                if n > limit:
+                    raise DataError(f"{what} file {p}: more than {limit:,} bytes (a stream or device such as "
+                                    f"/dev/zero never ends); give a regular {what} file of at most {limit:,} bytes")
+            return b"".join(chunks)
+    except PermissionError:
+        raise DataError(f"{what} file {p} cannot be read (permission denied); check its permissions") from None
+    except OSError as exc:
+        if isinstance(exc, DataError):
+            raise
+        raise DataError(f"{what} file {p} cannot be read: {exc.strerror or exc}") from None
+
+# ------------------------------------------------------------------ the files a command read
+# Every file a user gives (scenario, data, events, fleet, vehicle...) is noted here as it is read,
+# so that a command's output folder can refuse to replace any of them
+# (:mod:`skyroute.pipeline.outfolder`).  Cleared at the start of each CLI command.
+_INPUTS: dict[str, None] = {}
+
+
+def note_input(path) -> None:
+    """Record ``path`` as an input of the running command (resolved; ignored if it is not a
+    path to an existing file)."""
+    import os
+
+    try:
+        p = os.path.realpath(os.fspath(path))
+    except (TypeError, ValueError, OSError):
+        return
+    _INPUTS.setdefault(p, None)
+
+
+def inputs_read() -> list[str]:
+    """The resolved paths :func:`note_input` recorded, in order."""
+    return list(_INPUTS)
+
+
+def forget_inputs() -> None:
+    """Start a new command: no input recorded."""
+    _INPUTS.clear()
+
+
+def file_problem(path, what: str = "input") -> str | None:
+    """Why ``path`` is not a regular file skyroute can read (the wording of :func:`read_limited`:
+    not found, a folder, a FIFO, a socket, a device), or None.  Nothing is opened."""
+    import os
+    import stat
+
+    p = os.fspath(path)
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        return f"{what} file not found: {p}; check the path"
+    except (OSError, ValueError) as exc:
+        return f"{what} file {p} cannot be read: {getattr(exc, 'strerror', None) or exc}"
+    if stat.S_ISDIR(mode):
+        return f"{what} file {p} is a folder; give a file"
+    if not stat.S_ISREG(mode):
+        kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
+                else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+        return f"{what} file {p} is {kind}, not a regular file; give a regular {what} file"
+    return None
+
+
+#: The memory limit of the running command [bytes], for readers that size an allocation from a
+#: file's header (a raster window): a function ``skyroute.pipeline.budget`` registers
+#: (``--max-memory``, ``$SKYROUTE_MAX_MEMORY``, else 80 % of the machine); None: no limit.
+memory_limit_hook = None
+
+
+def memory_limit_bytes() -> float:
+    """The running command's memory limit [bytes] (:data:`memory_limit_hook`), else inf."""
+    return float(memory_limit_hook()) if memory_limit_hook is not None else math.inf

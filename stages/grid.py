@@ -220,29 +220,338 @@ class SourceWindow:
     full: bool  # the window holds the whole extent (no hole can reach beyond it)
 
 
+#: Memory a raster read takes per window pixel [bytes]: the float64 values and the ``inside``
+#: mask of the window, a tile's block while it is read (masked, converted), the NoData labels
+#: (int32 and int64) and one filled float64 copy.
+READ_BYTES_PER_PX = 48
+
+#: Linear units a band's ``units`` metadata may declare -> metres per unit.
+_UNIT_M = {
+    "m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0,
+    "cm": 0.01, "centimetre": 0.01, "centimeter": 0.01, "centimetres": 0.01, "centimeters": 0.01,
+    "mm": 0.001, "millimetre": 0.001, "millimeter": 0.001, "millimetres": 0.001, "millimeters": 0.001,
+    "ft": 0.3048, "foot": 0.3048, "feet": 0.3048, "international foot": 0.3048, "international feet": 0.3048,
+    "us survey foot": 1200.0 / 3937.0, "us survey feet": 1200.0 / 3937.0, "ftus": 1200.0 / 3937.0,
+    "us-ft": 1200.0 / 3937.0, "us foot": 1200.0 / 3937.0, "survey foot": 1200.0 / 3937.0,
+}
+
+
+@dataclass(frozen=True)
+class RasterHeader:
+    """What a height raster's header says, checked by :func:`raster_header` (nothing read).
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The file.
+    width, height : int
+        Size [px].
+    transform : affine.Affine
+        North-up geotransform (of a bottom-up raster: the flipped one; ``flipped`` is True).
+    crs : pyproj.CRS
+        The raster's CRS (a compound CRS keeps its vertical part).
+    flipped : bool
+        Stored bottom-up (positive pixel height): rows are read in reverse.
+    z_scale : float
+        Metres per stored value [m]: the band's scale times its vertical unit.
+    z_offset : float
+        Added after scaling [m] (the band's offset in metres).
+    z_unit : str
+        The declared vertical unit and where it comes from, for messages.
+    dtype : str
+        Band 1's data type.
+    nodata : float or None
+        Band 1's NoData value.
+    driver : str
+        GDAL driver.
+    """
+
+    path: object
+    width: int
+    height: int
+    transform: Affine
+    crs: CRS
+    flipped: bool
+    z_scale: float
+    z_offset: float
+    z_unit: str
+    dtype: str
+    nodata: float | None
+    driver: str
+
+    @property
+    def res(self) -> tuple[float, float]:
+        """(pixel width, pixel height) [map units], both positive."""
+        return abs(self.transform.a), abs(self.transform.e)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(left, bottom, right, top) [map units]."""
+        t = self.transform
+        return t.c, t.f + t.e * self.height, t.c + t.a * self.width, t.f
+
+
+def _vertical_unit(crs: CRS) -> tuple[float, str] | None:
+    """(metres per unit, unit name) of the vertical axis of ``crs`` (a compound CRS's vertical
+    part, or the third axis of a 3-D CRS), None when it has none; factor 0 for a unit PROJ
+    cannot convert."""
+    subs = crs.sub_crs_list if crs.is_compound else [crs]
+    for c in subs:
+        for ax in c.axis_info:
+            if ax.direction.lower() in ("up", "down") or "height" in ax.name.lower():
+                f = float(ax.unit_conversion_factor or 0.0)
+                return (f if np.isfinite(f) and f > 0 else 0.0), str(ax.unit_name)
+    return None
+
+
+def raster_read_error(what: str, p, exc: BaseException) -> DataError:
+    """The :class:`DataError` of a raster GDAL cannot open or read (truncated, a corrupt tile).
+
+    Parameters
+    ----------
+    what : str
+        Names the layer ("surface DSM", "terrain DEM").
+    p : str or pathlib.Path
+        The file.
+    exc : BaseException
+        rasterio's error (its cause holds GDAL's message).
+
+    Returns
+    -------
+    DataError
+        Naming the file, GDAL's reason and the fix (re-download, gdalinfo -checksum, gdal_translate).
+    """
+    why = str(exc)
+    cause = exc.__cause__ or exc.__context__
+    if cause is not None and str(cause) and str(cause) not in why:
+        why = f"{why} ({cause})" if "previous exception" not in why else str(cause)
+    return DataError(f"cannot read {what} raster {p}: it is truncated or corrupt ({why.strip()}); re-download it, "
+                     f"or check it with `gdalinfo -checksum {p}` and rewrite a readable copy with gdal_translate")
+
+
+def raster_header(src, path, what: str) -> RasterHeader:
+    """The checked header of band 1 of an open rasterio dataset (nothing is read).
+
+    A raster georeferenced by ground control points (GCPs) or RPCs only, without CRS, rotated or
+    with columns running west, is refused; a bottom-up raster (positive pixel height) is read
+    flipped; the vertical unit is the CRS's vertical axis (a compound CRS such as
+    ``EPSG:32611+6360``, US survey feet) or the band's ``units`` metadata, converted to metres
+    together with the band's scale and offset.
+
+    Parameters
+    ----------
+    src : rasterio.io.DatasetReader
+        The open raster.
+    path : str or pathlib.Path
+        Its file (named in messages).
+    what : str
+        Names the layer in messages ("surface DSM", "terrain DEM").
+
+    Returns
+    -------
+    RasterHeader
+
+    Raises
+    ------
+    DataError
+        GCP / RPC-only georeferencing, a rotated or east-west flipped raster, a vertical unit
+        that cannot be converted to metres, a CRS and a band unit that disagree.
+    CRSError
+        When the raster has no CRS.
+    """
+    t = src.transform
+    gcps, _ = src.gcps
+    if (gcps or getattr(src, "rpcs", None)) and t.is_identity:
+        how = f"{len(gcps)} ground control points (GCPs)" if gcps else "rational polynomial coefficients (RPCs)"
+        raise DataError(f"{what} raster {path} is georeferenced by {how}, not by a geotransform: warp it onto a "
+                        f"map grid first (gdalwarp -t_srs EPSG:<code> {path} warped.tif) and give the warped file")
+    if src.crs is None:
+        raise CRSError(f"{what} raster {path} has no CRS; assign one with gdal_edit.py -a_srs EPSG:...")
+    if t.b != 0 or t.d != 0:
+        raise DataError(f"{what} raster {path} is rotated (geotransform terms {t.b:g}, {t.d:g} are not 0): warp it "
+                        "north-up first (gdalwarp)")
+    if t.a <= 0 or t.e == 0:
+        raise DataError(f"{what} raster {path} has a pixel width of {t.a:g} (columns must run west to east): "
+                        "warp it north-up first (gdalwarp)")
+    flipped = t.e > 0
+    if flipped:
+        t = Affine(t.a, 0.0, t.c, 0.0, -t.e, t.f + t.e * src.height)
+    crs = CRS.from_user_input(src.crs)
+    vert = _vertical_unit(crs)
+    band = str(src.units[0] or "").strip() if src.units else ""
+    band_f = _UNIT_M.get(band.lower()) if band else None
+    if vert is not None and vert[0] == 0.0:
+        raise DataError(f"{what} raster {path}: its CRS's vertical unit {vert[1]!r} cannot be converted to metres; "
+                        "convert the heights to metres (gdal_translate / gdalwarp with a vertical CRS in metres)")
+    if band and band_f is None:
+        raise DataError(f"{what} raster {path}: its band unit is {band!r}, not a length skyroute can convert to "
+                        "metres (m, cm, ft, US survey foot); convert the heights to metres, or correct the unit "
+                        "(gdal_edit.py -units m) if they are metres")
+    if vert is not None and band_f is not None and not np.isclose(vert[0], band_f, rtol=1e-6):
+        raise DataError(f"{what} raster {path}: its CRS's vertical unit is {vert[1]!r} but its band unit is "
+                        f"{band!r}; correct one of them (gdal_edit.py -a_srs / -units) so the heights' unit is known")
+    factor, unit = ((vert[0], f"{vert[1]} (the CRS's vertical axis)") if vert is not None else
+                    (band_f, f"{band} (the band's unit)") if band_f is not None else (1.0, "metre (none declared)"))
+    scale = float(src.scales[0]) if src.scales and src.scales[0] is not None else 1.0
+    offset = float(src.offsets[0]) if src.offsets and src.offsets[0] is not None else 0.0
+    if not (np.isfinite(scale) and np.isfinite(offset)) or scale == 0:
+        raise DataError(f"{what} raster {path}: band scale {scale:g} / offset {offset:g} make no heights; fix them "
+                        "(gdal_edit.py -scale / -offset)")
+    if scale != 1.0 or offset != 0.0:
+        unit += f", stored values x {scale:g} + {offset:g} (band scale / offset)"
+    return RasterHeader(path, int(src.width), int(src.height), t, crs, flipped, scale * factor, offset * factor,
+                        unit, str(src.dtypes[0]), src.nodata, str(src.driver))
+
+
 def _open_all(paths, what: str):
+    """Open every file (a regular file; GDAL's errors as :class:`DataError`) -> (datasets, headers)."""
     import rasterio
 
-    srcs = []
-    for p in paths:
-        if not p.is_file():
-            for s in srcs:
-                s.close()
-            raise DataError(f"{what} file not found: {p}")
-        try:
-            srcs.append(rasterio.open(p))
-        except rasterio.errors.RasterioIOError as exc:
-            for s in srcs:
-                s.close()
-            raise DataError(f"cannot read {what} raster {p}: {exc}") from exc
-    return srcs
+    from skyroute.stages.base import file_problem
+
+    srcs, heads = [], []
+    try:
+        for p in paths:
+            why = file_problem(p, f"{what} raster")
+            if why is not None:
+                raise DataError(why)
+            try:
+                srcs.append(rasterio.open(p))
+            except rasterio.errors.RasterioIOError as exc:
+                raise raster_read_error(what, p, exc) from exc
+            heads.append(raster_header(srcs[-1], p, what))
+    except BaseException:
+        for s in srcs:
+            s.close()
+        raise
+    return srcs, heads
 
 
-def read_window(path, grid: Grid, *, what: str, margin_px: int = 32, require_overlap: bool = True) -> SourceWindow:
+def raster_headers(path, what: str) -> list[RasterHeader]:
+    """The checked headers (:func:`raster_header`) of a raster, a VRT or a list of tiles; the
+    files are closed again, no pixel is read.
+
+    Parameters
+    ----------
+    path : str, pathlib.Path or list of them
+        The raster (as :func:`read_window` takes it).
+    what : str
+        Names the layer in messages.
+
+    Returns
+    -------
+    list of RasterHeader
+        One per file.
+
+    Raises
+    ------
+    DataError
+        As :func:`raster_header`, and for a file that is missing, not a regular file (a folder, a
+        FIFO, a device) or that GDAL cannot open (truncated, corrupt).
+    CRSError
+        When the raster has no CRS.
+    """
+    from pathlib import Path
+
+    paths = [Path(p) for p in (path if isinstance(path, (list, tuple)) else [path])]
+    if not paths:
+        raise DataError(f"{what}: no raster file given")
+    srcs, heads = _open_all(paths, what)
+    for s in srcs:
+        s.close()
+    return heads
+
+
+def check_read_bytes(shape: tuple[int, int], what: str, path, *, limit_bytes: float | None = None,
+                     growing: bool = False) -> float:
+    """The memory [bytes] reading a window of ``shape`` takes (:data:`READ_BYTES_PER_PX`), checked
+    against the limit before anything is allocated.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        (height, width) of the window [px].
+    what : str
+        Names the layer in messages.
+    path : str or pathlib.Path
+        The raster (named in messages).
+    limit_bytes : float, optional
+        The limit [bytes]; default the command's ``--max-memory``
+        (:func:`~skyroute.stages.base.memory_limit_bytes`).
+    growing : bool, default False
+        The window grows to reach the rims of NoData regions (:func:`read_window_holes`): said
+        in the message, with its own fix.
+
+    Returns
+    -------
+    float
+        The estimate [bytes].
+
+    Raises
+    ------
+    InputError
+        Naming the window, the estimate, the limit and the fixes when it exceeds the limit.
+    """
+    from skyroute.stages.base import memory_limit_bytes
+
+    limit = memory_limit_bytes() if limit_bytes is None else float(limit_bytes)
+    need = float(shape[0]) * float(shape[1]) * READ_BYTES_PER_PX
+    if need <= limit:
+        return need
+    gib = lambda n: f"{n / (1 << 30):,.1f} GiB" if n >= 1 << 30 else f"{n / (1 << 20):,.0f} MiB"  # noqa: E731
+    why, fix = (("to know the whole rim of its NoData regions, which reach beyond the AOI,",
+                 "clip the raster to the AOI (gdal_translate -projwin) so they end at its edge, or fill its NoData")
+                if growing else ("over the AOI", "shrink aoi.bounds, give a coarser raster (gdalwarp -tr) or clip it "
+                                 "to the AOI (gdal_translate -projwin)"))
+    raise InputError(f"{what} {path}: reading a window of {shape[1]:,} x {shape[0]:,} px {why} needs about "
+                     f"{gib(need)} of memory, more than --max-memory ({gib(limit)}): {fix}, or raise --max-memory")
+
+
+def window_box(heads: list[RasterHeader], b, margin_px: int) -> tuple[int, int, int, int, bool]:
+    """The window :func:`read_window` reads: on the pixel lattice of the first tile, ``margin_px``
+    beyond the box ``b``, never more than one pixel beyond the whole extent.
+
+    Parameters
+    ----------
+    heads : list of RasterHeader
+        The tiles (:func:`raster_headers`).
+    b : tuple of float
+        (left, bottom, right, top) to cover, in the raster's CRS.
+    margin_px : int
+        Pixels beyond ``b``.
+
+    Returns
+    -------
+    tuple
+        (first column, first row, height, width [px] in the first tile's lattice, whether the
+        window holds the whole extent).
+    """
+    t0 = heads[0].transform
+    rx, ry = heads[0].res
+    left = min(hd.bounds[0] for hd in heads)
+    bottom = min(hd.bounds[1] for hd in heads)
+    right = max(hd.bounds[2] for hd in heads)
+    top = max(hd.bounds[3] for hd in heads)
+    c0 = int(np.floor((b[0] - t0.c) / rx)) - margin_px
+    c1 = int(np.ceil((b[2] - t0.c) / rx)) + margin_px
+    r0 = int(np.floor((t0.f - b[3]) / ry)) - margin_px
+    r1 = int(np.ceil((t0.f - b[1]) / ry)) + margin_px
+    e0, e1 = int(np.floor((left - t0.c) / rx)) - 1, int(np.ceil((right - t0.c) / rx)) + 1
+    f0, f1 = int(np.floor((t0.f - top) / ry)) - 1, int(np.ceil((t0.f - bottom) / ry)) + 1
+    c0, c1, r0, r1 = max(c0, e0), min(c1, e1), max(r0, f0), min(r1, f1)
+    full = c0 <= e0 and c1 >= e1 and r0 <= f0 and r1 >= f1
+    return c0, r0, max(r1 - r0, 1), max(c1 - c0, 1), full
+
+
+def read_window(path, grid: Grid, *, what: str, margin_px: int = 32, require_overlap: bool = True,
+                _growing: bool = False) -> SourceWindow:
     """Read band 1 of ``path`` over the window that covers ``grid`` plus ``margin_px`` pixels.
 
-    At the native resolution, without resampling.  Nodata -> NaN; pixels outside every tile
-    are NaN with ``inside`` False.  Overlapping tiles: the highest value wins.
+    At the native resolution, without resampling, heights converted to metres from the declared
+    vertical unit, scale and offset (:func:`raster_header`); a bottom-up raster is read flipped.
+    Nodata -> NaN; pixels outside every tile are NaN with ``inside`` False.  Overlapping tiles:
+    the highest value wins.  The window's memory (:func:`check_read_bytes`) is checked against
+    ``--max-memory`` before anything is read.
 
     Parameters
     ----------
@@ -257,6 +566,9 @@ def read_window(path, grid: Grid, *, what: str, margin_px: int = 32, require_ove
         extent).
     require_overlap : bool, default True
         A raster that does not intersect the grid is a :class:`DataError`.
+    _growing : bool, default False
+        Internal (:func:`read_window_holes`): the window grows over NoData regions (said when
+        it passes ``--max-memory``).
 
     Returns
     -------
@@ -265,80 +577,78 @@ def read_window(path, grid: Grid, *, what: str, margin_px: int = 32, require_ove
     Raises
     ------
     DataError
-        When no file is given, a file is missing or unreadable, the raster is not north-up, the
-        tiles differ in CRS, pixel size, orientation or lattice, or (``require_overlap``) the
-        raster does not intersect the grid.
+        When no file is given, a file is missing, not a regular file, unreadable, truncated or
+        corrupt, the raster is georeferenced by GCPs only or rotated, its vertical unit cannot
+        be converted, the tiles differ in CRS, pixel size or lattice, or (``require_overlap``)
+        the raster does not intersect the grid.
     CRSError
         When the raster has no CRS.
+    InputError
+        When the window needs more memory than ``--max-memory``.
     """
     from pathlib import Path
 
+    import rasterio.errors
     import rasterio.warp
     import rasterio.windows
 
     paths = [Path(p) for p in (path if isinstance(path, (list, tuple)) else [path])]
     if not paths:
         raise DataError(f"{what}: no raster file given")
-    srcs = _open_all(paths, what)
+    srcs, heads = _open_all(paths, what)
     try:
         crs0 = srcs[0].crs
-        if crs0 is None:
-            raise CRSError(f"{what} raster {paths[0]} has no CRS; assign one with gdal_edit.py -a_srs EPSG:...")
-        t0 = srcs[0].transform
-        if t0.b != 0 or t0.d != 0 or t0.e >= 0:
-            raise DataError(f"{what} raster {paths[0]} is not north-up; warp it first (gdalwarp)")
-        for s, p in zip(srcs[1:], paths[1:], strict=True):
-            if s.crs != crs0 or not np.allclose(s.res, srcs[0].res) or s.transform.b != 0 or s.transform.d != 0:
+        h0 = heads[0]
+        t0 = h0.transform
+        for hd, p in zip(heads[1:], paths[1:], strict=True):
+            if hd.crs != h0.crs or not np.allclose(hd.res, h0.res):
                 raise DataError(f"{what} tile {p} differs from {paths[0]} in CRS, pixel size or orientation; "
                                 "give tiles of one raster (or build a VRT with gdalbuildvrt)")
-        rx, ry = srcs[0].res
-        left = min(s.bounds.left for s in srcs)
-        top = max(s.bounds.top for s in srcs)
-        right = max(s.bounds.right for s in srcs)
-        bottom = min(s.bounds.bottom for s in srcs)
+        rx, ry = h0.res
+        left = min(hd.bounds[0] for hd in heads)
+        bottom = min(hd.bounds[1] for hd in heads)
+        right = max(hd.bounds[2] for hd in heads)
+        top = max(hd.bounds[3] for hd in heads)
         b = rasterio.warp.transform_bounds(grid.crs, crs0, *grid.bounds, densify_pts=21)
         if require_overlap and (b[0] >= right or b[2] <= left or b[1] >= top or b[3] <= bottom):
             raise DataError(f"the AOI {tuple(round(v) for v in grid.bounds)} does not intersect {what} "
                             f"{paths[0] if len(paths) == 1 else f'{len(paths)} tiles'} (bounds "
                             f"{tuple(round(v) for v in (left, bottom, right, top))} in {crs0}); fix aoi or the {what} path")
-        # window on the pixel lattice of the first tile, margin_px beyond the AOI
-        c0 = int(np.floor((b[0] - t0.c) / rx)) - margin_px
-        c1 = int(np.ceil((b[2] - t0.c) / rx)) + margin_px
-        r0 = int(np.floor((t0.f - b[3]) / ry)) - margin_px
-        r1 = int(np.ceil((t0.f - b[1]) / ry)) + margin_px
-        # never beyond one pixel outside the whole extent
-        c0 = max(c0, int(np.floor((left - t0.c) / rx)) - 1)
-        c1 = min(c1, int(np.ceil((right - t0.c) / rx)) + 1)
-        r0 = max(r0, int(np.floor((t0.f - top) / ry)) - 1)
-        r1 = min(r1, int(np.ceil((t0.f - bottom) / ry)) + 1)
-        full = (c0 <= int(np.floor((left - t0.c) / rx)) - 1 and c1 >= int(np.ceil((right - t0.c) / rx)) + 1
-                and r0 <= int(np.floor((t0.f - top) / ry)) - 1 and r1 >= int(np.ceil((t0.f - bottom) / ry)) + 1)
-        h, w = max(r1 - r0, 1), max(c1 - c0, 1)
+        c0, r0, h, w, full = window_box(heads, b, margin_px)
+        check_read_bytes((h, w), what, paths[0] if len(paths) == 1 else f"({len(paths)} tiles)", growing=_growing)
         wt = Affine(rx, 0.0, t0.c + c0 * rx, 0.0, -ry, t0.f - r0 * ry)
         values = np.full((h, w), np.nan)
         inside = np.zeros((h, w), dtype=bool)
-        for s in srcs:
-            so = (s.transform.c - wt.c) / rx
-            sr = (wt.f - s.transform.f) / ry
+        for s, hd, p in zip(srcs, heads, paths, strict=True):
+            so = (hd.transform.c - wt.c) / rx
+            sr = (wt.f - hd.transform.f) / ry
             if abs(so - round(so)) > 1e-6 or abs(sr - round(sr)) > 1e-6:
                 raise DataError(f"{what} tiles are not on one pixel lattice; build a VRT with gdalbuildvrt")
             so, sr = int(round(so)), int(round(sr))
             # intersection of the tile with the window, in window pixels
-            a0, a1 = max(sr, 0), min(sr + s.height, h)
-            b0, b1 = max(so, 0), min(so + s.width, w)
+            a0, a1 = max(sr, 0), min(sr + hd.height, h)
+            b0, b1 = max(so, 0), min(so + hd.width, w)
             if a1 <= a0 or b1 <= b0:
                 continue
-            win = rasterio.windows.Window(b0 - so, a0 - sr, b1 - b0, a1 - a0)
-            a = s.read(1, window=win, masked=True)
+            row0 = hd.height - (a1 - sr) if hd.flipped else a0 - sr   # stored row of the block's first row
+            win = rasterio.windows.Window(b0 - so, row0, b1 - b0, a1 - a0)
+            try:
+                a = s.read(1, window=win, masked=True)
+            except rasterio.errors.RasterioIOError as exc:
+                raise raster_read_error(what, p, exc) from exc
+            if hd.flipped:
+                a = a[::-1]
             block = np.where(np.ma.getmaskarray(a), np.nan, np.ma.getdata(a).astype(np.float64))
             block[~np.isfinite(block)] = np.nan
+            if hd.z_scale != 1.0 or hd.z_offset != 0.0:
+                block = block * hd.z_scale + hd.z_offset
             cur = values[a0:a1, b0:b1]
             values[a0:a1, b0:b1] = np.fmax(cur, block)
             inside[a0:a1, b0:b1] = True
     finally:
         for s in srcs:
             s.close()
-    return SourceWindow(values, inside, wt, CRS.from_user_input(crs0), full)
+    return SourceWindow(values, inside, wt, h0.crs, full)
 
 
 NODATA_POLICIES = ("fill-max", "fill-nearest", "error")
@@ -456,13 +766,15 @@ def read_window_holes(path, grid: Grid, *, what: str, margin_px: int = 32) -> tu
         As :func:`read_window`.
     """
     margin = max(int(margin_px), 1)
+    grown = False
     while True:
-        win = read_window(path, grid, what=what, margin_px=margin)
+        win = read_window(path, grid, what=what, margin_px=margin, _growing=grown)
         check_heights(win.values, path, what)
         holes = find_holes(win)
         if win.full or not holes.at_border[1:].any():
             return win, holes
         margin *= 4
+        grown = True
 
 
 #: Heights a DSM or DEM may hold [m]: from below the Dead Sea shore to above Everest's summit.

@@ -466,6 +466,9 @@ def integrate_along_path(cost: xr.DataArray, xy: np.ndarray | Sequence[Sequence[
 
 
 # --------------------------------------------------------------------------- GeoJSON & no-fly
+MAX_GEOJSON_BYTES = 256 << 20   # a landing-site / no-fly GeoJSON: read within this size (a device never ends)
+
+
 def read_geojson_lonlat(path: str | Path, what: str = "features",
                         allowed: Iterable[str] | None = None) -> list[tuple[BaseGeometry, dict]]:
     """(geometry in lon/lat [deg], properties) of every feature of a GeoJSON file.
@@ -474,11 +477,13 @@ def read_geojson_lonlat(path: str | Path, what: str = "features",
     coordinates outside [-180, 180] x [-90, 90] are an :class:`InputError`, as is a file
     with no features.  ``allowed``: accepted geometry types.
     """
+    from skyroute.stages.base import read_limited
+
     p = Path(path)
     if not p.is_file():
         raise DataError(f"{what} GeoJSON not found: {p}")
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
+        doc = json.loads(read_limited(p, MAX_GEOJSON_BYTES, f"{what} GeoJSON").decode("utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"{what} file {p} is not valid JSON ({exc})") from exc
     if not isinstance(doc, dict) or doc.get("type") not in ("FeatureCollection", "Feature"):

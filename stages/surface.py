@@ -15,7 +15,12 @@ OSM: ``height`` (metres; "12 m", "40 ft" understood), else ``building:levels`` (
 times the storey height (default :data:`STOREY_HEIGHT_M` = 3.0 m, settable per scenario), else the
 default for its ``building=*`` type in :data:`DEFAULT_HEIGHT_BY_TYPE_M` (generic ``yes``: 10 m).
 ``min_height`` / ``building:min_level`` are ignored: a bridge-like part is filled to the ground,
-which is conservative for collision and occlusion.
+which is conservative for collision and occlusion.  Several ``;``-separated values: the highest.
+Broken tags are never read lower than they may mean (:func:`osm_building_height`): a value above
+:data:`MAX_BUILDING_HEIGHT_M` (1000 m) or :data:`MAX_BUILDING_LEVELS` (200), ``inf`` included, is
+taken as that maximum; an unparsable, NaN, negative or zero ``height`` gives way to the highest of
+the levels' height and the type's default; each such building is a counted stage warning naming
+its OSM id (also shown by ``skyroute inspect``).
 
 CityJSON (1.0 / 1.1 / 2.0, LoD1 or LoD2, Building and BuildingPart): every upper surface
 (``RoofSurface`` / ``OuterCeilingSurface`` / ``OuterFloorSurface``, or for LoD1 without semantics
@@ -66,6 +71,12 @@ touching the raster's edge, takes the highest height on its rim within the raste
 ``nodata: fill-max``, the default; ``fill-nearest``; ``error``), with a warning giving the share of
 the AOI filled; a DEM's regions take the highest rim height for ``terrain`` and the lowest for
 ``terrain_min``; AOI cells outside the extent are an error giving the ``aoi.bounds`` that fit.
+Read strictly (:func:`~skyroute.stages.grid.raster_header`): heights are converted to metres from
+the declared vertical unit (the CRS's vertical axis, e.g. US survey feet in ``EPSG:32611+6360``, or
+the band's unit, with its scale and offset; a unit that cannot be converted is refused), a
+bottom-up raster is read flipped, and a raster georeferenced by GCPs only, rotated, truncated or
+corrupt is refused naming the file and the fix; the window's memory is checked against
+``--max-memory`` from the header, before any pixel is read, also while it grows over NoData.
 A DSM without a DEM: the ground is the grey opening of the DSM (:func:`ground_from_dsm`, square
 window ``ground_window_m``, default 60 m, wider than the largest building), said in the attrs
 (``ground_source``) and as a stage warning; ``dsm_building`` marks cells whose every DSM pixel is
@@ -78,6 +89,7 @@ and safe; AGL ceilings also relative to the roof, too high by the building's hei
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from dataclasses import dataclass
@@ -115,36 +127,108 @@ DEFAULT_HEIGHT_BY_TYPE_M: dict[str, float] = {
     "transportation": 10.0, "industrial": 10.0, "warehouse": 8.0, "garage": 3.0, "garages": 3.0,
     "shed": 3.0, "hut": 3.0, "kiosk": 3.0, "roof": 5.0, "service": 4.0, "construction": 10.0,
 }
-_NUM = re.compile(r"^\s*([0-9]*[.,]?[0-9]+)\s*(m|metres|meters|ft|feet|')?\s*$", re.IGNORECASE)
+#: A tagged building height above this [m] is not a height (the tallest building is 828 m): it is
+#: taken as this value (conservative) with a warning.
+MAX_BUILDING_HEIGHT_M = 1000.0
+#: A tagged ``building:levels`` / ``roof:levels`` above this is not a storey count (the tallest
+#: building has 163): it is taken as this value (conservative) with a warning.
+MAX_BUILDING_LEVELS = 200.0
+_FT = 0.3048
+_NUMBER = r"[+-]?(?:[0-9]+[.,]?[0-9]*|[.,][0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf|infinity)"
+_NUM = re.compile(rf"^\s*({_NUMBER})\s*(m|metres|meters|metre|meter|ft|feet|foot|')?\s*$", re.IGNORECASE)
+_FEET_INCHES = re.compile(r"^\s*([0-9]+)\s*'\s*([0-9]+(?:\.[0-9]+)?)\s*(?:\"|'')\s*$")
+
+
+def _parse_one_m(text: str) -> float | None:
+    """One height value [m] (``"12"``, ``"12.5 m"``, ``"40 ft"``, ``"40'"``, ``"3'6\""``), the
+    number as written (negative, non-finite or huge values included); None if unparsable."""
+    m = _FEET_INCHES.match(text)
+    if m:
+        return (float(m.group(1)) + float(m.group(2)) / 12.0) * _FT
+    m = _NUM.match(text)
+    if not m:
+        return None
+    num = m.group(1)
+    v = float(num.replace(",", ".")) if not ("," in num and "." in num) else None
+    if v is None:
+        return None
+    unit = (m.group(2) or "m").lower()
+    return v * _FT if unit in ("ft", "feet", "foot", "'") else v
 
 
 def parse_height_m(text: str) -> float | None:
-    """A height tag in metres: ``"12"``, ``"12.5 m"``, ``"40 ft"``; None if unparsable.
+    """A height tag in metres: ``"12"``, ``"12.5 m"``, ``"40 ft"``, ``"3'6\""``; None if unparsable.
+
+    OSM separates several values with ``;``: the highest is taken.  The number is returned as
+    written (it may be negative, non-finite or implausibly large: :func:`osm_building_height`
+    judges it).
 
     Parameters
     ----------
     text : str
-        The tag value; units ``m``/``metres``/``meters`` (default) or ``ft``/``feet``/``'``; a
-        decimal comma is understood.
+        The tag value; units ``m``/``metres``/``meters`` (default) or ``ft``/``feet``/``'``
+        (international feet, 0.3048 m), feet and inches ``3'6"``; a decimal comma is understood.
 
     Returns
     -------
     float or None
-        The height [m], or None when ``text`` is empty or unparsable.
+        The height [m] (the highest of ``;``-separated values that parse), or None when
+        ``text`` is empty or no value parses.
     """
-    m = _NUM.match(text or "")
-    if not m:
+    vals = [v for v in (_parse_one_m(t) for t in (text or "").split(";") if t.strip()) if v is not None]
+    if not vals:
         return None
-    v = float(m.group(1).replace(",", "."))
-    unit = (m.group(2) or "m").lower()
-    return v * 0.3048 if unit in ("ft", "feet", "'") else v
+    return max(vals, key=lambda v: (not np.isnan(v), v))
 
 
-def osm_building_height(tags: dict[str, str], storey_height_m: float = STOREY_HEIGHT_M) -> tuple[float, str]:
+def _tag_value(tags: dict[str, str], key: str, limit: float, unit: str, problems: list[str] | None,
+               levels: bool = False) -> float | None:
+    """The usable value of the height-like tag ``key`` (``;``-separated values: the highest
+    usable one), None when the tag is absent or holds no usable value.  A value above ``limit``
+    (``+inf`` included) is taken as ``limit`` (conservative); an unparsable, NaN, negative or zero
+    value is unusable.  Each such case appends one text to ``problems``."""
+    if key not in tags:
+        return None
+    raw = tags[key]
+    parts = [t for t in str(raw).split(";") if t.strip()] or [""]
+    good: list[float] = []
+    bad: list[str] = []
+    for t in parts:
+        v = _parse_one_m(t) if not levels else _parse_levels(t)
+        if v is None or np.isnan(v):
+            bad.append("not a number" + ("" if levels else " (with an optional unit m or ft)"))
+        elif v <= 0 and not (levels and v == 0 and key == "roof:levels"):
+            bad.append("not above 0")
+        elif v > limit:
+            bad.append(f"above {limit:g} {unit}: taken as {limit:g} {unit}")
+            good.append(limit)
+        else:
+            good.append(v)
+    if bad and problems is not None:
+        problems.append(f"{key}={raw!r} ({'; '.join(dict.fromkeys(bad))})")
+    return max(good) if good else None
+
+
+def _parse_levels(text: str) -> float | None:
+    m = _NUM.match(text)
+    if not m or m.group(2):
+        return None
+    num = m.group(1)
+    return float(num.replace(",", ".")) if not ("," in num and "." in num) else None
+
+
+def osm_building_height(tags: dict[str, str], storey_height_m: float = STOREY_HEIGHT_M,
+                        problems: list[str] | None = None) -> tuple[float, str]:
     """(height [m], source) of an OSM building from its tags (see module docstring).
 
     ``height``, else (``building:levels`` + ``roof:levels``) x ``storey_height_m``, else the default
-    for its ``building=*`` type in :data:`DEFAULT_HEIGHT_BY_TYPE_M`.
+    for its ``building=*`` type in :data:`DEFAULT_HEIGHT_BY_TYPE_M`.  Several ``;``-separated
+    values: the highest.  Conservative on broken tags, never silently lower than the tags may
+    mean: a value above :data:`MAX_BUILDING_HEIGHT_M` / :data:`MAX_BUILDING_LEVELS` (``inf``
+    included) is taken as that maximum; a ``height`` that is unparsable, NaN, negative or zero is
+    replaced by the *highest* of the levels' height and the type's default (source
+    ``"levels*"`` / ``"default*:<type>"``); an unusable ``building:levels`` falls back to the
+    type's default.  Each such tag appends one text to ``problems`` (the caller names the way).
 
     Parameters
     ----------
@@ -152,23 +236,61 @@ def osm_building_height(tags: dict[str, str], storey_height_m: float = STOREY_HE
         The OSM tags of the building (or building part).
     storey_height_m : float, default :data:`STOREY_HEIGHT_M`
         Height of one storey [m].
+    problems : list of str, optional
+        Receives one text per unusable or implausible tag (``"height='nan' (not a number ...)"``).
 
     Returns
     -------
     height_m : float
         Building height above ground [m].
     source : str
-        ``"height"``, ``"levels"`` or ``"default:<building type>"``.
+        ``"height"``, ``"levels"`` or ``"default:<building type>"`` (with ``*`` when a broken
+        ``height`` tag was replaced).
     """
-    h = parse_height_m(tags.get("height", "")) if "height" in tags else None
-    if h is not None and h > 0:
+    h = _tag_value(tags, "height", MAX_BUILDING_HEIGHT_M, "m", problems)
+    if h is not None:
         return h, "height"
-    lv = parse_height_m(tags.get("building:levels", "")) if "building:levels" in tags else None
-    if lv is not None and lv > 0:
-        roof = parse_height_m(tags.get("roof:levels", "")) or 0.0
-        return (lv + roof) * storey_height_m, "levels"
+    broken = "height" in tags
+    lv = _tag_value(tags, "building:levels", MAX_BUILDING_LEVELS, "levels", problems, levels=True)
     btype = tags.get("building", tags.get("building:part", "yes"))
-    return DEFAULT_HEIGHT_BY_TYPE_M.get(btype, DEFAULT_HEIGHT_BY_TYPE_M["yes"]), f"default:{btype}"
+    default = DEFAULT_HEIGHT_BY_TYPE_M.get(btype, DEFAULT_HEIGHT_BY_TYPE_M["yes"])
+    star = "*" if broken else ""
+    if lv is not None:
+        roof = _tag_value(tags, "roof:levels", MAX_BUILDING_LEVELS, "levels", problems, levels=True) or 0.0
+        by_levels = (lv + roof) * storey_height_m
+        if not broken or by_levels >= default:
+            return by_levels, f"levels{star}"
+    return default, f"default{star}:{btype}"
+
+
+def osm_height_warnings(problems: list[tuple[int, str]], key: str | None = "data.buildings",
+                        show: int = 5) -> list[str]:
+    """The warnings of the buildings whose height tags were coerced: one line with the count,
+    the first ``show`` OSM ids and their tags, and the rule applied.
+
+    Parameters
+    ----------
+    problems : list of (int, str)
+        ``(OSM id, text)`` per building (the texts of :func:`osm_building_height`).
+    key : str or None, default "data.buildings"
+        The scenario key the message starts with (None: none).
+    show : int, default 5
+        How many buildings the message lists.
+
+    Returns
+    -------
+    list of str
+        Empty or one warning.
+    """
+    if not problems:
+        return []
+    ids = sorted({i for i, _ in problems})
+    first = "; ".join(f"way/relation {i}: {t}" for i, t in problems[:show])
+    more = f"; and {len(problems) - show} more" if len(problems) > show else ""
+    return [f"{key + ': ' if key else ''}{len(ids)} OSM building(s) with an unusable or implausible height tag ({first}{more}): a value "
+            f"above {MAX_BUILDING_HEIGHT_M:g} m / {MAX_BUILDING_LEVELS:g} levels is taken as that maximum, an "
+            "unusable height as the highest of its levels and its type's default height; fix the tags in OSM "
+            "for real heights"]
 
 
 @dataclass(frozen=True)
@@ -197,6 +319,8 @@ class BuildingRaster:
         The TIN's minimum over each cell [m].
     tin_full : numpy.ndarray of bool or None
         Cells the TIN covers whole.
+    warnings : tuple of str
+        Stage warnings (e.g. OSM height tags coerced, :func:`osm_height_warnings`).
     """
 
     top: np.ndarray
@@ -208,6 +332,7 @@ class BuildingRaster:
     terrain: np.ndarray | None = None
     terrain_min: np.ndarray | None = None   # the TIN's minimum over each cell
     tin_full: np.ndarray | None = None      # cells the TIN covers whole
+    warnings: tuple[str, ...] = ()          # coerced heights (stage warnings)
 
 
 # --------------------------------------------------------------------------- polygon-over-cell maxima
@@ -410,7 +535,8 @@ def _to_grid_geoms(geoms, src_crs: CRS, grid: Grid):
     return [shapely.transform(g, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1]))) for g in geoms]
 
 
-def osm_building_footprints(path: str | Path, storey_height_m: float = STOREY_HEIGHT_M
+def osm_building_footprints(path: str | Path, storey_height_m: float = STOREY_HEIGHT_M,
+                            problems: list[tuple[int, str]] | None = None
                             ) -> tuple[list[int], list[float], list[str], list]:
     """The building footprints of an OSM extract.
 
@@ -424,6 +550,9 @@ def osm_building_footprints(path: str | Path, storey_height_m: float = STOREY_HE
         OSM extract (``.osm.pbf`` or ``.osm``).
     storey_height_m : float
         Height of one storey [m], for buildings tagged with ``building:levels`` only.
+    problems : list of (int, str), optional
+        Receives ``(OSM id, text)`` for every unusable or implausible height tag
+        (:func:`osm_building_height`; :func:`osm_height_warnings` words them).
 
     Returns
     -------
@@ -435,7 +564,10 @@ def osm_building_footprints(path: str | Path, storey_height_m: float = STOREY_HE
     for f in read_osm(path, keys=["building", "building:part"]):
         if f.kind != "area":
             continue
-        h, src = osm_building_height(f.tags, storey_height_m)
+        why: list[str] = []
+        h, src = osm_building_height(f.tags, storey_height_m, why)
+        if why and problems is not None:
+            problems.append((f.osm_id, ", ".join(why)))
         ids.append(f.osm_id)
         hs.append(h)
         srcs.append(src)
@@ -461,20 +593,25 @@ def osm_buildings(path: str | Path, grid: Grid, storey_height_m: float = STOREY_
     Returns
     -------
     BuildingRaster
-        With ``absolute=False`` (heights above ground).
+        With ``absolute=False`` (heights above ground); ``warnings``: the buildings in the AOI
+        whose height tags were coerced (:func:`osm_height_warnings`).
 
     Raises
     ------
     DataError
         When the OSM file is missing or unreadable.
     """
-    ids, hs, srcs, geoms = osm_building_footprints(path, storey_height_m)
+    problems: list[tuple[int, str]] = []
+    ids, hs, srcs, geoms = osm_building_footprints(path, storey_height_m, problems)
     xmin, ymin, xmax, ymax = grid.bounds
     geoms = _to_grid_geoms(geoms, CRS.from_epsg(4326), grid)
     keep = [i for i, g in enumerate(geoms) if g.intersects(shapely.box(xmin, ymin, xmax, ymax))]
-    return _rasterize_flat(grid, [geoms[i] for i in keep], np.array(hs)[keep] if keep else np.zeros(0),
-                           np.array(ids, dtype=np.int64)[keep] if keep else np.zeros(0, np.int64),
-                           np.array(srcs, dtype=object)[keep] if keep else np.zeros(0, object), absolute=False)
+    kept = {ids[i] for i in keep}
+    raster = _rasterize_flat(grid, [geoms[i] for i in keep], np.array(hs)[keep] if keep else np.zeros(0),
+                             np.array(ids, dtype=np.int64)[keep] if keep else np.zeros(0, np.int64),
+                             np.array(srcs, dtype=object)[keep] if keep else np.zeros(0, object), absolute=False)
+    warns = osm_height_warnings([(i, t) for i, t in problems if i in kept])
+    return dataclasses.replace(raster, warnings=tuple(warns)) if warns else raster
 
 
 def _rasterize_flat(grid: Grid, geoms, heights, ids, sources, absolute: bool) -> BuildingRaster:
@@ -516,12 +653,16 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
         cell), ``raster.terrain_min`` and ``raster.tin_full``.
     ground_points : numpy.ndarray
         ``(n, 3)`` ground points (x, y, z [m] in the grid CRS) for terrain; a ``TINRelief``'s
-        vertices are among them.
+        vertices are among them.  ``raster.warnings``: the reading's counted coercions
+        (:attr:`skyroute.stages.cityjson.CityJSONDocument.warnings`, the lines ``skyroute
+        inspect`` shows).
 
     Raises
     ------
     DataError
-        When the file is missing, not CityJSON, or has no readable reference system.
+        When the file is missing, not CityJSON, has no readable reference system, or is refused by
+        the strict reading (:func:`skyroute.stages.cityjson.load_cityjson`: a bad ``transform``,
+        vertex, coordinate, boundary nesting, vertex index or geometry template).
     """
     b = read_buildings(path, grid.crs, steep_nz=_STEEP_NZ)
     V, faces = b.vertices_m, b.faces
@@ -535,8 +676,14 @@ def cityjson_buildings(path: str | Path, grid: Grid) -> tuple[BuildingRaster, np
         tin_full = _covered_cells(polys, grid) & np.isfinite(tin)
     raster = BuildingRaster(top, index, np.arange(len(b.ids), dtype=np.int64), b.roof_top_m(),
                             np.asarray(["cityjson:" + i for i in b.ids]), absolute=True, terrain=tin,
-                            terrain_min=tin_min, tin_full=tin_full)
-    return raster, b.ground_points()
+                            terrain_min=tin_min, tin_full=tin_full,
+                            warnings=tuple(f"data.buildings: {w}" for w in b.warnings))
+    ground = b.ground_points()
+    # the reading bounds every vertex (finite, plausible heights): a non-finite height here is a bug
+    if not (np.isfinite(top[index >= 0]).all() and np.isfinite(ground).all()
+            and (tin is None or not np.isinf(tin).any() and not np.isinf(tin_min).any())):
+        raise DataError(f"{path}: the CityJSON gives non-finite heights after reading; report this file")
+    return raster, ground
 
 
 def _covered_cells(polys, grid: Grid) -> np.ndarray:
@@ -1054,7 +1201,8 @@ def build_surface(grid: Grid, *, buildings_path=None, buildings_format: str | No
     if surface_path is not None:
         dsm = dsm_on_grid(surface_path, grid, nodata=surface_nodata, derive_ground=terrain_path is None,
                           ground_window_m=ground_window_m, building_threshold_m=building_threshold_m)
-    warns: list[str] = list(dsm.warnings) if dsm is not None else []
+    warns: list[str] = list(braster.warnings) if braster is not None else []
+    warns.extend(dsm.warnings if dsm is not None else ())
     if terrain_path is not None:
         dem = terrain_from_dem(terrain_path, grid)
         terrain, terrain_min = dem.terrain, dem.terrain_min

@@ -39,6 +39,17 @@ Vertical interpolation of a forecast (``profile="levels"``)
 4. ``profile="power"``: the power law from the 10 m wind at every height.
    ``profile="constant"``: the 10 m wind (or the lowest level) at every height (seed model).
 
+Units and checks of a forecast file
+-----------------------------------
+Declared ``units`` are converted, never guessed: wind components in m/s (``m s-1``, ``m s**-1``,
+``m/s``), km/h, knots (``kt``), mph, ft/s or cm/s are converted to m/s (:data:`SPEED_UNITS`);
+geopotential height in gpm / m, dam or km; geopotential in m2 s-2; height levels in m, km or ft.
+An unknown unit is refused (DataError naming the variable and the unit); a missing ``units``
+attribute is a warning ("assumed m/s").  Level heights (geopotential height on pressure levels,
+or the height coordinate) must be finite (all-NaN is refused, and every column the scenario
+samples must have finite u, v and heights).  :func:`read_wind` refuses a FIFO or device and a
+file larger than :data:`MAX_WIND_BYTES` before NetCDF / zarr opens it.
+
 A 2.5 deg forecast varies little across a city, so the result may be stored on a coarser
 horizontal grid than the scenario (``horizontal_step_m``): same CRS and bounds, cells of that
 size; :func:`sample_wind` reads it at any map point (nearest column, linear in height).
@@ -46,6 +57,10 @@ size; :func:`sample_wind` reads it at any map point (nearest column, linear in h
 
 from __future__ import annotations
 
+import os
+import re
+import stat
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,6 +90,67 @@ _VAR_NAMES = {
     "u10": (("u10", "10u", "uas", "U10"), None),
     "v10": (("v10", "10v", "vas", "V10"), None),
 }
+
+MAX_WIND_BYTES = 2 * 1024**3
+"""The largest wind file (or zarr store) read [bytes]: a global 0.25 deg forecast of one time on
+all pressure levels is a few hundred MB."""
+
+KNOT_MPS = 1852.0 / 3600.0
+#: Wind-speed units (normalised: lower case, ``**`` and ``^`` dropped, blanks single) -> m/s.
+SPEED_UNITS: dict[str, float] = {
+    **dict.fromkeys(("m s-1", "m/s", "ms-1", "m.s-1", "m sec-1", "m/sec", "mps", "meter/second",
+                     "meters/second", "metre/second", "metres/second", "meter second-1",
+                     "meters second-1", "metre second-1", "metres second-1", "meters per second",
+                     "metres per second", "m s-1 (m/s)"), 1.0),
+    **dict.fromkeys(("km h-1", "km/h", "kmh-1", "km.h-1", "km hr-1", "km/hr", "kph", "kmh",
+                     "kilometers per hour", "kilometres per hour", "kilometer/hour", "kilometre/hour"),
+                    1.0 / 3.6),
+    **dict.fromkeys(("kt", "kts", "kn", "knot", "knots"), KNOT_MPS),
+    **dict.fromkeys(("mph", "mi/h", "mi h-1", "miles per hour", "mile/hour"), 0.44704),
+    **dict.fromkeys(("ft/s", "ft s-1", "feet per second", "fps"), 0.3048),
+    **dict.fromkeys(("cm/s", "cm s-1"), 0.01),
+}
+#: Geopotential-height units -> gpm.
+GH_UNITS: dict[str, float] = {
+    **dict.fromkeys(("gpm", "m", "meter", "meters", "metre", "metres", "gp m", "geopotential meters",
+                     "geopotential metres", "m (geopotential)"), 1.0),
+    **dict.fromkeys(("dam", "gpdam", "decameter", "decameters", "decametre", "decametres"), 10.0),
+    **dict.fromkeys(("km", "gpkm"), 1000.0),
+}
+#: Geopotential units -> m2 s-2 (divided by G0 to give gpm).
+GEOPOTENTIAL_UNITS: dict[str, float] = dict.fromkeys(("m2 s-2", "m2/s2", "m2.s-2", "m+2 s-2", "j kg-1",
+                                                      "j/kg"), 1.0)
+#: Height-level units -> m.
+HEIGHT_UNITS: dict[str, float] = {
+    **dict.fromkeys(("m", "meter", "meters", "metre", "metres"), 1.0),
+    **dict.fromkeys(("km",), 1000.0),
+    **dict.fromkeys(("ft", "feet", "foot"), 0.3048),
+}
+
+
+def _norm_units(text: str) -> str:
+    s = str(text).strip().lower().replace("**", "").replace("^", "").replace("·", " ")
+    return re.sub(r"\s+", " ", s)
+
+
+def _unit_factor(da: xr.DataArray, name: str, table: dict[str, float], what: str, assumed: str,
+                 source: str) -> float:
+    """The factor converting variable ``name`` (``da``) to SI from its ``units`` attribute
+    (``table``); a missing attribute warns (``assumed``), an unknown one is a DataError."""
+    units = da.attrs.get("units")
+    if units is None or str(units).strip() == "":
+        warnings.warn(f"{source}: variable {name!r} ({what}) has no 'units' attribute: assumed {assumed}",
+                      stacklevel=3)
+        return 1.0
+    f = table.get(_norm_units(units))
+    if f is None:
+        shown: dict[float, str] = {}
+        for k, v in table.items():      # the first spelling of each unit
+            shown.setdefault(v, k)
+        raise DataError(f"{source}: variable {name!r} ({what}) has units {units!r}, which skyroute does not "
+                        f"know; give {what} in one of: {', '.join(shown.values())} (or their usual spellings)")
+    return f
+
 
 _ATTRS = {
     "u": {"units": "m s-1", "standard_name": "eastward_wind", "long_name": "wind towards east"},
@@ -169,6 +245,12 @@ def _select_time(ds: xr.Dataset, time, source: str, tolerance_h: float) -> xr.Da
     return ds
 
 
+def _speed_in_mps(da: xr.DataArray, name: str, source: str) -> xr.DataArray:
+    """A wind component in m/s from its declared ``units`` (:data:`SPEED_UNITS`)."""
+    f = _unit_factor(da, name, SPEED_UNITS, "wind speed", "m/s", source)
+    return da if f == 1.0 else da * f
+
+
 def canonical_wind(ds: xr.Dataset, source: str = "<dataset>", time=None,
                    time_tolerance_h: float = 6.0) -> xr.Dataset:
     """Rename a CF wind dataset to skyroute's form: dims (``level``, ``latitude``,
@@ -202,16 +284,32 @@ def canonical_wind(ds: xr.Dataset, source: str = "<dataset>", time=None,
             if str(lev.attrs.get("units", "hPa")).lower() in ("pa", "pascal") or pdim == "isobaricInPa":
                 levels = levels / 100.0
             if names["gh"] is not None:
-                gh = ds[names["gh"]]
+                gh_da = ds[names["gh"]]
+                gh = gh_da * _unit_factor(gh_da, names["gh"], GH_UNITS, "geopotential height", "gpm", source)
+                gh_name = names["gh"]
             elif names["z"] is not None:
-                gh = ds[names["z"]] / G0
+                z_da = ds[names["z"]]
+                gh = z_da * (_unit_factor(z_da, names["z"], GEOPOTENTIAL_UNITS, "geopotential", "m2 s-2",
+                                          source) / G0)
+                gh_name = names["z"]
             else:
                 raise DataError(f"{source}: wind on pressure levels ({pdim}) needs the geopotential height "
                                 f"(gh, zg or z) to place the levels in height; variables found: {found}")
+            if not np.any(np.isfinite(np.asarray(gh.values, dtype=float))):
+                raise DataError(f"{source}: variable {gh_name!r} (height of the pressure levels) has no finite "
+                                "value (all NaN): the levels cannot be placed in height; give a file with "
+                                "the geopotential height")
+            if not np.all(np.isfinite(levels)):
+                raise DataError(f"{source}: pressure levels {pdim!r} are not all finite ({levels.tolist()})")
             vdim = pdim
         elif hdim is not None:
             level_type = "height"
-            levels = np.asarray(ds[hdim].values, dtype=float)
+            h_da = ds[hdim]
+            levels = np.asarray(h_da.values, dtype=float) * _unit_factor(h_da, hdim, HEIGHT_UNITS,
+                                                                         "level height", "m", source)
+            if not np.all(np.isfinite(levels)):
+                raise DataError(f"{source}: height levels {hdim!r} are not all finite ({levels.tolist()}); "
+                                "every level needs its height above ground [m]")
             gh = None
             vdim = hdim
         else:
@@ -219,15 +317,15 @@ def canonical_wind(ds: xr.Dataset, source: str = "<dataset>", time=None,
                             f"(one of {_PRESSURE_DIMS + _HEIGHT_DIMS})")
         for key in ("u", "v", "w"):
             if names[key] is not None and vdim in ds[names[key]].dims:
-                out[key] = ds[names[key]]
+                out[key] = _speed_in_mps(ds[names[key]], names[key], source)
         if gh is not None:
             out["gh"] = gh
         out = {k: da.rename({vdim: "level"}) for k, da in out.items()}
         coords["level"] = ("level", levels, {"level_type": level_type,
                                              "units": "hPa" if level_type == "pressure" else "m"})
     if has_10m:
-        out["u10"] = ds[names["u10"]]
-        out["v10"] = ds[names["v10"]]
+        out["u10"] = _speed_in_mps(ds[names["u10"]], names["u10"], source)
+        out["v10"] = _speed_in_mps(ds[names["v10"]], names["v10"], source)
     res = xr.Dataset({k: da.rename({lat: "latitude", lon: "longitude"}).drop_vars(
         [c for c in da.coords if c not in (lat, lon)], errors="ignore") for k, da in out.items()})
     if "level" in coords:
@@ -259,6 +357,7 @@ def read_wind(path: str | Path, time=None, time_tolerance_h: float = 6.0) -> xr.
     p = Path(path)
     if not p.exists():
         raise DataError(f"wind file {p} does not exist")
+    _check_wind_file(p)
     suffix = "".join(p.suffixes[-1:]).lower()
     try:
         if p.is_dir() or suffix == ".zarr":
@@ -282,6 +381,40 @@ def read_wind(path: str | Path, time=None, time_tolerance_h: float = 6.0) -> xr.
     with ds:
         res = canonical_wind(ds, source=str(p), time=time, time_tolerance_h=time_tolerance_h).load()
     return res
+
+
+def _check_wind_file(p: Path, max_bytes: int | None = None) -> None:
+    """Refuse, before NetCDF / zarr opens it, a wind path that is not a regular file or a folder
+    (a FIFO would block, ``/dev/zero`` never ends) or that holds more than ``max_bytes``
+    [bytes] (default :data:`MAX_WIND_BYTES`)."""
+    max_bytes = MAX_WIND_BYTES if max_bytes is None else int(max_bytes)
+    try:
+        st = os.stat(p)
+    except OSError as exc:
+        raise DataError(f"cannot read wind file {p}: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(st.st_mode):      # a zarr store: the sum of its files' sizes
+        total = 0
+        for root, _dirs, files in os.walk(p):
+            for f in files:
+                try:
+                    fst = os.lstat(os.path.join(root, f))
+                except OSError:
+                    continue
+                if not stat.S_ISREG(fst.st_mode):
+                    raise DataError(f"wind store {p}: {os.path.join(root, f)} is not a regular file")
+                total += fst.st_size
+                if total > max_bytes:
+                    raise DataError(f"wind store {p} holds more than {max_bytes:,} bytes; crop it to the "
+                                    "scenario's area and time")
+        return
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a FIFO (named pipe)" if stat.S_ISFIFO(st.st_mode) else "a device" if (
+            stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)) else "a socket" if stat.S_ISSOCK(st.st_mode) \
+            else "not a regular file"
+        raise DataError(f"wind file {p} is {kind}, not a regular file; give a NetCDF, zarr or GRIB file")
+    if st.st_size > max_bytes:
+        raise DataError(f"wind file {p} is {st.st_size:,} bytes, more than the {max_bytes:,} bytes skyroute reads; "
+                        "crop it to the scenario's area and time")
 
 
 # --------------------------------------------------------------------------- horizontal
@@ -329,9 +462,18 @@ def sample_columns(wind: xr.Dataset, lon_deg, lat_deg) -> dict[str, np.ndarray]:
     wind = _as_canonical(wind)
     lon = np.atleast_1d(np.asarray(lon_deg, dtype=float))
     lat = np.atleast_1d(np.asarray(lat_deg, dtype=float))
-    idx = _bilinear_setup(wind["longitude"].values, wind["latitude"].values, lon, lat,
-                          wind.attrs.get("source", "wind"))
-    return {k: _bilinear(np.asarray(wind[k].values), idx) for k in ("u", "v", "w", "gh", "u10", "v10") if k in wind}
+    source = wind.attrs.get("source", "wind")
+    idx = _bilinear_setup(wind["longitude"].values, wind["latitude"].values, lon, lat, source)
+    out = {k: _bilinear(np.asarray(wind[k].values), idx) for k in ("u", "v", "w", "gh", "u10", "v10") if k in wind}
+    for k, a in out.items():
+        bad = ~np.isfinite(a)
+        if np.any(bad):
+            i = int(np.argmax(bad.reshape(bad.shape[0], -1).any(axis=1)))
+            what = "geopotential height of the levels" if k == "gh" else "wind component"
+            raise DataError(f"{source}: {k} ({what}) has no data (NaN) around lon={float(lon.ravel()[i]):.4f}, "
+                            f"lat={float(lat.ravel()[i]):.4f}: the wind there is unknown; fill the file or give "
+                            "one that covers the scenario")
+    return out
 
 
 def _as_canonical(wind: xr.Dataset) -> xr.Dataset:

@@ -24,7 +24,7 @@ from typing import Any
 
 import yaml
 
-from skyroute.stages.base import ScenarioError
+from skyroute.stages.base import DataError, ScenarioError, read_limited
 
 MAX_BYTES = 16 << 20       # a scenario is a few KB; a fleet file of 10 000 missions ~ 2 MB
 MAX_ALIASES = 64           # the shipped files use none; a hand-written anchor or two is fine
@@ -184,18 +184,12 @@ def read_yaml_text(text: str | bytes, source: str, what: str = "YAML") -> Any:
 
 def read_yaml_file(path: str | Path, what: str = "YAML") -> Any:
     """Read and parse a user's YAML file (see the module docstring for what is refused).
-    Raises ScenarioError naming the file; a missing or unreadable file is one too."""
+    Raises ScenarioError naming the file; a missing or unreadable file is one too, and so is a
+    stream or device (``/dev/zero`` never ends: at most :data:`MAX_BYTES` are read, by
+    :func:`~skyroute.stages.base.read_limited`)."""
     p = Path(path)
     try:
-        size = p.stat().st_size
-        if size > MAX_BYTES:
-            raise ScenarioError(str(p), [f"<file>: {size:,} bytes is too large for a {what} file "
-                                         f"(at most {MAX_BYTES:,})"])
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise ScenarioError(str(p), [f"<file>: {what} file not found: {p}"]) from None
-    except IsADirectoryError:
-        raise ScenarioError(str(p), [f"<file>: {p} is a folder; give a {what} file"]) from None
-    except OSError as exc:
-        raise ScenarioError(str(p), [f"<file>: cannot read {p}: {exc.strerror or exc}"]) from None
+        data = read_limited(p, MAX_BYTES, what)
+    except DataError as exc:
+        raise ScenarioError(str(p), [f"<file>: {exc}"]) from None
     return read_yaml_text(data, str(p), what)

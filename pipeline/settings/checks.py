@@ -71,9 +71,18 @@ def _event_problems(sc: Scenario, labels: Sequence[str], check: Sequence[bool] |
         elif isinstance(e, GnssEvent):
             files = [(f"{lab}.almanacs", a) for a in e.almanacs]
         for where, f in files:
-            if not _is_file(f):
-                problems.append(f"{where}: data file not found: {f}")
+            why = _data_file_problem(f)
+            if why is not None:
+                problems.append(f"{where}: {why}")
     return problems
+
+def _data_file_problem(p) -> str | None:
+    """Why a data path is not a regular file: not found, a folder, a FIFO, a device (the wording
+    of :func:`~skyroute.stages.base.read_limited`), or None."""
+    from skyroute.stages.base import file_problem
+
+    return file_problem(p, "data")
+
 
 def _semantic_problems(sc: Scenario) -> list[str]:
     """Checks that need several sections at once (all collected, none raised)."""
@@ -90,8 +99,9 @@ def _semantic_problems(sc: Scenario) -> list[str]:
         ("constraints.nofly_zones", [sc.constraints.nofly_zones] if sc.constraints.nofly_zones else []),
     ):
         for p in paths:
-            if not _is_file(p):
-                problems.append(f"{section}: data file not found: {p}")
+            why = _data_file_problem(p)
+            if why is not None:
+                problems.append(f"{section}: {why}")
             elif not os.access(p, os.R_OK):
                 problems.append(f"{section}: data file is not readable: {p}")
     ds_, dt_ = sc.data.surface, sc.data.terrain
@@ -126,6 +136,7 @@ def _semantic_problems(sc: Scenario) -> list[str]:
         return problems
     cmax = sc.constraints.max_altitude_agl_m
     cmin = sc.constraints.min_altitude_agl_m
+    placed: dict[str, tuple[float, float]] = {}
     for name in ("start", "goal"):
         p = getattr(sc.mission, name)
         try:
@@ -133,20 +144,63 @@ def _semantic_problems(sc: Scenario) -> list[str]:
         except Exception as exc:
             problems.append(f"mission.{name}: cannot place the point on the map: {exc}")
             continue
-        if not grid.contains(x, y):
-            xmin, ymin, xmax, ymax = grid.bounds
-            problems.append(
-                f"mission.{name}: point ({x:.1f}, {y:.1f}) m is outside the AOI "
-                f"x {xmin:.0f}..{xmax:.0f}, y {ymin:.0f}..{ymax:.0f} ({grid.crs_wkt[:40]}); move it or enlarge aoi"
-            )
+        placed[name] = (float(x), float(y))
+        why = mission_point_problem(grid, float(x), float(y))
+        if why:
+            problems.append(f"mission.{name}: {why}")
         if p.alt_agl_m > cmax:
             problems.append(f"mission.{name}: altitude {p.alt_agl_m:g} m is above constraints.max_altitude_agl_m {cmax:g}")
         if p.alt_agl_m < cmin:
             problems.append(f"mission.{name}: altitude {p.alt_agl_m:g} m is below constraints.min_altitude_agl_m {cmin:g}")
+    if len(placed) == 2:
+        problems.extend(_coincident_problems(sc, placed["start"], placed["goal"]))
     for k, o in enumerate(sc.data.obstacles):
         if _outside_aoi(grid, np.asarray(o.polygon)):
             problems.append(f"data.obstacles[{k}].polygon: the polygon lies outside the AOI; check the coordinates (map CRS metres)")
     return problems
+
+COINCIDE_M = 1e-6   # [m] start and goal this close (horizontally and in altitude) are one point
+
+
+def mission_point_problem(grid, x: float, y: float) -> str:
+    """Why the map point (x, y) [m] cannot be a mission point of ``grid`` ("" when it can).
+
+    A point belongs to the cell whose west and north edges it lies on (cells are half-open:
+    ``x0 + c r <= x < x0 + (c + 1) r``), so the grid holds ``xmin <= x < xmax`` and
+    ``ymin < y <= ymax``: a point on the east or south edge of the grid (e.g. the AOI's
+    south-east corner) lies in no cell, and the planner would refuse it only after the maps.
+    The message gives the grid's actual bounds (the AOI snapped to the lattice of multiples of
+    ``aoi.resolution_m``: ``aoi.bounds`` inward, ``aoi.bounds_lonlat`` outward) and the x / y
+    that work.
+    """
+    xmin, ymin, xmax, ymax = grid.bounds
+    r = grid.resolution_m
+    if xmin <= x < xmax and ymin < y <= ymax:
+        return ""
+    box = (f"the AOI's planning grid x {xmin:.10g}..{xmax:.10g}, y {ymin:.10g}..{ymax:.10g} m "
+           f"(the aoi snapped to its {r:g} m lattice; {grid.crs.name})")
+    if xmin <= x <= xmax and ymin <= y <= ymax:   # on the east or south edge
+        edge = " and ".join(e for e, on in (("east", x >= xmax), ("south", y <= ymin)) if on)
+        edge += " edges" if " and " in edge else " edge"
+        return (f"point ({x:.10g}, {y:.10g}) m lies on the {edge} of {box}, which no cell holds: "
+                f"give x < {xmax:.10g} and y > {ymin:.10g} (e.g. move it {min(r / 2, 1.0):g} m inside) "
+                "or enlarge aoi")
+    return (f"point ({x:.10g}, {y:.10g}) m is outside {box}; give {xmin:.10g} <= x < {xmax:.10g} and "
+            f"{ymin:.10g} < y <= {ymax:.10g}, or enlarge aoi")
+
+
+def _coincident_problems(sc: Scenario, start_xy: tuple[float, float],
+                         goal_xy: tuple[float, float]) -> list[str]:
+    """Start and goal at one point (same map position and altitude above ground): there is no
+    mission to plan (the planner would refuse it only after the maps)."""
+    d = float(np.hypot(goal_xy[0] - start_xy[0], goal_xy[1] - start_xy[1]))
+    dz = abs(sc.mission.goal.alt_agl_m - sc.mission.start.alt_agl_m)
+    if d > COINCIDE_M or dz > COINCIDE_M:
+        return []
+    return [f"mission.goal: the goal ({goal_xy[0]:.10g}, {goal_xy[1]:.10g}) m at "
+            f"{sc.mission.goal.alt_agl_m:g} m AGL is the start (mission.start): there is no flight to plan; "
+            "move mission.goal (or give it another alt_agl_m for a vertical flight)"]
+
 
 def _raster_problems(sc: Scenario) -> list[str]:
     """A DSM or DEM must be one band of numeric heights (a 3-band RGB image or a paletted map

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, model_validator
 
 from skyroute.pipeline.model import FrozenModel
 
@@ -46,13 +46,34 @@ def unsafe_name(v: str) -> str | None:
         return f"is {len(v)} characters long (at most 100)"
     return None
 
+MAX_INTRUDER_SPEED_MPS = 150.0
+"""The fastest intruder a scenario or an event may declare [m/s] (540 km/h: faster than any
+aircraft sharing the very-low-level airspace of a drone)."""
+MAX_WIND_SPEED_MPS = 100.0
+"""The strongest wind a scenario or an event may declare [m/s] (close to the strongest gust
+ever measured at the surface, 113 m/s)."""
+
+
 class UniformWind(FrozenModel):
-    """Vertically constant wind: ``speed_mps`` [m/s], ``direction_deg`` [deg, meteorological:
-    where it blows FROM, clockwise from north], ``elevation_deg`` [deg]."""
+    """Vertically constant wind: ``speed_mps`` [m/s] (at most :data:`MAX_WIND_SPEED_MPS`),
+    ``direction_deg`` [deg, meteorological: where it blows FROM, clockwise from north],
+    ``elevation_deg`` [deg, -90 .. 90]."""
 
     speed_mps: NonNegFloat
     direction_deg: float
     elevation_deg: float = 0.0
+
+    @model_validator(mode="after")
+    def _bounded(self) -> UniformWind:
+        """The message names the field and its bound (as the events' checks do)."""
+        if not self.speed_mps <= MAX_WIND_SPEED_MPS:
+            raise ValueError(f"speed_mps {self.speed_mps:g} m/s is out of range: it must be at most "
+                             f"{MAX_WIND_SPEED_MPS:g} m/s (see the bounds in pipeline/settings/common.py)")
+        if not math.isfinite(self.direction_deg):
+            raise ValueError(f"direction_deg {self.direction_deg} is not a finite angle [deg]")
+        if not -90.0 <= self.elevation_deg <= 90.0:
+            raise ValueError(f"elevation_deg {self.elevation_deg:g} deg is out of range: it must be in [-90, 90] deg")
+        return self
 
 class GriddedWind(FrozenModel):
     """Gridded wind from CF NetCDF/zarr (u, v [, w] on pressure or height levels)."""

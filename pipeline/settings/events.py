@@ -1,5 +1,22 @@
 """Scenario events (``events:`` of a scenario or an events file): intruders, wind, GNSS, no-fly zones,
-obstacles."""
+obstacles.
+
+Every number of an event is finite and physically bounded, so that a typing slip (``1e6`` for
+``1e1``) is refused here, with its YAML path and the limit, rather than flown (an intruder at
+10^6 m/s makes the replay's distances infinite):
+
+* intruder speed (``velocity_mps`` norm, or the speed between two ``waypoints``) at most
+  :data:`MAX_INTRUDER_SPEED_MPS` = 150 m/s (540 km/h: faster than any aircraft sharing the
+  very-low-level airspace of a drone);
+* wind speed (``uniform_wind.speed_mps``) at most :data:`MAX_WIND_SPEED_MPS` = 100 m/s (close to
+  the strongest gust ever measured at the surface, 113 m/s, and far above any wind a drone meets);
+  ``direction_deg`` finite, ``elevation_deg`` in [-90, 90] deg;
+* map coordinates ``x``, ``y`` at most :data:`MAX_COORDINATE_M` = 10^8 m in absolute value (any
+  projected CRS stays within 4 10^7 m), heights above ground at most :data:`MAX_AGL_M` = 10^5 m;
+* ``duration_s`` at most :data:`MAX_DURATION_S` = 86400 s (a day), ``radius_m`` at most
+  :data:`MAX_RADIUS_M` = 1000 m, an obstacle's ``height_agl_m`` at most :data:`MAX_AGL_M`;
+* times ``t_s``, ``start_s`` finite (``end_s`` and a zone's ``max_agl_m`` may be ``.inf``: open).
+"""
 
 from __future__ import annotations
 
@@ -12,6 +29,8 @@ from pydantic import Field, field_validator, model_validator
 
 from skyroute.pipeline.model import FrozenModel
 from skyroute.pipeline.settings.common import (
+    MAX_INTRUDER_SPEED_MPS,
+    MAX_WIND_SPEED_MPS,  # noqa: F401  (documented here; checked by UniformWind)
     GriddedWind,
     NonNegFloat,
     PositiveFloat,
@@ -25,11 +44,45 @@ from skyroute.pipeline.settings.common import (
 if TYPE_CHECKING:      # annotations only
     from skyroute.pipeline.settings.schema import Scenario
 
+MAX_COORDINATE_M = 1.0e8
+"""The largest map coordinate (absolute value) of a track [m]."""
+MAX_AGL_M = 1.0e5
+"""The highest height above ground of a track or an obstacle [m]."""
+MAX_DURATION_S = 86400.0
+"""The longest ``duration_s`` of a position + velocity track [s]."""
+MAX_RADIUS_M = 1000.0
+"""The largest intruder ``radius_m`` [m]."""
+
+
+def _bounded(x: float, what: str, limit: float, unit: str, low: float | None = None) -> float:
+    """``x`` when finite and at most ``limit`` (and at least ``low``), else ValueError naming
+    ``what`` and the limit."""
+    if not math.isfinite(x):
+        raise ValueError(f"{what} {x} is not a finite number")
+    if x > limit or (low is not None and x < low):
+        rng = f"at most {limit:g} {unit}" if low is None else f"in [{low:g}, {limit:g}] {unit}"
+        raise ValueError(f"{what} {x:g} {unit} is out of range: it must be {rng} "
+                         "(see the bounds in pipeline/settings/events.py)")
+    return x
+
+
+def _check_point(x: float, y: float, alt: float, what: str) -> None:
+    """A track point: map x, y [m] and height above ground [m], finite and bounded."""
+    _bounded(x, f"{what} x", MAX_COORDINATE_M, "m", -MAX_COORDINATE_M)
+    _bounded(y, f"{what} y", MAX_COORDINATE_M, "m", -MAX_COORDINATE_M)
+    _bounded(alt, f"{what} altitude", MAX_AGL_M, "m AGL")
 
 
 class _EventBase(FrozenModel):
     t_s: NonNegFloat  # time of the event [s after the mission start]
     id: str | None = None
+
+    @field_validator("t_s")
+    @classmethod
+    def _t_finite(cls, v: float) -> float:
+        if not math.isfinite(v):
+            raise ValueError(f"event time {v} s is not a finite number of seconds after the mission start")
+        return v
 
     @property
     def label(self) -> str:
@@ -60,9 +113,44 @@ class _TrackForms(_EventBase):
                 raise ValueError(f"times must increase strictly (waypoint {k} at {v[k][0]:g} s is not after "
                                  f"waypoint {k - 1} at {v[k - 1][0]:g} s)")
         for k, w in enumerate(v):
+            if not math.isfinite(w[0]):
+                raise ValueError(f"waypoint {k}: time {w[0]} s is not a finite number")
             if w[3] < 0:
                 raise ValueError(f"waypoint {k} at {w[0]:g} s: altitude {w[3]:g} m AGL is below the ground")
+            _check_point(w[1], w[2], w[3], f"waypoint {k} at {w[0]:g} s:")
+        for k in range(1, len(v)):
+            (t0, *p0), (t1, *p1) = v[k - 1], v[k]
+            speed = math.dist(p0, p1) / (t1 - t0)
+            if not speed <= MAX_INTRUDER_SPEED_MPS:
+                raise ValueError(f"waypoints {k - 1} -> {k} ({t0:g} s -> {t1:g} s) are flown at {speed:.4g} m/s, "
+                                 f"faster than the {MAX_INTRUDER_SPEED_MPS:g} m/s an intruder may fly; check the "
+                                 "times [s] and coordinates [m]")
         return v
+
+    @field_validator("position")
+    @classmethod
+    def _position(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is not None:
+            _check_point(v[0], v[1], max(v[2], 0.0), "position")
+        return v
+
+    @field_validator("velocity_mps")
+    @classmethod
+    def _velocity(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is None:
+            return v
+        if not all(math.isfinite(c) for c in v):
+            raise ValueError(f"velocity {list(v)} m/s has a non-finite component")
+        speed = math.hypot(*v)
+        if speed > MAX_INTRUDER_SPEED_MPS:
+            raise ValueError(f"speed |velocity_mps| = {speed:.4g} m/s is faster than the {MAX_INTRUDER_SPEED_MPS:g} "
+                             "m/s an intruder may fly; give [vx, vy, vz] in m/s")
+        return v
+
+    @field_validator("duration_s")
+    @classmethod
+    def _duration(cls, v: float) -> float:
+        return _bounded(v, "duration_s", MAX_DURATION_S, "s")
 
     @model_validator(mode="after")
     def _one_form(self):
@@ -102,6 +190,11 @@ class IntruderEvent(_TrackForms):
     id: str
     radius_m: PositiveFloat = 2.0
 
+    @field_validator("radius_m")
+    @classmethod
+    def _radius(cls, v: float) -> float:
+        return _bounded(v, "radius_m", MAX_RADIUS_M, "m")
+
 class IntruderUpdateEvent(_TrackForms):
     """A new track for an intruder known earlier (``traffic.intruders`` or an earlier
     ``intruder`` event), from ``t_s`` [s] on; ``radius_m`` [m] unchanged when not given."""
@@ -109,6 +202,11 @@ class IntruderUpdateEvent(_TrackForms):
     kind: Literal["intruder_update"]
     id: str
     radius_m: PositiveFloat | None = None
+
+    @field_validator("radius_m")
+    @classmethod
+    def _radius(cls, v: float | None) -> float | None:
+        return v if v is None else _bounded(v, "radius_m", MAX_RADIUS_M, "m")
 
 class WindEvent(_EventBase):
     """A new wind from ``t_s`` [s] on: exactly one of ``uniform_wind`` or ``wind`` (gridded)."""
@@ -198,6 +296,11 @@ class NoFlyEvent(_PolygonEvent):
 
     @model_validator(mode="after")
     def _bands(self) -> NoFlyEvent:
+        _bounded(self.min_agl_m, "min_agl_m", MAX_AGL_M, "m AGL")
+        if math.isnan(self.max_agl_m) or math.isnan(self.end_s):
+            raise ValueError("max_agl_m and end_s must be numbers (.inf: open)")
+        if self.start_s is not None and not math.isfinite(self.start_s):
+            raise ValueError(f"start_s {self.start_s} is not a finite time [s after the mission start]")
         if not self.max_agl_m > self.min_agl_m:
             raise ValueError(f"max_agl_m {self.max_agl_m:g} must be above min_agl_m {self.min_agl_m:g}")
         assert self.start_s is not None
@@ -214,6 +317,11 @@ class ObstacleEvent(_PolygonEvent):
 
     kind: Literal["obstacle"]
     height_agl_m: PositiveFloat
+
+    @field_validator("height_agl_m")
+    @classmethod
+    def _height(cls, v: float) -> float:
+        return _bounded(v, "height_agl_m", MAX_AGL_M, "m")
 
 #: One scenario event, told apart by its ``kind``.
 Event = Annotated[IntruderEvent | IntruderUpdateEvent | WindEvent | GnssEvent | NoFlyEvent | ObstacleEvent,

@@ -246,6 +246,29 @@ class Intruder(FrozenModel):
     radius_m: PositiveFloat = 2.0
     waypoints: tuple[tuple[float, float, float, float], ...]
 
+    @field_validator("waypoints")
+    @classmethod
+    def _flyable(cls, v: tuple[tuple[float, float, float, float], ...]):
+        """Finite waypoints in increasing time, flown at most :data:`MAX_INTRUDER_SPEED_MPS`."""
+        import math
+
+        from skyroute.pipeline.settings.common import MAX_INTRUDER_SPEED_MPS
+
+        for k, w in enumerate(v):
+            if not all(math.isfinite(c) for c in w):
+                raise ValueError(f"waypoint {k} {list(w)} has a value that is not a finite number")
+        for k in range(1, len(v)):
+            (t0, *p0), (t1, *p1) = v[k - 1], v[k]
+            if not t1 > t0:
+                raise ValueError(f"times must increase strictly (waypoint {k} at {t1:g} s is not after waypoint "
+                                 f"{k - 1} at {t0:g} s)")
+            speed = math.dist(p0, p1) / (t1 - t0)
+            if speed > MAX_INTRUDER_SPEED_MPS:
+                raise ValueError(f"waypoints {k - 1} -> {k} are flown at {speed:.4g} m/s, faster than the "
+                                 f"{MAX_INTRUDER_SPEED_MPS:g} m/s an intruder may fly; check the times [s] and "
+                                 "coordinates [m]")
+        return v
+
 class TrafficSettings(FrozenModel):
     intruders: tuple[Intruder, ...] = ()
     n_slices: Annotated[int, Field(ge=1)] = 20

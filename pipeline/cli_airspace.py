@@ -3,11 +3,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 from pathlib import Path
 
 import click
+
+from skyroute.pipeline.outfolder import shown
 
 FILE = click.Path(path_type=Path)   # checked by AirspaceStore.open: one `error:` line
 
@@ -19,10 +22,22 @@ def airspace_group() -> None:
     an airspace: one `error:` line, exit code 2."""
 
 
+@contextlib.contextmanager
 def _open(path: Path):
-    from skyroute.stages.airspace_store import AirspaceStore
+    """The airspace ``path`` open for one command; a damaged SQLite file found while reading it
+    is one ``error:`` line (InputError) too."""
+    import sqlite3
 
-    return AirspaceStore.open(path)
+    from skyroute.stages.airspace_store import AirspaceStore
+    from skyroute.stages.base import InputError
+
+    s = AirspaceStore.open(path)
+    try:
+        yield s
+    except sqlite3.DatabaseError as exc:
+        raise InputError(f"{path}: the airspace file is damaged ({exc}); restore it from a copy") from None
+    finally:
+        s.close()
 
 
 @airspace_group.command("ls")
@@ -81,18 +96,25 @@ def show_command(file: Path, intent_id: str) -> None:
 def export_command(file: Path, out_dir: Path) -> None:
     """Write every intent of FILE as DIR/<id>.json (an F3548 OperationalIntentDetails document,
     checked against the uas_standards schema) and DIR/summary.json."""
+    from skyroute.pipeline.fleet import check_mission_id
     from skyroute.pipeline.outputs import (
         ensure_writable_dir,
         previous_summary,
         remove_stale,
         write_summary,
     )
+    from skyroute.stages.base import InputError
     from skyroute.stages.intents import parse_intent
 
     with _open(file) as s:
         recs = s.records(details=True)
         epoch = s.epoch_utc.isoformat()
         n_vol = s.n_volumes()
+    for r in recs:              # each id names a file: never a path, before anything is written
+        try:
+            check_mission_id(r.id, "intent id")
+        except ValueError as exc:
+            raise InputError(f"{file}: {exc}; remove that intent (`skyroute airspace rm {file} ID`)") from None
     out = ensure_writable_dir(out_dir)
     files, warnings = [], []
     for r in recs:
@@ -109,7 +131,7 @@ def export_command(file: Path, out_dir: Path) -> None:
     write_summary(out, "airspace export", files, warnings, {"airspace": {
         "file": str(Path(file).resolve()), "intents": len(recs), "volumes": n_vol, "epoch_utc": epoch,
         "ids": [r.id for r in recs]}})
-    click.echo(f"airspace export: {len(recs)} intents -> {out}")
+    click.echo(f"airspace export: {len(recs)} intents -> {shown(out)}")
 
 
 @airspace_group.command("check")
@@ -123,17 +145,28 @@ def check_command(file: Path, as_json: bool) -> None:
     import time
 
     from skyroute.pipeline.fleet import independent_conflicts
+    from skyroute.stages.fleet import volumes_of_intent
 
     with _open(file) as s:
         t = time.perf_counter()
         problems = s.check()
         t_cons = time.perf_counter() - t
         docs = {r.id: r.details for r in s.records(details=True)}
+        bad = set()
+        for m, d in docs.items():     # a document the all-pairs check cannot read: a problem (check found it)
+            try:
+                volumes_of_intent(d, s.crs_wkt, s.epoch_utc.isoformat())
+            except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+                bad.add(m)
+                problems.append(f"intent {m}: F3548 document unreadable by the all-pairs check "
+                                f"({type(exc).__name__}: {str(exc)[:80]}); re-export it or remove it "
+                                f"(`skyroute airspace rm {file} {m}`)")
         t = time.perf_counter()
-        pairs = independent_conflicts(docs, s.crs_wkt, s.epoch_utc.isoformat())
+        pairs = independent_conflicts({m: d for m, d in docs.items() if m not in bad}, s.crs_wkt,
+                                      s.epoch_utc.isoformat())
         t_all = time.perf_counter() - t
         t = time.perf_counter()
-        indexed = s.self_conflicts()
+        indexed = [p for p in s.self_conflicts() if not bad & set(p)]
         t_idx = time.perf_counter() - t
     if sorted(map(tuple, map(sorted, pairs))) != indexed:
         problems.append(f"the R*Tree check finds {len(indexed)} conflicting pair(s), the all-pairs check "
@@ -153,3 +186,22 @@ def check_command(file: Path, as_json: bool) -> None:
                    f"{len(pairs)} conflicting pair(s) (all-pairs {t_all:.2f} s, R*Tree {t_idx:.2f} s) -> "
                    f"{'ok' if ok else 'FAILED'}")
     sys.exit(0 if ok else 1)
+
+
+@airspace_group.command("rm")
+@click.argument("file", type=FILE)
+@click.argument("intent_ids", nargs=-1, required=True)
+def rm_command(file: Path, intent_ids: tuple[str, ...]) -> None:
+    """Remove the intents INTENT_IDS of FILE (their volumes and index boxes, one transaction):
+    their missions become undecided, so the next `skyroute fleet --airspace FILE` plans them
+    again. Reads no intent document: a damaged intent can be removed too."""
+    from skyroute.stages.base import InputError
+
+    with _open(file) as s:
+        missing = [m for m in intent_ids if not s.has(m)]
+        if missing:
+            raise InputError(f"no intent {missing[0][:64]!r} in the airspace {file} (`skyroute airspace ls {file}` "
+                             "lists them)")
+        s.withdraw(intent_ids)
+        left = len(s)
+    click.echo(f"airspace rm: {len(intent_ids)} intent(s) removed from {file}; it holds {left}")

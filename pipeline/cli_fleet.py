@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import sys
 from pathlib import Path
@@ -10,6 +11,10 @@ from pathlib import Path
 import click
 
 from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, max_memory_option
+from skyroute.pipeline.outfolder import folder_of, shown
+from skyroute.stages.base import note_input
+
+MAX_ATTEMPTS = 1000   # departures tried per mission (--max-delay-min / --delay-step-s + 1), each one plan
 
 
 @click.command("fleet")
@@ -59,11 +64,14 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, min
     --max-delay-min) or rejected, and may preempt lower-priority missions (re-planned). Writes
     fleet.csv, intents/<mission>.json, fleet.geojson, tracks.csv, fleet.png, summary.json and
     the accepted intents into the airspace file (--airspace; each decision one transaction)."""
+    from skyroute.pipeline.budget import check_fleet
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.errors import InputError
     from skyroute.pipeline.fleet import (
+        MAX_FLEET_MISSIONS,
         FleetFileError,
         FleetOptions,
+        check_fleet_vehicle,
         default_level,
         draw_missions,
         fleet_maps,
@@ -80,22 +88,35 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, min
         raise InputError("give either --fleet FILE or --missions N (with --seed S)")
     if min_km > max_km:
         raise InputError(f"--min-km {min_km:g} is above --max-km {max_km:g}: give the shortest mission first")
+    if missions is not None and missions > MAX_FLEET_MISSIONS:
+        raise InputError(f"--missions {missions:,}: one fleet run plans at most {MAX_FLEET_MISSIONS:,} missions; "
+                         "split the day into runs that add to one airspace (--airspace FILE, --seed 1, 2, ...)")
+    attempts = max_delay_min * 60.0 / delay_step_s + 1.0
+    if attempts > MAX_ATTEMPTS:
+        raise InputError(f"--max-delay-min {max_delay_min:g} / --delay-step-s {delay_step_s:g} is {attempts:,.0f} "
+                         f"departures tried per mission (at most {MAX_ATTEMPTS:,}, each one plan): raise "
+                         "--delay-step-s or lower --max-delay-min")
+    if scheduler.startswith("tcp://"):    # not a dask scheduler: one line now, not after the maps
+        from skyroute.pipeline.graph import check_scheduler_address
+
+        check_scheduler_address(scheduler)
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
     if ground_m is not None:
         sc = sc.model_copy(update={"data": sc.data.model_copy(
             update={"ground": GroundReference(height_m=ground_m, vertical_datum="EGM96 geoid")})})
     tasks = None
     if fleet_file is not None:
-        if Path(fleet_file).suffix.lower() != ".csv":
-            from skyroute.stages.yaml_io import read_yaml_file
-
-            read_yaml_file(fleet_file, "fleet")   # the front door: not UTF-8, duplicate keys, alias bombs
-        try:
+        try:    # read within a size limit, parsed strictly; every mission checked before the maps
             tasks = load_fleet(fleet_file, sc, sc.gnss.dop_thresholds)
         except FleetFileError as exc:
             for p in exc.problems:
                 click.echo(f"error: {p}", err=True)
             sys.exit(2)
+        longest_km = max(math.hypot(t.goal_xy[0] - t.start_xy[0], t.goal_xy[1] - t.start_xy[1]) for t in tasks) / 1e3
+        check_fleet(sc, len(tasks), longest_km, key=f"the missions of {fleet_file}")
+    else:
+        check_fleet_vehicle(sc.vehicle)        # drawn missions fly the scenario's vehicle
+        check_fleet(sc, missions, max_km)      # before the maps and the draw
     if tasks is not None and sc.data.almanacs:
         from skyroute.stages.orbits import AGE_LIMITS_S
 
@@ -108,6 +129,7 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, min
                              "mission.start_time_utc (with an almanac of that time)")
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fleet")
     if airspace_file is not None:      # a bad FILE: one error line before any planning
+        note_input(airspace_file)      # never replaced by an output, never removed as stale
         store = AirspaceStore.open(airspace_file) if airspace_file.exists() or airspace_file.is_symlink() else None
     cache = Cache(cache_dir)
     maps = fleet_maps(sc, cache.root)
@@ -150,8 +172,12 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, min
     section["airspace"] = {**res.airspace, "conflicts_with_the_airspace": len(air_conf),
                            "conflicting_pairs": [list(c) for c in air_conf]}
     store.close()
-    if Path(os.path.abspath(store.path)).is_relative_to(os.path.abspath(out_dir)):   # listed: never removed as stale
-        files.append(Path(store.path))
+    store_abs = Path(os.path.abspath(store.path))
+    staged = folder_of(out_dir)
+    if store_abs.is_relative_to(os.path.abspath(out_dir)):   # listed: never removed as stale
+        files.append(store_abs)
+    elif staged is not None and store_abs.is_relative_to(staged.final):   # --airspace OUT/x.sqlite: changed in place
+        files.append(Path(out_dir) / staged.adopt_in_place(store_abs))
     section.update({"default_dop_level": level, "scheduler": scheduler,
                     "source": str(fleet_file) if fleet_file else (f"--missions {missions} --seed {seed} "
                                                                   f"--min-km {min_km:g} --max-km {max_km:g}"),
@@ -169,7 +195,7 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, min
     click.echo(f"fleet: {section['missions']} missions: {c['accepted']} accepted, {c['delayed']} delayed, "
                f"{c['preempted-replanned']} preempted-replanned, {c['rejected']} rejected; mean delay "
                f"{section['mean_delay_s'] or 0:.0f} s; {section['throughput_plans_per_min']} plans/min; "
-               f"conflicts (independent check) {section['conflicts_independent_check']} -> {out_dir}")
+               f"conflicts (independent check) {section['conflicts_independent_check']} -> {shown(out_dir)}")
     if res.airspace.get("already_decided"):
         click.echo(f"airspace: {len(res.airspace['already_decided'])} mission(s) already decided in "
                    f"{res.airspace['file']} (skipped); it holds {res.airspace['intents_after']} intents", err=True)

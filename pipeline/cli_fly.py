@@ -49,8 +49,9 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, c
     if not sc.events:
         raise InputError(f"scenario {sc.name!r} has no events to fly through: add an `events:` list to it or "
                          "give --events FILE")
-    from skyroute.pipeline.fly import tactical_method
+    from skyroute.pipeline.fly import check_intruders, tactical_method
 
+    check_intruders(sc)      # more intruder tracks than one replay takes: exit 2 before any work
     if tactical_method(sc, method) != "local":
         fly_params(sc, t_rep_s, tick_s, seed, method)  # bad --t-rep / --tick: exit 2 before any work
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fly")

@@ -7,14 +7,18 @@ from pathlib import Path
 
 import click
 
+from skyroute.pipeline.budget import MAX_NAVSIM_RUNS
 from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, OutPath, max_memory_option
+from skyroute.pipeline.outfolder import shown
 
 
 @click.command("navsim")
 @click.argument("scenario", required=False, default=None)
 @click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/navsim).")
-@click.option("--runs", type=click.IntRange(min=1), default=None, help="Monte Carlo runs (default: navsim.runs, 50).")
+@click.option("--runs", type=click.IntRange(min=1, max=MAX_NAVSIM_RUNS), default=None,
+              help=f"Monte Carlo runs (default: navsim.runs, 50; at most {MAX_NAVSIM_RUNS:,}, and as many as fit "
+                   "--max-memory, estimated before any work).")
 @click.option("--seed", type=SEED, default=None, help="Seed of every random draw (default: navsim.seed).")
 @click.option("--trajectory", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="A flown.csv of `skyroute fly` to simulate instead of the strategic plan.")
@@ -52,7 +56,7 @@ def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, schedul
     c = section["containment"]
     click.echo(f"navsim: {section['runs']} runs x {section['epochs']} epochs; 3-sigma containment proposed "
                f"{c['proposed']['3sigma']:.3f}, weak {c['weak']['3sigma']:.3f}; proposed error smaller "
-               f"{section['proposed_beats_weak']:.1%} of the time -> {out_dir}")
+               f"{section['proposed_beats_weak']:.1%} of the time -> {shown(out_dir)}")
     pl = section.get("protection_level")
     if pl is not None and pl["hpl_median_m"] is not None:
         click.echo(f"navsim: protection level (solution separation) median HPL {pl['hpl_median_m']:.1f} m, "

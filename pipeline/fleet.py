@@ -43,6 +43,11 @@ from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.fleet_check import independent_conflicts, min_separation_m  # noqa: F401  (re-exported)
 from skyroute.pipeline.fleet_missions import (  # noqa: F401  (re-exported: the mission model)
     FIRM_PRIORITY,
+    FLEET_PLANNER,
+    MAX_FLEET_MISSIONS,
+    MAX_ID_CHARS,
+    MAX_PRIORITY,
+    MIN_PRIORITY,
     Attempt,
     FleetFileError,
     FleetMission,
@@ -50,6 +55,8 @@ from skyroute.pipeline.fleet_missions import (  # noqa: F401  (re-exported: the 
     FleetResult,
     FleetTask,
     MissionOutcome,
+    check_fleet_vehicle,
+    check_mission_id,
     draw_missions,
     load_fleet,
     mission_fields,
@@ -198,7 +205,7 @@ def plan_attempt(sc: Scenario, cache_dir, task: FleetTask, departure_s: float, l
     try:
         request = PlanRequest.of(
             start_xy=task.start_xy, start_agl_m=task.start_agl_m, goal_xy=task.goal_xy, goal_agl_m=task.goal_agl_m,
-            start_time_utc=t0_utc, vehicle=veh, weights=p.weights, planner="astar",
+            start_time_utc=t0_utc, vehicle=veh, weights=p.weights, planner=FLEET_PLANNER,
             time_budget_s=opt.budget_s(task.start_xy, task.goal_xy),
             seed=_seed(opt.seed, task.id, departure_s), max_tries=p.max_tries, step_cells=p.step_cells,
             min_agl_m=sc.constraints.min_altitude_agl_m, max_agl_m=sc.constraints.max_altitude_agl_m,

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
+import io
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +20,48 @@ from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.model import FrozenModel
 from skyroute.pipeline.settings import MissionPoint, Scenario
 
-__all__ = ["Attempt", "FIRM_PRIORITY", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult", "FleetTask", "MissionOutcome", "draw_missions", "load_fleet", "mission_fields"]
+__all__ = ["Attempt", "FIRM_PRIORITY", "FLEET_PLANNER", "FleetFileError", "FleetMission", "FleetOptions", "FleetResult",
+           "FleetTask", "MAX_FLEET_MISSIONS", "MAX_ID_CHARS", "MAX_PRIORITY", "MIN_PRIORITY", "MissionOutcome",
+           "check_fleet_vehicle", "check_mission_id", "draw_missions", "load_fleet", "mission_fields"]
+
+#: The STEP I planner of every fleet mission (:func:`skyroute.pipeline.fleet.plan_attempt`): a
+#: rotorcraft planner, so a fixed-wing vehicle is refused before the maps are built.
+FLEET_PLANNER = "astar"
+#: Missions of one fleet run (a fleet file or --missions): a busy city's day is a few thousand;
+#: a larger day is split into runs that add to one airspace file (--airspace FILE).
+MAX_FLEET_MISSIONS = 100_000
+#: A mission id names files (``intents/<id>.json``) and airspace rows: at most this many
+#: characters of ``A-Z a-z 0-9 . _ -``, not starting with a dot or a dash.
+MAX_ID_CHARS = 64
+#: F3548 priorities of a fleet file (higher wins), stored as SQLite integers: a signed 32-bit
+#: range (the driver keeps 2**62 for intents accepted before the run, :data:`FIRM_PRIORITY`).
+MIN_PRIORITY, MAX_PRIORITY = -(2**31), 2**31 - 1
+MAX_OPERATOR_CHARS = 128
+_ID_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]*")
+
+
+def _shown(v: str, n: int = 40) -> str:
+    """``v`` for a message: repr, truncated to ``n`` characters with its length."""
+    return repr(v) if len(v) <= n else f"{v[:n]!r}... ({len(v):,} characters)"
+
+
+def check_mission_id(v: str, what: str = "mission id") -> str:
+    """``v`` when it is a safe mission / intent id (it names a file): 1 to :data:`MAX_ID_CHARS`
+    characters of letters, digits, ``.``, ``_`` and ``-``, not starting with ``.`` or ``-``;
+    else ValueError showing it (truncated) and the rule."""
+    if not isinstance(v, str):
+        raise ValueError(f"{what} must be a text, got {type(v).__name__}")
+    if not v:
+        raise ValueError(f"{what} is empty; give a short name such as m0001")
+    if len(v) > MAX_ID_CHARS:
+        raise ValueError(f"{what} {_shown(v)} is longer than {MAX_ID_CHARS} characters (it names the file "
+                         "intents/<id>.json); give a shorter id")
+    if not _ID_RE.fullmatch(v):
+        bad = sorted({c for c in v if not (c.isascii() and (c.isalnum() or c in "._-"))})
+        why = (f"holds {', '.join(repr(c) for c in bad[:5])}" if bad else "starts with '.' or '-'")
+        raise ValueError(f"{what} {_shown(v)} {why}: use letters, digits, '.', '_' and '-' (not first: '.', '-'); "
+                         "it names the file intents/<id>.json")
+    return v
 
 
 class FleetFileError(InputError):
@@ -47,8 +90,23 @@ class FleetMission(FrozenModel):
     @field_validator("id")
     @classmethod
     def _id(cls, v: str) -> str:
-        if not v or "/" in v or v.strip() != v:
-            raise ValueError(f"mission id {v!r} must be non-empty, without '/' or surrounding spaces")
+        return check_mission_id(v)
+
+    @field_validator("operator")
+    @classmethod
+    def _operator(cls, v: str) -> str:
+        if not v.strip() or len(v) > MAX_OPERATOR_CHARS or not v.isprintable():
+            raise ValueError(f"operator {_shown(v)} must be 1 to {MAX_OPERATOR_CHARS} printable characters")
+        return v
+
+    @field_validator("priority")
+    @classmethod
+    def _priority(cls, v: int) -> int:
+        if not MIN_PRIORITY <= v <= MAX_PRIORITY:
+            digits = str(abs(v))
+            shown = f"{v:,}" if len(digits) <= 15 else f"{'-' if v < 0 else ''}{digits[0]}.{digits[1:3]}e{len(digits) - 1}"
+            raise ValueError(f"priority {shown} is outside {MIN_PRIORITY:,}..{MAX_PRIORITY:,} (an integer, higher "
+                             "wins; stored as an SQLite integer); give a smaller priority")
         return v
 
 
@@ -112,9 +170,9 @@ BUDGET_KM = 1.5      # [km] missions up to this long get FleetOptions.time_budge
 
 
 # ---------------------------------------------------------------------------------- fleet input
-def _csv_records(path: Path) -> list[dict]:
+def _csv_records(text: str) -> list[dict]:
     out = []
-    with open(path, newline="") as f:
+    with io.StringIO(text, newline="") as f:
         for row in csv.DictReader(f):
             rec: dict[str, Any] = {}
             pts: dict[str, dict] = {"start": {}, "goal": {}}
@@ -142,33 +200,57 @@ def _departure_s(dep, t0: dt.datetime) -> float:
 def load_fleet(path: Path | str, sc: Scenario, levels: Sequence[float] = ()) -> list[FleetTask]:
     """The missions of a fleet file (YAML ``missions: [...]`` or CSV with columns id, operator,
     start_x / start_y or start_lon / start_lat, start_alt_agl_m, goal_..., departure, priority,
-    vehicle, dop_level) as :class:`FleetTask` s.  Every problem is collected and raised at once
-    (:class:`FleetFileError`): schema, duplicate ids, points outside the map, departures before
-    the scenario start, unknown vehicles, DOP levels not among the scenario's ``levels``."""
-    import yaml
-
-    from skyroute.stages.vehicle import load_vehicle
+    vehicle, dop_level) as :class:`FleetTask` s.  The file is read within the YAML reader's
+    size limit (a device, FIFO or endless stream is a DataError) and parsed by it (YAML).  Every
+    problem is collected and raised at once (:class:`FleetFileError`), before any map is built:
+    schema, ids that are not safe file names (:func:`check_mission_id`), duplicate ids,
+    priorities beyond :data:`MIN_PRIORITY` .. :data:`MAX_PRIORITY`, points outside the map or
+    outside the scenario's altitude constraints, start and goal less than one cell apart,
+    departures before the scenario start, unknown vehicles or fixed-wing ones
+    (:func:`check_fleet_vehicle`), DOP levels not among the scenario's ``levels``; more than
+    :data:`MAX_FLEET_MISSIONS` missions."""
+    from skyroute.stages.base import ScenarioError, read_limited
+    from skyroute.stages.yaml_io import MAX_BYTES, read_yaml_text
 
     path = Path(path)
     src = str(path)
-    if not path.is_file():
-        raise FleetFileError(src, ["no such file; give a YAML or CSV fleet file"])
+    data = read_limited(path, MAX_BYTES, "fleet")   # DataError naming the file: missing, a device, endless, too large
     try:
         if path.suffix.lower() == ".csv":
-            records = _csv_records(path)
+            if b"\x00" in data:
+                raise FleetFileError(src, ["holds NUL bytes, so it is not a CSV text file"])
+            records = _csv_records(data.decode("utf-8").removeprefix("\ufeff"))
         else:
-            doc = yaml.safe_load(path.read_text())
+            try:
+                doc = read_yaml_text(data, src, "fleet")    # not UTF-8, duplicate keys, alias bombs
+            except ScenarioError as exc:
+                raise FleetFileError(src, [p.removeprefix("<file>: ") for p in exc.problems]) from None
             if not isinstance(doc, dict) or not isinstance(doc.get("missions"), list):
                 raise FleetFileError(src, ["the YAML needs a top-level list 'missions: [...]'"])
             records = doc["missions"]
-    except (yaml.YAMLError, csv.Error, UnicodeDecodeError) as exc:
+    except (csv.Error, UnicodeDecodeError) as exc:
         raise FleetFileError(src, [f"cannot be read: {exc}".replace("\n", " ")]) from None
     if not records:
         raise FleetFileError(src, ["no mission in the file"])
+    if len(records) > MAX_FLEET_MISSIONS:
+        raise FleetFileError(src, [f"{len(records):,} missions: one fleet run takes at most {MAX_FLEET_MISSIONS:,}; "
+                                   "split the file into runs that add to one airspace (--airspace FILE)"])
+    return _fleet_tasks(src, records, sc, levels)
+
+
+def _fleet_tasks(src: str, records: list, sc: Scenario, levels: Sequence[float]) -> list[FleetTask]:
+    """The :class:`FleetTask` s of a fleet file's ``records`` (see :func:`load_fleet`)."""
+    from skyroute.stages.vehicle import load_vehicle
+
     problems: list[str] = []
     missions: list[tuple[int, FleetMission]] = []
     for i, rec in enumerate(records):
         name = rec.get("id", f"#{i + 1}") if isinstance(rec, dict) else f"#{i + 1}"
+        name = _shown(name) if isinstance(name, str) and len(name) > 40 else name
+        if not isinstance(rec, dict):
+            problems.append(f"mission #{i + 1}: expected a mapping of mission fields (id, start, goal, ...), got "
+                            f"{type(rec).__name__}")
+            continue
         try:
             missions.append((i, FleetMission.model_validate(rec)))
         except ValidationError as exc:
@@ -178,6 +260,8 @@ def load_fleet(path: Path | str, sc: Scenario, levels: Sequence[float] = ()) -> 
     seen: dict[str, int] = {}
     g = sc.grid
     xmin, ymin, xmax, ymax = g.bounds
+    res = float(sc.aoi.resolution_m)
+    cmin, cmax = sc.constraints.min_altitude_agl_m, sc.constraints.max_altitude_agl_m
     t0 = sc.mission.start_time_utc
     tasks = []
     for i, m in missions:
@@ -186,11 +270,20 @@ def load_fleet(path: Path | str, sc: Scenario, levels: Sequence[float] = ()) -> 
         seen.setdefault(m.id, i)
         xy = {}
         for which in ("start", "goal"):
-            x, y = sc.point_xy(getattr(m, which))
+            pt = getattr(m, which)
+            x, y = sc.point_xy(pt)
             if not (xmin <= x <= xmax and ymin <= y <= ymax):
                 problems.append(f"mission {m.id}: {which} ({x:.1f}, {y:.1f}) is outside the scenario's map "
                                 f"[{xmin:.1f}, {xmax:.1f}] x [{ymin:.1f}, {ymax:.1f}]")
+            if not cmin <= pt.alt_agl_m <= cmax:
+                problems.append(f"mission {m.id}: {which} altitude {pt.alt_agl_m:g} m AGL is outside the scenario's "
+                                f"constraints.min_altitude_agl_m {cmin:g} .. max_altitude_agl_m {cmax:g}")
             xy[which] = (float(x), float(y))
+        gap = math.hypot(xy["goal"][0] - xy["start"][0], xy["goal"][1] - xy["start"][1])
+        if not gap >= res:        # (nan: reported as outside the map)
+            if math.isfinite(gap):
+                problems.append(f"mission {m.id}: start and goal are {gap:.2f} m apart, less than one cell "
+                                f"(aoi.resolution_m {res:g} m): give a goal elsewhere")
         dep = _departure_s(m.departure, t0)
         if not math.isfinite(dep) or dep < 0:
             problems.append(f"mission {m.id}: departure {m.departure} is before the scenario start {t0.isoformat()}")
@@ -199,6 +292,11 @@ def load_fleet(path: Path | str, sc: Scenario, levels: Sequence[float] = ()) -> 
             load_vehicle(veh)
         except Exception as exc:   # noqa: BLE001 - the loader's own message says what is known
             problems.append(f"mission {m.id}: vehicle: {exc}")
+        else:
+            try:
+                check_fleet_vehicle(veh)
+            except InputError as exc:
+                problems.append(f"mission {m.id}: vehicle: {exc}")
         if m.dop_level is not None and levels and not any(abs(m.dop_level - d) < 1e-9 for d in levels):
             problems.append(f"mission {m.id}: dop_level {m.dop_level:g} is not one of the scenario's levels "
                             f"{', '.join(f'{d:g}' for d in levels)}")
@@ -207,6 +305,19 @@ def load_fleet(path: Path | str, sc: Scenario, levels: Sequence[float] = ()) -> 
     if problems:
         raise FleetFileError(src, problems)
     return tasks
+
+
+def check_fleet_vehicle(vehicle) -> None:
+    """InputError when the fleet's planner (:data:`FLEET_PLANNER`, rotorcraft) cannot fly
+    ``vehicle`` (a fixed-wing aircraft), before any map is built."""
+    from skyroute.stages.planning.kinds import check_planner_vehicle
+
+    try:
+        check_planner_vehicle(FLEET_PLANNER, vehicle)
+    except InputError:
+        raise InputError(f"{vehicle!r} is a fixed-wing vehicle and skyroute fleet plans every mission with the "
+                         f"rotorcraft planner {FLEET_PLANNER!r}: give a rotorcraft vehicle, or plan the fixed-wing "
+                         "mission alone with `skyroute plan`") from None
 
 
 def draw_missions(sc: Scenario, maps: dict, n: int, seed: int, window_s: float, *, alt_agl_m: float | None = None,

@@ -25,7 +25,38 @@ from skyroute.pipeline.fly_common import (
 from skyroute.pipeline.runner import RunResult, run_scenario
 from skyroute.pipeline.settings import Scenario, check_event_times, scenario_at
 
-__all__ = ["MAP_STAGES", "FlyResult", "fly_scenario", "tactical_events", "tactical_method"]
+__all__ = ["MAP_STAGES", "MAX_EVENT_CHECKS", "MAX_INTRUDERS", "FlyResult", "check_intruders", "fly_scenario", "tactical_events",
+           "tactical_method"]
+
+#: Intruder tracks one tactical replay takes (``traffic.intruders`` + ``intruder`` and
+#: ``intruder_update`` events); the traffic benchmark's densest case is 400.
+MAX_INTRUDERS = 500
+#: Events x intruder tracks: every event checks the rest of the flight against every known
+#: intruder, so the replay's work grows as their product.  Measured on helsinki-tactical (2
+#: shared cores): 52 events x 54 tracks 8 s, 202 x 204 (41 208) 155 s beyond the plan.
+MAX_EVENT_CHECKS = 50_000
+
+
+def check_intruders(sc: Scenario) -> int:
+    """InputError (exit 2, before any work) when ``sc`` gives more than :data:`MAX_INTRUDERS`
+    intruder tracks, or more than :data:`MAX_EVENT_CHECKS` events x tracks; returns the
+    number of tracks."""
+    known = len(sc.traffic.intruders)
+    new = sum(1 for e in sc.events if e.kind == "intruder")
+    upd = sum(1 for e in sc.events if e.kind == "intruder_update")
+    n = known + new + upd
+    what = (f"{n:,} intruder tracks (traffic.intruders {known:,}, intruder events {new:,}, intruder_update events "
+            f"{upd:,})")
+    if n > MAX_INTRUDERS:
+        raise InputError(f"scenario {sc.name!r} gives {what}: skyroute fly replays at most {MAX_INTRUDERS:,}; keep the "
+                         "intruders that come near the flight")
+    checks = len(sc.events) * n
+    if checks > MAX_EVENT_CHECKS:
+        raise InputError(f"scenario {sc.name!r} gives {len(sc.events):,} events and {what}: each event checks the "
+                         f"flight against every intruder, {checks:,} checks (at most {MAX_EVENT_CHECKS:,}); keep the "
+                         "events and intruders that come near the flight")
+    return n
+
 
 def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
                method: str | None = None):
@@ -78,6 +109,7 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     from skyroute.stages.tactical.replay import replay
     from skyroute.stages.traffic import intruders_for
 
+    check_intruders(sc)
     method = tactical_method(sc, method)
     if method == "local":
         from skyroute.pipeline.fly_fw import fly_fixedwing
@@ -121,7 +153,12 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
     targets = [s for s in MAP_STAGES if s in result.datasets]
 
     def world_at(t_s: float):
-        res = run_scenario(scenario_at(sc, t_s), cache=cache, targets=targets, scheduler=scheduler, progress=False)
+        from skyroute.pipeline.graph import stages_for
+
+        sc_t = scenario_at(sc, t_s)
+        # a map an event brings in (a wind event on a scenario without wind) is computed too
+        now = [s.name for s in stages_for(sc_t) if s.name in MAP_STAGES and s.name not in targets]
+        res = run_scenario(sc_t, cache=cache, targets=[*targets, *now], scheduler=scheduler, progress=False)
         updates.append(res)
         return _world(res, sc, radius, window)
 

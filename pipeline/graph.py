@@ -334,6 +334,65 @@ def stages_for(scenario: Scenario, targets: Sequence[str] | None = None) -> list
 LOCAL_SCHEDULERS = ("threads", "processes", "synchronous", "sync")
 
 
+PROBE_TIMEOUT_S = 5.0        # [s] connecting to a --scheduler address and reading its greeting
+PROBE_MAX_GREETING = 1 << 16  # [bytes] a dask scheduler's handshake is ~60 bytes
+
+
+def check_scheduler_address(address: str, timeout_s: float | None = None) -> None:
+    """InputError (one line) unless ``address`` (``tcp://HOST:PORT``) answers like a dask
+    scheduler, checked with a plain socket before dask sees it: dask's own handshake reads the
+    first 8 bytes as the length of a message and allocates it (3 EiB from an HTTP server's
+    bytes), and a server that never answers would make dask wait.  A scheduler sends its
+    handshake when a connection opens: 8 bytes (the length of the rest, native uint64), a
+    frame header and a msgpack map with the keys ``compression``, ``python`` and
+    ``pickle-protocol``.  At most :data:`PROBE_MAX_GREETING` bytes are read, within
+    ``timeout_s`` [s] (default :data:`PROBE_TIMEOUT_S`) in all.  Other schemes (``tls://``,
+    ``inproc://``) are left to dask."""
+    import socket
+    import struct
+
+    if not address.startswith("tcp://"):
+        return
+    timeout_s = PROBE_TIMEOUT_S if timeout_s is None else float(timeout_s)
+    fix = "start one with `dask scheduler` (it prints its tcp:// address) or drop --scheduler"
+    hostport = address[len("tcp://"):].rstrip("/")
+    host, sep, port_s = hostport.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port_s.isdigit() or not 0 < int(port_s) < 65536:
+        raise InputError(f"--scheduler {address!r} is not a dask scheduler address; give tcp://HOST:PORT "
+                         f"(e.g. tcp://127.0.0.1:8786): {fix}")
+    deadline = time.monotonic() + timeout_s
+
+    def recv_exactly(sock, n: int) -> bytes:
+        buf = b""
+        while len(buf) < n:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError
+            sock.settimeout(left)
+            b = sock.recv(n - len(buf))
+            if not b:
+                raise ValueError("the server closed the connection without a dask handshake")
+            buf += b
+        return buf
+
+    try:
+        with socket.create_connection((host, int(port_s)), timeout=timeout_s) as sock:
+            (n,) = struct.unpack("Q", recv_exactly(sock, 8))
+            if not 16 <= n <= PROBE_MAX_GREETING:
+                raise ValueError(f"its first bytes announce a message of {n:,} bytes")
+            body = recv_exactly(sock, n)
+            if not all(k in body for k in (b"compression", b"python", b"pickle-protocol")):
+                raise ValueError("its greeting is not a dask handshake")
+    except TimeoutError:
+        raise InputError(f"--scheduler {address}: no dask handshake within {timeout_s:g} s (the server accepts "
+                         f"connections but does not answer like a dask scheduler): {fix}") from None
+    except ValueError as exc:
+        raise InputError(f"--scheduler {address} is not a dask scheduler ({exc}): {fix}") from None
+    except OSError as exc:
+        raise InputError(f"cannot connect to the dask scheduler at {address}: {exc.strerror or exc}; {fix}") from None
+
+
 @contextlib.contextmanager
 def scheduler_context(scheduler: str = "threads", workers: int | None = None) -> Iterator[Any]:
     """Configure dask for ``scheduler``: ``threads`` (default), ``processes``, ``synchronous``,
@@ -353,11 +412,17 @@ def scheduler_context(scheduler: str = "threads", workers: int | None = None) ->
             client = Client(cluster)
         else:
             cluster = None
+            check_scheduler_address(scheduler)     # not a dask scheduler: one line, never a 3 EiB read
             try:
                 client = Client(scheduler, timeout="10s")
             except OSError as exc:
                 raise InputError(f"cannot connect to the dask scheduler at {scheduler}: {exc}; "
                                  "start one with `dask scheduler` or use --scheduler distributed") from exc
+        import logging
+
+        log = logging.getLogger("asyncio")
+        if not any(isinstance(f, _DroppedWaits) for f in log.filters):
+            log.addFilter(_DroppedWaits())     # for the process: the dropped task may be collected later
         try:
             yield client
         finally:
@@ -367,6 +432,18 @@ def scheduler_context(scheduler: str = "threads", workers: int | None = None) ->
     else:
         raise UnknownNameError("scheduler", scheduler,
                                ["threads", "processes", "synchronous", "distributed", "tcp://host:port"])
+
+
+class _DroppedWaits:
+    """A filter of the ``asyncio`` logger: the ``AllExit`` of a ``fut.result(timeout=...)``
+    wait that :func:`cluster_result` gave up on (the client closing ends it) is not a problem,
+    and its "Task exception was never retrieved" traceback must not precede the command's one
+    ``error:`` line."""
+
+    def filter(self, record) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        text = record.getMessage() if exc is None else ""
+        return not (type(exc).__name__ == "AllExit" or "AllExit" in text)
 
 
 @contextlib.contextmanager

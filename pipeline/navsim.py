@@ -10,18 +10,24 @@ simulation is :func:`skyroute.stages.navsim.simulate`.
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
+from skyroute.pipeline.budget import MAX_NAVSIM_RUNS, check_navsim
 from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.errors import InputError
+from skyroute.pipeline.fly_common import shortest_flight_s
 from skyroute.pipeline.runner import RunResult, run_scenario
 from skyroute.pipeline.settings import Scenario
 
-__all__ = ["NavsimResult", "add_protection_levels", "integrity_budget", "navsim_params", "navsim_scenario", "read_flown_csv"]
+__all__ = ["MAX_FLOWN_BYTES", "NavsimResult", "add_protection_levels", "integrity_budget", "navsim_params",
+           "navsim_scenario", "read_flown_csv"]
+
+MAX_FLOWN_BYTES = 256 << 20   # a flown.csv: ~60 B per 0.1 s tick, 256 MB is a 100 h flight
 
 
 @dataclass
@@ -74,11 +80,20 @@ def add_protection_levels(ds, los_enu, visible, sigma_uere_m: float, budget=None
 def read_flown_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """``(t_s, xyz_m)`` of a ``flown.csv`` written by ``skyroute fly`` (columns t_s, x_m, y_m,
     z_m); one ``error:`` line for a file that is not one."""
+    import io
+
+    from skyroute.stages.base import DataError, read_limited
+
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"--trajectory {path}: no such file (give the flown.csv of `skyroute fly`)")
+    try:     # a missing file, a folder, a device or FIFO, or more than MAX_FLOWN_BYTES: one line
+        text = read_limited(path, MAX_FLOWN_BYTES, "--trajectory").decode("utf-8")
+    except DataError as exc:
+        raise InputError(f"{exc} (give the flown.csv of `skyroute fly`)") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"--trajectory {path}: not a UTF-8 text file ({exc.reason} at byte {exc.start}); give the "
+                         "flown.csv of `skyroute fly`") from None
     try:
-        with path.open(newline="") as fh:
+        with io.StringIO(text, newline="") as fh:
             rows = list(csv.DictReader(fh))
         t = np.array([float(r["t_s"]) for r in rows])
         p = np.array([[float(r["x_m"]), float(r["y_m"]), float(r["z_m"])] for r in rows])
@@ -102,14 +117,18 @@ def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | Non
     n = sc.navsim
     runs = n.runs if runs is None else runs
     seed = n.seed if seed is None else seed
-    if not (isinstance(runs, int) and runs >= 1):
-        raise InputError(f"--runs {runs}: give an integer >= 1")
+    if not (isinstance(runs, int) and 1 <= runs <= MAX_NAVSIM_RUNS):
+        raise InputError(f"--runs {runs}: give an integer from 1 to {MAX_NAVSIM_RUNS:,}")
     params = navsim_params(sc)
     flown = read_flown_csv(trajectory) if trajectory is not None else None   # bad files: before any work
     if not sc.data.almanacs:
         raise InputError(f"scenario {sc.name!r} has no almanac (data.almanacs): navsim needs satellites")
-    result = run_scenario(sc, cache=cache or Cache(), targets=["plan"], scheduler=scheduler, progress=progress)
     dt = 1.0 / n.rate_hz
+    if flown is not None:     # the memory of the Monte Carlo, before any work: the flight's epochs
+        check_navsim(sc, runs, math.floor((flown[0][-1] - flown[0][0]) / dt + 1e-9) + 1.0)
+    else:                     # the plan does not exist yet: at least the straight line at top speed
+        check_navsim(sc, runs, math.floor(shortest_flight_s(sc) / dt) + 1.0, at_least=True)
+    result = run_scenario(sc, cache=cache or Cache(), targets=["plan"], scheduler=scheduler, progress=progress)
     if flown is None:
         plan = result["plan"].load()
         chosen, _ = plan_from_dataset(plan)
@@ -132,6 +151,7 @@ def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | Non
         xyz = np.column_stack([np.interp(t, tf, pf[:, k]) for k in range(3)])
         source = str(trajectory)
         dop_threshold = max(sc.gnss.dop_thresholds)
+    check_navsim(sc, runs, float(t.size))       # the planned flight's epochs, before the simulation
     surf = result["surface"].load()
     holder = SimpleNamespace(grid=Grid.from_dataarray(surf["terrain"]))   # line_of_sight reads the grid only
     sky = result["satellites"].load()

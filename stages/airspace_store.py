@@ -198,11 +198,16 @@ class AirspaceStore:
             meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
         except sqlite3.DatabaseError as exc:
             raise InputError(f"{path} cannot be read as an airspace file: {exc}") from None
-        if int(meta.get("schema_version", -1)) != SCHEMA_VERSION or not {"crs", "epoch_utc"} <= set(meta):
+        if str(meta.get("schema_version")) != str(SCHEMA_VERSION) or not {"crs", "epoch_utc"} <= set(meta):
             conn.close()
             raise InputError(f"{path} has airspace schema version {meta.get('schema_version')!r}; this skyroute "
                              f"reads version {SCHEMA_VERSION}")
-        return cls(path, conn)
+        try:
+            return cls(path, conn)
+        except (ValueError, TypeError, OverflowError) as exc:
+            conn.close()
+            raise InputError(f"{path}: the airspace's meta table is damaged (epoch_utc "
+                             f"{str(meta.get('epoch_utc'))[:40]!r}: {exc}); restore the file from a copy") from None
 
     @classmethod
     def create(cls, path: Path | str, crs, epoch_utc, *, replace: bool = False) -> AirspaceStore:
@@ -269,10 +274,34 @@ class AirspaceStore:
 
     _COLS = "id, seq, state, priority, operator, n_volumes, t_start_s, t_end_s, departure_utc, accepted_utc, mission"
 
+    def _damaged(self, intent_id, what: str) -> InputError:
+        """The one-line error of an intent whose stored row cannot be read."""
+        import shlex
+
+        ident = str(intent_id)
+        shown = repr(ident[:64]) + ("..." if len(ident) > 64 else "")
+        rm = f"skyroute airspace rm {shlex.quote(str(self.path))} {shlex.quote(ident) if len(ident) <= 64 else 'ID'}"
+        return InputError(f"{self.path}: intent {shown}: {what}; the file is damaged: restore it from a copy, or "
+                          f"remove that intent (`{rm}`) and plan its mission again")
+
+    def _json(self, intent_id, column: str, text, kind=dict):
+        """``json.loads(text)`` of a stored column, or the one-line error naming the intent."""
+        try:
+            doc = json.loads(text)
+        except (TypeError, ValueError, RecursionError) as exc:
+            raise self._damaged(intent_id, f"its {column} is not valid JSON ({str(exc)[:80]})") from None
+        if not isinstance(doc, kind):
+            raise self._damaged(intent_id, f"its {column} is a JSON {type(doc).__name__}, not an object")
+        return doc
+
     def _record(self, row, details=None) -> IntentRecord:
-        return IntentRecord(row[0], int(row[1]), row[2], int(row[3]), row[4], int(row[5]), float(row[6]),
-                            float(row[7]), row[8], row[9], json.loads(row[10]),
-                            None if details is None else json.loads(details))
+        try:
+            nums = (int(row[1]), int(row[3]), int(row[5]), float(row[6]), float(row[7]))
+        except (TypeError, ValueError) as exc:
+            raise self._damaged(row[0], f"a number of its row is not a number ({exc})") from None
+        return IntentRecord(row[0], nums[0], row[2], nums[1], row[4], nums[2], nums[3], nums[4], row[8], row[9],
+                            self._json(row[0], "mission fields", row[10]),
+                            None if details is None else self._json(row[0], "F3548 document (details)", details))
 
     def records(self, details: bool = False) -> list[IntentRecord]:
         """Every intent, in order of acceptance."""
@@ -293,16 +322,26 @@ class AirspaceStore:
 
     def decisions(self) -> dict[str, tuple[str, str, dict]]:
         """mission -> (status, reason, mission fields) of every decided mission."""
-        return {m: (s, r, json.loads(f)) for m, s, r, f in
+        return {m: (s, r, self._json(m, "decision's mission fields", f)) for m, s, r, f in
                 self._conn.execute("SELECT mission, status, reason, mission_fields FROM decisions")}
 
-    @staticmethod
-    def _vol(row) -> Volume4:
-        return Volume4(shapely.from_wkb(row[0]), float(row[1]), float(row[2]), float(row[3]), float(row[4]))
+    def _vol(self, row, intent_id: str = "?", k: int | str = "?") -> Volume4:
+        """A stored volume (WKB outline, altitudes [m], times [s]); the one-line error naming the
+        intent and the volume when its outline is not a valid polygon's WKB."""
+        try:
+            poly = shapely.from_wkb(row[0])
+        except (shapely.errors.GEOSException, TypeError, ValueError) as exc:
+            raise self._damaged(intent_id, f"volume {k}: its outline is not valid WKB ({str(exc)[:80]})") from None
+        if not isinstance(poly, shapely.Polygon) or poly.is_empty:
+            raise self._damaged(intent_id, f"volume {k}: its outline is a {poly.geom_type}, not a polygon")
+        try:
+            return Volume4(poly, float(row[1]), float(row[2]), float(row[3]), float(row[4]))
+        except (TypeError, ValueError) as exc:
+            raise self._damaged(intent_id, f"volume {k}: an altitude or time is not a number ({exc})") from None
 
     def volumes(self, ids: Iterable[str] | None = None, t_shift_s: float = 0.0) -> dict[str, list[Volume4]]:
         """intent id -> its volumes (store CRS; times [s after the epoch] minus ``t_shift_s``)."""
-        q = "SELECT intent_id, outline_wkb, alt_lower_m, alt_upper_m, t_start_s, t_end_s FROM volumes"
+        q = "SELECT intent_id, outline_wkb, alt_lower_m, alt_upper_m, t_start_s, t_end_s, k FROM volumes"
         if ids is None:
             rows = self._conn.execute(q + " ORDER BY intent_id, k").fetchall()
         else:
@@ -314,7 +353,7 @@ class AirspaceStore:
                                            "ORDER BY intent_id, k", part).fetchall()
         out: dict[str, list[Volume4]] = {}
         for r in rows:
-            v = self._vol(r[1:])
+            v = self._vol(r[1:6], r[0], r[6])
             if t_shift_s:
                 v = Volume4(v.polygon, v.alt_lower_m, v.alt_upper_m, v.t_start_s - t_shift_s, v.t_end_s - t_shift_s)
             out.setdefault(r[0], []).append(v)
@@ -349,8 +388,8 @@ class AirspaceStore:
         for i in range(0, len(u), 500):
             part = u[i:i + 500]
             for r in self._conn.execute("SELECT vid, intent_id, outline_wkb, alt_lower_m, alt_upper_m, t_start_s, "
-                                        f"t_end_s FROM volumes WHERE vid IN ({','.join('?' * len(part))})", part):
-                out[int(r[0])] = (r[1], self._vol(r[2:]))
+                                        f"t_end_s, k FROM volumes WHERE vid IN ({','.join('?' * len(part))})", part):
+                out[int(r[0])] = (r[1], self._vol(r[2:7], r[1], r[7]))
         return out
 
     def conflicts(self, vols: Sequence[Volume4], *, exclude: Iterable[str] = (),
@@ -495,6 +534,9 @@ class AirspaceStore:
                 out.append(f"intent {rec.id}: {len(rows)} volume rows, expected {rec.n_volumes} (k = 0..n-1)")
                 continue
             dvs = rec.details.get("volumes", []) if isinstance(rec.details, dict) else []
+            if not isinstance(dvs, list):
+                out.append(f"intent {rec.id}: its F3548 document's volumes are a {type(dvs).__name__}, not a list")
+                continue
             if len(dvs) != rec.n_volumes:
                 out.append(f"intent {rec.id}: its F3548 document has {len(dvs)} volumes, expected {rec.n_volumes}")
                 continue
@@ -513,8 +555,11 @@ class AirspaceStore:
                 box = r[6:]
                 try:
                     poly = shapely.from_wkb(wkb)
-                except shapely.errors.GEOSException:
-                    out.append(f"intent {rec.id} volume {k}: unreadable outline")
+                except (shapely.errors.GEOSException, TypeError, ValueError):
+                    out.append(f"intent {rec.id} volume {k}: unreadable outline (not valid WKB)")
+                    continue
+                if not isinstance(poly, shapely.Polygon):
+                    out.append(f"intent {rec.id} volume {k}: its outline is a {poly.geom_type}, not a polygon")
                     continue
                 if box[0] is None:
                     out.append(f"intent {rec.id} volume {k}: no R*Tree box")

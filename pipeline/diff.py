@@ -138,6 +138,9 @@ def read_summary(folder: Path | str, name: str = "folder") -> dict[str, Any]:
     if not isinstance(doc, dict) or "schema_version" not in doc or "command" not in doc:
         raise InputError(f"{name} {folder}: summary.json has no schema_version / command, so it was not written "
                          f"by skyroute: {hint}")
+    from skyroute.pipeline.summary_schema import check_summary
+
+    check_summary(doc, folder, name)      # every value read below has its type (a hand-edited summary)
     check_summary_files(folder, doc, name)
     return doc
 
@@ -288,8 +291,10 @@ def _fly(a: dict, b: dict) -> list[Change]:
     for key in ("chosen_levels",):
         if list(a.get(key) or []) != list(b.get(key) or []):
             out.append(Change("fly", key, ",".join(a.get(key) or []), ",".join(b.get(key) or [])))
-    reps_a = {r["replanning"]: r for r in a.get("replannings", []) if isinstance(r, dict)}
-    reps_b = {r["replanning"]: r for r in b.get("replannings", []) if isinstance(r, dict)}
+    reps_a = {r["replanning"]: r for r in a.get("replannings", [])
+              if isinstance(r, dict) and "replanning" in r}
+    reps_b = {r["replanning"]: r for r in b.get("replannings", [])
+              if isinstance(r, dict) and "replanning" in r}
     for r in sorted(set(reps_a) & set(reps_b)):
         ra, rb = reps_a[r], reps_b[r]
         _compare_keys(out, "fly", ra, rb, ("event", "t_event_s", "t_coll_s", "chosen_level", "added_flight_time_s",
@@ -298,8 +303,8 @@ def _fly(a: dict, b: dict) -> list[Change]:
             if list(ra.get(key) or []) != list(rb.get(key) or []):
                 out.append(Change("fly", f"replanning {r}.{key}", ",".join(ra.get(key) or []),
                                   ",".join(rb.get(key) or [])))
-    sep_a = {s["id"]: s for s in a.get("min_separation", []) if isinstance(s, dict)}
-    sep_b = {s["id"]: s for s in b.get("min_separation", []) if isinstance(s, dict)}
+    sep_a = {s["id"]: s for s in a.get("min_separation", []) if isinstance(s, dict) and "id" in s}
+    sep_b = {s["id"]: s for s in b.get("min_separation", []) if isinstance(s, dict) and "id" in s}
     for i in sorted(set(sep_a) | set(sep_b)):
         va = sep_a.get(i, {}).get("min_distance_m")
         vb = sep_b.get(i, {}).get("min_distance_m")

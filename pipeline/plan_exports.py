@@ -119,7 +119,7 @@ def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:
     paths by file name (nothing when no plan flies)."""
     from pyproj import Transformer
 
-    from skyroute.stages.exports import plan_kml, qgc_plan, write_json, write_plan_gpkg
+    from skyroute.stages.exports import lon_near, plan_kml, qgc_plan, write_json, write_plan_gpkg
     from skyroute.stages.intents import parse_intent, plan_intent
     from skyroute.stages.planning.step3 import utc_of
     from skyroute.stages.vehicle import load_vehicle
@@ -168,6 +168,7 @@ def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:
                                         sc.grid.crs)
     b = sc.grid.bounds
     cx, cy = to_ll.transform([b[0], b[2], b[2], b[0]], [b[1], b[1], b[3], b[3]])
+    cx = lon_near(cx, float(lon[0]))     # continuous around the plan (a map across the antimeridian)
     files["plan.gpkg"] = write_plan_gpkg(out / "plan.gpkg", lon_deg=lon, lat_deg=lat, z_m=z,
                                          vertical_datum=str(ds.attrs.get("vertical_datum", "")), times_utc=times,
                                          label=label, waypoints_lonlat_z=np.column_stack([wlon, wlat, wp[:, 2]]),

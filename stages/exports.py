@@ -19,6 +19,18 @@
   polygons with altitude bands [m, WGS 84 ellipsoid] and RFC 3339 times), ``map_buildings``
   (the surface model's building footprints with their top heights) and ``aoi`` (the map
   extent).
+
+**The antimeridian.**  A plan near longitude 180 (e.g. UTM zone 60 or 1) has map points on both
+sides of it.  The planar exports keep every geometry continuous: the trajectory's longitudes are
+unwrapped along the path (:func:`continuous_lon`) and every other geometry of the plan
+(waypoints, intent volumes, buildings, the map extent) is given the longitudes nearest to the
+plan's first point (:func:`lon_near`), so a longitude may exceed 180 (or go below -180) and no
+polygon spans the globe.  This is what ``plan.geojson`` and ``plan.gpkg`` do (RFC 7946 section
+3.1.9 would cut such a line into a MultiLineString; skyroute keeps feature 0 one LineString whose
+vertices match its per-vertex properties and says so in its properties).  Formats whose
+longitudes are defined on [-180, 180] get them wrapped (:func:`wrap_lon`): KML 2.2
+(``kml:longitude``), the QGroundControl plan (MAVLink waypoints) and the F3548 intent (the
+``LatLngPoint`` of :mod:`skyroute.stages.intents`, whose polygon edges are the shortest paths).
 """
 
 from __future__ import annotations
@@ -33,7 +45,8 @@ import numpy as np
 
 from skyroute.stages.base import InputError
 
-__all__ = ["KML_NS", "QGC_FRAME_GLOBAL_RELATIVE_ALT", "building_footprints", "plan_kml", "qgc_plan", "write_json", "write_plan_gpkg"]
+__all__ = ["KML_NS", "QGC_FRAME_GLOBAL_RELATIVE_ALT", "building_footprints", "continuous_lon",
+           "crosses_antimeridian", "lon_near", "plan_kml", "qgc_plan", "wrap_lon", "write_json", "write_plan_gpkg"]
 
 KML_NS = "http://www.opengis.net/kml/2.2"
 GX_NS = "http://www.google.com/kml/ext/2.2"
@@ -41,6 +54,37 @@ QGC_FRAME_GLOBAL_RELATIVE_ALT = 3
 MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LAND, MAV_CMD_NAV_TAKEOFF = 16, 21, 22
 MAV_CMD_NAV_LOITER_UNLIM = 17
 MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR, MAV_TYPE_FIXED_WING = 12, 2, 1
+
+
+def wrap_lon(lon_deg) -> np.ndarray:
+    """Longitudes [deg] wrapped to [-180, 180] (a value already in the range is kept as it is,
+    so 180 stays 180)."""
+    lon = np.asarray(lon_deg, float)
+    return np.where((lon >= -180.0) & (lon <= 180.0), lon, (lon + 180.0) % 360.0 - 180.0)
+
+
+def lon_near(lon_deg, ref_deg: float) -> np.ndarray:
+    """Longitudes [deg] shifted by whole turns to lie within 180 deg of ``ref_deg`` (the
+    continuous representation around a reference point; may exceed 180 or go below -180)."""
+    lon = np.asarray(lon_deg, float)
+    return ref_deg + (lon - ref_deg + 180.0) % 360.0 - 180.0
+
+
+def continuous_lon(lon_deg) -> np.ndarray:
+    """Longitudes [deg] of a path, unwrapped: the first in [-180, 180], each next one within
+    180 deg of the previous (no jump of ~360 deg where the path crosses the antimeridian)."""
+    lon = np.asarray(lon_deg, float)
+    if lon.size == 0:
+        return lon.copy()
+    first = float(wrap_lon(lon.reshape(-1)[0]))
+    return np.unwrap(lon - lon.reshape(-1)[0] + first, period=360.0)
+
+
+def crosses_antimeridian(lon_deg) -> bool:
+    """Whether continuous longitudes [deg] (:func:`continuous_lon`, :func:`lon_near`) reach
+    past 180 or -180."""
+    lon = np.asarray(lon_deg, float)
+    return bool(lon.size and (np.max(lon) > 180.0 or np.min(lon) < -180.0))
 
 
 def _check(lon, lat, *more) -> tuple[np.ndarray, ...]:
@@ -57,6 +101,7 @@ def plan_kml(lon_deg, lat_deg, h_amsl_m, times_utc: list[str], name: str, descri
     """KML 2.2 document (text) of a trajectory: ``lon_deg, lat_deg`` [deg] WGS 84,
     ``h_amsl_m`` [m] above mean sea level (EGM96), ``times_utc`` ISO 8601 Z per point."""
     lon, lat, h = _check(lon_deg, lat_deg, h_amsl_m)
+    lon = wrap_lon(lon)      # kml:longitude is in [-180, 180]; Google Earth joins points by the short way
     if len(times_utc) != lon.size:
         raise InputError("times_utc needs one time per point")
     ET.register_namespace("", KML_NS)
@@ -114,6 +159,7 @@ def qgc_plan(lon_deg, lat_deg, rel_alt_m, home_amsl_m: float, *, cruise_speed_mp
     (``fixed_wing``: vehicle type fixed wing, and an unlimited loiter at the last waypoint
     instead of the landing: a fixed-wing aircraft cannot land on a waypoint)."""
     lon, lat, rel = _check(lon_deg, lat_deg, rel_alt_m)
+    lon = wrap_lon(lon)      # MAVLink waypoint longitudes are in [-180, 180]
     if not (math.isfinite(home_amsl_m) and cruise_speed_mps > 0 and hover_speed_mps > 0):
         raise InputError("home_amsl_m must be finite, the speeds > 0 [m/s]")
     items = [_item(1, MAV_CMD_NAV_TAKEOFF, lat[0], lon[0], float(rel[0]))]
@@ -180,12 +226,16 @@ def write_plan_gpkg(path: Path | str, *, lon_deg, lat_deg, z_m, vertical_datum: 
     ``vertical_datum``; ``waypoints_lonlat_z`` (n, 3) piece boundaries [deg, deg, m in the
     surface datum], ``waypoints_rel_m`` [m] above home, ``waypoints_abs_m`` [m] above mean sea
     level (or None); ``intent``: an F3548 OperationalIntentDetails dict; ``aoi_lonlat``
-    (west, south, east, north) [deg]; ``buildings``: :func:`building_footprints` output (layer
-    ``map_buildings``, tops in ``vertical_datum``)."""
+    (west, south, east, north) [deg] (``east < west``: across the antimeridian); ``buildings``:
+    :func:`building_footprints` output (layer ``map_buildings``, tops in ``vertical_datum``).
+    Longitudes of the planar layers are continuous around the trajectory's first point (see
+    the module docstring: the antimeridian)."""
     import shapely
     from pyogrio.raw import write
 
     lon, lat, z = _check(lon_deg, lat_deg, z_m)
+    lon = continuous_lon(lon)     # planar EPSG:4326 layers: one continuous frame around the plan's start
+    ref = float(lon[0])
     path = Path(path)
     if path.exists():
         path.unlink()
@@ -197,7 +247,8 @@ def write_plan_gpkg(path: Path | str, *, lon_deg, lat_deg, z_m, vertical_datum: 
            np.array([lon.size], dtype=np.int32)],
           ["label", "vertical_datum", "time_start_utc", "time_end_utc", "n_points"],
           layer="plan", geometry_type="LineString Z", **common)
-    w = np.asarray(waypoints_lonlat_z, float)
+    w = np.array(waypoints_lonlat_z, float).reshape(-1, 3)
+    w[:, 0] = lon_near(w[:, 0], ref)
     rel = np.asarray(waypoints_rel_m, float)
     ab = np.full(w.shape[0], np.nan) if waypoints_abs_m is None else np.asarray(waypoints_abs_m, float)
     pts = shapely.points(w)
@@ -206,8 +257,8 @@ def write_plan_gpkg(path: Path | str, *, lon_deg, lat_deg, z_m, vertical_datum: 
           ["index", "alt_rel_home_m", "alt_amsl_m"], layer="waypoints", geometry_type="Point Z", append=True, **common)
     if intent is not None:
         vols = intent["volumes"]
-        polys = [shapely.Polygon([(p["lng"], p["lat"]) for p in v["volume"]["outline_polygon"]["vertices"]])
-                 for v in vols]
+        polys = [shapely.Polygon([(float(lon_near(p["lng"], ref)), p["lat"])
+                                  for p in v["volume"]["outline_polygon"]["vertices"]]) for v in vols]
         write(path, np.asarray(shapely.to_wkb(polys), dtype=object),
               [np.arange(len(vols), dtype=np.int32),
                np.array([v["volume"]["altitude_lower"]["value"] for v in vols], float),
@@ -218,12 +269,17 @@ def write_plan_gpkg(path: Path | str, *, lon_deg, lat_deg, z_m, vertical_datum: 
               layer="intents", geometry_type="Polygon", append=True, **common)
     if buildings is not None and len(buildings[0]):
         polys, ids, tops = buildings
+        polys = [shapely.transform(g, lambda xy: np.column_stack([lon_near(xy[:, 0], ref), xy[:, 1]]))
+                 for g in polys]
         write(path, np.asarray(shapely.to_wkb(polys), dtype=object),
               [np.asarray(ids, np.int32), np.asarray(tops, float), np.array([vertical_datum] * len(ids), dtype=object)],
               ["building_id", "top_m", "vertical_datum"], layer="map_buildings", geometry_type="MultiPolygon",
               promote_to_multi=True, append=True, **common)
     if aoi_lonlat is not None:
-        write(path, np.array([shapely.to_wkb(shapely.box(*aoi_lonlat))], dtype=object),
+        w_, s_, e_, n_ = (float(v) for v in aoi_lonlat)
+        w_ = float(lon_near(w_, ref))
+        e_ = w_ + (e_ - float(aoi_lonlat[0])) % 360.0   # east of west: a box across the antimeridian stays small
+        write(path, np.array([shapely.to_wkb(shapely.box(w_, s_, e_, n_))], dtype=object),
               [np.array(["map extent"], dtype=object)], ["name"], layer="aoi", geometry_type="Polygon",
               append=True, **common)
     return path

@@ -26,8 +26,14 @@ chunk becomes one ``Volume4D``:
 
 F3548 limits are checked: at most :data:`MAX_VERTICES` (10,000) outline vertices per intent
 (chunks are merged pairwise until the intent fits), end after start, polygons without a
-repeated closing vertex.  :func:`intent_conformance` measures the share of a densely sampled
-trajectory inside the volumes (position, altitude and time at once).
+repeated closing vertex.  Near the antimeridian: vertex longitudes are in [-180, 180] (the
+F3548 ``LatLngPoint``), a polygon's edges are the shortest paths between its vertices (F3548
+``Polygon``), so a volume whose vertices lie on both sides of longitude 180 is the small
+polygon across it; :func:`parse_intent` refuses a polygon spanning 180 deg of longitude or
+more, and :func:`intent_polygons_lonlat` / :func:`intent_conformance` unwrap the vertices
+(:func:`~skyroute.stages.exports.lon_near`) before any planar geometry.
+:func:`intent_conformance` measures the share of a densely sampled trajectory inside the
+volumes (position, altitude and time at once).
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ import numpy as np
 import pandas as pd
 
 from skyroute.stages.base import InputError
+from skyroute.stages.exports import continuous_lon, lon_near, wrap_lon
 
 __all__ = ["MAX_VERTICES", "IntentVolume", "intent_conformance", "intent_details", "intent_polygons_lonlat",
            "parse_intent", "plan_intent", "plan_volumes", "rfc3339"]
@@ -201,6 +208,7 @@ def intent_details(volumes: list[IntentVolume], crs, start_time_utc, priority: i
         if not v.t_end_s > v.t_start_s or not v.alt_upper_m > v.alt_lower_m:
             raise InputError("a volume must end after it starts and have its upper altitude above the lower one")
         lon, lat = tr.transform(v.outline_xy_m[:, 0], v.outline_xy_m[:, 1])
+        lon = wrap_lon(lon)           # LatLngPoint.lng in [-180, 180]; edges are the shortest paths
         out.append({
             "volume": {
                 "outline_polygon": {"vertices": [{"lng": float(a), "lat": float(b)} for a, b in zip(lon, lat, strict=True)]},
@@ -230,6 +238,19 @@ def parse_intent(doc: dict):
         nv += len(verts)
         if len(verts) < 3 or len({(p.lat, p.lng) for p in verts}) != len(verts):
             raise InputError(f"volume {i}: a polygon needs >= 3 vertices, none repeated (nor the closing one)")
+        lng = np.array([float(p.lng) for p in verts])
+        lat = np.array([float(p.lat) for p in verts])
+        if not (np.all(np.isfinite(lng)) and np.all(np.abs(lng) <= 180.0) and np.all(np.isfinite(lat))
+                and np.all(np.abs(lat) <= 90.0)):
+            raise InputError(f"volume {i}: vertex longitudes must be in [-180, 180] and latitudes in "
+                             "[-90, 90] [deg]")
+        ring = continuous_lon(np.r_[lng, lng[0]])     # each edge the short way (F3548 Polygon)
+        if abs(float(ring[-1] - ring[0])) > 1e-6:
+            raise InputError(f"volume {i}: the polygon's edges (the shortest paths between its vertices) go once "
+                             "around the globe: it is not a small area")
+        if float(np.ptp(ring)) >= 180.0:
+            raise InputError(f"volume {i}: the polygon spans {float(np.ptp(ring)):.1f} deg of longitude (>= 180): "
+                             "not a small area")
         for which in ("time_start", "time_end"):
             if not str(v[which].value).endswith("Z"):
                 raise InputError(f"volume {i}: {which} {v[which].value} is not RFC 3339 UTC ending in Z")
@@ -240,12 +261,20 @@ def parse_intent(doc: dict):
     return oi
 
 
-def intent_polygons_lonlat(doc: dict) -> list:
-    """Shapely polygons (lon, lat [deg]) of the volumes of an intent document."""
+def intent_polygons_lonlat(doc: dict, ref_lon_deg: float | None = None) -> list:
+    """Shapely polygons (lon, lat [deg]) of the volumes of an intent document, each in one
+    continuous frame (:func:`~skyroute.stages.exports.lon_near`: its longitudes within 180 deg
+    of ``ref_lon_deg``, default its own first vertex), so a volume across the antimeridian is
+    the small polygon (longitudes may exceed 180), not one spanning the globe."""
     import shapely
 
-    return [shapely.Polygon([(p["lng"], p["lat"]) for p in v["volume"]["outline_polygon"]["vertices"]])
-            for v in doc["volumes"]]
+    out = []
+    for v in doc["volumes"]:
+        verts = v["volume"]["outline_polygon"]["vertices"]
+        lng = np.array([float(p["lng"]) for p in verts])
+        ref = float(lng[0]) if ref_lon_deg is None else float(ref_lon_deg)
+        out.append(shapely.Polygon(np.column_stack([lon_near(lng, ref), [float(p["lat"]) for p in verts]])))
+    return out
 
 
 def intent_conformance(doc: dict, lon_deg, lat_deg, h_w84_m, times_utc) -> float:
@@ -262,8 +291,8 @@ def intent_conformance(doc: dict, lon_deg, lat_deg, h_w84_m, times_utc) -> float
         te = pd.Timestamp(v["time_end"]["value"]).value
         lo, hi = v["volume"]["altitude_lower"]["value"], v["volume"]["altitude_upper"]["value"]
         m = (t >= ts) & (t <= te) & (h >= lo) & (h <= hi)
-        if m.any():
-            m[m] = shapely.contains_xy(poly, lon[m], lat[m])
+        if m.any():   # the points in the polygon's continuous frame (around its first vertex)
+            m[m] = shapely.contains_xy(poly, lon_near(lon[m], float(poly.exterior.coords[0][0])), lat[m])
         inside |= m
     return float(inside.mean()) if inside.size else 1.0
 

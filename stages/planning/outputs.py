@@ -6,7 +6,10 @@
   properties state ``vertical_datum`` and ``heights_are_ellipsoidal: false``.  Its properties
   also carry ``times_utc`` (ISO 8601 UTC per vertex), ``t_s``, ``alt_agl_m``, ``sigma_p_m``
   and the map-CRS coordinates (``map_crs``, ``map_xyz_m``: [x, y, z] per vertex); feature 2
-  is a ``MultiPoint`` of the trajectory's piece boundaries (same conventions).
+  is a ``MultiPoint`` of the trajectory's piece boundaries (same conventions).  A path across
+  the antimeridian stays one LineString with continuous longitudes (past 180 or -180; RFC 7946
+  section 3.1.9 would cut it, which would break the one-to-one match of its vertices and
+  per-vertex properties), ``crosses_antimeridian: true`` (see :mod:`skyroute.stages.exports`).
 * ``waypoints.csv``: one row per trajectory sample: ``t_utc, t_s, x_m, y_m, z_m, lon, lat,
   alt_agl_m, sigma_p_m``; ``t_s`` and the map coordinates at full float precision (shortest
   round-trip repr), so the written samples meet the vehicle limits exactly (mm / ms rounding
@@ -30,6 +33,7 @@ import numpy as np
 from pyproj import CRS, Transformer
 
 from skyroute.stages.base import InputError
+from skyroute.stages.exports import continuous_lon, crosses_antimeridian, lon_near
 from skyroute.stages.figures import add_map_furniture
 from skyroute.stages.grid import Grid
 from skyroute.stages.planning.step3 import Candidate, utc_of
@@ -68,6 +72,7 @@ def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_dat
     tr = Transformer.from_crs(crs, 4326, always_xy=True)
     p = candidate.xyz_m
     lon, lat = tr.transform(p[:, 0], p[:, 1])
+    lon = continuous_lon(lon)   # across the antimeridian: one continuous line (longitudes may pass 180)
     coords = [[float(a), float(b), float(z)] for a, b, z in zip(lon, lat, p[:, 2], strict=True)]
     epsg = crs.to_epsg()
     crs_txt = f"EPSG:{epsg}" if epsg is not None else crs.to_wkt()
@@ -86,6 +91,7 @@ def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_dat
         "alt_agl_m": [float(v) for v in candidate.alt_agl_m],
         "sigma_p_m": [_num(v) for v in candidate.sigma_p_m],
         "map_crs": crs_txt,
+        "crosses_antimeridian": crosses_antimeridian(lon),   # then longitudes run past +-180, unwrapped
         "map_xyz_m": [[float(a), float(b), float(c)] for a, b, c in p],
         "C_l_m": _num(candidate.C_l), "C_r_m": _num(candidate.C_r), "C_d_m": _num(candidate.C_d),
         "C_e_m": _num(candidate.C_e), "f_m": _num(candidate.f), "flyable": bool(candidate.flyable),
@@ -98,6 +104,7 @@ def plan_geojson(candidate: Candidate, grid_or_crs, start_time_utc, vertical_dat
     wp = np.asarray(candidate.waypoints, float)
     if wp.shape[0]:
         wl, wa = tr.transform(wp[:, 0], wp[:, 1])
+        wl = lon_near(wl, float(lon[0]))
         knots = np.concatenate([[0.0], np.cumsum(candidate.segment_times_s)]) + float(candidate.t_s[0])
         features.append({"type": "Feature",
                          "geometry": {"type": "MultiPoint",

@@ -65,8 +65,78 @@ class CacheEntry:
         return sum(f.stat().st_size for f in self.path.rglob("*") if f.is_file())
 
 
+_HELD: dict[str, int] = {}    # cache root -> file descriptor of this process's shared lock
+_CLEARING: set[str] = set()   # roots this process holds exclusively (clear / prune running)
+
+
+def _lock_path(root: Path) -> Path:
+    return root / ".lock"
+
+
+def hold_shared(root: Path) -> None:
+    """Hold a shared lock on the cache ``root`` for the rest of this process (or until
+    :meth:`Cache.clear` / :meth:`Cache.prune` of this process lets it go): entries this process
+    opened lazily are read until it ends, and ``skyroute cache clear`` in another process is
+    refused meanwhile instead of pulling entries from under a running command."""
+    key = str(root.resolve()) if root.exists() else str(root)
+    if key in _HELD or key in _CLEARING:
+        return
+    try:
+        import fcntl
+
+        root.mkdir(parents=True, exist_ok=True)
+        fd = os.open(_lock_path(root), os.O_RDWR | os.O_CREAT, 0o644)
+        fcntl.flock(fd, fcntl.LOCK_SH)
+        _HELD[key] = fd
+    except (OSError, ImportError):
+        pass    # a read-only cache, or no flock: nothing to protect it with
+
+
+def _release(root: Path) -> None:
+    key = str(root.resolve()) if root.exists() else str(root)
+    fd = _HELD.pop(key, None)
+    if fd is not None:
+        os.close(fd)
+
+
+class _Exclusive:
+    """The exclusive lock of ``cache clear`` / ``prune``: refused (CacheError) while another
+    process holds the cache."""
+
+    def __init__(self, root: Path):
+        self.root, self.fd = root, None
+
+    def __enter__(self):
+        _release(self.root)
+        try:
+            import fcntl
+        except ImportError:
+            return self
+        try:
+            self.fd = os.open(_lock_path(self.root), os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError:
+            return self     # no lock file can be made (read-only): the removals will fail on their own
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(self.fd)
+            self.fd = None
+            raise CacheError(f"the cache {self.root} is in use by a running skyroute command or Python session: "
+                             "removing entries now would pull them from under it; wait until it ends (or stop "
+                             "it), then run this again") from None
+        _CLEARING.add(str(self.root.resolve()))
+        return self
+
+    def __exit__(self, *exc):
+        _CLEARING.discard(str(self.root.resolve()))
+        if self.fd is not None:
+            os.close(self.fd)
+
+
 class Cache:
-    """A cache directory; all methods are safe to call from several processes."""
+    """A cache directory; all methods are safe to call from several processes.  A process that
+    reads or writes entries holds a shared lock on the root until it ends (:func:`hold_shared`),
+    so :meth:`clear` and :meth:`prune` in another process wait for no one and are refused."""
 
     def __init__(self, root: str | Path | None = None):
         self.root = Path(root).expanduser() if root is not None else default_cache_dir()
@@ -113,6 +183,7 @@ class Cache:
         mf = p / MANIFEST
         if not mf.is_file():
             return None
+        hold_shared(self.root)
         try:
             manifest = json.loads(mf.read_bytes().decode("utf-8"))
         except (OSError, UnicodeDecodeError, ValueError):
@@ -144,7 +215,11 @@ class Cache:
         import rioxarray  # noqa: F401  (registers the .rio accessor)
         import xarray as xr
 
-        ds = xr.open_zarr(entry.path / "data.zarr", chunks={} if chunks == "auto" else chunks, consolidated=False)
+        try:
+            ds = xr.open_zarr(entry.path / "data.zarr", chunks={} if chunks == "auto" else chunks, consolidated=False)
+        except (FileNotFoundError, KeyError) as exc:    # zarr's GroupNotFoundError is a FileNotFoundError
+            raise CacheError(f"cache entry {entry.path.name} was removed while this command ran ({exc}; "
+                             "`skyroute cache clear` or `prune` elsewhere, or by hand): run the command again") from None
         for name, var in ds.variables.items():
             if isinstance(var.dtype, np.dtypes.StringDType):  # back to plain Python strings for users
                 ds[name] = var.astype(object)
@@ -182,6 +257,7 @@ class Cache:
         """Write ``ds`` atomically.  ``compute(delayed)`` runs the dask graph of the write
         (scheduler and progress bar are the caller's); default ``delayed.compute()``."""
         self._ensure()
+        hold_shared(self.root)
         final = self.path_for(stage, key)
         tmp = self.tmp_dir / f"{stage}-{key}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
         try:
@@ -224,7 +300,14 @@ class Cache:
         return out
 
     def clear(self, stage: str | None = None) -> int:
-        """Remove entries (of one stage, or all) and orphaned temporaries; returns how many."""
+        """Remove entries (of one stage, or all) and orphaned temporaries; returns how many.
+        CacheError while another process holds the cache (:func:`hold_shared`)."""
+        if not self.root.is_dir():
+            return 0
+        with _Exclusive(self.root):
+            return self._clear(stage)
+
+    def _clear(self, stage: str | None) -> int:
         n = 0
         for e in self.entries():
             if stage is None or e.stage == stage:
@@ -243,6 +326,12 @@ class Cache:
         (last use = the last :meth:`get` of the entry); returns the entries removed."""
         if max_size_bytes < 0:
             raise CacheError(f"--max-size must be >= 0, got {max_size_bytes} bytes")
+        if not self.root.is_dir():
+            return []
+        with _Exclusive(self.root):
+            return self._prune(max_size_bytes)
+
+    def _prune(self, max_size_bytes: int) -> list[CacheEntry]:
         entries = sorted(self.entries(), key=lambda e: (e.path / MANIFEST).stat().st_mtime_ns)
         sizes = {e.path: e.size_bytes for e in entries}
         total = sum(sizes.values())

@@ -96,15 +96,25 @@ class SkyrouteGroup(click.Group):
     value, an unknown option), as one clean ``error: ...`` line (exit code 2)."""
 
     def invoke(self, ctx: click.Context):
-        from skyroute.pipeline import control
+        from skyroute.pipeline import control, outfolder
         from skyroute.pipeline.budget import set_max_memory
+        from skyroute.stages.base import forget_inputs
 
         # a callable default scheduler: reading a lazy array outside a command's own
         # --scheduler context would otherwise look for a distributed client (importing
         # distributed, ~0.1-0.5 s); --scheduler still overrides it inside
+        forget_inputs()            # the files this command reads, as it reads them (outfolder)
         with control.signal_handlers(), threaded_dask_default():
             try:
-                return super().invoke(ctx)
+                try:
+                    rv = super().invoke(ctx)
+                except (click.exceptions.Exit, SystemExit) as done:
+                    code = done.exit_code if isinstance(done, click.exceptions.Exit) else done.code
+                    if code in (0, 3, None):   # 3: written, but no flyable plan / nothing accepted
+                        outfolder.commit_all()
+                    raise
+                outfolder.commit_all()   # the outputs are put into place only now
+                return rv
             except SkyrouteError as exc:
                 msg = str(exc)
                 click.echo(f"error: {msg}", err=True)
@@ -133,10 +143,8 @@ class SkyrouteGroup(click.Group):
                     raise
                 _interrupted(ctx, control)
             finally:
+                outfolder.discard_all()   # a failed or interrupted command leaves --out as it was
                 set_max_memory(None)   # --max-memory holds for this command only (a session may run more)
-                from skyroute.pipeline.outputs import restore_untouched
-
-                restore_untouched()    # a folder this command set aside but never wrote gets its summary back
 
 
 @contextlib.contextmanager
@@ -349,7 +357,7 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
         for rec in result.records:
             click.echo(f"  {rec.name:12s} {'cache' if rec.cache_hit else 'computed':8s} {rec.seconds:7.2f} s")
         click.echo(f"{sc.name}: {len(result.records)} stages, {result.cache_hits} from cache "
-                   f"({result.seconds:.2f} s), {wall_s():.2f} s wall in all -> {out_dir}")
+                   f"({result.seconds:.2f} s), {wall_s():.2f} s wall in all -> {shown(out_dir)}")
         if plan is not None and plan["status"] == "flyable":
             click.echo(plan_summary_line(plan))
         if fly is not None:
@@ -358,7 +366,7 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
             click.echo(fly_summary_line(fly["section"]))
     else:
         # seconds: the wall time of the whole command (start-up, imports, outputs and report included)
-        doc = {"out": str(out_dir), "seconds": round(wall_s(), 3),
+        doc = {"out": str(shown(out_dir)), "seconds": round(wall_s(), 3),
                "stages_seconds": round(summary["seconds"], 3)}
         if plan is not None:
             doc["plan"] = plan["status"]
@@ -413,7 +421,7 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
     files.append(plot_maps_panel(result, out_dir / "maps.png"))
     _folder_summary(out_dir, "maps", result, files, {"maps": {"stages": targets}})
     for f in files:
-        click.echo(str(f))
+        click.echo(str(shown(f)))
 
 
 @main.command("plan")
@@ -486,7 +494,7 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
     exports = exports_section(result, relative_files(out_dir, list(files.values())), out_dir)
     _folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan, "exports": exports})
     for f in files.values():
-        click.echo(str(f))
+        click.echo(str(shown(f)))
     if plan["status"] == "flyable":
         click.echo(plan_summary_line(plan))
     _exit_if_no_plan(plan)
@@ -512,8 +520,10 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     import tempfile
 
     from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.outfolder import add_to_manifest, check_replaceable, owned_by_skyroute
     from skyroute.pipeline.outputs import check_writable_dir
     from skyroute.pipeline.report import (
+        REPORT_NAME,
         add_to_summary,
         build_report,
         draw_missing_maps,
@@ -521,6 +531,10 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     )
 
     check_writable_dir(Path(out_path).parent if out_path is not None else run_dir, "--out")  # before any drawing
+    page = Path(out_path) if out_path is not None else Path(run_dir) / REPORT_NAME
+    for p in (page, Path(run_dir) / "fly.html"):
+        check_replaceable(p, "--out" if p == page and out_path is not None else "report")   # never a user's file
+    own_summary = owned_by_skyroute(Path(run_dir) / "summary.json")   # else it is read, never rewritten
     added = []
     fly_map = write_fly_map(run_dir)
     if fly_map is not None:
@@ -528,10 +542,12 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
     with tempfile.TemporaryDirectory(prefix="skyroute-report-") as tmp:
         drawn = [] if no_maps else draw_missing_maps(run_dir, Cache(cache_dir), into=Path(tmp))
         path = build_report(run_dir, out_path, maps_dir=Path(tmp) if drawn else None)
-    if path.resolve().parent == Path(run_dir).resolve():
-        add_to_summary(run_dir, [path, *added])
-    elif added:
-        add_to_summary(run_dir, added)
+    inside = [p for p in (path, *added) if Path(p).resolve().parent.is_relative_to(Path(run_dir).resolve())]
+    if own_summary and inside:
+        add_to_summary(run_dir, inside)
+    add_to_manifest(run_dir, [*inside, *([Path(run_dir) / "summary.json"] if own_summary else [])])
+    if path not in inside:
+        add_to_manifest(path.parent, [path])   # a page elsewhere (--out): the next report may replace it
     click.echo(str(path))
 
 
@@ -566,7 +582,7 @@ def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) ->
         "dop_kind": str(cov.attrs.get("dop_kind", "")),
         "thresholds": [float(t) for t in cov["coverage_floor"]["threshold"].values]}})
     for f in files:
-        click.echo(str(f))
+        click.echo(str(shown(f)))
 
 
 @main.group("cache")
@@ -651,6 +667,13 @@ def _register_plugins() -> None:
 
 
 _register_plugins()
+
+
+def shown(path) -> Path:
+    """Where an output written into the command's staging folder is once the command ends."""
+    from skyroute.pipeline.outfolder import shown as _shown
+
+    return _shown(path)
 
 
 def _folder_summary(*args, **kwargs) -> dict:

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from skyroute.pipeline.cli import SCHEDULER_HELP, OutPath, max_memory_option
+from skyroute.pipeline.outfolder import shown
 from skyroute.stages.planning.registry import planner_help
 
 
@@ -51,7 +52,7 @@ def compare_command(scenario, planners, out_dir, cache_dir, scheduler, quiet) ->
                        f"compute {v['compute_s']:.2f} s")
         else:
             click.echo(f"{r.planner:>10}: {v.get('reason', 'no plan')}")
-    click.echo(f"compare: {len(rows)} planners -> {out_dir}")
+    click.echo(f"compare: {len(rows)} planners -> {shown(out_dir)}")
     if not any(r.flyable for r in rows):
         click.echo("no flyable plan: no planner found one (compare.csv lists why)", err=True)
         raise SystemExit(3)

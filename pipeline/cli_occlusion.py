@@ -8,7 +8,7 @@ import click
 import numpy as np
 
 from skyroute.pipeline.cli import FiniteFloat
-from skyroute.pipeline.errors import CRSError, DataError
+from skyroute.pipeline.errors import CRSError, DataError, SkyrouteError
 
 
 @click.command("visibility-height")
@@ -34,8 +34,12 @@ def visibility_height_command(surface_path: Path, az_deg: float, el_deg: float, 
     cell from which the satellite is in line of sight (cells are flat-topped prisms)."""
     import rioxarray
 
+    from skyroute.pipeline.outfolder import check_replaceable, write_single_file
+    from skyroute.stages.base import note_input
     from skyroute.stages.occlusion import visibility_height
 
+    note_input(surface_path)
+    check_replaceable(out_path, "--out")   # before any work: never the surface itself, nor a user's file
     try:
         da = rioxarray.open_rasterio(surface_path, masked=True)
     except Exception as exc:  # rasterio raises several error types
@@ -55,8 +59,9 @@ def visibility_height_command(surface_path: Path, az_deg: float, el_deg: float, 
     vh = vh.drop_vars([c for c in ("azimuth_deg", "grid_azimuth_deg", "elevation_deg")
                        if c in vh.coords])
     try:
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        vh.rio.to_raster(out_path, dtype="float32")
+        write_single_file(out_path, lambda tmp: vh.rio.to_raster(tmp, dtype="float32"))
+    except SkyrouteError:
+        raise
     except Exception as exc:
         raise DataError(f"cannot write {out_path}: {exc}") from exc
     click.echo(f"wrote {out_path}: visibility height az={az_deg:g} deg (grid) el={el_deg:g} deg, "

@@ -6,7 +6,6 @@ import json
 import os
 import shutil
 import textwrap
-import time
 from pathlib import Path
 from typing import Any
 
@@ -307,9 +306,15 @@ def write_summary(out_dir: Path, command: str, files: list[str], warnings: list[
     """Write ``out_dir/summary.json``: ``schema_version``, ``command``, ``files`` (every file
     written, paths relative to ``out_dir``, ``summary.json`` included), ``warnings`` (the given
     ones, then every other warning the CLI printed on stderr in this process) and the command's
-    own ``sections``; return the document."""
+    own ``sections``; return the document.  ``files`` also lists the manifest
+    (:data:`~skyroute.pipeline.outfolder.MANIFEST_NAME`), written when the outputs are put into
+    place.  Outside a command's staging folder
+    (:mod:`skyroute.pipeline.outfolder`: the Python API writing into a folder directly) the
+    folder's manifest is written too, listing the files with their checksums."""
+    from skyroute.pipeline.outfolder import MANIFEST_NAME, folder_of, record_of, write_manifest
+
     out_dir = Path(out_dir)
-    rel = sorted({Path(f).as_posix() for f in files} | {"summary.json"})
+    rel = sorted({Path(f).as_posix() for f in files} | {"summary.json", MANIFEST_NAME})
     warns = list(dict.fromkeys([*warnings, *PRINTED_WARNINGS]))
     doc = {"schema_version": SUMMARY_SCHEMA_VERSION, "command": command, "files": rel,
            "warnings": warns, **sections}
@@ -317,73 +322,40 @@ def write_summary(out_dir: Path, command: str, files: list[str], warnings: list[
     tmp = out_dir / ".summary.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1, allow_nan=False))
     os.replace(tmp, out_dir / "summary.json")
-    try:
-        (out_dir / RETIRED_SUMMARY).unlink(missing_ok=True)   # the rewrite is complete
-    except OSError:
-        pass
-    _RETIRED.pop(out_dir.resolve(), None)
+    if folder_of(out_dir) is None:
+        entries = {f: r for f in rel if (r := record_of(out_dir / f)) is not None}
+        write_manifest(out_dir, command, entries)
     return doc
 
 
 def previous_summary(out_dir: Path) -> dict[str, Any]:
-    """The summary of the folder's previous contents: ``summary.json``, or the one
-    :func:`retire_summary` set aside when this command started writing."""
-    for name in ("summary.json", RETIRED_SUMMARY):
-        try:
-            doc = json.loads((Path(out_dir) / name).read_text())
-            return doc if isinstance(doc, dict) else {}
-        except (OSError, ValueError):
-            continue
-    return {}
+    """The summary of the folder's previous contents (``summary.json``; for a command writing
+    into a staging folder, the one of its ``--out``), when skyroute wrote it; else {}."""
+    from skyroute.pipeline.outfolder import folder_of, owned_by_skyroute
+
+    out_dir = Path(out_dir)
+    f = folder_of(out_dir)
+    if f is not None:
+        out_dir = f.shown(out_dir)
+    p = out_dir / "summary.json"
+    if not owned_by_skyroute(p):
+        return {}
+    try:
+        doc = json.loads(p.read_text())
+        return doc if isinstance(doc, dict) else {}
+    except (OSError, ValueError):
+        return {}
 
 
 # ---------------------------------------------------------------- rewrites never leave a mix
-# A command rewriting a folder first sets its summary.json aside (RETIRED_SUMMARY) and writes the
-# new one last: a command interrupted or failing in between leaves a folder with no summary.json,
-# which `report` and `diff` refuse (the old summary beside new files was accepted before).  When
-# the command wrote nothing into the folder, the old summary is put back (restore_untouched).
-RETIRED_SUMMARY = ".summary.json.previous"
-_RETIRED: dict[Path, int] = {}       # folder -> time [ns] its summary was set aside
-
-
-def retire_summary(out_dir: Path) -> None:
-    """Set ``out_dir/summary.json`` aside before the folder is rewritten."""
-    out_dir = Path(out_dir)
-    cur = out_dir / "summary.json"
-    if cur.is_file():
-        os.replace(cur, out_dir / RETIRED_SUMMARY)
-    if (out_dir / RETIRED_SUMMARY).is_file():
-        _RETIRED[out_dir.resolve()] = time.time_ns()
-
-
-def _written_since(folder: Path, t0_ns: int) -> bool:
-    for root, dirs, files in os.walk(folder):
-        for name in files + [d for d in dirs if os.path.islink(os.path.join(root, d))]:
-            if name == RETIRED_SUMMARY:
-                continue
-            try:
-                if os.lstat(os.path.join(root, name)).st_mtime_ns >= t0_ns:
-                    return True
-            except OSError:
-                continue
-    return False
-
-
-def restore_untouched() -> None:
-    """At the end of a command: put back the summary of every folder it set aside but did not
-    write into (a command that failed before its outputs); the others keep no summary."""
-    for folder, t0 in list(_RETIRED.items()):
-        _RETIRED.pop(folder, None)
-        prev = folder / RETIRED_SUMMARY
-        try:
-            if prev.is_file() and not (folder / "summary.json").exists() and not _written_since(folder, t0):
-                os.replace(prev, folder / "summary.json")
-        except OSError:
-            pass
+# A command writes into a staging folder put into place at its end (skyroute.pipeline.outfolder):
+# while its files move, the folder's summary.json is set aside (RETIRED_SUMMARY) and the new one
+# comes last, so a folder caught half-way has no summary.json, which `report` and `diff` refuse.
+from skyroute.pipeline.outfolder import RETIRED_SUMMARY, check_writable_dir  # noqa: E402,F401  (their home)
 
 
 def check_summary_files(folder: Path, doc: dict[str, Any], name: str = "folder",
-                        may_miss: tuple[str, ...] = ("report.html",)) -> None:
+                        may_miss: tuple[str, ...] = ("report.html", ".skyroute-manifest.json")) -> None:
     """InputError when the folder does not hold what its summary lists (files deleted, or a
     rewrite that did not finish); ``may_miss``: files written after the summary (the report
     page, built from the summary)."""
@@ -407,39 +379,38 @@ def remove_stale(out_dir: Path, previous: dict[str, Any], files: list[str], comm
     """Remove the files the previous summary of ``out_dir`` listed that this run did not write
     (e.g. plan.geojson of a plan that no longer flies), so the folder holds what summary.json
     says.  Only when that summary was written by the same ``command`` (a folder shared by two
-    commands keeps the other command's files)."""
+    commands keeps the other command's files), and only files skyroute wrote there and nobody
+    changed since (its manifest: :func:`~skyroute.pipeline.outfolder.owned_by_skyroute`), never
+    through a symbolic link.  Inside a command's staging folder this is the commit's work."""
+    from skyroute.pipeline.outfolder import folder_of, owned_by_skyroute
+
     out_dir = Path(out_dir)
-    if previous.get("command") != command:
+    if folder_of(out_dir) is not None or previous.get("command") != command:
         return
     keep = {Path(f).as_posix() for f in files}
-    for f in previous.get("files", []):
-        p = out_dir / f
-        if f in keep or f == "summary.json" or ".." in Path(f).parts or Path(f).is_absolute():
+    listed = previous.get("files", [])
+    for f in listed if isinstance(listed, list) else []:
+        if not isinstance(f, str) or f in keep or f == "summary.json" or ".." in Path(f).parts or Path(f).is_absolute():
             continue
-        if p.is_symlink() or p.is_file():
+        p = out_dir / f
+        if p.is_file() and not p.is_symlink() and owned_by_skyroute(p, out_dir):
             p.unlink()
 
 
 def ensure_writable_dir(out_dir: Path | str, option: str = "--out") -> Path:
-    """Create ``out_dir`` and prove it writable, before any long work (one clear error
-    otherwise); its summary.json is set aside until the command writes the new one."""
-    out_dir = check_writable_dir(out_dir, option)
-    retire_summary(out_dir)   # until the new summary.json is written, the folder is not a finished output
-    return out_dir
+    """The folder a command writes its outputs into, checked before any long work (one clear
+    error otherwise).  Inside a CLI command: the staging folder of ``out_dir``
+    (:func:`skyroute.pipeline.outfolder.open_output_folder`), put into place when the command
+    ends; from the Python API: ``out_dir`` itself, created and proven writable."""
+    import click
 
+    from skyroute.pipeline.outfolder import open_output_folder
 
-def check_writable_dir(out_dir: Path | str, option: str = "--out") -> Path:
-    """Create ``out_dir`` and prove it writable (a probe file), nothing else."""
-    out_dir = Path(out_dir)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        probe = out_dir / f".skyroute-write-test-{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise InputError(f"cannot write to {option} {out_dir}: {exc.strerror or exc}; choose a folder you "
-                         "can write to") from None
-    return out_dir
+    ctx = click.get_current_context(silent=True)
+    if ctx is None:
+        return check_writable_dir(out_dir, option)
+    command = " ".join(ctx.command_path.split()[1:]) or ctx.info_name or "skyroute"
+    return open_output_folder(out_dir, command, option).path
 
 
 def remove_path(path: Path) -> None:
@@ -519,13 +490,23 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
     files: list[str] = []
 
     uncached = {r.name for r in result.records if not r.path}   # load-dependent results kept in memory only
+    from skyroute.pipeline.outfolder import folder_of
+
+    staged = folder_of(out_dir)
+
+    def _kept(rel: str) -> bool:
+        """``rel`` of the previous run is reused as it is (a staged command keeps it in place)."""
+        if staged is not None:
+            return staged.reuse(rel)
+        p = out_dir / rel
+        return p.is_dir() and not p.is_symlink() if rel.endswith(".zarr") else p.is_file()
 
     def produce(rel: str, stage: str | tuple[str, ...], make) -> None:
         stages = (stage,) if isinstance(stage, str) else tuple(stage)
         key = "+".join([*(keys[s] for s in stages), code])
         reusable = not uncached.intersection(stages)
         path = out_dir / rel
-        if not (reusable and prev_keys.get(rel) == key and path.is_file()):
+        if not (reusable and prev_keys.get(rel) == key and _kept(rel)):
             make(path)
         output_keys[rel] = key if reusable else ""
         files.append(rel)
@@ -542,7 +523,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         if link:
             remove_path(dst)
             os.symlink(src, dst)
-        elif not (prev_keys.get(rel) == rec.key and dst.is_dir() and not dst.is_symlink()):
+        elif not (prev_keys.get(rel) == rec.key and _kept(rel)):
             _copy_store(src, dst)
         output_keys[rel] = rec.key
         files.append(rel)
@@ -574,7 +555,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         old = [f for f in prev_files if f.startswith("plan/")]
         # (a folder written before plan.html existed gets its plan files rewritten once)
         reused = ("plan" not in uncached and prev_keys.get("plan/") == plan_key and old
-                  and all((out_dir / f).is_file() for f in old) and "plan/plan.html" in old)
+                  and "plan/plan.html" in old and all(_kept(f) for f in old))
         if reused:
             plan_files = old
         else:

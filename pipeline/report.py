@@ -107,6 +107,20 @@ def _table(header: list[str], rows: list[list[Any]], chosen: list[bool] | None =
     return f'<table class="{cls}">{head}<tbody>{"".join(body)}</tbody></table>'
 
 
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+GIF_MAGIC = (b"GIF87a", b"GIF89a")
+
+
+def _embeddable(root: Path, path: Path) -> bool:
+    """A figure the page may embed: a regular file inside ``root`` reached through no symbolic
+    link, that is a PNG (or, named .gif, a GIF) by its first bytes: a ``figures/x.png`` link to
+    another file never puts that file into the page."""
+    from skyroute.pipeline.outfolder import safe_member
+
+    magic = GIF_MAGIC if path.suffix.lower() == ".gif" else (PNG_MAGIC,)
+    return safe_member(root, path, magic)
+
+
 def _figure(path: Path, caption: str) -> str:
     mime = "image/gif" if path.suffix.lower() == ".gif" else "image/png"
     data = base64.b64encode(path.read_bytes()).decode()
@@ -125,6 +139,12 @@ def _num(v: Any, fmt: str = ".1f") -> str:
 
 
 def _read_csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    """The header and rows of a CSV of the folder (a symbolic link or a non-regular file reads
+    as an empty table: the page shows only what the folder's command wrote)."""
+    from skyroute.pipeline.outfolder import safe_member
+
+    if not safe_member(path.parent, path):
+        return [], []
     with open(path, newline="") as fh:
         r = csv.DictReader(fh)
         return list(r.fieldnames or []), list(r)
@@ -171,6 +191,17 @@ def _folders(run_dir: Path, command: str) -> dict[str, Path | None]:
     }
 
 
+def _inside(run_dir: Path, folder: Path) -> bool:
+    """``folder`` is ``run_dir`` or a real sub-folder of it (not a symbolic link out of it)."""
+    import os
+
+    from skyroute.pipeline.outfolder import no_link_between
+
+    top = os.path.realpath(run_dir)
+    return folder == run_dir or (no_link_between(top, os.path.join(top, os.path.relpath(folder, run_dir), "x"))
+                                 and not os.path.islink(folder))
+
+
 def _figures(folders: dict[str, Path | None], section: str) -> list[str]:
     base = folders.get(section)
     if base is None or not base.is_dir():
@@ -180,7 +211,7 @@ def _figures(folders: dict[str, Path | None], section: str) -> list[str]:
         if sec != section:
             continue
         for p in sorted(base.glob(pattern)):
-            if p.is_file() and p not in seen:
+            if p not in seen and _embeddable(base, p):
                 seen.add(p)
                 out.append(_figure(p, caption))
     return out
@@ -193,7 +224,7 @@ def _scenario_section(doc: dict[str, Any]) -> str:
     if doc.get("crs"):
         rows.append(["CRS", doc["crs"]])
     g = doc.get("grid")
-    if g:
+    if g and all(k in g for k in ("nx", "ny", "resolution_m", "bounds")):
         rows.append(["grid", f"{g['nx']} x {g['ny']} cells @ {g['resolution_m']:g} m; bounds "
                      f"{', '.join(f'{b:.0f}' for b in g['bounds'])} [m]"])
     return "<h2>Scenario</h2>" + _table(["", ""], rows, text_cols=(0, 1))
@@ -205,8 +236,9 @@ def _outcome_section(doc: dict[str, Any]) -> str:
     if plan is not None:
         if plan.get("status") == "flyable":
             dop = "no GNSS level" if plan.get("dop_threshold") is None else f"DOP < {plan['dop_threshold']:g}"
-            line = (f"Chosen plan {plan['label']}: f = {plan['f_m']:.1f} m, length {plan['length_m']:.1f} m, energy "
-                    f"{plan['energy_Wh']:.2f} Wh, flight time {plan['flight_time_s']:.1f} s, {dop}.")
+            line = (f"Chosen plan {plan.get('label')}: f = {_num(plan.get('f_m'), '.1f') or 'n/a'} m, length "
+                    f"{_num(plan.get('length_m'), '.1f') or 'n/a'} m, energy {_num(plan.get('energy_Wh'), '.2f') or 'n/a'}"
+                    f" Wh, flight time {_num(plan.get('flight_time_s'), '.1f') or 'n/a'} s, {dop}.")
             parts.append(f'<p class="outcome ok">{escape(line)}</p>')
         else:
             reasons = plan.get("reasons") or ["no candidate was produced"]
@@ -312,7 +344,7 @@ def _tactical_section(fly_dir: Path | None, fly: dict[str, Any] | None) -> str:
         out.append("<details><summary>Why each level was (not) chosen</summary>"
                    + _table(["replanning", "level", "reason"], reasons, text_cols=(2,)) + "</details>")
     if fly and fly.get("min_separation"):
-        rows = [[s["id"], s["kind"], _num(s.get("min_distance_m")), _num(s.get("required_m")),
+        rows = [[s.get("id"), s.get("kind"), _num(s.get("min_distance_m")), _num(s.get("required_m")),
                  _num(s.get("clearance_m")), _num(s.get("t_s"))] for s in fly["min_separation"]]
         out.append("<h3>Minimum separation to each intruder (brute force on the flown trajectory)</h3>"
                    + _table(["intruder", "kind", "min distance [m]", "required [m]", "margin [m]", "at t [s]"], rows,
@@ -389,6 +421,9 @@ def read_summary(run_dir: Path) -> dict[str, Any]:
                          "plan, fly or navsim") from None
     if not isinstance(doc, dict):
         raise InputError(f"{run_dir}/summary.json is not a skyroute summary (not a JSON object)")
+    from skyroute.pipeline.summary_schema import check_summary
+
+    check_summary(doc, run_dir, "run folder")   # every value the page reads has its type (a hand-edited summary)
     check_summary_files(Path(run_dir), doc, "run folder")
     return doc
 
@@ -403,11 +438,18 @@ def report_html(run_dir: Path, page_dir: Path | None = None, maps_dir: Path | No
     page_dir = run_dir if page_dir is None else Path(page_dir)
     doc = read_summary(run_dir)
     command = str(doc.get("command", ""))
-    folders = _folders(run_dir, command)
+    folders = {k: v if v is None or _inside(run_dir, v) else None for k, v in _folders(run_dir, command).items()}
     if maps_dir is not None:
         folders["maps"] = Path(maps_dir)
     if command == "run" and (run_dir / "fly" / "summary.json").is_file():
-        fly_doc = json.loads((run_dir / "fly" / "summary.json").read_text())
+        from skyroute.pipeline.summary_schema import check_summary
+
+        try:
+            fly_doc = json.loads((run_dir / "fly" / "summary.json").read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(f"run folder {run_dir / 'fly'}: summary.json is not readable JSON ({exc}); run the "
+                             "command that wrote it again") from None
+        check_summary(fly_doc, run_dir / "fly", "run folder")
     else:
         fly_doc = doc
     body = [_scenario_section(doc), _outcome_section(doc)]

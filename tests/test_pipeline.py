@@ -247,13 +247,13 @@ def test_warm_default_run_imports_no_compute_only_modules_and_reuses_its_outputs
                                    timeout=900))
         assert runs[-1].returncode == 0, runs[-1].stderr
         mtimes.append({p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and p.name not in
-                       ("summary.json", "report.html")})
+                       ("summary.json", "report.html", ".skyroute-manifest.json")})
         warns.append(json.loads((out / "summary.json").read_text())["warnings"])
         printed = [ln for ln in runs[-1].stderr.splitlines() if ln.startswith("warning: ")]
         assert len(printed) == len(set(printed)), printed     # each warning printed once
     warm = runs[1].stdout.split("HEAVY")[1].split()
     assert warm == [], warm
-    assert mtimes[0] == mtimes[1]                 # nothing rewritten but the summary and the report
+    assert mtimes[0] == mtimes[1]     # nothing rewritten but the summary, the report and the manifest listing them
     # the warnings of the stages (the almanac's unhealthy satellite) are the cold run's, on stderr too
     assert warns[0] == warns[1] and any("unhealthy satellites excluded" in w for w in warns[1]), warns
     assert any("unhealthy satellites excluded" in ln for ln in runs[1].stderr.splitlines())

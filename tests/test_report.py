@@ -211,6 +211,9 @@ def _fake_fly_folder(tmp: Path, src_png: Path) -> Path:
            "warnings": [], "scenario": "fake", "stages": [{"name": "plan", "key": "k", "cache_hit": True,
                                                            "seconds": 0.1}], "seconds": 0.5, "fly": fly}
     (d / "summary.json").write_text(json.dumps(doc))
+    from skyroute.pipeline.outfolder import add_to_manifest
+
+    add_to_manifest(d, [d / f for f in doc["files"]])   # as skyroute writes it: its files in its manifest
     return d
 
 

@@ -91,7 +91,11 @@ def load_scenario(name_or_path: str | Path = DEFAULT_SCENARIO) -> Scenario:
             raise UnknownNameError("scenario", str(name_or_path), list(known))
         p = known[str(name_or_path)]
     raw = read_yaml_file(p, "scenario")
-    return parse_scenario(raw, source=str(p), base=p.parent)
+    sc = parse_scenario(raw, source=str(p), base=p.parent)
+    from skyroute.pipeline.outfolder import note_scenario_inputs
+
+    note_scenario_inputs(sc)   # an output folder may never replace a file the command reads
+    return sc
 
 _EVENTS = TypeAdapter(tuple[Event, ...])
 

@@ -15,7 +15,9 @@ against 1.9-2.2 ms for sizes and times only, i.e. ~7 ms on a 0.14-0.22 s in-proc
 Writes go to ``<root>/tmp/`` and are renamed into place only once the zarr store and its
 manifest (``skyroute.json``) are complete; ``os.rename`` of a directory is atomic on one
 filesystem, so a run killed at any moment leaves at worst an orphan under ``tmp/`` that no
-later run reads (and :meth:`Cache.clean_tmp` removes).
+later run reads (and :meth:`Cache.clean_tmp` removes).  An entry already in place is kept (a
+concurrent writer of the same key won), except for a forced result (``run --force STAGE``),
+which replaces it atomically (:meth:`Cache._replace`: the folders are swapped in one rename).
 
 The root is, in order: the ``cache_dir`` argument (CLI ``--cache-dir``), ``$SKYROUTE_CACHE_DIR``,
 ``~/.cache/skyroute``.  For a dask.distributed cluster on several machines it must be a shared
@@ -174,20 +176,24 @@ class Cache:
                              "--cache-dir or set SKYROUTE_CACHE_DIR to a writable folder") from None
 
     # -- read
-    def get(self, stage: str, key: str, touch: bool = True, verify: bool = True) -> CacheEntry | None:
+    def get(self, stage: str, key: str, touch: bool = True, verify: bool = True,
+            _again: bool = True) -> CacheEntry | None:
         """The complete entry for (stage, key), or None.  An entry is trusted only when its
         manifest exists and names the same key and its files are intact (``verify``: every
         file's digest is recomputed; False: sizes, and digests of files whose time changed, only);
-        ``touch`` records the use (for :meth:`prune`)."""
+        ``touch`` records the use (for :meth:`prune`).  Files that do not match a manifest that
+        changed meanwhile (a forced result swapped in while they were checked) are checked
+        again against the new manifest, never taken for damage."""
         p = self.path_for(stage, key)
         mf = p / MANIFEST
         if not mf.is_file():
             return None
         hold_shared(self.root)
         try:
-            manifest = json.loads(mf.read_bytes().decode("utf-8"))
+            raw = mf.read_bytes()
+            manifest = json.loads(raw.decode("utf-8"))
         except (OSError, UnicodeDecodeError, ValueError):
-            manifest = None
+            raw, manifest = b"", None
         if not isinstance(manifest, dict):
             log.warning("cache entry %s has an unreadable manifest %s; removing it, the stage will be recomputed",
                         p.name, MANIFEST)
@@ -197,6 +203,8 @@ class Cache:
         if manifest.get("key") != key or manifest.get("stage") != stage:
             return None
         damage = _damage(p / "data.zarr", manifest.get("files"), verify=verify)
+        if damage and _again and _changed(mf, raw):     # replaced while checked (:meth:`_replace`)
+            return self.get(stage, key, touch=touch, verify=verify, _again=False)
         if damage:
             _warn(f"cache entry {p.name} is damaged ({damage}); recomputed")
             log.warning("cache entry %s is damaged (%s); removing it, the stage will be recomputed",
@@ -253,9 +261,14 @@ class Cache:
 
     # -- write
     def write(self, stage: str, key: str, ds: xr.Dataset, manifest: dict[str, Any],
-              compute=None) -> CacheEntry:
+              compute=None, replace: bool = False) -> CacheEntry:
         """Write ``ds`` atomically.  ``compute(delayed)`` runs the dask graph of the write
-        (scheduler and progress bar are the caller's); default ``delayed.compute()``."""
+        (scheduler and progress bar are the caller's); default ``delayed.compute()``.
+
+        When an intact entry for (stage, key) is already there (another process wrote it while
+        this one computed) it is kept and the new result dropped (same key: same code, settings
+        and inputs), unless ``replace`` (``run --force STAGE``): then the new result takes its
+        place atomically (:meth:`_replace`)."""
         self._ensure()
         hold_shared(self.root)
         final = self.path_for(stage, key)
@@ -276,10 +289,10 @@ class Cache:
             try:
                 os.rename(tmp, final)
             except OSError:
-                if self.get(stage, key) is None:  # not a concurrent writer that won the race
-                    if final.exists():
-                        shutil.rmtree(final, ignore_errors=True)
-                    os.rename(tmp, final)
+                # the entry exists: a forced result replaces it; else it is a concurrent writer's
+                # that won the race (kept), or a damaged one (get() removed it)
+                if replace or self.get(stage, key) is None:
+                    self._replace(tmp, stage, key)
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -287,6 +300,37 @@ class Cache:
         if entry is None:
             raise CacheError(f"cache entry {final} vanished right after it was written")
         return entry
+
+    def _replace(self, new: Path, stage: str, key: str) -> None:
+        """Put the complete entry folder ``new`` (under ``tmp/``) in the place of the entry
+        (stage, key), ``final``.
+
+        The two folders are swapped in one step (Linux ``renameat2(RENAME_EXCHANGE)``), so a
+        reader finds the old entry or the new one at ``final``, never a missing or half one;
+        where the filesystem cannot swap, the old entry is renamed aside into ``tmp/`` and the
+        new one renamed in (a reader between the two renames finds no entry: a cache miss, it
+        computes the stage).  The old entry is then deleted from ``tmp/``.
+
+        A process that opened the old entry lazily (another command reading the same key) reads
+        its chunks by path, i.e. from the new entry once it is in place: a result of the same
+        key (same code, settings and inputs), so the same values for a deterministic stage (a
+        result that depends on the machine's load is never cached); only a chunk read in the
+        moment between the two renames of the fallback would be missing."""
+        final = self.path_for(stage, key)
+        aside = self.tmp_dir / f"{final.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.old"
+        if _exchange(new, final):
+            os.rename(new, aside)          # ``new`` now holds the old entry
+        else:
+            try:
+                os.rename(final, aside)
+            except FileNotFoundError:
+                pass                       # removed meanwhile (clear, or a damaged entry)
+            try:
+                os.rename(new, final)
+            except OSError:                # a concurrent writer put its entry in between: keep it
+                if self.get(stage, key) is None:
+                    raise
+        shutil.rmtree(aside, ignore_errors=True)
 
     # -- maintenance
     def entries(self) -> list[CacheEntry]:
@@ -318,6 +362,7 @@ class Cache:
                 shutil.rmtree(p, ignore_errors=True)
         if stage is None:
             shutil.rmtree(self.root / "checks", ignore_errors=True)
+            shutil.rmtree(self.root / "outputs", ignore_errors=True)   # derived outputs (output_memo)
         n += self.clean_tmp(all_=stage is None)
         return n
 
@@ -413,6 +458,33 @@ def _warn(text: str) -> None:
     import warnings
 
     warnings.warn(text, RuntimeWarning, stacklevel=3)
+
+
+def _changed(path: Path, raw: bytes) -> bool:
+    """Whether the file ``path`` no longer holds the bytes ``raw``."""
+    try:
+        return path.read_bytes() != raw
+    except OSError:
+        return True
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the folders ``a`` and ``b`` atomically (Linux ``renameat2`` with
+    ``RENAME_EXCHANGE``, glibc >= 2.28); False where the system or the filesystem cannot."""
+    import ctypes
+    import ctypes.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_fdcwd, rename_exchange = -100, 2
+    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
 
 
 def _pid_alive(pid: int) -> bool:

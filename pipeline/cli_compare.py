@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
 from skyroute.pipeline.cli import SCHEDULER_HELP, OutPath, max_memory_option
 from skyroute.pipeline.outfolder import shown
 from skyroute.stages.planning.registry import planner_help
+
+if TYPE_CHECKING:
+    from skyroute.pipeline.compare import CompareRow
 
 
 @click.command("compare")
@@ -45,14 +49,20 @@ def compare_command(scenario, planners, out_dir, cache_dir, scheduler, quiet) ->
     section = {"planners": [json_safe(r.values) for r in rows]}
     write_folder_summary(out_dir, "compare", maps, [str(p) for p in files.values()], {"compare": section})
     for r in rows:
-        v = r.values
-        if r.xyz_m is not None:
-            click.echo(f"{r.planner:>10}: f {v['f_m']:.1f} m, length {v['length_m']:.1f} m, energy "
-                       f"{v['energy_Wh']:.2f} Wh, min clearance {v['min_clearance_m']:.2f} m, "
-                       f"compute {v['compute_s']:.2f} s")
-        else:
-            click.echo(f"{r.planner:>10}: {v.get('reason', 'no plan')}")
+        click.echo(row_line(r))
     click.echo(f"compare: {len(rows)} planners -> {shown(out_dir)}")
     if not any(r.flyable for r in rows):
         click.echo("no flyable plan: no planner found one (compare.csv lists why)", err=True)
         raise SystemExit(3)
+
+
+def row_line(r: CompareRow) -> str:
+    """The console line of a :class:`~skyroute.pipeline.compare.CompareRow`: ``compute`` is the
+    time [s] the plan took when it was computed, followed by ``(cached)`` when this command read
+    it from the stage cache (``plan_cached`` in compare.csv) instead of computing it."""
+    v = r.values
+    if r.xyz_m is None:
+        return f"{r.planner:>10}: {v.get('reason', 'no plan')}"
+    return (f"{r.planner:>10}: f {v['f_m']:.1f} m, length {v['length_m']:.1f} m, energy "
+            f"{v['energy_Wh']:.2f} Wh, min clearance {v['min_clearance_m']:.2f} m, "
+            f"compute {v['compute_s']:.2f} s{' (cached)' if v.get('plan_cached') else ''}")

@@ -30,7 +30,6 @@ import inspect
 import json
 import logging
 import os
-import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator, MutableMapping, Sequence
@@ -42,6 +41,7 @@ from skyroute.pipeline import control
 from skyroute.pipeline.cache import Cache, CacheEntry
 from skyroute.pipeline.errors import InputError, UnknownNameError
 from skyroute.pipeline.model import stable_hash
+from skyroute.pipeline.progress import stage_phases
 from skyroute.pipeline.settings import Scenario
 
 # dask and xarray are imported where a stage computes or a dataset is read: a warm run that
@@ -501,10 +501,10 @@ def _computer(client: Any, progress: bool) -> Callable[[Any], Any]:
             return cluster_result(client, fut, "the stage computation")
         import dask
 
-        if progress:
-            from dask.diagnostics import ProgressBar
+        if progress:      # the tasks done, in the running stage's progress line
+            from skyroute.pipeline.progress import dask_tasks
 
-            with ProgressBar(minimum=1.0, dt=0.5):
+            with dask_tasks():
                 return dask.compute(obj)[0]
         return dask.compute(obj)[0]
 
@@ -611,6 +611,25 @@ def stage_key(stage: Stage, scenario: Scenario, input_keys: Sequence[str], code_
     return stable_hash(stage.name, cv, stage.select(scenario), list(input_keys))
 
 
+def _versions_and_keys(todo: Sequence[Stage], scenario: Scenario) -> tuple[dict[str, str], dict[str, str]]:
+    """Code version and cache key of every stage of ``todo`` (in graph order)."""
+    versions: dict[str, str] = {}
+    keys: dict[str, str] = {}
+    for st in todo:
+        versions[st.name] = st.code_version()
+        keys[st.name] = stage_key(st, scenario, [keys[d] for d in st.inputs]
+                                  + [keys.get(d, "absent") for d in st.optional_inputs], versions[st.name])
+    return versions, keys
+
+
+def stage_keys(scenario: Scenario, targets: Sequence[str] | None = None) -> dict[str, str]:
+    """The cache key of every stage needed for ``targets`` (all stages: None), as
+    :func:`run_pipeline` derives them, without running anything.  Data files contribute their
+    content (size and digest), never their path (:func:`skyroute.pipeline.model.stable_hash`):
+    the same bytes in another folder give the same keys."""
+    return _versions_and_keys(stages_for(scenario, targets), scenario)[1]
+
+
 def _run_prechecks(pending: list[Stage], todo: list[Stage], scenario: Scenario,
                    datasets: dict[str, xr.Dataset]) -> None:
     """Run (once) every pending precheck whose ``precheck_after`` stages are done."""
@@ -634,17 +653,13 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
     cache.clean_tmp()
     t_all = time.perf_counter()
     result = RunResult(scenario)
-    keys: dict[str, str] = {}
     todo = stages_for(scenario, targets)
     # a key needs no data: every key, and whether the cache holds it, is known before any
     # stage runs, so the prechecks of stages read from the cache are skipped (they read
     # whole maps, and their stage passed them when it was computed)
-    versions: dict[str, str] = {}
+    versions, keys = _versions_and_keys(todo, scenario)
     entries: dict[str, CacheEntry | None] = {}
     for st in todo:
-        versions[st.name] = st.code_version()
-        keys[st.name] = stage_key(st, scenario, [keys[d] for d in st.inputs]
-                                  + [keys.get(d, "absent") for d in st.optional_inputs], versions[st.name])
         entries[st.name] = None if st.name in force else cache.get(st.name, keys[st.name])
     computes = any(e is None for e in entries.values())
     if computes:
@@ -652,7 +667,7 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
     # a local scheduler is configured (and dask imported) only when a stage computes; a
     # cluster is always connected to (a wrong address is an error, cached or not)
     with (scheduler_context(scheduler, workers) if computes or scheduler not in LOCAL_SCHEDULERS
-          else _check_scheduler(scheduler)) as client:
+          else _check_scheduler(scheduler)) as client, stage_phases(progress, len(todo)) as phases:
         compute = _computer(client, progress)
         # a precheck saves the work of the OTHER stages computed before its stage: with every other
         # stage cached it would only repeat the stage's own check (the plan stage's degenerate-cost
@@ -671,8 +686,7 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                 from skyroute.pipeline.verify import DatasetError, verify_dataset
 
                 log.info("stage=%s key=%s status=compute", st.name, key)
-                if progress:
-                    print(f"[{i}/{len(todo)}] {st.name}: computing ({st.description})", file=sys.stderr, flush=True)
+                phases.start(i, st.name, st.description)
                 args = [result.datasets[d] for d in st.inputs] + [result.datasets.get(d) for d in st.optional_inputs]
                 with control.progress(progress):
                     out = st.func(*args, settings=st.select(scenario))
@@ -696,7 +710,7 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                     "scenario": scenario.name, "code_version": code_version,
                     "inputs": {d: keys.get(d, "absent") for d in (*st.inputs, *st.optional_inputs)},
                     "skyroute_version": SKYROUTE_VERSION,
-                }, compute=compute)
+                }, compute=compute, replace=st.name in force)   # --force: the new result replaces it
                 # the stage's output and inputs are read back from the cache when needed; large arrays
                 # often sit in reference cycles (xarray / dask objects) that the collector, counting
                 # objects rather than bytes, would keep until much later: on the 20 km city the
@@ -704,6 +718,7 @@ def run_pipeline(scenario: Scenario, *, cache: Cache | None = None, targets: Seq
                 # stage in the same process (README, "City-scale planning")
                 out = args = None
                 gc.collect()
+                phases.end()
             else:
                 log.info("stage=%s key=%s status=cache-hit", st.name, key)
             result.datasets.defer(st.name, cache, entry)     # opened when first read

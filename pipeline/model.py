@@ -37,8 +37,7 @@ def _canonical(obj: Any) -> Any:
     if isinstance(obj, (set, frozenset)):
         return sorted(_canonical(v) for v in obj)
     if isinstance(obj, Path):
-        digest = file_digest(obj) if obj.is_file() else dir_digest(obj) if obj.is_dir() else None
-        return {"__path__": str(obj), "sha256": digest}
+        return _path_canonical(obj)
     if isinstance(obj, np.ndarray):
         return {"__ndarray__": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest(),
                 "dtype": str(obj.dtype), "shape": list(obj.shape)}
@@ -61,6 +60,22 @@ def _canonical(obj: Any) -> Any:
     # hide its content (or change between processes): refuse it
     raise TypeError(f"stable_hash: no canonical form for {type(obj).__module__}.{type(obj).__qualname__}; "
                     "convert it to plain values (str, number, list, dict, Path, ndarray) in the settings")
+
+
+def _path_canonical(p: Path) -> dict[str, Any]:
+    """A data file or folder by its CONTENT, never by where it lives: a file is its size [bytes]
+    and SHA-256 (memoised on path, size and mtime: :func:`file_digest`), a folder the digest of
+    its files (:func:`dir_digest`: paths relative to it and contents), so the same bytes in
+    site-packages or in a clone's ``catalogs/data`` give the same cache keys.  The last suffix
+    (lower case) is kept: readers choose a format by it (``.json`` landuse is CityJSON, ``.grib``
+    wind), so the same bytes under another suffix may be read as something else.  A path that is
+    neither (nothing to read) is keyed by its text."""
+    suffix = p.suffix.lower()
+    if p.is_file():
+        return {"__file__": suffix, "size": p.stat().st_size, "sha256": file_digest(p)}
+    if p.is_dir():
+        return {"__dir__": suffix, "sha256": dir_digest(p)}
+    return {"__path__": str(p), "sha256": None}
 
 
 _DIGESTS: dict[str, str] = {}
@@ -135,9 +150,10 @@ def dir_digest(path: str | Path) -> str:
 def stable_hash(*parts: Any, length: int = 20) -> str:
     """Stable hex digest of ``parts`` (settings models, dicts, paths, arrays, scalars).
 
-    Files and folders named by :class:`pathlib.Path` contribute their content, so editing a data
-    file changes every key that depends on it.  A type with no canonical form raises ``TypeError``
-    (never a ``repr`` that could hide its content).
+    Files and folders named by :class:`pathlib.Path` contribute their content (and never their
+    location: :func:`_path_canonical`), so editing a data file changes every key that depends on
+    it, and a copy of the same bytes elsewhere keeps them.  A type with no canonical form raises
+    ``TypeError`` (never a ``repr`` that could hide its content).
     """
     payload = json.dumps(_canonical(list(parts)), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(payload.encode()).hexdigest()[:length]

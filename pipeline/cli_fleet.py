@@ -17,6 +17,14 @@ from skyroute.stages.base import note_input
 MAX_ATTEMPTS = 1000   # departures tried per mission (--max-delay-min / --delay-step-s + 1), each one plan
 
 
+def default_window_min(gnss_window_min: float, max_delay_min: float) -> float:
+    """Default ``--window-min`` [min]: the departures window the GNSS maps cover,
+    ``gnss.window_min`` minus the longest delay (the latest delayed departure still lies in the
+    maps); the GNSS window itself when the delay alone is as long, 1 min for a one-epoch map."""
+    w = gnss_window_min - max_delay_min
+    return w if w > 0 else gnss_window_min if gnss_window_min > 0 else 1.0
+
+
 @click.command("fleet")
 @click.argument("scenario", required=False, default=None)
 @click.option("--fleet", "fleet_file", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -27,8 +35,10 @@ MAX_ATTEMPTS = 1000   # departures tried per mission (--max-delay-min / --delay-
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the draw and of STEP II.")
 @click.option("--out", "out_dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Output folder (default: ./skyroute-out/SCENARIO/fleet).")
-@click.option("--window-min", type=FiniteFloat(min=0.0, min_open=True), default=120.0, show_default=True,
-              help="Departures of drawn missions uniform over this window [min].")
+@click.option("--window-min", type=FiniteFloat(min=0.0, min_open=True), default=None,
+              help="Departures of drawn missions uniform over this window [min] (default: what the scenario's GNSS "
+                   "maps cover, gnss.window_min minus --max-delay-min, so that a delayed departure still lies in the "
+                   "maps; a longer window warns that later missions use the last GNSS epoch).")
 @click.option("--min-km", type=FiniteFloat(min=0.0), default=0.2, show_default=True,
               help="Shortest drawn mission (start-goal distance) [km].")
 @click.option("--max-km", type=FiniteFloat(min=0.0, min_open=True), default=1.5, show_default=True,
@@ -101,6 +111,8 @@ def fleet_command(scenario, fleet_file, missions, seed, out_dir, window_min, min
 
         check_scheduler_address(scheduler)
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
+    if window_min is None:
+        window_min = default_window_min(sc.gnss.window_min, max_delay_min)
     if ground_m is not None:
         sc = sc.model_copy(update={"data": sc.data.model_copy(
             update={"ground": GroundReference(height_m=ground_m, vertical_datum="EGM96 geoid")})})

@@ -4,10 +4,11 @@
 scenario (catalog name or YAML) and returns an :class:`Inspection`: one row per fact (CRS and
 vertical datum, extent against the AOI, how cells are read, NoData share and how it will be
 filled, height range, buildings and parts, ground source, absolute heights and the pilot files
-they allow, landing sites) and every problem as one ``error:`` / ``warning:`` line naming the
-YAML key to change.  Nothing heavy is computed: rasters are read over the AOI only (decimated
-beyond :data:`MAX_PIXELS`), no stage runs and no map is rasterised at the scenario's
-resolution.
+they allow, landing sites, the mission points checked as ``plan`` checks them) and every
+problem as one ``error:`` / ``warning:`` line naming the YAML key to change.  Nothing heavy is
+computed: rasters are read over the AOI only (decimated beyond :data:`MAX_PIXELS`), and no map
+is rasterised at the scenario's resolution except the surface of a small window around each
+mission point (:data:`MISSION_WINDOW_M`).
 """
 
 from __future__ import annotations
@@ -559,6 +560,62 @@ def _scenario(ins: Inspection, sc) -> None:
                     "surveyed ground")
     _absolute(ins, sc, cj)
     _landing(ins, sc)
+    if ins.ok:     # the surface around the points is built only from data that passed every check above
+        _mission_points(ins, sc)
+
+
+#: half side of the window around each mission point on which :func:`_mission_points` builds the
+#: surface [m] (at least twice a DSM's ground window, so the derived ground there is the full map's)
+MISSION_WINDOW_M = 100.0
+
+
+def _point_window(sc, name: str, pad_m: float):
+    """The cells of the scenario grid within ``pad_m`` [m] of mission point ``name``, as a grid on
+    the same lattice (its cells are cells of the scenario grid)."""
+    import math
+
+    from skyroute.stages.gridspec import Grid
+
+    g = sc.grid
+    r = g.resolution_m
+    x, y = sc.point_xy(getattr(sc.mission, name))
+    row, col = (int(i) for i in g.cell_of(x, y))
+    k = max(1, math.ceil(pad_m / r))
+    r0, r1, c0, c1 = max(0, row - k), min(g.ny, row + k + 1), max(0, col - k), min(g.nx, col + k + 1)
+    return Grid(g.crs_wkt, g.x0 + c0 * r, g.y1 - r0 * r, c1 - c0, r1 - r0, r)
+
+
+def _mission_points(ins: Inspection, sc) -> None:
+    """``plan``'s own check of the mission points (:func:`skyroute.pipeline.runner.check_mission`:
+    not inside a building or the terrain), on the surface stage's model of a small window around
+    each point (:data:`MISSION_WINDOW_M`): the same cells, not the whole map."""
+    from skyroute.pipeline.runner import check_mission
+    from skyroute.pipeline.stages_builtin import _surface_settings, surface_stage
+
+    settings = _surface_settings(sc)
+    pad_m = max(MISSION_WINDOW_M, 2.0 * settings.ground_window_m)
+    checked = []
+    for name in ("start", "goal"):
+        win = _point_window(sc, name, pad_m)
+        try:
+            try:
+                ds = surface_stage(settings=settings.model_copy(update={"grid": win}))
+            except SkyrouteError as exc:   # no building near the point: the surface there is the ground
+                if settings.buildings_path is None or "does not intersect any building" not in str(exc):
+                    raise
+                ds = surface_stage(settings=settings.model_copy(update={"grid": win, "buildings_path": None}))
+            check_mission(sc, ds, grid=win, points=(name,))
+            checked.append(name)
+        except ScenarioError as exc:
+            for prob in exc.problems:
+                key, _, msg = prob.partition(": ")
+                ins.error(key, msg or prob)
+        except SkyrouteError as exc:
+            if ins.ok:          # a data problem is reported once by its own check above
+                ins.warning(f"mission.{name}", f"not checked against the surface: {exc}")
+    if checked:
+        ins.facts["mission points"] = (" and ".join(checked) + " above the surface (plan's check: not inside a "
+                                       "building or the terrain)")
 
 
 def _merge(ins: Inspection, part: Inspection, prefix: str) -> None:
@@ -583,16 +640,23 @@ def inspect_target(target: str | Path) -> Inspection:
     errors (each with its YAML key)."""
     t = str(target)
     if _is_scenario(t):
+        import warnings
+
         from skyroute.pipeline.settings import load_scenario
 
         ins = Inspection(t, "scenario")
         try:
-            sc = load_scenario(t)
+            with warnings.catch_warnings(record=True) as caught:   # e.g. a data path resolved to the shipped file
+                warnings.simplefilter("always")
+                sc = load_scenario(t)
         except ScenarioError as exc:
             for p in exc.problems:
                 key, _, msg = p.partition(": ")
                 ins.error(key, msg or p)
             return ins
+        for w in caught:
+            key, _, msg = " ".join(str(w.message).split()).partition(": ")
+            ins.warning(key if msg else "", msg or key)
         _scenario(ins, sc)
         return ins
     p = Path(t)

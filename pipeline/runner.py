@@ -15,15 +15,17 @@ if TYPE_CHECKING:
     import xarray as xr
 
 
-def check_mission(scenario: Scenario, surface: xr.Dataset) -> None:
+def check_mission(scenario: Scenario, surface: xr.Dataset, grid=None, points: Sequence[str] = ("start", "goal")) -> None:
     """Refuse a mission whose start or goal lies inside a building or the terrain (the point's
-    altitude, ``alt_agl_m`` above the terrain, must be above the surface there)."""
+    altitude, ``alt_agl_m`` above the terrain, must be above the surface there).  ``grid``: the
+    grid of ``surface`` when it is not the scenario's (``skyroute inspect`` builds a small window
+    around each point); ``points``: the mission points checked."""
     # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
     from dask.local import get_sync
 
-    g = scenario.grid
+    g = grid or scenario.grid
     problems = []
-    for name in ("start", "goal"):
+    for name in points:
         p = getattr(scenario.mission, name)
         x, y = scenario.point_xy(p)
         r, c = (int(i) for i in g.cell_of(x, y))

@@ -13,11 +13,14 @@ through PROJ's ``vgridshift`` with the grid file given by its **full path**.
 Offline safety: ``pyproj.Transformer.from_crs("EPSG:4326+5773", "EPSG:4979")`` needs
 ``us_nga_egm96_15.tif`` from PROJ's network CDN; without it pyproj silently falls back to a
 "ballpark" operation that leaves the height unchanged (N = 0, an error of up to 107 m).  Here a
-grid is looked up on disk only (:func:`find_geoid_grid`: ``$SKYROUTE_GEOID_DIR``,
-``$PROJ_DATA`` / ``$PROJ_LIB``, pyproj's data folder, ``/usr/share/proj``,
-``/usr/local/share/proj``; Debian / Ubuntu ship ``egm96_15.gtx`` in the ``proj-data``
-package) and a missing grid is an error that says how to get it, never a zero.
-:func:`pyproj_skips_geoid` detects pyproj's silent fallback.
+grid is looked up on disk only (:func:`find_geoid_grid`: ``$SKYROUTE_GEOID_DIR``, then the
+system's PROJ folders ``$PROJ_DATA`` / ``$PROJ_LIB``, pyproj's data folder, ``/usr/share/proj``,
+``/usr/local/share/proj`` (Debian / Ubuntu ship ``egm96_15.gtx`` in the ``proj-data``
+package), then the EGM96 grid shipped with skyroute, :data:`SHIPPED_EGM96`: the same NGA 15'
+nodes as ``egm96_15.gtx``, bit for bit, as a compressed GeoTIFF, so EGM96 works on a fresh
+machine) and a missing grid is an error that says how to get it, never a zero.
+``SKYROUTE_GEOID_SYSTEM_DIRS=none`` skips the system's PROJ folders (a fresh machine's lookup,
+for checks).  :func:`pyproj_skips_geoid` detects pyproj's silent fallback.
 
 Local ground: a surface model on flat local ground (OSM-only cities) has heights above the
 ground; ``data.ground: {height_m, vertical_datum}`` says where that 0 m lies
@@ -36,14 +39,20 @@ import numpy as np
 
 from skyroute.stages.base import DataError, InputError
 
-__all__ = ["GEOID_GRIDS", "HeightReference", "datum_kind", "find_geoid_grid", "geoid_undulation_m",
+__all__ = ["GEOID_GRIDS", "SHIPPED_EGM96", "HeightReference", "datum_kind", "find_geoid_grid", "geoid_undulation_m",
            "height_reference", "pyproj_skips_geoid", "to_ellipsoidal_m", "from_ellipsoidal_m"]
 
 #: grid file names per geoid model (the first found is used)
 GEOID_GRIDS: dict[str, tuple[str, ...]] = {
-    "EGM96": ("egm96_15.gtx", "us_nga_egm96_15.tif"),
+    "EGM96": ("egm96_15.gtx", "us_nga_egm96_15.tif", "egm96_15.tif"),
     "EGM2008": ("egm08_25.gtx", "us_nga_egm08_25.tif"),
 }
+#: the EGM96 15' grid shipped in the package (public domain, NGA; ``catalogs/data/ATTRIBUTION.md``):
+#: the nodes of PROJ's ``egm96_15.gtx`` as a lossless DEFLATE GeoTIFF, found when no other folder has one
+#: (``skyroute.stages`` and ``skyroute.catalogs`` are sibling folders, installed or in the clone)
+SHIPPED_EGM96 = Path(__file__).resolve().parent.parent / "catalogs" / "data" / "egm96_15.tif"
+#: ``$SKYROUTE_GEOID_SYSTEM_DIRS`` values that skip the system's PROJ folders
+_NO_SYSTEM_DIRS = ("none", "0", "no", "off", "false")
 #: the vertical CRS (EPSG) of each model, for :func:`pyproj_skips_geoid`
 _EPSG_VERTICAL = {"EGM96": 5773, "EGM2008": 3855}
 LOCAL_GROUND_PREFIX = "local ground"
@@ -66,18 +75,23 @@ def datum_kind(vertical_datum: str) -> str | None:
 
 
 def _search_dirs(extra: Sequence[Path | str] | None) -> list[Path]:
+    """Folders tried for a grid, in order: ``extra``, ``$SKYROUTE_GEOID_DIR``, the system's PROJ
+    folders (unless ``$SKYROUTE_GEOID_SYSTEM_DIRS`` is ``none``), the shipped grid's folder."""
     dirs: list[Path] = [Path(d) for d in (extra or ())]
-    for var in ("SKYROUTE_GEOID_DIR", "PROJ_DATA", "PROJ_LIB"):
+    system = os.environ.get("SKYROUTE_GEOID_SYSTEM_DIRS", "").strip().lower() not in _NO_SYSTEM_DIRS
+    for var in ("SKYROUTE_GEOID_DIR", "PROJ_DATA", "PROJ_LIB") if system else ("SKYROUTE_GEOID_DIR",):
         v = os.environ.get(var)
         if v:
             dirs.extend(Path(p) for p in v.split(os.pathsep) if p)
-    try:
-        import pyproj
+    if system:
+        try:
+            import pyproj
 
-        dirs.append(Path(pyproj.datadir.get_data_dir()))
-    except Exception:  # noqa: BLE001 - a broken pyproj data dir only removes one candidate
-        pass
-    dirs += [Path("/usr/share/proj"), Path("/usr/local/share/proj")]
+            dirs.append(Path(pyproj.datadir.get_data_dir()))
+        except Exception:  # noqa: BLE001 - a broken pyproj data dir only removes one candidate
+            pass
+        dirs += [Path("/usr/share/proj"), Path("/usr/local/share/proj")]
+    dirs.append(SHIPPED_EGM96.parent)   # skyroute/stages/.. = skyroute/catalogs (installed or in the clone)
     return dirs
 
 
@@ -94,7 +108,8 @@ def find_geoid_grid(model: str = "EGM96", search_dirs: Sequence[Path | str] | No
             p = d / name
             if p.is_file():
                 return p
-    hint = ("on Debian / Ubuntu: apt-get install proj-data (it ships /usr/share/proj/egm96_15.gtx)"
+    hint = (f"skyroute's own grid {SHIPPED_EGM96.name} is missing from its catalogs/data folder (reinstall "
+            "skyroute); on Debian / Ubuntu: apt-get install proj-data (it ships /usr/share/proj/egm96_15.gtx)"
             if model == "EGM96" else "download egm08_25.gtx (PROJ-data / OSGeo) to a folder")
     raise DataError(f"{model} geoid heights need the grid {' or '.join(GEOID_GRIDS[model])}, found in none of "
                     f"{', '.join(str(d) for d in dict.fromkeys(tried))}; {hint}, or set SKYROUTE_GEOID_DIR to the "

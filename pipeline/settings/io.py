@@ -39,18 +39,137 @@ def scenario_paths() -> dict[str, Path]:
             out.setdefault(f.stem, f)
     return out
 
-def _resolve_paths(node: Any, base: Path, key: str = "") -> Any:
-    """Make every relative path in a ``path`` / ``*_path`` / data field absolute w.r.t. ``base``."""
-    path_keys = {"path", "landuse", "landing_sites", "nofly_zones", "risk_tags"}
+#: the scenario keys whose string values are data file paths (``almanacs``: a list of them)
+PATH_KEYS = frozenset({"path", "landuse", "landing_sites", "nofly_zones", "risk_tags", "almanacs"})
+
+
+def _shipped_path(rel: Path) -> Path | None:
+    """The file of the shipped catalog a relative data path names when it is read from the
+    catalog's scenario folder (``../data/x``, the catalog scenarios' own spelling) or from its
+    data folder (``x``), or None: only a file inside the catalog folder counts."""
+    root = catalog_dir().resolve()
+    for folder in (root / "scenarios", root / "data"):
+        p = (folder / rel).resolve()
+        if p.is_relative_to(root) and p.exists():
+            return p
+    return None
+
+
+def _resolve_path(value: str, base: Path, where: str) -> str:
+    """``value`` (a data path, ``$VARS`` expanded) made absolute w.r.t. ``base``.  A relative
+    path not found there but found in the shipped catalog (:func:`_shipped_path`: a catalog
+    scenario copied elsewhere) resolves to the shipped file, with a warning naming ``where``."""
+    rel = Path(os.path.expandvars(value))
+    here = (base / rel).resolve()
+    if rel.is_absolute() or here.exists():
+        return str(here)
+    shipped = _shipped_path(rel)
+    if shipped is None:
+        return str(here)
+    import warnings
+
+    warnings.warn(f"{where}: {value} is not next to the scenario ({here}); using the file shipped with skyroute: "
+                  f"{shipped} (`skyroute scenarios --copy NAME DIR` writes a catalog scenario with absolute data "
+                  "paths)", UserWarning, stacklevel=2)
+    return str(shipped)
+
+
+def _resolve_paths(node: Any, base: Path, key: str = "", where: str = "") -> Any:
+    """Make every relative path in a data path field (:data:`PATH_KEYS`) absolute w.r.t. ``base``
+    (see :func:`_resolve_path`); ``where``: the YAML path of ``node``, for the warnings."""
     if isinstance(node, dict):
-        return {k: _resolve_paths(v, base, k) for k, v in node.items()}
+        return {k: _resolve_paths(v, base, k, f"{where}.{k}" if where else str(k)) for k, v in node.items()}
     if isinstance(node, list):
         if key == "almanacs":
-            return [str((base / Path(os.path.expandvars(str(v)))).resolve()) if isinstance(v, str) else v for v in node]
-        return [_resolve_paths(v, base, key) for v in node]
-    if isinstance(node, str) and key in path_keys:
-        return str((base / Path(os.path.expandvars(node))).resolve())
+            return [_resolve_path(v, base, f"{where}[{i}]") if isinstance(v, str) else v for i, v in enumerate(node)]
+        return [_resolve_paths(v, base, key, f"{where}[{i}]") for i, v in enumerate(node)]
+    if isinstance(node, str) and key in PATH_KEYS:
+        return _resolve_path(node, base, where)
     return node
+
+def _path_changes(raw: Any, absolute: Any, out: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """``(old, new)`` for every string of ``raw`` that :func:`_resolve_paths` changed."""
+    if isinstance(raw, dict):
+        for k, v in raw.items():
+            _path_changes(v, absolute[k], out)
+    elif isinstance(raw, list):
+        for v, a in zip(raw, absolute, strict=True):
+            _path_changes(v, a, out)
+    elif isinstance(raw, str) and raw != absolute:
+        out.append((raw, absolute))
+    return out
+
+
+def _yaml_scalar(text: str) -> str:
+    """``text`` as a YAML scalar: plain when it holds only path characters, else double-quoted."""
+    import json
+    import re
+
+    return text if re.fullmatch(r"[A-Za-z0-9_./+@~-]+", text) and text[0] not in "-~@" else json.dumps(text)
+
+
+def copy_scenario(name: str, folder: str | Path) -> tuple[Path, int]:
+    """Write catalog scenario ``name`` as ``folder/<name>.yaml`` with its data paths made
+    absolute (so it runs from anywhere; comments and layout kept), ready to edit.  Returns the
+    file written and the number of paths changed.  An existing file is never replaced
+    (InputError); an unknown name is an UnknownNameError."""
+    import re
+
+    from skyroute.pipeline.errors import InputError
+    from skyroute.stages.base import read_limited
+    from skyroute.stages.yaml_io import MAX_BYTES, read_yaml_text
+
+    known = scenario_paths()
+    if name not in known:
+        raise UnknownNameError("scenario", name, list(known))
+    src = known[name]
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"--copy {name} {folder}: {folder} is a file, not a folder; give a folder")
+    dest = folder / f"{name}.yaml"
+    if os.path.lexists(dest):
+        raise InputError(f"--copy {name} {folder}: {dest} exists and is not replaced; remove or rename it, or "
+                         "give another folder")
+    text = read_limited(src, MAX_BYTES, "scenario").decode("utf-8")
+    raw = read_yaml_text(text, str(src), "scenario")
+    absolute = _resolve_paths(raw, src.parent)
+    pairs = _path_changes(raw, absolute, [])
+    changes = dict(pairs)
+    out = text
+    for old in sorted(changes, key=len, reverse=True):   # the longest first: no value inside another
+        pat = re.compile(r"""(?P<q>["']?)(?<![\w./~$-])""" + re.escape(old) + r"""(?![\w./-])(?P=q)""")
+        out = pat.sub(lambda m, new=changes[old]: _yaml_scalar(new), out)
+    header = (f"# copied from the skyroute catalog scenario {name} ({src}) by `skyroute scenarios --copy`:\n"
+              "# its data paths are made absolute; edit freely\n")
+    out = header + out
+    if read_yaml_text(out, str(dest), "scenario") != absolute:   # an unusual layout: write the data plainly
+        import yaml
+
+        out = header + yaml.safe_dump(absolute, sort_keys=False, allow_unicode=True, width=100)
+    tmp = folder / f".{name}.yaml.skyroute-{os.getpid()}.tmp"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp.write_text(out, encoding="utf-8")
+        try:
+            os.link(tmp, dest)              # atomic, and fails when the file appeared meanwhile
+        except FileExistsError:
+            raise
+        except OSError:                     # no hard links here (some file systems): exclusive create
+            with open(dest, "x", encoding="utf-8") as f:
+                f.write(out)
+    except FileExistsError:
+        raise InputError(f"--copy {name} {folder}: {dest} exists and is not replaced; remove or rename it, or "
+                         "give another folder") from None
+    except OSError as exc:
+        raise InputError(f"--copy {name} {folder}: cannot write {dest} ({exc.strerror or exc}); give a folder you "
+                         "may write to") from None
+    finally:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+    return dest, len(pairs)
+
 
 def _sorted_labels(raw_events: Any, fmt: str = "events[{}]") -> list[str]:
     """YAML paths of the events in the order the scenario keeps them (by time, stable)."""

@@ -119,7 +119,15 @@ def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:
     paths by file name (nothing when no plan flies)."""
     from pyproj import Transformer
 
-    from skyroute.stages.exports import lon_near, plan_kml, qgc_plan, write_json, write_plan_gpkg
+    from skyroute.stages.exports import (
+        arrival_loiter,
+        chord_deviation,
+        lon_near,
+        plan_kml,
+        qgc_plan,
+        write_json,
+        write_plan_gpkg,
+    )
     from skyroute.stages.intents import parse_intent, plan_intent
     from skyroute.stages.planning.step3 import utc_of
     from skyroute.stages.vehicle import load_vehicle
@@ -156,9 +164,17 @@ def write_pilot_exports(result: RunResult, out_dir: Path) -> dict[str, Path]:
                                 max_volume_s=INTENT_MAX_VOLUME_S)
         parse_intent(intent)   # F3548 schema and limits
         files["intent.json"] = write_json(out / "intent.json", intent)
+    fixed_wing, landing, flown = veh.kind == "fixed-wing", None, np.column_stack([x, y, z])
+    if fixed_wing:     # the arrival loiter becomes the mission's landing pattern (stages/exports.py)
+        lo = arrival_loiter(flown, wp)
+        flown = flown if lo is None else flown[:lo[0] + 1]
+        landing = {"ground_rel_m": float(z[-1] - ds["alt_agl_m"].values[-1]) - home_z,
+                   "loiter_radius_m": lo[1] if lo else veh.turn_radius_at(veh.cruise_speed_mps),
+                   "clockwise": lo[2] if lo else True, "descent_angle_deg": float(veh.max_descent_angle_deg)}
     files["plan.plan"] = write_json(out / "plan.plan", qgc_plan(wlon, wlat, wp[:, 2] - home_z, home_amsl,
                                                                 cruise_speed_mps=veh.cruise_speed_mps,
-                                                                fixed_wing=veh.kind == "fixed-wing"))
+                                                                fixed_wing=fixed_wing, landing=landing,
+                                                                metadata=chord_deviation(wp, flown)))
     buildings = None
     if "surface" in result.datasets and sc.grid.nx * sc.grid.ny <= MAP_LAYER_MAX_CELLS:
         from skyroute.stages.exports import building_footprints

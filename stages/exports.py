@@ -10,9 +10,22 @@
   ``AltitudeMode`` 1 (relative): MAV_CMD_NAV_TAKEOFF (22) at the start to the first waypoint's
   height, MAV_CMD_NAV_WAYPOINT (16) at every piece boundary of the trajectory, MAV_CMD_NAV_LAND
   (21) at the goal.  ``params`` = [p1..p4, latitude, longitude, altitude]; home =
-  ``plannedHomePosition`` [lat, lon, AMSL altitude] on the ground under the start.  The
-  vehicle flies straight between waypoints: on a fillet arc of the plan that is the chord,
-  inside the arc by at most its sagitta (the arc's own volume is the intent's business).
+  ``plannedHomePosition`` [lat, lon, AMSL altitude] on the ground under the start.  **The
+  waypoints are chords of the smoothed trajectory**: the vehicle flies straight between them
+  (rotorcraft: the trajectory's piece boundaries, so on a fillet arc the chord, inside the arc
+  by at most its sagitta and, on a climbing turn, below it; fixed-wing: the lattice vertices,
+  outside the fillet arcs).  Every such straight leg stays in the plan's admissible volume
+  (rotorcraft: the chord of an arc lies in the triangle of the fillet check, at or above its
+  lowest corner; fixed-wing: the planner checks every leg as an exact motion), but it is not
+  the trajectory: the file's top-level ``skyroute`` object (QGroundControl ignores keys it does
+  not know) says so and gives ``max_chord_deviation_m``, the largest distance between the
+  waypoint chords and the trajectory (both ways, :func:`chord_deviation`), and
+  ``max_chord_below_trajectory_m``.  A fixed-wing mission ends with a landing pattern instead
+  of the plan's arrival loiter (:func:`qgc_plan`): MAV_CMD_DO_LAND_START (189),
+  MAV_CMD_NAV_LOITER_TO_ALT (31) at the goal altitude on a circle of the plan's turn radius
+  whose exit leads along the final course, MAV_CMD_NAV_LAND (21) on the ground under the
+  goal, reached at the vehicle's maximum descent angle (PX4 / ArduPilot fixed-wing mission
+  landing); the approach and touchdown are beyond the planned trajectory and not checked.
 * ``plan.gpkg`` (OGC GeoPackage via pyogrio, EPSG:4326): layer ``plan`` (the trajectory,
   LineString Z, z in the surface datum as in plan.geojson, stated in a field), ``waypoints``
   (piece boundaries, Point Z, relative and absolute heights), ``intents`` (the F3548 volumes:
@@ -45,14 +58,17 @@ import numpy as np
 
 from skyroute.stages.base import InputError
 
-__all__ = ["KML_NS", "QGC_FRAME_GLOBAL_RELATIVE_ALT", "building_footprints", "continuous_lon",
-           "crosses_antimeridian", "lon_near", "plan_kml", "qgc_plan", "wrap_lon", "write_json", "write_plan_gpkg"]
+__all__ = ["KML_NS", "QGC_FRAME_GLOBAL_RELATIVE_ALT", "arrival_loiter", "building_footprints", "chord_deviation",
+           "continuous_lon", "crosses_antimeridian", "lon_near", "plan_kml", "qgc_plan", "wrap_lon", "write_json",
+           "write_plan_gpkg"]
 
 KML_NS = "http://www.opengis.net/kml/2.2"
 GX_NS = "http://www.google.com/kml/ext/2.2"
 QGC_FRAME_GLOBAL_RELATIVE_ALT = 3
 MAV_CMD_NAV_WAYPOINT, MAV_CMD_NAV_LAND, MAV_CMD_NAV_TAKEOFF = 16, 21, 22
-MAV_CMD_NAV_LOITER_UNLIM = 17
+MAV_CMD_NAV_LOITER_TO_ALT, MAV_CMD_DO_LAND_START = 31, 189
+MAV_FRAME_MISSION = 2
+CHORD_SPACING_M = 0.25     # densification of the polylines compared by chord_deviation [m]
 MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR, MAV_TYPE_FIXED_WING = 12, 2, 1
 
 
@@ -145,28 +161,139 @@ def plan_kml(lon_deg, lat_deg, h_amsl_m, times_utc: list[str], name: str, descri
     return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
-def _item(seq: int, command: int, lat: float, lon: float, alt: float) -> dict:
+def _item(seq: int, command: int, lat: float, lon: float, alt: float, p1: float = 0, p2: float = 0,
+          frame: int = QGC_FRAME_GLOBAL_RELATIVE_ALT) -> dict:
     return {"AMSLAltAboveTerrain": None, "Altitude": round(alt, 3), "AltitudeMode": 1, "autoContinue": True,
-            "command": command, "doJumpId": seq, "frame": QGC_FRAME_GLOBAL_RELATIVE_ALT,
-            "params": [0, 0, 0, None, round(lat, 9), round(lon, 9), round(alt, 3)], "type": "SimpleItem"}
+            "command": command, "doJumpId": seq, "frame": frame,
+            "params": [p1, p2, 0, None, round(lat, 9), round(lon, 9), round(alt, 3)], "type": "SimpleItem"}
+
+
+def _densify(xyz: np.ndarray, spacing_m: float) -> np.ndarray:
+    """Points of the polyline ``xyz`` (k, 3) at most ``spacing_m`` [m] apart (its vertices kept)."""
+    p = np.asarray(xyz, float).reshape(-1, 3)
+    if p.shape[0] < 2:
+        return p.copy()
+    seg = np.diff(p, axis=0)
+    n = np.maximum(np.ceil(np.linalg.norm(seg, axis=1) / spacing_m).astype(np.int64), 1)
+    idx = np.repeat(np.arange(seg.shape[0]), n)
+    frac = (np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)) / np.repeat(n, n)
+    return np.vstack([p[idx] + seg[idx] * frac[:, None], p[-1:]])
+
+
+def chord_deviation(waypoints_xyz_m, trajectory_xyz_m, spacing_m: float = CHORD_SPACING_M) -> dict[str, float]:
+    """How far the straight chords between mission waypoints (k, 3) are from the trajectory
+    samples (m, 3) (map frame, one vertical datum) [m]:
+
+    * ``max_chord_deviation_m``: the largest distance from a point of either polyline to the
+      other (Hausdorff; both densified every ``spacing_m``, so at most ``spacing_m / 2``
+      above the exact value, never below);
+    * ``max_chord_below_trajectory_m``: the largest height of a trajectory point above the
+      chord point horizontally nearest to it (0 when no chord is below the trajectory).
+    """
+    from scipy.spatial import cKDTree
+
+    a = _densify(waypoints_xyz_m, spacing_m)
+    b = _densify(trajectory_xyz_m, spacing_m)
+    if a.shape[0] == 0 or b.shape[0] == 0:
+        raise InputError("chord_deviation needs waypoints and trajectory samples")
+    d_ab = cKDTree(b).query(a)[0]
+    d_ba = cKDTree(a).query(b)[0]
+    near = cKDTree(a[:, :2]).query(b[:, :2])[1]
+    below = float(np.max(b[:, 2] - a[near, 2], initial=0.0))
+    return {"max_chord_deviation_m": round(float(max(d_ab.max(), d_ba.max())), 3),
+            "max_chord_below_trajectory_m": round(max(below, 0.0), 3)}
+
+
+def arrival_loiter(trajectory_xyz_m, waypoints_xyz_m) -> tuple[int, float, bool] | None:
+    """The fixed-wing arrival loiter at the end of a written trajectory (one full turn after
+    the last waypoint, :func:`~skyroute.stages.planning.fixedwing.loiter_circle`): (index of its
+    first sample, radius [m], clockwise) measured on the samples, or None without one."""
+    p = np.asarray(trajectory_xyz_m, float)
+    w = np.asarray(waypoints_xyz_m, float)
+    if p.shape[0] < 8 or w.shape[0] < 2:
+        return None
+    hit = np.nonzero(np.all(np.abs(p[:-1, :2] - w[-1, :2]) < 1e-6, axis=1))[0]
+    if hit.size == 0 or p.shape[0] - hit[0] < 8:
+        return None
+    k = int(hit[0])
+    ring = p[k + 1:, :2]                 # equally spaced angles over the whole turn: their mean is the centre
+    centre = ring.mean(axis=0)
+    r = np.linalg.norm(ring - centre, axis=1)
+    if not (r.mean() > 0 and np.ptp(r) <= 1e-3 * r.mean()):
+        return None
+    u = w[-1, :2] - w[-2, :2]
+    v = centre - p[k, :2]
+    return k, float(r.mean()), bool(u[0] * v[1] - u[1] * v[0] < 0)
+
+
+def _landing_items(seq0: int, lon: float, lat: float, rel_m: float, course_deg: float, *, ground_rel_m: float,
+                   loiter_radius_m: float, clockwise: bool, descent_angle_deg: float) -> tuple[list[dict], dict]:
+    """A fixed-wing mission landing after the last waypoint (``lon, lat`` [deg] at ``rel_m``
+    [m] above home, reached on ``course_deg`` [deg from north]): DO_LAND_START, LOITER_TO_ALT
+    at ``rel_m`` on a circle of ``loiter_radius_m`` [m] (``clockwise``) tangent to the approach
+    line, exit heading required, and NAV_LAND on the ground (``ground_rel_m`` [m] above home)
+    under the last waypoint, the approach ``(rel_m - ground_rel_m) / tan(descent_angle_deg)``
+    [m] long.  Returns the items and their description."""
+    from pyproj import Geod
+
+    if not (loiter_radius_m > 0 and 0 < descent_angle_deg < 90 and math.isfinite(ground_rel_m)):
+        raise InputError("a fixed-wing landing needs a loiter radius > 0 [m], a descent angle in (0, 90) deg and a "
+                         "finite ground height [m]")
+    geod = Geod(ellps="WGS84")
+    height = max(float(rel_m) - float(ground_rel_m), 0.0)
+    approach = max(height / math.tan(math.radians(descent_angle_deg)), 2.0 * loiter_radius_m)
+    t_lon, t_lat, _ = geod.fwd(lon, lat, course_deg + 180.0, approach)          # loiter exit, on the approach line
+    c_lon, c_lat, _ = geod.fwd(t_lon, t_lat, course_deg + (90.0 if clockwise else -90.0), loiter_radius_m)
+    c_lon = float(wrap_lon(c_lon))
+    items = [_item(seq0, MAV_CMD_DO_LAND_START, lat, lon, 0.0, frame=MAV_FRAME_MISSION),
+             _item(seq0 + 1, MAV_CMD_NAV_LOITER_TO_ALT, c_lat, c_lon, float(rel_m), p1=1,
+                   p2=round(loiter_radius_m if clockwise else -loiter_radius_m, 3)),
+             _item(seq0 + 2, MAV_CMD_NAV_LAND, lat, lon, float(ground_rel_m))]
+    desc = {"pattern": "DO_LAND_START (189), NAV_LOITER_TO_ALT (31), NAV_LAND (21)",
+            "loiter_radius_m": round(float(loiter_radius_m), 3), "loiter_clockwise": bool(clockwise),
+            "approach_length_m": round(approach, 3), "descent_angle_deg": float(descent_angle_deg),
+            "touchdown": "on the ground under the goal",
+            "note": "the landing approach and the touchdown are beyond the planned trajectory: skyroute did not "
+                    "check them (terrain, obstacles, airspace); check them before the flight"}
+    return items, desc
 
 
 def qgc_plan(lon_deg, lat_deg, rel_alt_m, home_amsl_m: float, *, cruise_speed_mps: float,
-             hover_speed_mps: float = 5.0, fixed_wing: bool = False) -> dict:
+             hover_speed_mps: float = 5.0, fixed_wing: bool = False, landing: dict | None = None,
+             metadata: dict | None = None) -> dict:
     """QGroundControl Plan document (see the module docstring): waypoints ``lon_deg, lat_deg``
     [deg] at ``rel_alt_m`` [m] above home (home = the ground under the first waypoint, at
-    ``home_amsl_m`` [m] above mean sea level); take-off at the first, landing at the last
-    (``fixed_wing``: vehicle type fixed wing, and an unlimited loiter at the last waypoint
-    instead of the landing: a fixed-wing aircraft cannot land on a waypoint)."""
+    ``home_amsl_m`` [m] above mean sea level); take-off at the first, landing at the last.
+
+    ``fixed_wing``: vehicle type fixed wing, and the mission ends with a landing pattern
+    (:func:`_landing_items`, module docstring) described by ``landing``: ``ground_rel_m`` [m]
+    (the ground under the last waypoint above home), ``loiter_radius_m`` [m], ``clockwise``
+    and ``descent_angle_deg`` [deg] (a fixed-wing aircraft cannot land on a waypoint: without
+    ``landing`` it is refused).  ``metadata``: what the file's top-level ``skyroute`` object
+    holds besides its note (e.g. :func:`chord_deviation`)."""
     lon, lat, rel = _check(lon_deg, lat_deg, rel_alt_m)
     lon = wrap_lon(lon)      # MAVLink waypoint longitudes are in [-180, 180]
     if not (math.isfinite(home_amsl_m) and cruise_speed_mps > 0 and hover_speed_mps > 0):
         raise InputError("home_amsl_m must be finite, the speeds > 0 [m/s]")
+    if fixed_wing and landing is None:
+        raise InputError("a fixed-wing QGroundControl mission needs its landing pattern (landing=: ground_rel_m, "
+                         "loiter_radius_m, clockwise, descent_angle_deg)")
     items = [_item(1, MAV_CMD_NAV_TAKEOFF, lat[0], lon[0], float(rel[0]))]
     for i in range(lon.size):
         items.append(_item(len(items) + 1, MAV_CMD_NAV_WAYPOINT, lat[i], lon[i], float(rel[i])))
+    meta = {"note": "The mission waypoints are chords of skyroute's smoothed trajectory (plan.geojson, "
+                    "waypoints.csv): the vehicle flies straight between them, up to max_chord_deviation_m from the "
+                    "trajectory. Every straight leg stays in the plan's admissible volume; the take-off climb"
+                    + (" and the landing pattern are" if fixed_wing else " and the final descent to land are")
+                    + " not part of the planned trajectory.",
+            **(metadata or {})}
     if fixed_wing:
-        items.append(_item(len(items) + 1, MAV_CMD_NAV_LOITER_UNLIM, lat[-1], lon[-1], float(rel[-1])))
+        from pyproj import Geod
+
+        course = float(Geod(ellps="WGS84").inv(lon[-2], lat[-2], lon[-1], lat[-1])[0])
+        more, meta["landing"] = _landing_items(len(items) + 1, float(lon[-1]), float(lat[-1]), float(rel[-1]), course,
+                                               **landing)
+        items.extend(more)
     else:
         items.append(_item(len(items) + 1, MAV_CMD_NAV_LAND, lat[-1], lon[-1], 0.0))
     return {"fileType": "Plan", "groundStation": "QGroundControl", "version": 1,
@@ -177,7 +304,8 @@ def qgc_plan(lon_deg, lat_deg, rel_alt_m, home_amsl_m: float, *, cruise_speed_mp
                         "vehicleType": MAV_TYPE_FIXED_WING if fixed_wing else MAV_TYPE_QUADROTOR,
                         "globalPlanAltitudeMode": 1, "version": 2, "items": items,
                         "plannedHomePosition": [round(float(lat[0]), 9), round(float(lon[0]), 9),
-                                                round(float(home_amsl_m), 3)]}}
+                                                round(float(home_amsl_m), 3)]},
+            "skyroute": meta}
 
 
 def write_json(path: Path | str, doc: dict) -> Path:

@@ -337,12 +337,15 @@ def test_fly_refuses_rotorcraft_methods_for_a_fixed_wing_scenario():
             fly_scenario(sc, method=m)
 
 
-def test_qgc_plan_of_a_fixed_wing_ends_on_a_loiter():
+def test_qgc_plan_of_a_fixed_wing_ends_with_a_landing_pattern():
     from skyroute.stages.exports import qgc_plan
 
-    doc = qgc_plan([7.0, 7.01], [43.0, 43.01], [100.0, 120.0], 50.0, cruise_speed_mps=11.2, fixed_wing=True)
+    land = {"ground_rel_m": 20.0, "loiter_radius_m": 50.0, "clockwise": True, "descent_angle_deg": 10.0}
+    doc = qgc_plan([7.0, 7.01], [43.0, 43.01], [100.0, 120.0], 50.0, cruise_speed_mps=11.2, fixed_wing=True,
+                   landing=land)
     m = doc["mission"]
-    assert m["vehicleType"] == 1 and m["items"][-1]["command"] == 17 and m["items"][-1]["params"][6] == 120.0
+    assert m["vehicleType"] == 1 and [i["command"] for i in m["items"][-3:]] == [189, 31, 21]
+    assert m["items"][-2]["params"][6] == 120.0 and m["items"][-1]["params"][6] == 20.0
     assert qgc_plan([7.0, 7.01], [43.0, 43.01], [100.0, 120.0], 50.0, cruise_speed_mps=5.0)["mission"]["items"][-1][
         "command"] == 21
 
@@ -376,7 +379,8 @@ def test_bitstar_dubins_is_a_flyable_curve():
 
 def test_bitstar_dubins_written_plan_is_flyable():
     """`--planner bitstar-dubins`: the curve is written as it is (no fillets) with the loiter,
-    validated like the lattice plans; f is its length (the shortest-curve objective)."""
+    validated like the lattice plans; its search objective is the curve's length, f (eq. 11, weights
+    1, 0, 0, 0) the length of the written trajectory, loiter included."""
     from skyroute.stages.planning.bitstar_dubins import dubins_result
 
     check_planner_vehicle("bitstar-dubins", "skywalker-x8", PLANNERS)
@@ -387,6 +391,7 @@ def test_bitstar_dubins_written_plan_is_flyable():
     assert r.solved and r.info["continuous"] and r.info["iterations"] == 300
     cand = fixedwing_candidate(pr, r)
     assert cand.flyable, cand.reasons
-    assert cand.f == pytest.approx(r.length_m, rel=1e-12)
+    assert cand.search_cost_m == pytest.approx(r.length_m, rel=1e-12)
+    assert cand.f == pytest.approx(np.linalg.norm(np.diff(cand.xyz_m, axis=0), axis=1).sum(), rel=1e-9)
     n = len(r.waypoints)
     assert np.array_equal(cand.xyz_m[:n], r.waypoints)

@@ -38,9 +38,17 @@ airspace); the helix absorbs the altitude difference between the last node and t
 any.  ``energy_J`` of the candidate is the seed-002 energy of the lattice path (the quantity
 ``energy-optimal`` minimises; turns neglected as in the seed, which is what the fillets cut:
 at most ``(2 tan(dpsi/2) - dpsi) R`` of track per turn); the loiter's energy is reported in
-``info["loiter_energy_J"]``, not included.  ``f`` is the energy expressed as still-air level
-distance ``E / (W (D/L)_opt)`` [m] for the energy planners and the 3-D length for ``astar-fw``,
-so that :func:`~skyroute.stages.planning.step3.choose` takes each planner's own optimum.
+``info["loiter_energy_J"]``, not included.
+
+**f is the same for every planner** (rotorcraft and fixed-wing): seed 000 eq. 11 / 15 with the
+scenario's weights on the written trajectory (fillets and loiter included), by the one
+implementation :func:`~skyroute.stages.planning.step3.trajectory_costs`: ``C_l`` its length,
+``C_r`` / ``C_d`` the time-averaged risk / landing maps times ``C_l``, ``C_e`` the time-averaged
+``beta_e`` times ``C_l`` with ``beta_e`` = seed-002 energy of each chord in the wind over in
+still air (:func:`chord_energy_ratio`, eq. 12's ratio).  What each planner minimised is
+``search_cost_m`` (:func:`search_objective`): the energy as still-air level distance
+``E / (W (D/L)_min)`` [m] for ``eeastar`` / ``energy-optimal``, the lattice length for
+``astar-fw``, the curve length for ``bitstar-dubins``.
 """
 
 from __future__ import annotations
@@ -70,9 +78,15 @@ from skyroute.stages.planning.fw_kernels import (
     edge_energy,
     search_kernel,
 )
+from skyroute.stages.planning.kernels import WindParams
 from skyroute.stages.planning.kinds import FIXED_WING_PLANNERS, check_planner_vehicle
 from skyroute.stages.planning.problem import PlanningProblem
-from skyroute.stages.planning.step3 import Candidate, empty_candidate, wind_sampler
+from skyroute.stages.planning.step3 import (
+    Candidate,
+    empty_candidate,
+    trajectory_costs,
+    wind_sampler,
+)
 from skyroute.stages.planning.validate import validate_plan
 from skyroute.stages.sky_visibility import navigation_along
 from skyroute.stages.vehicle import G0, FixedWingProfile, load_vehicle
@@ -231,6 +245,45 @@ def path_energy(problem: PlanningProblem, waypoints) -> dict[str, float]:
     length = float(np.linalg.norm(np.diff(w, axis=0), axis=1).sum()) if len(w) > 1 else 0.0
     return {"energy_J": float(tot[0]), "time_s": float(tot[1]), "drag_J": float(tot[2]),
             "potential_J": float(tot[3]), "speed_change_J": float(tot[4]), "length_m": length}
+
+
+def chord_energy_ratio(problem: PlanningProblem, pts) -> np.ndarray:
+    """``beta_e`` of seed 000 eq. 12 per chord of the samples ``pts`` (m, 3) [m]: the seed-002
+    energy of the chord in the problem's wind over its energy in still air (same chord, same
+    flown airspeed; wind sampled as :func:`path_energy` does) [-], (m - 1,); 1 for a chord of
+    zero length, inf where the aircraft cannot fly the chord against the wind."""
+    prm = fixedwing_params(_vehicle(problem))
+    w = np.asarray(pts, float)
+    maps, wind = problem.seg_args[0], problem.seg_args[1]
+    calm = WindParams(np.zeros_like(wind.uvw_mps), wind.z_agl_m, wind.grid)
+    step = wind_step_m(problem)
+    out_w, out_0 = np.empty(5), np.empty(5)
+    ratio = np.ones(max(len(w) - 1, 0))
+    for i, (a, b) in enumerate(zip(w[:-1], w[1:], strict=True)):
+        args = (float(a[0]), float(a[1]), float(a[2]), float(b[0]), float(b[1]), float(b[2]), step, maps)
+        edge_energy(*args, wind, prm, out_w)
+        edge_energy(*args, calm, prm, out_0)
+        if out_0[0] > 0:
+            ratio[i] = out_w[0] / out_0[0]
+    return ratio
+
+
+_SEARCH_OBJECTIVES = {
+    "eeastar": "EEA* (seed 002 Algorithm 2) objective: the seed-002 energy of the lattice path / (W (D/L)_min), "
+               "as still-air level distance [m]",
+    "energy-optimal": "the seed-002 energy of the lattice path / (W (D/L)_min) (its exact minimum over the lattice), "
+                      "as still-air level distance [m]",
+    "astar-fw": "3-D length of the lattice path (before fillets and loiter) [m]",
+    "bitstar-dubins": "length of the Dubins-airplane curve (BIT*'s objective, before the loiter) [m]",
+}
+
+
+def search_objective(result: FwPlanResult, vehicle: FixedWingProfile) -> tuple[float, str]:
+    """The search objective of ``result``'s planner (``search_cost_m`` [m], its definition): the
+    quantity the planner minimised, which is not f (eq. 11 on the written trajectory)."""
+    if result.planner in ("eeastar", "energy-optimal"):
+        return float(result.energy_J) / (vehicle.weight_n * vehicle.min_drag_to_lift), _SEARCH_OBJECTIVES[result.planner]
+    return float(result.length_m), _SEARCH_OBJECTIVES.get(result.planner, "path length [m]")
 
 
 def plan_fixedwing(problem: PlanningProblem, planner: str = "eeastar", *, step_cells: int = FW_STEP_CELLS,
@@ -394,8 +447,9 @@ def fixedwing_candidate(problem: PlanningProblem, result: FwPlanResult, *, label
                         gnss_sigma_m: float = 3.0) -> Candidate:
     """The written plan of a solved search (module docstring: fillets, loiter, wind-triangle
     timing), its costs and the independent validation (rasters, climb / descent angles, turn
-    radius, wind, traffic, battery).  ``f`` / ``C_e``: the energy as still-air level distance
-    [m] (``astar-fw``: ``f`` = the 3-D length).  With ``sky`` (satellite geometry) and
+    radius, wind, traffic, battery; and the straight chords between the waypoints, the legs of the
+    QGroundControl mission, as exact motions).  ``C_l`` .. ``C_e`` and ``f``: eq. 11 / 15 on the
+    written trajectory (module docstring), ``search_cost_m``: the planner's own objective.  With ``sky`` (satellite geometry) and
     ``surface_2d`` (surface heights on the grid, for occlusions) the navigation error along the
     samples is computed as for the rotorcraft
     (:func:`~skyroute.stages.planning.step3.navigation_along`) and must stay <= dp_max;
@@ -423,12 +477,22 @@ def fixedwing_candidate(problem: PlanningProblem, result: FwPlanResult, *, label
     pts = np.vstack([path, loiter])
     t, va = _timing(problem, pts)
     n_path = len(path)
-    seg = problem.motion_codes(wp[:-1], wp[1:])[1]
-    length = float(result.length_m)
     e = float(result.energy_J)
-    equiv = e / (veh.weight_n * veh.min_drag_to_lift)
-    C_r, C_d = float(seg[:, 1].sum()), float(seg[:, 2].sum())
-    f = length if result.planner in ("astar-fw", "bitstar-dubins") else equiv
+    # f and its terms: eq. 11 / 15 on the written trajectory by the rotorcraft's implementation
+    # (step3.trajectory_costs), the same for every planner; the search objective apart
+    d = np.diff(pts, axis=0)
+    dt = np.diff(t)
+    chord_len = np.linalg.norm(d, axis=1)
+    chord_speed = np.divide(chord_len, dt, out=np.zeros_like(chord_len), where=dt > 0)
+    cell = problem.grid.cell_of(pts[:, 0], pts[:, 1])
+    costs = trajectory_costs(problem.weights, t, chord_speed, np.asarray(problem.risk_cost, float)[cell],
+                             np.asarray(problem.landing_cost, float)[cell], chord_energy_ratio(problem, pts))
+    search_cost, objective = search_objective(result, veh)
+    legs_ok = np.asarray(problem.motion_valid(wp[:-1], wp[1:]), bool)    # the QGC mission flies these chords
+    if not legs_ok.all():
+        k = int(np.argmin(legs_ok))
+        reasons.append(f"validation: the straight leg between plan waypoints {k} and {k + 1} (a leg of the "
+                       f"QGroundControl mission) is not flyable: {problem.explain_motion(wp[k], wp[k + 1])}")
     lo_e = path_energy(problem, pts[n_path - 1:])
     info["loiter_energy_J"] = lo_e["energy_J"]
     info["loiter_radius_m"] = radius
@@ -443,9 +507,10 @@ def fixedwing_candidate(problem: PlanningProblem, result: FwPlanResult, *, label
             reasons.append(f"navigation error sigma_p reaches {float(sigma[k]):.2f} m > dp_max "
                            f"{veh.max_position_error_m} m at t = {t[k]:.1f} s ({int(nvis[k])} satellites in view)")
     max_sigma = float(np.nanmax(sigma)) if np.isfinite(sigma).any() else float("nan")
-    cand = Candidate(lab, dop_threshold, t, pts, agl, speed, sigma, nvis, length, C_r, C_d, equiv, f,
-                     False, max_sigma, e, float(t[n_path - 1]), 0.0, reasons, np.asarray(wp, float),
-                     np.diff(t[[0, n_path - 1]]), None, "solved")
+    cand = Candidate(lab, dop_threshold, t, pts, agl, speed, sigma, nvis, costs["C_l"], costs["C_r"], costs["C_d"],
+                     costs["C_e"], costs["f"], False, max_sigma, e, float(t[n_path - 1]), 0.0, reasons,
+                     np.asarray(wp, float), np.diff(t[[0, n_path - 1]]), None, "solved",
+                     search_cost_m=search_cost, search_objective=objective)
     viol = validate_plan(cand, grid=problem.grid, terrain_m=problem.terrain_m, vehicle=veh, floor_m=problem.floor_m,
                          ceiling_m=problem.ceiling_m, clearance_floor_m=problem.clearance_m,
                          gnss_floor_m=problem.coverage_m, min_agl_m=problem.min_agl_m,
@@ -460,6 +525,6 @@ def fixedwing_candidate(problem: PlanningProblem, result: FwPlanResult, *, label
     return cand
 
 
-__all__ = ["FIXED_WING_PLANNERS", "FW_DZ_M", "FW_STEP_CELLS", "FwPlanResult", "check_planner_vehicle", "fillet_path",
-           "fixedwing_candidate", "loiter_circle", "make_fw_lattice", "max_wind_mps", "path_energy", "plan_fixedwing",
-           "turn_radius_m"]
+__all__ = ["FIXED_WING_PLANNERS", "FW_DZ_M", "FW_STEP_CELLS", "FwPlanResult", "check_planner_vehicle",
+           "chord_energy_ratio", "fillet_path", "fixedwing_candidate", "loiter_circle", "make_fw_lattice",
+           "max_wind_mps", "path_energy", "plan_fixedwing", "search_objective", "turn_radius_m"]

@@ -16,7 +16,11 @@
   alone makes a 0.1 s chord look 0.01 deg steeper or 0.2 m/s^2 harder than it is).
 * ``candidates.csv``: one row per candidate D_j (seed 000 Tables II-III): ``label,
   dop_threshold, C_l_m, C_r_m, C_d_m, C_e_m, f_m, flyable, max_sigma_p_m, energy_Wh,
-  flight_time_s, compute_time_s, chosen, reasons``.
+  flight_time_s, compute_time_s, chosen, reasons``.  ``f_m`` is seed 000 eq. 11 with the
+  scenario's weights, ``w_l C_l + w_r C_r + w_d C_d + w_e C_e``, on the written trajectory, for
+  every planner (:func:`~skyroute.stages.planning.step3.trajectory_costs`); a planner whose
+  search minimises something else (the fixed-wing planners) adds ``search_cost_m`` (that
+  objective [m]) and ``search_objective`` (its definition).
 * ``top_view.png``, ``profile.png``, ``sigma_p.png`` and, given the bubble parameters,
   ``bubble.png`` (matplotlib Agg).
 """
@@ -34,15 +38,18 @@ from pyproj import CRS, Transformer
 
 from skyroute.stages.base import InputError
 from skyroute.stages.exports import continuous_lon, crosses_antimeridian, lon_near
-from skyroute.stages.figures import add_map_furniture
+from skyroute.stages.figures import GOAL_STYLE, START_STYLE, add_map_furniture
 from skyroute.stages.grid import Grid
 from skyroute.stages.planning.step3 import Candidate, utc_of
 
-__all__ = ["write_plan", "plan_geojson", "CANDIDATE_COLUMNS", "PROVENANCE_COLUMNS", "WAYPOINT_COLUMNS"]
+__all__ = ["write_plan", "plan_geojson", "CANDIDATE_COLUMNS", "PROVENANCE_COLUMNS", "SEARCH_COLUMNS", "WAYPOINT_COLUMNS"]
 
 WAYPOINT_COLUMNS = ("t_utc", "t_s", "x_m", "y_m", "z_m", "lon", "lat", "alt_agl_m", "sigma_p_m")
 CANDIDATE_COLUMNS = ("label", "dop_threshold", "C_l_m", "C_r_m", "C_d_m", "C_e_m", "f_m", "flyable",
                      "max_sigma_p_m", "energy_Wh", "flight_time_s", "compute_time_s", "chosen", "reasons")
+# appended to candidates.csv when a planner's search objective is not f (the fixed-wing planners):
+# its value [m] and its definition (f is eq. 11 on the written trajectory for every planner)
+SEARCH_COLUMNS = ("search_cost_m", "search_objective")
 # appended to candidates.csv when the plan's provenance is known (the plan stage records it)
 PROVENANCE_COLUMNS = ("planner", "seed", "weights", "time_budget_s", "skyroute_version")
 
@@ -171,6 +178,11 @@ def write_plan(candidate: Candidate | None, candidates: list[Candidate], grid_or
     if any(math.isfinite(r) for r in radii):   # safety bubble levels (sboa)
         cols = (*cols, "clearance_radius_m")
         rows = [[*row, _fmt(r, 2)] for row, r in zip(rows, radii, strict=True)]
+    searched = [float(getattr(c, "search_cost_m", math.nan)) for c in candidates]
+    if any(math.isfinite(v) for v in searched):   # the planner's own objective is not f (fixed-wing)
+        cols = (*cols, *SEARCH_COLUMNS)
+        rows = [[*row, _fmt(v, 1), getattr(c, "search_objective", "")]
+                for row, v, c in zip(rows, searched, candidates, strict=True)]
     if provenance:
         cols = (*cols, *PROVENANCE_COLUMNS)
         prov = [provenance.get("planner", ""), provenance.get("seed", ""),
@@ -213,6 +225,8 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from skyroute.stages.figures import colorbar_or_note, uniform_value
+
     files = {}
     p = cand.xyz_m
     # top view
@@ -223,7 +237,9 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
         cm, fl = raster_values(cost_m), raster_values(floor_m)
         if cm is not None:
             im = ax.imshow(cm, extent=ext, cmap="YlOrRd", interpolation="nearest", alpha=0.8)
-            fig.colorbar(im, ax=ax, shrink=0.7).set_label(cost_label)
+            u = uniform_value(cm)   # a uniform map gets a note, not a colour bar of a made-up range
+            colorbar_or_note(fig, ax, im, cm, cost_label, f"{cost_label.split(' [')[0]}: {u:g} everywhere"
+                             if u is not None else "no cost map", note_xy=(0.5, 0.05))   # off the path
         if fl is not None:
             ax.contour(np.linspace(xmin, xmax, grid.nx), np.linspace(ymax, ymin, grid.ny),
                        np.where(np.isfinite(fl), fl, np.nanmax(np.where(np.isfinite(fl), fl, np.nan)) + 50),
@@ -233,13 +249,13 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
         if c.xyz_m.shape[0] and c is not cand:
             ax.plot(c.xyz_m[:, 0], c.xyz_m[:, 1], lw=1, alpha=0.6, label=f"{c.label} (f={c.f:.0f} m)")
     ax.plot(p[:, 0], p[:, 1], "k-", lw=2, label=f"chosen {cand.label} (f={cand.f:.0f} m)")
-    ax.plot(p[0, 0], p[0, 1], "go", ms=8, label="start")
-    ax.plot(p[-1, 0], p[-1, 1], "r*", ms=12, label="goal")
+    ax.plot(p[0, 0], p[0, 1], **START_STYLE, label="start")
+    ax.plot(p[-1, 0], p[-1, 1], **GOAL_STYLE, label="goal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal")
     ax.ticklabel_format(useOffset=False, style="plain")
-    ax.legend(fontsize=7, loc="best")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2)   # below the map
     ax.set_title("plan, top view")
     add_map_furniture(ax)
     fig.tight_layout()
@@ -265,7 +281,7 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
     ax.plot(dist, p[:, 2], "k-", lw=2, label=f"trajectory {cand.label}")
     ax.set_xlabel("horizontal distance along the path [m]")
     ax.set_ylabel("altitude [m]\n" + "\n".join(textwrap.wrap(datum, 32)[:2]), fontsize=8)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))   # beside the plot, never over it
     ax.set_title("vertical profile along the path")
     fig.tight_layout()
     files["profile.png"] = out / "profile.png"

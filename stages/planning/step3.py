@@ -37,7 +37,10 @@ For each STEP II chain (one per GNSS coverage level D_j):
    landing maps at the sample's cell; ``beta_e = P(v - w) / P(v)``: the rotor power
    (:func:`~skyroute.stages.energy.rotor_power`) at the trajectory's ground velocity ``v`` with
    and without the wind ``w`` (same time, so the power ratio is the energy ratio of eq. 12).
-   ``L = int |v| dt``; energy ``E = int P(v - w) dt``.
+   ``L = int |v| dt``; energy ``E = int P(v - w) dt``.  :func:`trajectory_costs` is the one
+   implementation of these costs and f: the fixed-wing candidates use it too, on their written
+   trajectory, so f means the same for every planner (a planner's own search objective, where
+   it differs, is ``Candidate.search_cost_m``).
 4. The independent :func:`~skyroute.stages.planning.validate.validate_plan` re-checks the
    samples against the rasters; any violation makes the candidate not flyable.
 
@@ -66,9 +69,8 @@ from skyroute.stages.smoothing import CornerTrajectory, KinematicLimits, corner_
 from skyroute.stages.traffic import Intruder, TrafficOccupancy
 from skyroute.stages.wind import wind_in_column
 
-__all__ = ["Candidate", "choose", "explain_no_plan", "flight_power_W", "line_of_sight", "navigation_along",
-           "smooth_chain", "step3",
-           "wind_sampler"]
+__all__ = ["Candidate", "choose", "eq11_f", "explain_no_plan", "flight_power_W", "line_of_sight", "navigation_along",
+           "smooth_chain", "step3", "trajectory_costs", "wind_sampler"]
 
 
 @dataclass
@@ -77,8 +79,10 @@ class Candidate:
 
     ``t_s`` (m,) [s since mission start], ``xyz_m`` (m, 3) [m, map CRS, surface datum],
     ``alt_agl_m`` (m,), ``speed_mps`` (m,), ``sigma_p_m`` (m,) [m] (NaN without GNSS data),
-    ``n_visible`` (m,); costs ``C_l, C_r, C_d, C_e, f`` [m] (eq. 15); ``flyable`` and every
-    reason it is not in ``reasons``."""
+    ``n_visible`` (m,); costs ``C_l, C_r, C_d, C_e, f`` [m] (eq. 15, :func:`trajectory_costs`,
+    the same for every planner); ``flyable`` and every reason it is not in ``reasons``;
+    ``search_cost_m`` / ``search_objective``: the planner's own search objective when it is not
+    f (NaN / "" otherwise)."""
 
     label: str
     dop_threshold: float | None
@@ -106,6 +110,10 @@ class Candidate:
     dp_max_m: float = float("nan")
     clearance_radius_m: float = float("nan")   # r_j of a safety-bubble level (NaN: the fixed r_p)
     nav_track: FilterTrack | None = None       # the navigation filter along t_s (step3 keep_nav_track)
+    # the planner's own search objective where it is not f (fixed-wing: EEA*'s energy as level
+    # still-air distance, A*-fw's lattice length, BIT*-Dubins' curve length) [m], and what it is
+    search_cost_m: float = float("nan")
+    search_objective: str = ""
 
     @property
     def energy_Wh(self) -> float:
@@ -121,6 +129,48 @@ def empty_candidate(label, dop, reasons, t_start, status="") -> Candidate:
     nan = float("nan")
     return Candidate(label, dop, z, np.zeros((0, 3)), z, z, z, np.zeros(0, int), nan, nan, nan, nan, nan, False,
                      nan, nan, nan, time.perf_counter() - t_start, list(reasons), step2_status=status)
+
+
+# ------------------------------------------------------------------ costs (eq. 11 / 15)
+
+
+def eq11_f(weights, C_l: float, C_r: float, C_d: float, C_e: float) -> float:
+    """Seed 000 eq. 11: ``f = w_l C_l + w_r C_r + w_d C_d + w_e C_e`` [m] with ``weights`` =
+    (w_l, w_r, w_d, w_e) [-] and the costs [m]."""
+    wl, wr, wd, we = (float(w) for w in weights)
+    return wl * C_l + wr * C_r + wd * C_d + we * C_e
+
+
+def _time_integral(values, t_s) -> float:
+    """Integral over time of ``values``: one per sample (trapezoid rule) or one per chord
+    between samples (constant on the chord)."""
+    v, t = np.asarray(values, float), np.asarray(t_s, float)
+    if v.shape == t.shape:
+        return float(trapezoid(v, t))
+    if v.shape == (t.size - 1,):
+        return float(np.sum(v * np.diff(t)))
+    raise InputError(f"{v.size} values for {t.size} samples: give one per sample or one per chord")
+
+
+def trajectory_costs(weights, t_s, speed_mps, beta_r, beta_d, beta_e) -> dict[str, float]:
+    """The costs of a sampled trajectory (seed 000 eq. 15 read as eq. 11 with time-averaged
+    integrands, module docstring item 3) and f (eq. 11, :func:`eq11_f`): the one
+    implementation every planner's candidate is costed with (rotorcraft: :func:`step3`;
+    fixed-wing: :func:`~skyroute.stages.planning.fixedwing.fixedwing_candidate`), so f means
+    the same for every planner.
+
+    ``t_s`` (m,) [s]: sample times; ``speed_mps`` [m/s]: ground speed; ``beta_r``, ``beta_d``
+    [-]: risk and landing maps; ``beta_e`` [-]: energy per metre with the wind over without
+    it.  Each holds one value per sample (trapezoid rule) or one per chord (constant on the
+    chord).  Returns ``C_l = L = int |v| dt``, ``C_x = L * (1 / (t_f - t_0)) int beta_x dt``
+    for x = r, d, e, and ``f`` [m]."""
+    t = np.asarray(t_s, float)
+    dur = float(t[-1] - t[0])
+    L = _time_integral(speed_mps, t)
+    C_r = L * _time_integral(beta_r, t) / dur
+    C_d = L * _time_integral(beta_d, t) / dur
+    C_e = L * _time_integral(beta_e, t) / dur
+    return {"C_l": L, "C_r": C_r, "C_d": C_d, "C_e": C_e, "f": eq11_f(weights, L, C_r, C_d, C_e)}
 
 
 # ------------------------------------------------------------------ helpers
@@ -322,13 +372,8 @@ def step3(problem, step2_result: Step2Result, sky: xr.Dataset | None, surface_2d
     beta_e = pw / p0
     beta_r = np.asarray(problem.risk_cost, float)[r, c]
     beta_d = np.asarray(problem.landing_cost, float)[r, c]
-    L = float(trapezoid(speed, tau))
-    dur = T
-    C_r = L * float(trapezoid(beta_r, tau)) / dur
-    C_d = L * float(trapezoid(beta_d, tau)) / dur
-    C_e = L * float(trapezoid(beta_e, tau)) / dur
-    wl, wr, wd, we = problem.weights
-    f = wl * L + wr * C_r + wd * C_d + we * C_e
+    costs = trajectory_costs(problem.weights, tau, speed, beta_r, beta_d, beta_e)
+    L, C_r, C_d, C_e, f = (costs[k] for k in ("C_l", "C_r", "C_d", "C_e", "f"))
     energy = float(trapezoid(pw, tau))
     air = np.linalg.norm(va, axis=1)
     usable = veh.battery_energy_j * (1.0 - battery_reserve_pct / 100.0)

@@ -632,6 +632,9 @@ def plan_to_dataset(plan: StrategicPlan, crs, vertical_datum: str, start_time_ut
         ds[k] = ("level", np.array([float(getattr(c, k)) for c in cands]), {"units": units[k]})
     if any(np.isfinite(c.clearance_radius_m) for c in cands):   # safety bubble levels only
         ds["clearance_radius_m"] = ("level", np.array([c.clearance_radius_m for c in cands]), {"units": "m"})
+    if any(np.isfinite(c.search_cost_m) for c in cands):       # a search objective that is not f (fixed-wing)
+        ds["search_cost_m"] = ("level", np.array([c.search_cost_m for c in cands]),
+                               {"units": "m", "definition": next(c.search_objective for c in cands if c.search_objective)})
     ds["flyable"] = ("level", np.array([bool(c.flyable) for c in cands]), {"units": "1"})
     ds["reasons"] = ("level", np.array(["; ".join(c.reasons) for c in cands], dtype=object))
     ds["status"] = ("level", np.array([c.step2_status for c in cands], dtype=object))
@@ -766,6 +769,9 @@ def plan_from_dataset(ds: xr.Dataset) -> tuple[Candidate | None, list[Candidate]
                           step2_status=str(row["status"].values), **kw)
         if "clearance_radius_m" in ds:
             c.clearance_radius_m = float(row["clearance_radius_m"])
+        if "search_cost_m" in ds:
+            c.search_cost_m = float(row["search_cost_m"])
+            c.search_objective = str(ds["search_cost_m"].attrs.get("definition", ""))
         cands.append(c)
     chosen = cands[chosen_i] if chosen_i >= 0 else None
     return chosen, cands

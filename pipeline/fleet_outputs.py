@@ -131,7 +131,10 @@ def plot_fleet(res: FleetResult, sc: Scenario, maps: dict, path: Path) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
+    import textwrap
+
     import matplotlib.pyplot as plt
+    from matplotlib import patheffects
 
     acc = _accepted(res)
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(13, 6.2), gridspec_kw={"width_ratios": [1, 1.25]})
@@ -142,11 +145,20 @@ def plot_fleet(res: FleetResult, sc: Scenario, maps: dict, path: Path) -> Path:
                    if y[0] > y[-1] else "lower", cmap="Greys", interpolation="nearest")
     fig.colorbar(im, ax=ax, shrink=0.7, label="surface [m]")
     cmap = plt.get_cmap("tab20")
-    for i, o in enumerate(acc):
+    ids = [str(o.task.id) for o in acc]
+    starts: dict[tuple[int, int], list[int]] = {}
+    for i, o in enumerate(acc):   # each path numbered at its start as its row of the timeline
         p = o.attempt.xyz_m
         ax.plot(p[:, 0], p[:, 1], lw=0.9, color=cmap(i % 20))
         ax.plot(p[0, 0], p[0, 1], "o", ms=2.5, color=cmap(i % 20))
-    ax.set_title(f"{sc.name}: {len(acc)} accepted paths")
+        starts.setdefault((int(round(p[0, 0] / 5.0)), int(round(p[0, 1] / 5.0))), []).append(i)
+    for group in starts.values():   # missions from the same place: one label listing them all
+        p = acc[group[0]].attempt.xyz_m
+        text = "\n".join(textwrap.wrap(", ".join(str(i) for i in group), 24))
+        ax.annotate(text, (p[0, 0], p[0, 1]), xytext=(3, 3), textcoords="offset points", fontsize=7,
+                    color=cmap(group[0] % 20) if len(group) == 1 else "k", fontweight="bold",
+                    path_effects=[patheffects.withStroke(linewidth=2, foreground="white")])
+    ax.set_title(f"{sc.name}: {len(acc)} accepted paths\n(numbered at their start as the rows at right)", fontsize=10)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.ticklabel_format(useOffset=False, style="plain")
@@ -159,9 +171,15 @@ def plot_fleet(res: FleetResult, sc: Scenario, maps: dict, path: Path) -> Path:
     for k, c in colors.items():
         bx.plot([], [], color=c, lw=3, label=k)
     rej = sum(o.status == "rejected" for o in res.outcomes)
-    bx.legend(loc="lower right", fontsize=8, title=f"rejected: {rej}", title_fontsize=8)
+    bx.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title=f"rejected: {rej}", title_fontsize=8)
+    bx.set_yticks(range(len(acc)))   # one integer row per mission (never 2.5, 7.5), labelled with its id
+    bx.set_yticklabels([f"{i}: {m}" for i, m in enumerate(ids)], fontsize=7 if len(acc) <= 30 else 5)
+    for i, lab in enumerate(bx.get_yticklabels()):
+        lab.set_color(cmap(i % 20))
+    if len(acc):
+        bx.set_ylim(-0.6, len(acc) - 0.4)
     bx.set_xlabel("time after the scenario start [min]")
-    bx.set_ylabel("accepted mission (order of acceptance)")
+    bx.set_ylabel("accepted mission (order of acceptance: number, id)")
     bx.set_title("intent volumes' time windows")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

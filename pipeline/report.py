@@ -42,7 +42,8 @@ FIGURES: tuple[tuple[str, str, str], ...] = (
     ("maps", "coverage_*.png", "GNSS coverage floors per DOP threshold D_j (worst case over the window)"),
     ("plan", "top_view.png", "Chosen path, top view, over the ground risk cost and the admissible floor"),
     ("plan", "profile.png", "Chosen path, vertical view, over the surface and the admissible (coverage) floor"),
-    ("plan", "sigma_p.png", "Predicted navigation error sigma_p along the candidates (dp_max dashed)"),
+    ("plan", "sigma_p.png", "Predicted navigation error sigma_p along the candidates (the chosen one drawn thicker; "
+                            "a red dashed line marks dp_max where the plan records it)"),
     ("plan", "bubble.png", "Safety bubble max(r_p, k sigma_p + surface uncertainty) along the chosen trajectory"),
     ("fly", "fly_top.png", "Flown trajectory, top view, with the intruders and no-fly zones (seed 001 Fig. 9)"),
     ("fly", "fly_profile.png", "Flown trajectory, vertical view"),
@@ -65,10 +66,16 @@ PAGE = Template("""<!DOCTYPE html>
 <style>
 body { font-family: system-ui, sans-serif; margin: 1.5em auto; max-width: 1100px; color: #222; }
 h1 { font-size: 1.5em; } h2 { border-bottom: 1px solid #ccc; margin-top: 1.6em; }
-table { border-collapse: collapse; margin: 0.6em 0; font-size: 0.85em; }
-th, td { border: 1px solid #bbb; padding: 3px 7px; text-align: right; vertical-align: top; }
-th { background: #eee; } td.text { text-align: left; } tr.chosen td { background: #e3f4e1; font-weight: bold; }
+table { border-collapse: collapse; margin: 0; font-size: 0.85em; }
+.table-wrap { max-width: 100%; overflow-x: auto; margin: 0.6em 0; }
+.table-wrap.long { max-height: 70vh; overflow-y: auto; } .table-wrap.long thead th { position: sticky; top: 0; }
+th, td { border: 1px solid #bbb; padding: 3px 7px; text-align: right; vertical-align: top; white-space: nowrap; }
+th { background: #eee; } td.text { text-align: left; }
+td.wrap { text-align: left; white-space: normal; min-width: 22em; max-width: 48em; overflow-wrap: anywhere; }
+tr.chosen td { background: #e3f4e1; font-weight: bold; }
 figure { margin: 1em 0; } figure img { max-width: 100%; max-height: 85vh; border: 1px solid #ddd; }
+figure.zoomable img { cursor: zoom-in; } figure.full { overflow: auto; max-height: 95vh; }
+figure.full img { max-width: none; max-height: none; cursor: zoom-out; }
 figcaption { font-size: 0.85em; color: #555; }
 .outcome { padding: 0.6em 1em; border-radius: 4px; } .ok { background: #e3f4e1; } .bad { background: #fbe3e3; }
 pre { white-space: pre-wrap; font-size: 0.8em; background: #f6f6f6; padding: 0.6em; }
@@ -79,10 +86,23 @@ pre { white-space: pre-wrap; font-size: 0.8em; background: #f6f6f6; padding: 0.6
 $body
 <script>
 // Sets body[data-images-loaded] = "n/m" once every image has decoded (read by the browser test).
+// A figure shrunk to the page (e.g. maps.png) opens at full size on a click, and back on another.
 window.addEventListener("load", function () {
   var imgs = Array.prototype.slice.call(document.images);
   var ok = imgs.filter(function (i) { return i.complete && i.naturalWidth > 0; }).length;
   document.body.setAttribute("data-images-loaded", ok + "/" + imgs.length);
+  var zoomable = 0;
+  imgs.forEach(function (img) {
+    var fig = img.closest("figure");
+    if (!fig || img.naturalWidth <= img.clientWidth + 1) { return; }
+    zoomable += 1;
+    fig.classList.add("zoomable");
+    var hint = fig.querySelector(".zoom-hint");
+    if (hint) { hint.textContent = " Shrunk to the page: click the image for full size (" + img.naturalWidth +
+                " x " + img.naturalHeight + " px)."; }
+    img.addEventListener("click", function () { fig.classList.toggle("full"); });
+  });
+  document.body.setAttribute("data-images-zoomable", zoomable);
 });
 </script>
 </body>
@@ -94,17 +114,24 @@ window.addEventListener("load", function () {
 
 
 def _table(header: list[str], rows: list[list[Any]], chosen: list[bool] | None = None,
-           text_cols: tuple[int, ...] = (), cls: str = "") -> str:
-    """An HTML table; cells are escaped; ``chosen`` marks rows (class ``chosen``)."""
+           text_cols: tuple[int, ...] = (), cls: str = "", wrap_cols: tuple[int, ...] | None = None) -> str:
+    """An HTML table in a scrolling box (a wide table scrolls sideways inside the page, a long
+    one, over 25 rows, down, its header kept); cells are escaped; ``chosen`` marks rows (class
+    ``chosen``); ``text_cols`` are left-aligned text; ``wrap_cols`` (default: the text columns
+    whose longest cell has more than 40 characters, e.g. reasons) wrap in a column at least
+    22 em wide instead of becoming a narrow, very tall one."""
+    if wrap_cols is None:
+        wrap_cols = tuple(j for j in text_cols if any(len(str(r[j])) > 40 for r in rows if j < len(r)))
     head = "".join(f"<th>{escape(str(h))}</th>" for h in header)
     head = f"<thead><tr>{head}</tr></thead>" if any(str(h) for h in header) else ""
     body = []
     for i, row in enumerate(rows):
         tr = ' class="chosen"' if chosen and chosen[i] else ""
-        cells = "".join(("<td class=\"text\">" if j in text_cols else "<td>") + escape("" if v is None else str(v))
-                        + "</td>" for j, v in enumerate(row))
+        cells = "".join(('<td class="wrap">' if j in wrap_cols else '<td class="text">' if j in text_cols else "<td>")
+                        + escape("" if v is None else str(v)) + "</td>" for j, v in enumerate(row))
         body.append(f"<tr{tr}>{cells}</tr>")
-    return f'<table class="{cls}">{head}<tbody>{"".join(body)}</tbody></table>'
+    box = "table-wrap long" if len(rows) > 25 else "table-wrap"
+    return f'<div class="{box}"><table class="{cls}">{head}<tbody>{"".join(body)}</tbody></table></div>'
 
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -125,7 +152,8 @@ def _figure(path: Path, caption: str) -> str:
     mime = "image/gif" if path.suffix.lower() == ".gif" else "image/png"
     data = base64.b64encode(path.read_bytes()).decode()
     return (f'<figure><img src="data:{mime};base64,{data}" alt="{escape(path.name)}">'
-            f"<figcaption>{escape(caption)} ({escape(path.name)})</figcaption></figure>")
+            f'<figcaption>{escape(caption)} ({escape(path.name)}).<span class="zoom-hint"></span></figcaption>'
+            "</figure>")
 
 
 def _num(v: Any, fmt: str = ".1f") -> str:
@@ -270,13 +298,24 @@ CANDIDATE_HEADER = (("label", "D_j"), ("C_l_m", "C_l [m]"), ("C_r_m", "C_r [m]")
                     ("flyable", "flyable"), ("chosen", "chosen"), ("reasons", "reasons"))
 
 
+def _is_number(v: str) -> bool:
+    """A CSV cell that reads as a number (or is empty)."""
+    try:
+        float(v or 0)
+        return True
+    except ValueError:
+        return False
+
+
 def _csv_section(folder: Path | None, name: str, title: str, intro: str, max_rows: int = 200) -> str:
     """A CSV table of ``folder/name`` (at most ``max_rows`` rows, the count stated)."""
     if folder is None or not (folder / name).is_file():
         return ""
     fields, rows = _read_csv(folder / name)
     more = f" The first {max_rows} of {len(rows)} rows." if len(rows) > max_rows else ""
-    table = _table(fields, [[r[k] for k in fields] for r in rows[:max_rows]], text_cols=(len(fields) - 1,))
+    shown = [[r.get(k) or "" for k in fields] for r in rows[:max_rows]]
+    text = tuple(j for j in range(len(fields)) if any(not _is_number(row[j]) for row in shown))   # reasons, ids
+    table = _table(fields, shown, text_cols=text)
     return f"<h2>{escape(title)}</h2><p>{escape(intro)} From {escape(name)}.{more}</p>" + table
 
 
@@ -498,11 +537,13 @@ def build_report(run_dir: Path, out: Path | None = None, maps_dir: Path | None =
     return out
 
 
-def write_fly_map(fly_dir: Path) -> Path | None:
+def write_fly_map(fly_dir: Path, result=None) -> Path | None:
     """``fly_dir/fly.html``: the interactive map of a flight replay folder, from its
-    flown.geojson and intruders.geojson (and a plan.geojson beside them, if any); None (nothing
-    written) when the folder has no flown.geojson."""
-    from skyroute.pipeline.planmap import fly_map_html
+    flown.geojson and intruders.geojson (and a plan.geojson beside them, if any), with the
+    buildings, coverage floors, start and goal of ``result`` (the flight's
+    :class:`~skyroute.pipeline.graph.RunResult`, when given); None (nothing written) when the
+    folder has no flown.geojson."""
+    from skyroute.pipeline.planmap import fly_map_html, fly_map_layers
 
     fly_dir = Path(fly_dir)
     flown = fly_dir / "flown.geojson"
@@ -512,7 +553,8 @@ def write_fly_map(fly_dir: Path) -> Path | None:
     plan = fly_dir / "plan.geojson"
     title = f"skyroute flight map: {fly_dir.resolve().name}"
     html = fly_map_html(title, json.loads(flown.read_text()), json.loads(intr.read_text()) if intr.is_file() else None,
-                        json.loads(plan.read_text()) if plan.is_file() else None)
+                        json.loads(plan.read_text()) if plan.is_file() else None,
+                        fly_map_layers(result) if result is not None and "surface" in result.datasets else None)
     out = fly_dir / "fly.html"
     out.write_text(html, encoding="utf-8")
     return out
@@ -566,16 +608,34 @@ def draw_missing_maps(run_dir: Path, cache, into: Path | None = None) -> list[Pa
         return []
     targets = [s.name for s in stages_for(sc) if s.name in DRAWN_STAGES]
     result = run_scenario(sc, cache=cache, targets=targets, progress=False)
-    from skyroute.pipeline.cli_coverage import plot_coverage
-    from skyroute.pipeline.maps import plot_maps_panel
-    from skyroute.pipeline.outputs import plot_surface
+    from skyroute.pipeline.graph import stage_attrs
+    from skyroute.pipeline.outputs import map_figure
 
+    def surface(p):
+        from skyroute.pipeline.outputs import plot_surface
+
+        plot_surface(result, p)
+
+    def maps(p):
+        from skyroute.pipeline.maps import plot_maps_panel
+
+        plot_maps_panel(result, p)
+
+    def coverage(p):
+        from skyroute.pipeline.cli_coverage import plot_coverage
+
+        plot_coverage(result["coverage"], p)
+
+    # the same figures, under the same keys, as a run folder's (drawn once: the output memo)
     fig_dir = (run_dir if into is None else Path(into)) / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
-    out = [plot_surface(result, fig_dir / "surface.png")]
+    out = [map_figure(result, fig_dir / "surface.png", "figures/surface.png", ("surface",), surface)]
     if "environment" in result.datasets:
-        out.append(plot_maps_panel(result, fig_dir / "maps.png"))
+        drawn = tuple(s for s in ("surface", "environment", "wind", "clearance", "traffic")
+                      if s in {r.name for r in result.records})
+        out.append(map_figure(result, fig_dir / "maps.png", "figures/maps.png", drawn, maps))
     if "coverage" in result.datasets:
-        kind = str(result["coverage"].attrs.get("dop_kind", "DOP"))
-        out.append(plot_coverage(result["coverage"], fig_dir / f"coverage_{kind}.png"))
+        kind = str(stage_attrs(result, "coverage").get("dop_kind", "DOP"))
+        rel = f"figures/coverage_{kind}.png"
+        out.append(map_figure(result, fig_dir / f"coverage_{kind}.png", rel, ("coverage",), coverage))
     return out

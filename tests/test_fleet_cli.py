@@ -371,8 +371,8 @@ def test_report_of_a_fleet_folder(drawn, tmp_path):
     rows = _rows(drawn)
     table = page.split("<h2>Missions</h2>", 1)[1].split("</table>", 1)[0]
     assert table.count("<tr>") == len(rows) + 1
-    for r in rows:
-        assert f"<td>{r['status']}</td>" in table
+    for r in rows:      # a text column (left-aligned): <td class="text">
+        assert re.search(rf'<td(?: class="[a-z]+")?>{re.escape(r["status"])}</td>', table), r["status"]
 
 
 def test_nothing_accepted_exits_3_with_the_reason(tmp_path, cache_dir):
@@ -469,7 +469,7 @@ def test_airspace_ls_show_export_check(airspace, tmp_path):
     _air(["export", f, str(tmp_path / "x")])
     s = json.loads((tmp_path / "x" / "summary.json").read_text())
     assert s["command"] == "airspace export" and s["schema_version"] and s["warnings"] == []
-    assert sorted(s["files"]) == sorted([f"{i}.json" for i in ids] + ["summary.json"])
+    assert sorted(s["files"]) == sorted([f"{i}.json" for i in ids] + ["summary.json", ".skyroute-manifest.json"])
     from skyroute.stages.intents import parse_intent
 
     for i in ids:

@@ -14,6 +14,12 @@ stage cache and its warm right after on that cache, each pair printed with its r
 load average (other processes on the machine slow both alike); the numba caches are primed
 first (an untimed run).
 
+``--commands``: each of ``run``, ``plan`` (SCENARIO), ``fly`` (``--fly-scenario``, default
+helsinki-tactical) and ``report`` (of a plan folder) cold (an empty stage cache: every stage
+computed, every output drawn) and warm INTO A NEW FOLDER (the same cache: every stage cached,
+every derived output copied from the output memo, pipeline/output_memo.py), as subprocesses,
+with their ratio (issue 35 target: each < 0.10) and the load average.
+
 ``--quick`` (under 60 s on a quiet machine): one cold and one warm CLI run, no in-process
 table.  A cold run that wrote numba cache files (it compiled kernels) is repeated in a new
 stage cache, so the cold time never includes a compile.
@@ -81,14 +87,62 @@ def pairs(scenario: str, n: int) -> None:
         print(f"  warm/cold: min {min(ratios):.3f}, max {max(ratios):.3f}   (issue 25 target: < 0.10)")
 
 
+def cli(args: list[str], cache_dir: Path) -> float:
+    """Seconds of one ``skyroute ARGS --cache-dir CACHE -q`` subprocess (wall clock)."""
+    exe = [sys.executable, "-m", "skyroute.pipeline.cli", *args, "--cache-dir", str(cache_dir)]
+    t0 = time.perf_counter()
+    subprocess.run(exe, check=True, capture_output=True)
+    return time.perf_counter() - t0
+
+
+def commands(scenario: str, fly_scenario: str) -> None:
+    """Cold vs warm-into-a-new-folder of run, plan, fly and report (see the module docstring)."""
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        print("priming numba caches (untimed runs in a throwaway stage cache) ...", flush=True)
+        cli(["run", scenario, "--out", str(tmp / "prime-run"), "-q"], tmp / "prime")
+        cli(["fly", fly_scenario, "--out", str(tmp / "prime-fly"), "-q"], tmp / "prime")
+        print(f"{'command':26s} {'cold [s]':>9s} {'warm [s]':>9s} {'warm/cold':>9s}   load average (1 min)")
+        rows = []
+        cases = [
+            ("run " + scenario, lambda c, o: ["run", scenario, "--out", str(o), "-q"]),
+            ("plan " + scenario, lambda c, o: ["plan", scenario, "--out", str(o), "-q"]),
+            ("fly " + fly_scenario, lambda c, o: ["fly", fly_scenario, "--out", str(o), "-q"]),
+        ]
+        for name, argv in cases:
+            cache = tmp / f"cache-{len(rows)}"
+            load = os.getloadavg()[0]
+            cold = cli(argv(cache, tmp / f"{len(rows)}-cold"), cache)
+            warm = cli(argv(cache, tmp / f"{len(rows)}-warm"), cache)
+            rows.append((name, cold, warm, load, os.getloadavg()[0]))
+        # report of a plan folder (it draws the scenario's maps into the page): a first plan
+        # folder's report on a new cache, then a new plan folder's report on the same cache
+        cache = tmp / "cache-report"
+        cli(["plan", scenario, "--out", str(tmp / "rp1"), "-q"], cache)
+        load = os.getloadavg()[0]
+        cold = cli(["report", str(tmp / "rp1")], cache)
+        cli(["plan", scenario, "--out", str(tmp / "rp2"), "-q"], cache)
+        warm = cli(["report", str(tmp / "rp2")], cache)
+        rows.append((f"report (plan {scenario})", cold, warm, load, os.getloadavg()[0]))
+        for name, cold, warm, l0, l1 in rows:
+            print(f"{name:26s} {cold:9.2f} {warm:9.2f} {warm / cold:9.3f}   {l0:.2f}-{l1:.2f}", flush=True)
+        print("(issue 35 target: warm into a new folder < 0.10 of cold)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenario", nargs="?", default="helsinki-medical")
     ap.add_argument("--repeat", type=int, default=3, help="warm runs; the best counts (default 3)")
     ap.add_argument("--quick", action="store_true", help="one cold and one warm CLI run only")
     ap.add_argument("--pairs", type=int, default=0, help="N alternating (cold, warm) CLI pairs, each cold on a new cache")
+    ap.add_argument("--commands", action="store_true",
+                    help="run, plan, fly and report: cold vs warm into a new folder")
+    ap.add_argument("--fly-scenario", default="helsinki-tactical", help="the scenario --commands flies")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
+    if args.commands:
+        commands(args.scenario, args.fly_scenario)
+        return
     if args.pairs > 0:
         pairs(args.scenario, args.pairs)
         return

@@ -20,7 +20,8 @@ import click
 from skyroute.pipeline.errors import SkyrouteError
 from skyroute.stages.planning.registry import PLANNERS, planner_help
 
-_T0 = time.perf_counter()     # when the CLI was imported (the wall clock's fallback start)
+_T0 = time.perf_counter()     # when the CLI was imported (the wall clock's start)
+_CPU0 = time.process_time()   # CPU time [s] of the process by then: the interpreter's start-up
 _COMMANDS = [0, _T0]          # commands started in this process, start of the latest one
 
 
@@ -29,22 +30,35 @@ def _command_started() -> None:
     _COMMANDS[1] = time.perf_counter()
 
 
+STARTUP_LOAD_FACTOR = 3.0     # the interpreter's start-up takes at most this x its CPU time [1]
+
+
 def wall_s() -> float:
-    """Seconds of the running command: for the first command of a process, since the process
-    started, interpreter start-up and imports included (Linux: from /proc, 10 ms resolution;
-    elsewhere: since the CLI was imported); for a later one in the same process (a notebook or
-    a test calling ``main`` again), since that command started."""
+    """Seconds of the running command [s]: for a later command in the same process (a notebook
+    or a test calling ``main`` again), since that command started; for the first one, since the
+    interpreter started: the time since this module was imported plus the start-up before it
+    (interpreter, ``site``, the imports above: 0.16-0.22 s of CPU, 0.25-0.47 s of wall at load
+    5 on 2 cores).  That start-up is the wall time since the process started (Linux
+    ``/proc/self/stat``) when it is at most :data:`STARTUP_LOAD_FACTOR` x the CPU time the
+    process had used by the import, else that CPU time (a lower bound): the process may have
+    started long before the interpreter, as with ``bash -c 'sleep 5 && skyroute run'``, where
+    bash execs skyroute in its own process, started 5 s earlier."""
     if _COMMANDS[0] > 1:
         return time.perf_counter() - _COMMANDS[1]
     since_import = time.perf_counter() - _T0
+    startup = _CPU0
     try:
         with open("/proc/self/stat", "rb") as f:
             start_ticks = int(f.read().rsplit(b")", 1)[1].split()[19])   # field 22: starttime [ticks]
         with open("/proc/uptime", "rb") as f:
             uptime_s = float(f.read().split()[0])
-        return max(uptime_s - start_ticks / os.sysconf("SC_CLK_TCK"), since_import)
+        before = uptime_s - start_ticks / os.sysconf("SC_CLK_TCK") - since_import   # 10 ms resolution
+        if before <= STARTUP_LOAD_FACTOR * _CPU0:
+            startup = max(before, 0.0)
     except (OSError, ValueError, IndexError):
-        return since_import
+        pass
+    return since_import + startup
+
 
 SCHEDULER_HELP = ("dask scheduler: threads (default), processes, synchronous, distributed "
                   "(a new LocalCluster, see --workers) or the address of a running cluster tcp://HOST:PORT")
@@ -93,7 +107,12 @@ SEED = click.IntRange(min=0, max=2**32 - 1)   # numpy and OMPL seeds: 0 .. 2**32
 
 class SkyrouteGroup(click.Group):
     """A click group that reports SkyrouteError, and click's own usage errors (a bad option
-    value, an unknown option), as one clean ``error: ...`` line (exit code 2)."""
+    value, an unknown option), as one clean ``error: ...`` line (exit code 2).  Every command
+    added takes ``-v`` and ``-q`` (:func:`add_verbosity_options`)."""
+
+    def add_command(self, cmd: click.Command, name: str | None = None) -> None:
+        super().add_command(cmd, name)
+        add_verbosity_options(cmd)
 
     def invoke(self, ctx: click.Context):
         from skyroute.pipeline import control, outfolder
@@ -143,6 +162,9 @@ class SkyrouteGroup(click.Group):
                     raise
                 _interrupted(ctx, control)
             finally:
+                from skyroute.pipeline import progress
+
+                progress.close()          # no progress line left behind
                 outfolder.discard_all()   # a failed or interrupted command leaves --out as it was
                 set_max_memory(None)   # --max-memory holds for this command only (a session may run more)
 
@@ -258,21 +280,111 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"warning: {text}", file=file or sys.stderr, flush=True)
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Log records on ``sys.stderr`` as it is at each record (a test runner's capture, or the
+    progress display's guard, which clears the progress line first)."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr
+        super().emit(record)
+
+
+_SHOWWARNING: list = []   # Python's own warnings.showwarning, while ours is installed
+
+
 def _setup_logging(verbose: int) -> None:
+    """Log level and warning format of ``-v`` (0: warnings only, 1: info, 2+: debug); called again
+    when a command's own ``-v`` adds to the group's."""
     import warnings
 
     if verbose < 2:  # -vv keeps Python's own format (file and line) for debugging
-        warnings.showwarning = _show_warning
+        if warnings.showwarning is not _show_warning:
+            _SHOWWARNING[:] = [warnings.showwarning]
+            warnings.showwarning = _show_warning
+    elif warnings.showwarning is _show_warning and _SHOWWARNING:
+        warnings.showwarning = _SHOWWARNING[0]
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
-    logging.basicConfig(level=level, stream=sys.stderr,
-                        format="%(asctime)s level=%(levelname)s logger=%(name)s %(message)s")
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter("%(asctime)s level=%(levelname)s logger=%(name)s %(message)s"))
+    logging.basicConfig(level=level, handlers=[handler])   # once a process (a root without handlers)
+    root = logging.getLogger()
+    if any(isinstance(h, _StderrHandler) for h in root.handlers):
+        root.setLevel(level)
     logging.getLogger("skyroute").setLevel(level)
+    # other libraries' info lines (pyogrio's "Created N records" per layer) only with -vv
+    logging.getLogger("pyogrio").setLevel(logging.DEBUG if verbose >= 2 else logging.WARNING)
+
+
+# -v / -q: the same options, the same meaning, before or after the command name (`skyroute -q
+# plan`, `skyroute plan -q`): the group and every command take both, and what is given in either
+# place adds up (-v counts, -q is set by either); each command's own `quiet` parameter (run's
+# JSON line, fleet's per-mission lines) receives the merged value.
+QUIET_HELP = "No progress display on stderr."
+VERBOSE_HELP = ("Log lines on stderr (-v info, -vv debug); when stderr is no terminal, also one progress "
+                "line per phase.")
+_VERBOSITY = "skyroute.verbosity"
+
+
+def _verbosity(ctx: click.Context, param: click.Parameter, value):
+    """Callback of every -v / -q: adds the value to the command line's verbosity (kept in the root
+    context) and applies it (log level, progress display); returns the merged value."""
+    st = ctx.find_root().meta.setdefault(_VERBOSITY, {"verbose": 0, "quiet": False})
+    if param.name == "verbose":
+        st["verbose"] += int(value or 0)
+        value = st["verbose"]
+    else:
+        st["quiet"] = st["quiet"] or bool(value)
+        value = st["quiet"]
+    from skyroute.pipeline import progress
+
+    _setup_logging(st["verbose"])
+    progress.configure(quiet=st["quiet"], verbose=st["verbose"])
+    return value
+
+
+def verbosity_options(f):
+    """``-v/--verbose`` (count) and ``-q/--quiet`` of the group (the commands get them from
+    :func:`add_verbosity_options`)."""
+    f = click.option("-q", "--quiet", is_flag=True, expose_value=False, callback=_verbosity,
+                     help=QUIET_HELP + " Before or after the command name (skyroute -q CMD = skyroute CMD -q).")(f)
+    return click.option("-v", "--verbose", count=True, expose_value=False, callback=_verbosity,
+                        help=VERBOSE_HELP + " Before or after the command name.")(f)
+
+
+def add_verbosity_options(cmd: click.Command) -> None:
+    """Give ``cmd`` (and, for a group, its commands) ``-v`` and ``-q``: a command's own ``quiet``
+    option gets the merged value (its help is its own); options it lacks are added."""
+    flags = {o for p in cmd.params for o in (*getattr(p, "opts", ()), *getattr(p, "secondary_opts", ()))}
+    names = {p.name for p in cmd.params}
+    if "verbose" not in names and not flags & {"-v", "--verbose"}:
+        cmd.params.append(click.Option(["-v", "--verbose"], count=True, expose_value=False, callback=_verbosity,
+                                       help=VERBOSE_HELP))
+    own = next((p for p in cmd.params if p.name == "quiet" and isinstance(p, click.Option)), None)
+    if own is not None:
+        if own.callback is None:
+            own.callback = _verbosity
+    elif not flags & {"-q", "--quiet"}:
+        cmd.params.append(click.Option(["-q", "--quiet"], is_flag=True, expose_value=False, callback=_verbosity,
+                                       help=QUIET_HELP))
+    if isinstance(cmd, click.Group):
+        for sub in cmd.commands.values():
+            add_verbosity_options(sub)
+
+
+def show_progress(quiet: bool) -> bool:
+    """Whether a command with ``-q`` = ``quiet`` shows its progress (:func:`skyroute.pipeline.progress.wanted`)."""
+    from skyroute.pipeline import progress
+
+    return progress.wanted(quiet)
 
 
 @click.group(cls=SkyrouteGroup, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@click.option("-v", "--verbose", count=True, help="Structured log lines on stderr (-v info, -vv debug).")
+@verbosity_options
 @click.version_option(package_name="skyroute")
-def main(verbose: int) -> None:
+def main() -> None:
     """skyroute: plan safe, GNSS-aware, risk-aware and energy-aware drone flights from real maps,
     real satellite almanacs and real wind.
 
@@ -282,6 +394,10 @@ def main(verbose: int) -> None:
       skyroute run                            run the default scenario (helsinki-medical)
       skyroute run rotterdam-canyon --out out/rotterdam
       skyroute cache ls                       show cached stage outputs
+
+    Long work shows its progress on stderr (stages, Monte Carlo runs, the flight replay, outputs
+    being written): one line updated in place on a terminal, one line per phase with -v
+    otherwise, nothing with -q.  -v and -q mean the same before or after the command name.
     """
     _command_started()
     from skyroute.pipeline.outputs import PRINTED_WARNINGS
@@ -290,14 +406,23 @@ def main(verbose: int) -> None:
     from skyroute.pipeline.budget import set_max_memory
 
     set_max_memory(None)                        # --max-memory of an earlier command in this session
-    _setup_logging(verbose)
+    # (-v / -q: applied by their callbacks, the group's and then the command's)
 
 
 @main.command("scenarios")
-def scenarios_command() -> None:
-    """List the scenario catalog, one line each."""
+@click.option("--copy", "copy", nargs=2, type=(str, click.Path(file_okay=False, path_type=Path)), default=None,
+              metavar="NAME DIR", help="Write catalog scenario NAME as DIR/NAME.yaml with its data paths made "
+              "absolute, ready to edit (an existing file is not replaced).")
+def scenarios_command(copy) -> None:
+    """List the scenario catalog, one line each (or copy one with --copy NAME DIR)."""
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario, scenario_paths
 
+    if copy is not None:
+        from skyroute.pipeline.settings.io import copy_scenario
+
+        dest, n = copy_scenario(*copy)
+        click.echo(f"{copy[0]} -> {dest} ({n} data path(s) made absolute); edit it, then: skyroute run {dest}")
+        return
     for name, path in scenario_paths().items():
         try:
             sc = load_scenario(path)
@@ -324,7 +449,9 @@ def scenarios_command() -> None:
 @click.option("--link", is_flag=True, help="Link DIR/datasets/*.zarr into the cache instead of copying them "
               "(saves space; the links break when the cache is cleared).")
 @click.option("--no-report", "no_report", is_flag=True, help="Do not write DIR/report.html.")
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@click.option("-q", "--quiet", is_flag=True,
+              help="No progress display; print one JSON line (out, seconds, stages_seconds, plan) instead of the "
+                   "stage table.")
 @max_memory_option
 def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force, link, no_report, quiet) -> None:
     """Run every stage that applies to SCENARIO (a catalog name or a YAML path; default
@@ -343,14 +470,17 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name)
     result = run_scenario(sc, cache=Cache(cache_dir), targets=targets or None, scheduler=scheduler,
-                          workers=workers, progress=not quiet and sys.stderr.isatty(), force=force)
+                          workers=workers, progress=show_progress(quiet), force=force)
     fly = None
     if getattr(sc, "events", ()) and "plan" in result.datasets:
-        fly = _run_fly(sc, result, out_dir, scheduler, quiet)
+        fly = _run_fly(sc, result, out_dir, scheduler, quiet, cache_dir)
     summary = write_run_outputs(result, out_dir, link=link, extra=fly,
                                 also_files=() if no_report else (REPORT_NAME,))
     if not no_report:
-        build_report(out_dir)
+        from skyroute.pipeline import progress
+
+        with progress.phase("run: report.html"):
+            build_report(out_dir)
     _report_warnings(summary["warnings"])
     plan = summary.get("plan")
     if not quiet:
@@ -374,18 +504,18 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
     _exit_if_no_plan(plan)
 
 
-def _run_fly(sc, result, out_dir: Path, scheduler: str, quiet: bool) -> dict | None:
+def _run_fly(sc, result, out_dir: Path, scheduler: str, quiet: bool, cache_dir=None) -> dict | None:
     """``skyroute run`` of a scenario with events: the flight replay into ``DIR/fly/`` (its
     own summary.json); returns the files and the section for the run's summary.  Not done
     when the strategic plan is not flyable (the run then exits 3 for that)."""
-    from skyroute.pipeline.fly import fly_scenario
-    from skyroute.pipeline.fly_outputs import write_fly_folder
+    from skyroute.pipeline.cache import Cache
+    from skyroute.pipeline.fly_outputs import fly_folder
+    from skyroute.pipeline.graph import stage_attrs
 
-    if int(result["plan"].attrs.get("chosen_level", -1)) < 0:
+    if int(stage_attrs(result, "plan").get("chosen_level", -1)) < 0:
         return None
-    fr = fly_scenario(sc, result=result, scheduler=scheduler, progress=False)
     fly_dir = Path(out_dir) / "fly"
-    section = write_fly_folder(fr, fly_dir)
+    section = fly_folder(sc, fly_dir, cache=Cache(cache_dir), scheduler=scheduler, result=result)
     doc = json.loads((fly_dir / "summary.json").read_text())
     return {"files": [f"fly/{f}" for f in doc["files"]], "section": section}
 
@@ -397,7 +527,7 @@ def _run_fly(sc, result, out_dir: Path, scheduler: str, quiet: bool) -> dict | N
 @click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@click.option("-q", "--quiet", is_flag=True, help=QUIET_HELP)
 @max_memory_option
 def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
     """Environment maps of SCENARIO: GeoTIFFs of risk, landing, no-fly and clearance layers
@@ -416,7 +546,7 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
     wanted = ("surface", "environment", "wind", "clearance", "traffic")
     targets = [s.name for s in stages_for(sc) if s.name in wanted]
     result = run_scenario(sc, cache=Cache(cache_dir), targets=targets, scheduler=scheduler,
-                          progress=not quiet and sys.stderr.isatty())
+                          progress=show_progress(quiet))
     files = write_map_geotiffs(result, out_dir)
     files.append(plot_maps_panel(result, out_dir / "maps.png"))
     _folder_summary(out_dir, "maps", result, files, {"maps": {"stages": targets}})
@@ -438,7 +568,7 @@ def maps_command(scenario, out_dir, cache_dir, scheduler, quiet) -> None:
 @click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@click.option("-q", "--quiet", is_flag=True, help=QUIET_HELP)
 @max_memory_option
 def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, cache_dir, scheduler, quiet) -> None:
     """Strategic plan of SCENARIO (seed 000 III): for every GNSS coverage level D_j, STEP I
@@ -451,9 +581,9 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
     from skyroute.pipeline.errors import InputError
     from skyroute.pipeline.outputs import (
         ensure_writable_dir,
-        plan_section,
+        plan_output_key,
+        plan_outputs,
         plan_summary_line,
-        write_plan_outputs,
     )
     from skyroute.pipeline.runner import run_scenario
     from skyroute.pipeline.settings import DEFAULT_SCENARIO, load_scenario
@@ -485,15 +615,12 @@ def plan_command(scenario, out_dir, weights, planner_name, seed, time_budget_s, 
         check_planner_vehicle(planner.name, sc.vehicle, PLANNERS)   # InputError naming the planners that fit
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "plan")
     result = run_scenario(sc, cache=Cache(cache_dir), targets=["plan"], scheduler=scheduler,
-                          progress=not quiet and sys.stderr.isatty())
-    files = write_plan_outputs(result, out_dir)
-    plan = plan_section(result["plan"])
-    from skyroute.pipeline.outputs import relative_files
-    from skyroute.pipeline.plan_exports import exports_section
-
-    exports = exports_section(result, relative_files(out_dir, list(files.values())), out_dir)
-    _folder_summary(out_dir, "plan", result, list(files.values()), {"plan": plan, "exports": exports})
-    for f in files.values():
+                          progress=show_progress(quiet))
+    cached = all(r.path for r in result.records if r.name == "plan")
+    rel, plan, exports = plan_outputs(result, out_dir, "", plan_output_key(result) if cached else None)
+    files = [out_dir / f for f in rel]
+    _folder_summary(out_dir, "plan", result, files, {"plan": plan, "exports": exports})
+    for f in files:
         click.echo(str(shown(f)))
     if plan["status"] == "flyable":
         click.echo(plan_summary_line(plan))
@@ -559,7 +686,7 @@ def report_command(run_dir, out_path, no_maps, cache_dir) -> None:
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="Workers for processes/distributed.")
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@click.option("-q", "--quiet", is_flag=True, help=QUIET_HELP)
 @max_memory_option
 def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) -> None:
     """GNSS coverage maps of SCENARIO: for each DOP threshold D_j (scenario gnss.dop_thresholds)
@@ -575,7 +702,7 @@ def coverage_command(scenario, out_dir, cache_dir, scheduler, workers, quiet) ->
 
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "coverage")
     result = run_scenario(sc, cache=Cache(cache_dir), targets=["coverage"], scheduler=scheduler, workers=workers,
-                          progress=not quiet and sys.stderr.isatty())
+                          progress=show_progress(quiet))
     cov = result["coverage"]   # lazy: the GeoTIFFs are written chunk by chunk, the figure from a reduced view
     files = write_coverage_outputs(cov, out_dir)
     _folder_summary(out_dir, "coverage", result, files, {"coverage": {
@@ -667,6 +794,7 @@ def _register_plugins() -> None:
 
 
 _register_plugins()
+add_verbosity_options(main)    # every command, the plugins' and the nested groups' ones too
 
 
 def shown(path) -> Path:

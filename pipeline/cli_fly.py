@@ -7,8 +7,16 @@ from pathlib import Path
 
 import click
 
-from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, FiniteFloat, OutPath, max_memory_option
-from skyroute.pipeline.fly_outputs import write_fly_folder  # noqa: F401  (its old home)
+from skyroute.pipeline.cli import (
+    QUIET_HELP,
+    SCHEDULER_HELP,
+    SEED,
+    FiniteFloat,
+    OutPath,
+    max_memory_option,
+    show_progress,
+)
+from skyroute.pipeline.fly_outputs import fly_folder, write_fly_folder  # noqa: F401  (write_fly_folder: its old home)
 
 
 @click.command("fly")
@@ -28,7 +36,7 @@ from skyroute.pipeline.fly_outputs import write_fly_folder  # noqa: F401  (its o
 @click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@click.option("-q", "--quiet", is_flag=True, help=QUIET_HELP)
 @max_memory_option
 def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, cache_dir, scheduler, quiet) -> None:
     """Fly the strategic plan of SCENARIO (default helsinki-tactical) in simulated time through
@@ -39,7 +47,7 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, c
     summary.json. Exit code 3 when the flight ends neither at the goal nor on a landing site."""
     from skyroute.pipeline.cache import Cache
     from skyroute.pipeline.errors import InputError
-    from skyroute.pipeline.fly import fly_params, fly_scenario
+    from skyroute.pipeline.fly import fly_params
     from skyroute.pipeline.outputs import ensure_writable_dir
     from skyroute.pipeline.settings import load_scenario, with_events
 
@@ -55,9 +63,9 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, c
     if tactical_method(sc, method) != "local":
         fly_params(sc, t_rep_s, tick_s, seed, method)  # bad --t-rep / --tick: exit 2 before any work
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "fly")
-    fr = fly_scenario(sc, cache=Cache(cache_dir), scheduler=scheduler, progress=not quiet and sys.stderr.isatty(),
-                      t_rep_s=t_rep_s, tick_s=tick_s, seed=seed, method=method)
-    section = write_fly_folder(fr, out_dir)
+    section = fly_folder(sc, out_dir, cache=Cache(cache_dir), scheduler=scheduler,
+                         progress=show_progress(quiet), t_rep_s=t_rep_s, tick_s=tick_s, seed=seed,
+                         method=method)
     from skyroute.stages.tactical.outputs import fly_summary_line
 
     click.echo(fly_summary_line(section))

@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import click
 
 from skyroute.pipeline.budget import MAX_NAVSIM_RUNS
-from skyroute.pipeline.cli import SCHEDULER_HELP, SEED, OutPath, max_memory_option
+from skyroute.pipeline.cli import (
+    QUIET_HELP,
+    SCHEDULER_HELP,
+    SEED,
+    OutPath,
+    max_memory_option,
+    show_progress,
+)
 from skyroute.pipeline.outfolder import shown
 
 
@@ -25,7 +31,7 @@ from skyroute.pipeline.outfolder import shown
 @click.option("--cache-dir", type=OutPath(file_okay=False, path_type=Path), default=None,
               help="Stage cache folder (default: $SKYROUTE_CACHE_DIR or ~/.cache/skyroute).")
 @click.option("--scheduler", default="threads", show_default=True, help=SCHEDULER_HELP)
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+@click.option("-q", "--quiet", is_flag=True, help=QUIET_HELP)
 @max_memory_option
 def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, scheduler, quiet) -> None:
     """Navigation Monte Carlo of SCENARIO's chosen plan (seed 003 section III): each run
@@ -46,8 +52,11 @@ def navsim_command(scenario, out_dir, runs, seed, trajectory, cache_dir, schedul
     sc = load_scenario(scenario or DEFAULT_SCENARIO)
     out_dir = ensure_writable_dir(out_dir or Path("skyroute-out") / sc.name / "navsim")
     r = navsim_scenario(sc, cache=Cache(cache_dir), runs=runs, seed=seed, trajectory=trajectory, scheduler=scheduler,
-                        progress=not quiet and sys.stderr.isatty())
-    files = list(write_navsim(r.ds, out_dir, r.surface_uncertainty_m).values())
+                        progress=show_progress(quiet))
+    from skyroute.pipeline.progress import phase
+
+    with phase("navsim: navsim.csv and figures"):
+        files = list(write_navsim(r.ds, out_dir, r.surface_uncertainty_m).values())
     morph = write_morphing(sc, r, out_dir)
     section = navsim_section(r.ds, r.surface_uncertainty_m)
     section["morphing"] = {"files": [p.name for p in morph], "step_s": sc.navsim.morphing_step_s,

@@ -22,6 +22,7 @@ from skyroute.pipeline.fly_common import (
     shortest_flight_s,
     tactical_events,
 )
+from skyroute.pipeline.progress import phase
 from skyroute.pipeline.runner import RunResult, run_scenario
 from skyroute.pipeline.settings import Scenario, check_event_times, scenario_at
 
@@ -97,27 +98,40 @@ def tactical_method(sc: Scenario, method: str | None = None) -> str:
     return method
 
 
+def check_flight(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
+                 method: str | None = None) -> str:
+    """The checks of a flight that need no stage (intruder count, tactical method, parameters,
+    the ticks of the straight flight): InputError (exit 2) before any work; returns the method."""
+    check_intruders(sc)
+    method = tactical_method(sc, method)
+    if method != "local":
+        params = fly_params(sc, t_rep_s, tick_s, seed, method)
+        check_ticks(shortest_flight_s(sc), params.tick_s)
+    return method
+
+
 def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "threads", progress: bool = False,
                  t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
                  result: RunResult | None = None, method: str | None = None) -> FlyResult:
     """Plan (cached) and fly ``sc`` through its events.  ``method``: tactical method
     (``levels`` or ``octant`` for rotorcraft, ``local`` for fixed-wing: :func:`tactical_method`;
     ``local`` is :func:`skyroute.pipeline.fly_fw.fly_fixedwing`).  Raises InputError (exit 2) for bad
-    parameters or events after the mission, PlanningError when there is no strategic plan."""
+    parameters or events after the mission, PlanningError when there is no strategic plan.
+    ``progress``: show the stages' progress; the replay's (simulated time flown of the flight's
+    end) is shown whenever the command shows progress (:mod:`skyroute.pipeline.progress`)."""
     from skyroute.stages.base import PlanningError
     from skyroute.stages.planning.strategic import plan_from_dataset, trajectory_from_dataset
     from skyroute.stages.tactical.replay import replay
     from skyroute.stages.traffic import intruders_for
 
-    check_intruders(sc)
-    method = tactical_method(sc, method)
+    method = check_flight(sc, t_rep_s, tick_s, seed, method)
     if method == "local":
         from skyroute.pipeline.fly_fw import fly_fixedwing
 
-        return fly_fixedwing(sc, cache=cache, scheduler=scheduler, progress=progress, tick_s=tick_s, seed=seed,
-                             result=result)
-    params = fly_params(sc, t_rep_s, tick_s, seed, method)   # bad values fail here, before any work
-    check_ticks(shortest_flight_s(sc), params.tick_s)       # even the straight flight needs too many ticks
+        with phase("fly: replay (fixed-wing)", on=True if progress else None):
+            return fly_fixedwing(sc, cache=cache, scheduler=scheduler, progress=progress, tick_s=tick_s, seed=seed,
+                                 result=result)
+    params = fly_params(sc, t_rep_s, tick_s, seed, method)   # checked by check_flight above
     cache = cache or Cache()
     if result is None:
         result = run_scenario(sc, cache=cache, targets=["plan"], scheduler=scheduler, progress=progress)
@@ -164,9 +178,14 @@ def fly_scenario(sc: Scenario, *, cache: Cache | None = None, scheduler: str = "
 
     strategic = intruders_for([i.model_dump() for i in sc.traffic.intruders], surface) if sc.traffic.intruders else []
     goal = chosen.xyz_m[-1]
-    log = replay(traj, t0, goal_xyz=goal, world=_world(result, sc, radius, window), world_at=world_at, events=events,
-                 strategic_intruders=strategic, vehicle=params.request.vehicle, params=params,
-                 start_time_utc=sc.mission.start_time_utc.isoformat(), dop_threshold=chosen.dop_threshold,
-                 scenario=sc.name, crs_wkt=str(surface["surface"].rio.crs),
-                 vertical_datum=surface["surface"].attrs.get("vertical_datum", ""))
+    with phase("fly: replay", unit="s simulated", detail=f"{len(events)} events",
+               on=True if progress else None) as shown:
+        def flown(t_s: float, t_end_s: float) -> None:    # simulated time [s] since take-off, of the end
+            shown.update(t_s - t0, t_end_s - t0)
+
+        log = replay(traj, t0, goal_xyz=goal, world=_world(result, sc, radius, window), world_at=world_at,
+                     events=events, strategic_intruders=strategic, vehicle=params.request.vehicle, params=params,
+                     start_time_utc=sc.mission.start_time_utc.isoformat(), dop_threshold=chosen.dop_threshold,
+                     scenario=sc.name, crs_wkt=str(surface["surface"].rio.crs),
+                     vertical_datum=surface["surface"].attrs.get("vertical_datum", ""), progress=flown)
     return FlyResult(result, log, updates)

@@ -21,6 +21,7 @@ from skyroute.pipeline.budget import MAX_NAVSIM_RUNS, check_navsim
 from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.fly_common import shortest_flight_s
+from skyroute.pipeline.progress import dask_tasks, phase
 from skyroute.pipeline.runner import RunResult, run_scenario
 from skyroute.pipeline.settings import Scenario
 
@@ -107,7 +108,9 @@ def read_flown_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | None = None, seed: int | None = None,
                     trajectory: Path | None = None, scheduler: str = "threads", progress: bool = False) -> NavsimResult:
-    """Plan (cached) and simulate the navigation of ``sc``'s chosen plan or of ``trajectory``."""
+    """Plan (cached) and simulate the navigation of ``sc``'s chosen plan or of ``trajectory``.
+    ``progress``: show the stages' progress (the simulation's phases are shown whenever the
+    command shows progress, :mod:`skyroute.pipeline.progress`)."""
     from skyroute.stages.base import PlanningError
     from skyroute.stages.grid import Grid
     from skyroute.stages.navsim import flight_geometry, simulate
@@ -155,9 +158,14 @@ def navsim_scenario(sc: Scenario, *, cache: Cache | None = None, runs: int | Non
     surf = result["surface"].load()
     holder = SimpleNamespace(grid=Grid.from_dataarray(surf["terrain"]))   # line_of_sight reads the grid only
     sky = result["satellites"].load()
-    los, vis, up = flight_geometry(holder, sky, surf["surface"].values, t, xyz, sc.mission.start_time_utc.isoformat())
-    ds = simulate(t, xyz, los, vis, up, params=params, imu=load_vehicle(sc.vehicle), runs=runs, seed=seed)
-    add_protection_levels(ds, los, vis, params.sigma_uere_m, budget=integrity_budget(sc))
+    on = True if progress else None
+    with phase("navsim: line of sight", detail=f"{t.size:,} epochs", on=on):
+        los, vis, up = flight_geometry(holder, sky, surf["surface"].values, t, xyz,
+                                       sc.mission.start_time_utc.isoformat())
+    with phase("navsim: Monte Carlo", detail=f"{runs:,} runs x {t.size:,} epochs, 2 filters", on=on):
+        ds = simulate(t, xyz, los, vis, up, params=params, imu=load_vehicle(sc.vehicle), runs=runs, seed=seed)
+    with phase("navsim: protection levels", on=on):
+        add_protection_levels(ds, los, vis, params.sigma_uere_m, budget=integrity_budget(sc))
     ds.attrs.update({"scenario": sc.name, "source": source, "runs": runs, "seed": seed,
                      "start_time_utc": sc.mission.start_time_utc.isoformat(), "rate_hz": n.rate_hz})
     return NavsimResult(result, ds, source, float(n.surface_uncertainty_m), t, xyz, dop_threshold)
@@ -187,7 +195,8 @@ def write_morphing(sc: Scenario, r: NavsimResult, out_dir: Path) -> list[Path]:
                                    floor_m=terrain + sc.constraints.min_altitude_agl_m,
                                    ceiling_m=surf.get("terrain_min", terrain) + sc.constraints.max_altitude_agl_m,
                                    mask_deg=sc.gnss.elevation_mask_deg, times=times, region_m=box)
-    series = series.compute()
+    with phase("navsim: morphing map", detail=f"{times.size} epochs"), dask_tasks():
+        series = series.compute()
     zarr_path = Path(out_dir) / "morphing.zarr"
     from skyroute.pipeline.outputs import remove_path
 
@@ -195,5 +204,6 @@ def write_morphing(sc: Scenario, r: NavsimResult, out_dir: Path) -> list[Path]:
     series.drop_vars([v for v in series.variables if series[v].dtype.kind in "OU"], errors="ignore").to_zarr(
         zarr_path, mode="w", consolidated=False)
     gif = Path(out_dir) / f"morphing_{sc.gnss.dop_kind}{r.dop_threshold:g}.gif"
-    animate_floor(series, r.dop_threshold, r.t_s, r.xyz_m, gif)
+    with phase("navsim: morphing GIF", detail=gif.name):
+        animate_floor(series, r.dop_threshold, r.t_s, r.xyz_m, gif)
     return [zarr_path, gif]

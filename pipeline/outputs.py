@@ -13,7 +13,14 @@ import numpy as np
 
 from skyroute.pipeline.errors import InputError
 from skyroute.pipeline.graph import RunResult, stage_attrs
-from skyroute.stages.figures import add_map_furniture, image_extent
+from skyroute.pipeline.progress import note, phased
+from skyroute.stages.figures import (
+    GOAL_STYLE,
+    START_STYLE,
+    add_map_furniture,
+    image_extent,
+    side_colorbar,
+)
 
 
 def plot_surface(result: RunResult, path: Path) -> Path:
@@ -38,14 +45,14 @@ def plot_surface(result: RunResult, path: Path) -> Path:
     shade = 0.5 + 0.5 * (-dx - dy) / np.sqrt(2 + dx**2 + dy**2 + 1e-9)
     im = ax.imshow(z, extent=extent, cmap="terrain" if np.ptp(terr) > 20 else "viridis", interpolation="nearest")
     ax.imshow(shade, extent=extent, cmap="gray", alpha=0.25, interpolation="nearest")
-    for name, marker, colour in (("start", "o", "white"), ("goal", "*", "red")):
+    for name, style in (("start", START_STYLE), ("goal", GOAL_STYLE)):   # the markers of every map figure
         p = getattr(sc.mission, name)
         x, y = sc.point_xy(p)
-        ax.plot(x, y, marker, ms=12, mfc=colour, mec="black", label=f"{name}: {p.name or f'({x:.0f}, {y:.0f})'}")
-    ax.legend(loc="lower right", fontsize=7, framealpha=0.85)
-    cb = fig.colorbar(im, ax=ax, shrink=0.8)
+        ax.plot(x, y, **style, label=f"{name}: {p.name or f'({x:.0f}, {y:.0f})'}")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.09), fontsize=7, framealpha=0.85, ncol=2)
     datum = "\n".join(textwrap.wrap(str(ds.attrs.get("vertical_datum", "")), 40)[:2])
-    cb.set_label(f"surface height [m]\n{datum}", fontsize=8)
+    cb = side_colorbar(fig, ax, im, f"surface height [m]\n{datum}")
+    cb.ax.yaxis.label.set_fontsize(8)
     ax.set_xlabel(f"x [m] ({g.crs.name})")
     ax.set_ylabel("y [m]")
     ax.set_title(f"{sc.name}: surface model, {g.nx} x {g.ny} cells @ {g.resolution_m:g} m", fontsize=10)
@@ -358,14 +365,15 @@ def check_summary_files(folder: Path, doc: dict[str, Any], name: str = "folder",
                         may_miss: tuple[str, ...] = ("report.html", ".skyroute-manifest.json")) -> None:
     """InputError when the folder does not hold what its summary lists (files deleted, or a
     rewrite that did not finish); ``may_miss``: files written after the summary (the report
-    page, built from the summary)."""
+    page, built from the summary; the manifests, of the folder and of its sub-folders, written
+    when the outputs are put into place)."""
     files = doc.get("files", [])
     if not isinstance(files, list):
         raise InputError(f"{name} {folder}: summary.json's files is not a list; run the command that wrote it again")
     for f in files:
         if not isinstance(f, str) or ".." in Path(f).parts or Path(f).is_absolute():
             raise InputError(f"{name} {folder}: summary.json lists {str(f)[:80]!r}, not a file of the folder")
-        if f not in may_miss and not os.path.lexists(Path(folder) / f):
+        if f not in may_miss and Path(f).name not in may_miss[1:] and not os.path.lexists(Path(folder) / f):
             raise InputError(f"{name} {folder}: summary.json lists {f}, which is missing: the folder is not what its "
                              "command wrote; run that command again")
 
@@ -465,6 +473,71 @@ def outputs_code_version() -> str:
     return code_version_of(modules=OUTPUT_MODULES, salt="run-outputs")
 
 
+def output_key(result: RunResult, stages: tuple[str, ...], code: str | None = None) -> str:
+    """The key of an output drawn from ``stages`` of ``result`` (a figure, a GeoTIFF): their
+    stage keys and the output code (:func:`outputs_code_version`).  ``summary.json``'s
+    ``output_keys`` and the output memo (:mod:`skyroute.pipeline.output_memo`) use it."""
+    keys = {r.name: r.key for r in result.records}
+    return "+".join([*(keys[s] for s in stages), code or outputs_code_version()])
+
+
+def map_figure(result: RunResult, path: Path, rel: str, stages: tuple[str, ...], make) -> Path:
+    """``make(path)`` of a figure drawn from ``stages`` (``rel``: its name in a run folder, e.g.
+    ``figures/maps.png``), or its copy from the output memo when it was drawn before from the
+    same cached stages by the same code."""
+    from skyroute.pipeline.output_memo import computed_in_run, memo_of
+
+    cached = all(r.path for r in result.records if r.name in stages)
+    memo = memo_of(result) if cached else None
+    if memo is None:
+        make(path)
+    else:
+        memo.make(f"{rel}|{output_key(result, stages)}", path, make, fresh=computed_in_run(result, stages))
+    return Path(path)
+
+
+def plan_output_key(result: RunResult, code: str | None = None) -> str:
+    """The key of a plan's files (:func:`plan_outputs`): the plan stage's key, what the pilot
+    exports read beyond it (``data.ground``...: :func:`~skyroute.pipeline.plan_exports.export_key`)
+    and the output code (:func:`outputs_code_version`)."""
+    from skyroute.pipeline.plan_exports import export_key
+
+    rec = next(r for r in result.records if r.name == "plan")
+    return f"{rec.key}+{export_key(result)}+{code or outputs_code_version()}"
+
+
+@phased("plan files")
+def plan_outputs(result: RunResult, plan_dir: Path, prefix: str = "",
+                 key: str | None = None) -> tuple[list[str], dict[str, Any], dict[str, Any]]:
+    """The plan files (:func:`write_plan_outputs`) in ``plan_dir`` and the summary's ``plan`` and
+    ``exports`` sections (their file names prefixed by ``prefix``, e.g. ``plan/`` inside a run
+    folder): ``(file names relative to plan_dir, plan section, exports section)``.  With ``key``
+    (the plan stage's key, the exports' and the output code's), copied from the output memo
+    (:mod:`skyroute.pipeline.output_memo`) when they were written before, else written and
+    memoised: a warm command into a new folder reads no dataset and draws nothing."""
+    from skyroute.pipeline.output_memo import computed_in_run, memo_of
+    from skyroute.pipeline.plan_exports import exports_section
+
+    plan_dir = Path(plan_dir)
+    memo = memo_of(result) if key is not None else None
+    mkey = f"plan-files|{prefix}|{key}"
+    if memo is not None and not computed_in_run(result):     # --force of any stage: written again
+        meta = memo.fetch(mkey, plan_dir)
+        if meta and isinstance(meta.get("files"), list):
+            return list(meta["files"]), meta["plan"], meta["exports"]
+    written = write_plan_outputs(result, plan_dir)
+    rel = sorted(Path(p).resolve().relative_to(plan_dir.resolve()).as_posix() for p in written.values())
+    # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
+    from dask.local import get_sync
+
+    plan = plan_section(result["plan"].compute(scheduler=get_sync))   # small: read at once
+    exports = exports_section(result, [prefix + f for f in rel], plan_dir.parent if prefix else plan_dir)
+    if memo is not None:
+        memo.store(mkey, plan_dir, {"files": rel, "plan": plan, "exports": exports}, only=rel)
+    return rel, plan, exports
+
+
+@phased("outputs")
 def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", link: bool = False,
                       extra: dict[str, Any] | None = None, also_files: tuple[str, ...] = ()) -> dict[str, Any]:
     """Write copies of the cached zarr datasets (symlinks into the cache with ``link``), GeoTIFFs,
@@ -493,6 +566,10 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
     from skyroute.pipeline.outfolder import folder_of
 
     staged = folder_of(out_dir)
+    from skyroute.pipeline.output_memo import memo_of
+
+    memo = memo_of(result)
+    computed = {r.name for r in result.records if not r.cache_hit}   # this run: never from the memo
 
     def _kept(rel: str) -> bool:
         """``rel`` of the previous run is reused as it is (a staged command keeps it in place)."""
@@ -503,17 +580,22 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
 
     def produce(rel: str, stage: str | tuple[str, ...], make) -> None:
         stages = (stage,) if isinstance(stage, str) else tuple(stage)
-        key = "+".join([*(keys[s] for s in stages), code])
+        key = output_key(result, stages, code)
         reusable = not uncached.intersection(stages)
         path = out_dir / rel
-        if not (reusable and prev_keys.get(rel) == key and _kept(rel)):
-            make(path)
+        note(rel)                          # the progress line's current file
+        if not (reusable and not computed & set(stages) and prev_keys.get(rel) == key and _kept(rel)):
+            if reusable and memo is not None:        # a new folder: copied from the memo when drawn before
+                memo.make(f"{rel}|{key}", path, make, fresh=bool(computed & set(stages)))
+            else:
+                make(path)
         output_keys[rel] = key if reusable else ""
         files.append(rel)
 
     for rec in result.records:
         rel = f"datasets/{rec.name}.zarr"
         dst = out_dir / rel
+        note(rel)
         if not rec.path:                   # not cached: written from memory, never reused by key
             _write_store(result[rec.name], dst)
             output_keys[rel] = ""
@@ -523,7 +605,7 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         if link:
             remove_path(dst)
             os.symlink(src, dst)
-        elif not (prev_keys.get(rel) == rec.key and _kept(rel)):
+        elif not (rec.cache_hit and prev_keys.get(rel) == rec.key and _kept(rel)):   # --force: again
             _copy_store(src, dst)
         output_keys[rel] = rec.key
         files.append(rel)
@@ -549,33 +631,20 @@ def write_run_outputs(result: RunResult, out_dir: Path, command: str = "run", li
         produce(f"figures/coverage_{kind}.png", "coverage", draw_coverage)
     sections: dict[str, Any] = {}
     if "plan" in result.datasets:
-        from skyroute.pipeline.plan_exports import export_key
-
-        plan_key = f"{keys['plan']}+{export_key(result)}+{code}"   # the pilot exports also read data.ground
+        plan_key = plan_output_key(result, code)
         old = [f for f in prev_files if f.startswith("plan/")]
         # (a folder written before plan.html existed gets its plan files rewritten once)
-        reused = ("plan" not in uncached and prev_keys.get("plan/") == plan_key and old
-                  and "plan/plan.html" in old and all(_kept(f) for f in old))
-        if reused:
-            plan_files = old
-        else:
-            written = write_plan_outputs(result, out_dir / "plan")
-            plan_files = [Path(p).relative_to(out_dir).as_posix() for p in written.values()]
+        reused = ("plan" not in uncached and not computed and prev_keys.get("plan/") == plan_key and old
+                  and "plan/plan.html" in old and all(_kept(f) for f in old)
+                  and isinstance(previous.get("plan"), dict) and isinstance(previous.get("exports"), dict))
         output_keys["plan/"] = plan_key if "plan" not in uncached else ""
-        files.extend(plan_files)
-        if reused and isinstance(previous.get("plan"), dict):   # same plan stage: same section (not read again)
-            sections["plan"] = previous["plan"]
+        if reused:        # same plan stage, same exports: the same files and sections (not read again)
+            files.extend(old)
+            sections["plan"], sections["exports"] = previous["plan"], previous["exports"]
         else:
-            # a callable scheduler: dask looks a named one up by importing distributed (~0.5 s)
-            from dask.local import get_sync
-
-            sections["plan"] = plan_section(result["plan"].compute(scheduler=get_sync))  # small: read at once
-        if reused and isinstance(previous.get("exports"), dict):   # same plan, same exports: same section
-            sections["exports"] = previous["exports"]
-        else:
-            from skyroute.pipeline.plan_exports import exports_section
-
-            sections["exports"] = exports_section(result, [f for f in plan_files if f.startswith("plan/")], out_dir)
+            rel_files, sections["plan"], sections["exports"] = plan_outputs(
+                result, out_dir / "plan", "plan/", plan_key if "plan" not in uncached else None)
+            files.extend(f"plan/{f}" for f in rel_files)
     files.extend(also_files)
     if extra is not None:
         files.extend(extra["files"])

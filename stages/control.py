@@ -46,7 +46,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-__all__ = ["Interrupted", "StopFlag", "cancelled", "check", "exit_code", "mark_reported", "note", "progress",
+__all__ = ["Interrupted", "StopFlag", "cancelled", "check", "clock_stops", "exit_code", "mark_reported", "note",
+           "note_clock_stop", "progress",
            "progress_enabled", "request_cancel", "reset", "signal_handlers", "signal_received", "work_clock"]
 
 RUNNING, CANCELLED, DEADLINE = 0, 1, 2   # states of a StopFlag array (element 0)
@@ -156,6 +157,24 @@ def work_clock() -> float:
     return time.perf_counter() - compile_seconds()
 
 
+_clock_stops = [0]      # wall-clock safety caps that stopped a search in this process
+
+
+def note_clock_stop() -> None:
+    """Count a search stopped by its wall-clock safety cap (:class:`StopFlag` does it; a loop
+    that polls the work clock itself calls this): what a result made meanwhile holds depends on
+    the machine's load, so it must not be memoised (:func:`clock_stops`)."""
+    with _lock:
+        _clock_stops[0] += 1
+
+
+def clock_stops() -> int:
+    """How many searches of this process stopped at a wall-clock safety cap so far: a caller
+    compares the count before and after a computation to know whether the clock decided any of
+    it (e.g. a flight replay's re-plans, before its folder is memoised)."""
+    return _clock_stops[0]
+
+
 class StopFlag:
     """A one-element int8 array for compiled kernels to poll: 0 running, 1 cancelled (a cancel
     request), 2 the ``deadline_s`` [s from creation, on the :func:`work_clock`: compilation
@@ -203,6 +222,8 @@ class StopFlag:
             self._timer.cancel()
         with _lock:
             _flags.discard(self)
+        if self.expired:
+            note_clock_stop()
 
     @property
     def state(self) -> int:
@@ -341,7 +362,13 @@ def progress(enabled: bool) -> Iterator[None]:
         _progress = old
 
 
+_note_sink: list = []    # a progress display taking the notes (skyroute.pipeline.progress)
+
+
 def note(text: str) -> None:
-    """Print one progress line on stderr when :func:`progress_enabled`."""
+    """Print one progress line on stderr when :func:`progress_enabled` (or hand it to the
+    progress display that registered itself in ``_note_sink``)."""
     if _progress:
+        if _note_sink and _note_sink[0](text):
+            return
         print(text, file=sys.stderr, flush=True)

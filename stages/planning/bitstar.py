@@ -166,6 +166,8 @@ class _BitStarSetup:
         self._ptc = ob.PlannerTerminationCondition(stop)
         status = self.planner.solve(self._ptc)
         control.check()
+        if control.work_clock() > deadline and not (n is not None and planner.numIterations() >= n):
+            control.note_clock_stop()
         dt = time.perf_counter() - t0
         return bool(status) and self.pdef.hasExactSolution(), dt
 

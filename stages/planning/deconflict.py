@@ -475,6 +475,7 @@ def deconflict(problem, step1_waypoints, occupancy: TrafficOccupancy | None, t0_
             control.check()
             if control.work_clock() - w_start > time_budget_s:
                 capped = True
+                control.note_clock_stop()
                 break
         iterations = k
         wn = next_point()

@@ -300,6 +300,7 @@ class _Replay:
                                                     [(0.0, it.times_s, it.xyz_m)])
         self.attempts: list[LevelAttempt] = []
         self.event_log: list[dict] = []
+        self.on_progress: Callable[[float, float], None] | None = None   # (t_s, t_end_s) per event
         self.n_replan = 0
         self.outcome, self.reason = "goal", ""
         self.warnings: list[str] = []
@@ -464,6 +465,8 @@ class _Replay:
                 if not self.escapes.resume(self, ev, t_e):
                     return
                 continue
+            if self.on_progress is not None:
+                self.on_progress(min(t_e, self.tl.t_end_s), self.tl.t_end_s)
             if t_e >= self.tl.t_end_s:
                 self.event_log.append(event_record(ev, t_e, math.inf, "after the flight ended"))
                 continue
@@ -1013,10 +1016,13 @@ def _dedupe(chain, speeds, stop_at=()):
 def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Callable[[float], World],
            events: Sequence[TacticalEvent], strategic_intruders: Sequence[Intruder], vehicle: VehicleProfile,
            params: FlyParams, start_time_utc, dop_threshold: float | None, scenario: str = "",
-           crs_wkt: str = "", vertical_datum: str = "") -> FlightLog:
+           crs_wkt: str = "", vertical_datum: str = "",
+           progress: Callable[[float, float], None] | None = None) -> FlightLog:
     """Fly the strategic plan ``plan_traj`` (a CornerTrajectory starting at mission time
     ``plan_t0_s`` [s]) through ``events`` (see the module docstring).  ``world``: the maps at
     take-off; ``world_at(t_s)``: the maps after the map-changing events up to ``t_s``.
+    ``progress(t_s, t_end_s)``: called as each event is reached, with its mission time and the
+    flight's planned end [s] (a progress display; it never changes the flight).
     Returns the :class:`~skyroute.stages.tactical.log.FlightLog` (outcome ``goal``,
     ``landed`` or ``failed`` with its reason)."""
     if plan_traj is None:
@@ -1030,7 +1036,10 @@ def replay(plan_traj, plan_t0_s: float, *, goal_xyz, world: World, world_at: Cal
     r.prepare_world()
     r.init_navigation()
     compile_s = time.perf_counter() - t_comp
+    r.on_progress = progress
     r.run()
+    if progress is not None:
+        progress(r.tl.t_end_s, r.tl.t_end_s)      # flown to the end (or stopped: the display ends)
     from skyroute.stages.grid import Grid
 
     grid = Grid.from_dataarray(world.surface["terrain"])

@@ -75,7 +75,9 @@ def _gib(n: float) -> str:
         return f"{n / (1 << 40):,.1f} TiB"
     if n >= 1 << 30:
         return f"{n / (1 << 30):,.1f} GiB"
-    return f"{n / (1 << 20):,.0f} MiB"
+    if n >= 1 << 20:
+        return f"{n / (1 << 20):,.0f} MiB"
+    return f"{n / (1 << 10):,.0f} KiB" if n >= 1 << 10 else f"{n:,.0f} B"   # --max-memory 1: not "0 MiB"
 
 
 def machine_memory_bytes() -> int:
@@ -191,11 +193,23 @@ def check_scenario(sc, limit_bytes: int | None = None, maps_only: bool = False) 
     if fp.bytes <= limit:
         return fp
     fix = f"or raise --max-memory (now {_gib(limit)})"
+    if limit <= BASE_BYTES:     # no resolution, bounds or window could fit: say so, not "to inf m"
+        raise InputError(
+            f"scenario {sc.name!r} needs about {_gib(fp.bytes)} of memory ({fp.cells:,.0f} cells, {fp.epochs:,.0f} "
+            f"GNSS epochs), and --max-memory (now {_gib(limit)}) is below the {_gib(BASE_BYTES)} any run takes "
+            f"before its maps: no scenario setting fits such a limit; raise --max-memory (to at least "
+            f"{_gib(fp.bytes)} for this scenario)")
     parts = sorted([(fp.bytes_cells + fp.bytes_levels, "cells"), (fp.bytes_epochs, "epochs")], reverse=True)
     if parts[0][1] == "cells":
         res = sc.aoi.resolution_m
         room = limit - BASE_BYTES - fp.bytes_epochs
-        need = res * math.sqrt((fp.bytes_cells + fp.bytes_levels) / room) if room > 0 else math.inf
+        if room <= 0:   # the GNSS epochs alone fill the limit: no resolution fits
+            raise InputError(
+                f"scenario {sc.name!r} needs about {_gib(fp.bytes)} of memory: {fp.cells:,.0f} cells and "
+                f"{fp.epochs:,.0f} GNSS epochs, whose {_gib(fp.bytes_epochs)} alone leave no room for any map "
+                f"within --max-memory; shorten gnss.window_min or raise gnss.step_min, and raise aoi.resolution_m "
+                f"or shrink aoi.bounds, {fix}")
+        need = res * math.sqrt((fp.bytes_cells + fp.bytes_levels) / room)
         raise InputError(
             f"scenario {sc.name!r} needs about {_gib(fp.bytes)} of memory: {fp.cells:,.0f} cells "
             f"(aoi.resolution_m {res:g} m over aoi.bounds) x {fp.levels} DOP levels; raise aoi.resolution_m "
@@ -214,6 +228,11 @@ def check_ticks(duration_s: float, tick_s: float, limit_bytes: int | None = None
     need = n * BYTES_PER_TICK
     if need > limit:
         lo = duration_s * BYTES_PER_TICK / limit
+        if not lo <= max(duration_s, tick_s):   # a tick longer than the flight: no --tick fits
+            raise InputError(f"a {duration_s:,.0f} s flight sampled every {tick_s:g} s is {n:,.0f} ticks, about "
+                             f"{_gib(need)} of memory, more than --max-memory (now {_gib(limit)}) holds: no {key} "
+                             f"(tactical.tick_s) fits such a limit; raise --max-memory (to at least {_gib(need)} "
+                             "for this tick)")
         raise InputError(f"a {duration_s:,.0f} s flight sampled every {tick_s:g} s is {n:,.0f} ticks, about "
                          f"{_gib(need)} of memory: raise {key} (tactical.tick_s) to {lo:.3g} s or more, or raise "
                          f"--max-memory (now {_gib(limit)})")

@@ -76,6 +76,12 @@ class FiniteFloat(click.FloatRange):
             self.fail(f"{value!r} is not a finite number; give a number such as 1.5", param, ctx)
         return v
 
+    def _describe_range(self) -> str:
+        """The range shown in ``--help``: none without bounds (click would print ``[x<=None]``)."""
+        if self.min is None and self.max is None:
+            return ""
+        return super()._describe_range()
+
 
 class OutPath(click.Path):
     """An output path option (``--out``, ``--cache-dir``) that refuses an empty or blank value
@@ -272,9 +278,16 @@ def _exit_if_no_plan(plan: dict | None) -> None:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Python warnings as one clean ``warning: <text>`` line (no source line, no category)."""
+    """Python warnings as one clean ``warning: <text>`` line (no source line, no category).
+
+    A ``DeprecationWarning`` / ``PendingDeprecationWarning`` is a library telling its developers
+    about their code (numpy's "Use `@` matmul instead of `*`" from a dependency), not a warning
+    about the user's request: it is not shown (nor counted); ``-vv`` shows it in Python's own
+    format (this function is not installed then)."""
     from skyroute.pipeline.outputs import note_printed_warning
 
+    if isinstance(category, type) and issubclass(category, DeprecationWarning | PendingDeprecationWarning):
+        return
     text = " ".join(str(message).split())
     note_printed_warning(text)
     print(f"warning: {text}", file=file or sys.stderr, flush=True)

@@ -25,7 +25,8 @@ def airspace_group() -> None:
 @contextlib.contextmanager
 def _open(path: Path):
     """The airspace ``path`` open for one command; a damaged SQLite file found while reading it
-    is one ``error:`` line (InputError) too."""
+    (SQLite's own error, a text that is not UTF-8) is one ``error:`` line (InputError) too: the
+    store checks its rows where it reads them, this is the last guard."""
     import sqlite3
 
     from skyroute.stages.airspace_store import AirspaceStore
@@ -34,8 +35,9 @@ def _open(path: Path):
     s = AirspaceStore.open(path)
     try:
         yield s
-    except sqlite3.DatabaseError as exc:
-        raise InputError(f"{path}: the airspace file is damaged ({exc}); restore it from a copy") from None
+    except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: the airspace file is damaged ({type(exc).__name__}: {str(exc)[:120]}); "
+                         "restore it from a copy") from None
     finally:
         s.close()
 

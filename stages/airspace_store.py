@@ -32,12 +32,21 @@ Conflicts: the R*Tree proposes the candidate volumes whose boxes overlap (closed
 (its one home: altitude and time overlap as open intervals, outline area > 1e-4 m^2, F3548's
 1 cm precision).  :meth:`AirspaceStore.check` tests the store's own consistency (the SQLite
 integrity check, rows, index boxes, F3548 documents against the stored volumes).
+
+A damaged file is read strictly: the meta ``crs`` must be the WKT of a projected CRS and
+``epoch_utc`` a UTC time of the years 1900..2200; every row is checked where it is read
+(:meth:`AirspaceStore._record`, :meth:`AirspaceStore._volume_numbers`): integers stored as
+integers (``priority`` a 32-bit integer, ``seq`` and ``n_volumes`` >= 1, ``k`` >= 0), altitudes
+finite within +-``MAX_ABS_ALT_M``, times finite within +-``MAX_ABS_TIME_S`` of the epoch, texts
+valid UTF-8.  Anything else is ONE InputError naming the file, the intent (and volume) and the
+field, with the fix (restore the file from a copy, or ``skyroute airspace rm FILE ID``).
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import json
+import math
 import os
 import sqlite3
 import time
@@ -51,11 +60,16 @@ import shapely
 from skyroute.stages.base import InputError, SkyrouteError
 from skyroute.stages.fleet import MIN_AREA_M2, Volume4, pairs_intersect
 
-__all__ = ["SCHEMA_VERSION", "AirspaceConflictError", "AirspaceStore", "IntentRecord", "STATES"]
+__all__ = ["MAX_ABS_ALT_M", "MAX_ABS_TIME_S", "SCHEMA_VERSION", "AirspaceConflictError", "AirspaceStore",
+           "IntentRecord", "STATES"]
 
 SCHEMA_VERSION = 1
 STATES = ("Accepted", "Activated", "Nonconforming", "Contingent")   # F3548 OperationalIntentState
 _PAUSE_ENV = "SKYROUTE_TEST_ACCEPT_PAUSE_S"   # test instrumentation: sleep inside accept's transaction
+MAX_ABS_TIME_S = 1e9          # a stored time [s after the epoch] is within +-1e9 s (~31.7 years) of the epoch
+MAX_ABS_ALT_M = 1e6           # a stored altitude [m] is within +-1000 km
+_PRIORITY_RANGE = (-(2**31), 2**31 - 1)       # F3548 priority: a 32-bit integer (the fleet file's range)
+_EPOCH_YEARS = (1900, 2200)   # epoch_utc +- MAX_ABS_TIME_S stays inside pandas' time range
 
 _DDL = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -146,6 +160,44 @@ def _iso(text: str) -> dt.datetime:
         return _utc(text)
 
 
+def _shown(v, n: int = 40) -> str:
+    """``repr(v)`` cut to ``n`` characters (a damaged value in a one-line error)."""
+    r = repr(v)
+    return r if len(r) <= n else r[:n] + "..."
+
+
+def _stored_int(v, lo: int, hi: int) -> int | None:
+    """A stored integer in ``lo..hi`` (an integral finite float too), else None (text, bytes,
+    inf, out of range)."""
+    if isinstance(v, float) and math.isfinite(v) and v.is_integer():
+        v = int(v)
+    if isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi:
+        return v
+    return None
+
+
+def _stored_real(v, bound: float) -> float | None:
+    """A stored finite number within +-``bound`` as a float, else None (text, bytes, NaN, inf,
+    out of range)."""
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        x = float(v)
+        if math.isfinite(x) and abs(x) <= bound:
+            return x
+    return None
+
+
+def _strict_text(path: Path):
+    """The connection's ``text_factory``: UTF-8, or the one-line error of a damaged file (bytes
+    flipped in a stored text)."""
+    def decode(b: bytes) -> str:
+        try:
+            return b.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise InputError(f"{path}: a text stored in the airspace file is not valid UTF-8 ({exc.reason} at "
+                             f"byte {exc.start}); the file is damaged: restore it from a copy") from None
+    return decode
+
+
 def _box(v: Volume4) -> tuple[float, ...]:
     x0, y0, x1, y1 = v.polygon.bounds
     return (x0, x1, y0, y1, v.alt_lower_m, v.alt_upper_m, v.t_start_s, v.t_end_s)
@@ -159,14 +211,44 @@ class AirspaceStore:
         self.path = Path(path)
         self._conn = conn
         meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
-        self.crs_wkt: str = meta["crs"]
-        self.epoch_utc: dt.datetime = _utc(meta["epoch_utc"])
+        self.crs_wkt: str = meta.get("crs")
+        self._crs = self._meta_crs(self.crs_wkt)
+        self.epoch_utc: dt.datetime = self._meta_epoch(meta.get("epoch_utc"))
         self.schema_version = int(meta["schema_version"])
+
+    def _meta_damaged(self, key: str, value, what: str) -> InputError:
+        return InputError(f"{self.path}: the airspace's meta table is damaged: its {key} {_shown(value)} {what}; "
+                          "restore the file from a copy")
+
+    def _meta_crs(self, wkt):
+        """The pyproj CRS of the meta ``crs`` (WKT of a projected CRS), else the one-line error."""
+        from pyproj import CRS
+        from pyproj.exceptions import CRSError
+
+        try:
+            c = CRS.from_wkt(wkt)
+        except (CRSError, TypeError, ValueError) as exc:
+            raise self._meta_damaged("crs", wkt, f"is not the WKT of a CRS ({str(exc)[:60]})") from None
+        if not c.is_projected:
+            raise self._meta_damaged("crs", wkt, f"is not a projected (metric) CRS ({c.name})")
+        return c
+
+    def _meta_epoch(self, text) -> dt.datetime:
+        """The meta ``epoch_utc`` (a UTC time of the years 1900..2200), else the one-line error."""
+        try:
+            t = _utc(text) if isinstance(text, str) else None
+        except (ValueError, TypeError, OverflowError) as exc:
+            raise self._meta_damaged("epoch_utc", text, f"is not a UTC time ({str(exc)[:60]})") from None
+        if not isinstance(t, dt.datetime) or not _EPOCH_YEARS[0] <= t.year <= _EPOCH_YEARS[1]:
+            raise self._meta_damaged("epoch_utc", text, f"is not a UTC time of the years {_EPOCH_YEARS[0]}.."
+                                     f"{_EPOCH_YEARS[1]}")
+        return t
 
     # ------------------------------------------------------------------ opening
     @staticmethod
     def _connect(path: Path) -> sqlite3.Connection:
         conn = sqlite3.connect(str(path), timeout=30.0, isolation_level=None)   # explicit transactions
+        conn.text_factory = _strict_text(Path(path))    # flipped bytes in a text: one error line
         conn.execute("PRAGMA journal_mode=WAL")
         conn.execute("PRAGMA synchronous=FULL")
         conn.execute("PRAGMA foreign_keys=ON")
@@ -187,27 +269,28 @@ class AirspaceStore:
         if head != b"SQLite format 3\x00":
             raise InputError(f"{path} is not an airspace file (not an SQLite database); give the FILE written by "
                              "`skyroute fleet --airspace FILE`")
+        conn = None
         try:
             conn = cls._connect(path)
             names = {r[0] for r in conn.execute("SELECT name FROM sqlite_master")}
             need = {"meta", "intents", "volumes", "volume_rtree", "decisions"}
             if not need <= names:
-                conn.close()
                 raise InputError(f"{path} is an SQLite database but not a skyroute airspace (missing table(s) "
                                  f"{', '.join(sorted(need - names))})")
             meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
-        except sqlite3.DatabaseError as exc:
-            raise InputError(f"{path} cannot be read as an airspace file: {exc}") from None
-        if str(meta.get("schema_version")) != str(SCHEMA_VERSION) or not {"crs", "epoch_utc"} <= set(meta):
-            conn.close()
-            raise InputError(f"{path} has airspace schema version {meta.get('schema_version')!r}; this skyroute "
-                             f"reads version {SCHEMA_VERSION}")
-        try:
-            return cls(path, conn)
-        except (ValueError, TypeError, OverflowError) as exc:
-            conn.close()
-            raise InputError(f"{path}: the airspace's meta table is damaged (epoch_utc "
-                             f"{str(meta.get('epoch_utc'))[:40]!r}: {exc}); restore the file from a copy") from None
+            if str(meta.get("schema_version")) != str(SCHEMA_VERSION) or not {"crs", "epoch_utc"} <= set(meta):
+                raise InputError(f"{path} has airspace schema version {_shown(meta.get('schema_version'))}; this "
+                                 f"skyroute reads version {SCHEMA_VERSION}")
+            return cls(path, conn)          # the meta crs and epoch_utc checked: one error line
+        except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:   # (SQLite's message of a damaged schema)
+            if conn is not None:
+                conn.close()
+            raise InputError(f"{path} cannot be read as an airspace file ({type(exc).__name__}: {str(exc)[:120]}); "
+                             "the file is damaged: restore it from a copy") from None
+        except BaseException:
+            if conn is not None:
+                conn.close()
+            raise
 
     @classmethod
     def create(cls, path: Path | str, crs, epoch_utc, *, replace: bool = False) -> AirspaceStore:
@@ -270,7 +353,7 @@ class AirspaceStore:
     def same_crs(self, crs) -> bool:
         from pyproj import CRS
 
-        return CRS.from_user_input(crs) == CRS.from_wkt(self.crs_wkt)
+        return CRS.from_user_input(crs) == self._crs
 
     _COLS = "id, seq, state, priority, operator, n_volumes, t_start_s, t_end_s, departure_utc, accepted_utc, mission"
 
@@ -294,14 +377,50 @@ class AirspaceStore:
             raise self._damaged(intent_id, f"its {column} is a JSON {type(doc).__name__}, not an object")
         return doc
 
+    def _int(self, intent_id, where: str, field: str, v, lo: int, hi: int) -> int:
+        x = _stored_int(v, lo, hi)
+        if x is None:
+            raise self._damaged(intent_id, f"{where}{field} {_shown(v)} is not an integer in {lo:,}..{hi:,}")
+        return x
+
+    def _real(self, intent_id, where: str, field: str, v, bound: float, unit: str) -> float:
+        x = _stored_real(v, bound)
+        if x is None:
+            raise self._damaged(intent_id, f"{where}{field} {_shown(v)} is not a finite number within "
+                                f"+-{bound:g} {unit}")
+        return x
+
+    def _volume_numbers(self, intent_id, k, a0, a1, t0, t1) -> tuple[int, float, float, float, float]:
+        """``(k, alt_lower_m, alt_upper_m, t_start_s, t_end_s)`` of a stored volume row, checked
+        (k an integer >= 0, altitudes [m] finite within +-MAX_ABS_ALT_M, times [s after the
+        epoch] finite within +-MAX_ABS_TIME_S), else the one-line error naming the intent, the
+        volume and the field."""
+        k = self._int(intent_id, "a volume's ", "k", k, 0, 2**63 - 1)
+        w = f"volume {k}: its "
+        return (k, self._real(intent_id, w, "alt_lower_m", a0, MAX_ABS_ALT_M, "m"),
+                self._real(intent_id, w, "alt_upper_m", a1, MAX_ABS_ALT_M, "m"),
+                self._real(intent_id, w, "t_start_s", t0, MAX_ABS_TIME_S, "s of the epoch"),
+                self._real(intent_id, w, "t_end_s", t1, MAX_ABS_TIME_S, "s of the epoch"))
+
     def _record(self, row, details=None) -> IntentRecord:
-        try:
-            nums = (int(row[1]), int(row[3]), int(row[5]), float(row[6]), float(row[7]))
-        except (TypeError, ValueError) as exc:
-            raise self._damaged(row[0], f"a number of its row is not a number ({exc})") from None
-        return IntentRecord(row[0], nums[0], row[2], nums[1], row[4], nums[2], nums[3], nums[4], row[8], row[9],
-                            self._json(row[0], "mission fields", row[10]),
-                            None if details is None else self._json(row[0], "F3548 document (details)", details))
+        """The IntentRecord of a stored ``intents`` row (columns ``_COLS`` [+ details]), every field
+        checked (texts are texts; seq and n_volumes integers >= 1, priority a 32-bit integer,
+        times [s after the epoch] finite within +-MAX_ABS_TIME_S; mission and details JSON
+        objects), else the one-line error naming the intent and the field."""
+        m = row[0]
+        if not isinstance(m, str):
+            raise self._damaged(m, f"its id is a {type(m).__name__}, not a text")
+        for i, name in ((2, "state"), (4, "operator"), (8, "departure_utc"), (9, "accepted_utc")):
+            if not isinstance(row[i], str):
+                raise self._damaged(m, f"its {name} {_shown(row[i])} is not a text")
+        seq = self._int(m, "its ", "seq", row[1], 1, 2**63 - 1)
+        priority = self._int(m, "its ", "priority", row[3], *_PRIORITY_RANGE)
+        n_vol = self._int(m, "its ", "n_volumes", row[5], 1, 2**31 - 1)
+        t0 = self._real(m, "its ", "t_start_s", row[6], MAX_ABS_TIME_S, "s of the epoch")
+        t1 = self._real(m, "its ", "t_end_s", row[7], MAX_ABS_TIME_S, "s of the epoch")
+        return IntentRecord(m, seq, row[2], priority, row[4], n_vol, t0, t1, row[8], row[9],
+                            self._json(m, "mission fields", row[10]),
+                            None if details is None else self._json(m, "F3548 document (details)", details))
 
     def records(self, details: bool = False) -> list[IntentRecord]:
         """Every intent, in order of acceptance."""
@@ -322,8 +441,13 @@ class AirspaceStore:
 
     def decisions(self) -> dict[str, tuple[str, str, dict]]:
         """mission -> (status, reason, mission fields) of every decided mission."""
-        return {m: (s, r, self._json(m, "decision's mission fields", f)) for m, s, r, f in
-                self._conn.execute("SELECT mission, status, reason, mission_fields FROM decisions")}
+        out = {}
+        for m, s, r, f in self._conn.execute("SELECT mission, status, reason, mission_fields FROM decisions"):
+            for name, v in (("mission id", m), ("status", s), ("reason", r)):
+                if not isinstance(v, str):
+                    raise self._damaged(m, f"its decision's {name} {_shown(v)} is not a text")
+            out[m] = (s, r, self._json(m, "decision's mission fields", f))
+        return out
 
     def _vol(self, row, intent_id: str = "?", k: int | str = "?") -> Volume4:
         """A stored volume (WKB outline, altitudes [m], times [s]); the one-line error naming the
@@ -334,10 +458,8 @@ class AirspaceStore:
             raise self._damaged(intent_id, f"volume {k}: its outline is not valid WKB ({str(exc)[:80]})") from None
         if not isinstance(poly, shapely.Polygon) or poly.is_empty:
             raise self._damaged(intent_id, f"volume {k}: its outline is a {poly.geom_type}, not a polygon")
-        try:
-            return Volume4(poly, float(row[1]), float(row[2]), float(row[3]), float(row[4]))
-        except (TypeError, ValueError) as exc:
-            raise self._damaged(intent_id, f"volume {k}: an altitude or time is not a number ({exc})") from None
+        _, a0, a1, t0, t1 = self._volume_numbers(intent_id, k, *row[1:5])
+        return Volume4(poly, a0, a1, t0, t1)
 
     def volumes(self, ids: Iterable[str] | None = None, t_shift_s: float = 0.0) -> dict[str, list[Volume4]]:
         """intent id -> its volumes (store CRS; times [s after the epoch] minus ``t_shift_s``)."""
@@ -518,14 +640,17 @@ class AirspaceStore:
         if n_orphan:
             out.append(f"{n_orphan} R*Tree box(es) without a volume")
         dec = self.decisions()
-        tr = Transformer.from_crs(4326, self.crs_wkt, always_xy=True)
+        tr = Transformer.from_crs(4326, self._crs, always_xy=True)
         vols_rows: dict[str, list] = {}
         for r in c.execute("SELECT v.intent_id, v.k, v.outline_wkb, v.alt_lower_m, v.alt_upper_m, v.t_start_s, "
                            "v.t_end_s, b.min_x, b.max_x, b.min_y, b.max_y, b.min_alt, b.max_alt, b.min_t, b.max_t "
                            "FROM volumes v LEFT JOIN volume_rtree b ON b.vid = v.vid ORDER BY v.intent_id, v.k"):
             vols_rows.setdefault(r[0], []).append(r[1:])
         for rec in self.records(details=True):
-            rows = vols_rows.get(rec.id, [])
+            rows = []
+            for r in vols_rows.get(rec.id, []):     # (k, wkb, a0, a1, t0, t1, box...): numbers checked
+                k, a0, a1, t0, t1 = self._volume_numbers(rec.id, r[0], *r[2:6])
+                rows.append((k, r[1], a0, a1, t0, t1, *r[6:]))
             if rec.state not in STATES:
                 out.append(f"intent {rec.id}: state {rec.state!r} is not an F3548 state")
             if rec.id not in dec or dec[rec.id][0] == "rejected":
@@ -533,6 +658,18 @@ class AirspaceStore:
             if [r[0] for r in rows] != list(range(rec.n_volumes)):
                 out.append(f"intent {rec.id}: {len(rows)} volume rows, expected {rec.n_volumes} (k = 0..n-1)")
                 continue
+            span = (min(r[4] for r in rows), max(r[5] for r in rows))
+            if (rec.t_start_s, rec.t_end_s) != span:
+                out.append(f"intent {rec.id}: its time span {rec.t_start_s:.6g}..{rec.t_end_s:.6g} s differs from its "
+                           f"volumes' {span[0]:.6g}..{span[1]:.6g} s")
+            for name, text in (("departure_utc", rec.departure_utc), ("accepted_utc", rec.accepted_utc)):
+                if text or name == "accepted_utc":
+                    try:
+                        ok = _iso(text).year > 0          # (NaT: its year is NaN)
+                    except (ValueError, TypeError, OverflowError):
+                        ok = False
+                    if not ok:
+                        out.append(f"intent {rec.id}: its {name} {_shown(text)} is not a UTC time")
             dvs = rec.details.get("volumes", []) if isinstance(rec.details, dict) else []
             if not isinstance(dvs, list):
                 out.append(f"intent {rec.id}: its F3548 document's volumes are a {type(dvs).__name__}, not a list")

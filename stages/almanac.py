@@ -87,6 +87,7 @@ _TWO_PI = 2.0 * np.pi + 1e-9
 _RANGES = (
     ("i0_rad", "inclination", 0.0, np.pi + 1e-9, "rad"),
     ("omega0_rad", "longitude of the ascending node", -_TWO_PI, _TWO_PI, "rad"),
+    ("omega_toa_rad", "right ascension at TOA", -_TWO_PI, _TWO_PI, "rad"),
     ("argp_rad", "argument of perigee", -_TWO_PI, _TWO_PI, "rad"),
     ("m0_rad", "mean anomaly", -_TWO_PI, _TWO_PI, "rad"),
     ("omega_dot_rad_s", "rate of right ascension", -_MAX_RATE_RAD_S, _MAX_RATE_RAD_S, "rad/s"),
@@ -106,6 +107,15 @@ def _path_text(path: str | Path) -> str:
     return str(path)
 
 
+def _number_text(v: float | int) -> str:
+    """``v`` for a message: ``%g`` for a float, at most 20 digits of an int (a 400-digit PRN read
+    from a header cannot be converted to float for ``%g``)."""
+    if isinstance(v, int):
+        t = str(v)
+        return t if len(t) <= 20 else t[:20] + "..."
+    return f"{v:g}"
+
+
 def check_elements(rec: dict, path: str, lines: dict[str, int] | int, sat: str | None = None) -> None:
     """Refuse a record whose orbital elements cannot be a GNSS orbit (see the module docstring).
 
@@ -115,7 +125,7 @@ def check_elements(rec: dict, path: str, lines: dict[str, int] | int, sat: str |
     Raises one :class:`DataError` ``path:line: satellite: field ... (the limit)``; warns
     (``warnings.warn``, counted in a run's warnings) for an eccentricity above :data:`E_WARN`.
     """
-    who = sat or (f"PRN {rec['prn']:g}" if isinstance(rec.get("prn"), int | float) else "record")
+    who = sat or (f"PRN {_number_text(rec['prn'])}" if isinstance(rec.get("prn"), int | float) else "record")
 
     def line(key: str) -> int:
         return lines if isinstance(lines, int) else lines.get(key, min(lines.values(), default=0))
@@ -129,8 +139,8 @@ def check_elements(rec: dict, path: str, lines: dict[str, int] | int, sat: str |
             raise bad(key, f"{key} is not a finite number ({v})")
     if "prn" in rec:
         prn = rec["prn"]
-        if not (float(prn) == int(prn) and 1 <= int(prn) <= 99):
-            raise bad("prn", f"satellite number (PRN) {prn:g} is not an integer in 1..99")
+        if not (1 <= prn <= 99 and float(prn) == int(prn)):   # the range first: a 400-digit int has no float
+            raise bad("prn", f"satellite number (PRN) {_number_text(prn)} is not an integer in 1..99")
     if "health" in rec:
         h = rec["health"]
         if not (float(h) == int(h) and h >= 0):
@@ -142,13 +152,15 @@ def check_elements(rec: dict, path: str, lines: dict[str, int] | int, sat: str |
     sqrt_a = float(rec["sqrt_a"])
     lo, hi = np.sqrt(_A_MIN_M), np.sqrt(_A_MAX_M)
     if not lo <= sqrt_a <= hi:
-        raise bad("sqrt_a", f"sqrt(A) {sqrt_a:g} m^0.5 (semi-major axis {sqrt_a ** 2 / 1e3:,.0f} km) is outside "
+        # A = sqrt(A)^2 only where it is a number (1e300 ** 2 overflows: OverflowError)
+        a_km = f"{sqrt_a * sqrt_a / 1e3:,.0f} km" if abs(sqrt_a) < 1e100 else "over 1e197 km"
+        raise bad("sqrt_a", f"sqrt(A) {sqrt_a:g} m^0.5 (semi-major axis {a_km}) is outside "
                             f"{lo:.1f}..{hi:.1f} m^0.5 (A = {_A_MIN_M / 1e3:,.0f}..{_A_MAX_M / 1e3:,.0f} km: "
                             "GNSS orbits are 25,500..42,164 km)")
     e = float(rec["e"])
     if not 0.0 <= e < 1.0:
         raise bad("e", f"eccentricity {e:g} is not in [0, 1) (an ellipse; GPS orbits have e < 0.03)")
-    perigee = sqrt_a ** 2 * (1.0 - e)
+    perigee = sqrt_a * sqrt_a * (1.0 - e)      # sqrt_a within lo..hi: no overflow
     if perigee <= _EARTH_RADIUS_M:
         raise bad("e", f"eccentricity {e:g} puts the perigee A (1 - e) = {perigee / 1e3:,.0f} km inside the Earth "
                        f"(radius {_EARTH_RADIUS_M / 1e3:,.0f} km)")
@@ -300,7 +312,7 @@ def parse_yuma(text: str, path: str = "<yuma>", reference_date=None, system: str
                             f"(missing {', '.join(missing)})")
         number = prn if prn is not None else vals["id"]
         lines.setdefault("prn", lines.get("id", head))
-        check_elements({**vals, "prn": number}, path, lines, f"PRN {number:g}")
+        check_elements({**vals, "prn": number}, path, lines, f"PRN {_number_text(number)}")
         vals["prn"] = int(number)
         vals["health"] = int(vals["health"])
         vals["week"] = int(vals["week"])

@@ -17,8 +17,10 @@ Strict reading (:func:`load_cityjson`): a file is refused (:class:`DataError` na
 CityObject and the fix) when its ``transform`` is not 3 + 3 finite numbers with a positive scale,
 a vertex is not 3 finite numbers, a coordinate leaves the plausible range (:data:`Z_RANGE_M`,
 :data:`XY_ABS_MAX_M`), a geometry's boundaries do not nest as its type says, a vertex index is
-not an integer in ``0 .. n-1`` (numpy would wrap a negative one onto another building), the
-semantics do not mirror the boundaries, or a geometry template is malformed.  A
+not an integer in ``0 .. n-1`` (numpy would wrap a negative one onto another building), a ring
+lists more than :data:`MAX_RING_VERTICES` vertices, the semantics do not mirror the boundaries, or
+a geometry template is malformed, or a ``TINRelief`` face is not a simple polygon in plan (it
+crosses itself).  A
 ``GeometryInstance`` is resolved (CityJSON 1.1 / 2.0 "Geometry templates": the template's
 ``vertices-templates``, real coordinates not touched by ``transform``, times the row-major 4x4
 ``transformationMatrix``, plus the reference point, a vertex of ``vertices``).  What is read
@@ -57,6 +59,12 @@ Z_RANGE_M = (-1000.0, 10000.0)
 #: Largest plausible |x| and |y| [m] after ``transform``: projected CRSs stay within ~4e7 m (the
 #: Earth's circumference, false eastings included); beyond is a broken ``transform``.
 XY_ABS_MAX_M = 1e8
+#: Most vertices one ring of a surface may list: a real face (a roof, a wall, a ground polygon) has
+#: well under a thousand; a longer ring is a broken export (every vertex of the file listed as one
+#: ring), and would make the polygon geometry behind the terrain coverage (GEOS) run out of memory.
+#: A whole object is bounded by the file's size (:data:`MAX_CITYJSON_BYTES`): a ``TINRelief`` may
+#: hold millions of triangles.
+MAX_RING_VERTICES = 100_000
 #: Geometry types with surfaces (what a roof, a floor or a risk footprint is read from).
 SURFACE_TYPES = ("MultiSurface", "CompositeSurface", "TIN", "Solid", "MultiSolid", "CompositeSolid")
 #: The arrays each geometry type's ``boundaries`` nest, outermost first (``TIN``: a
@@ -173,14 +181,16 @@ def _example(levels: tuple[str, ...]) -> str:
     return "[" * (len(levels) - 1) + "[0, 1, 2]" + "]" * (len(levels) - 1)
 
 
-def _walk(b, levels: tuple[str, ...]) -> tuple[list, int] | None:
-    """(flat vertex indices, number of surfaces whose outer ring has fewer than 3 vertices) of
-    boundaries ``b`` nesting ``levels``; None when the nesting is too shallow or a surface has no
-    ring (too deep shows in the indices: :meth:`_Indices.check`)."""
+def _walk(b, levels: tuple[str, ...]) -> tuple[list, int, int] | None:
+    """(flat vertex indices, number of surfaces whose outer ring has fewer than 3 vertices, the
+    most vertices one ring or line lists) of boundaries ``b`` nesting ``levels``; None when the
+    nesting is too shallow or a surface has no ring (too deep shows in the indices:
+    :meth:`_Indices.check`)."""
     if type(b) is not list:
         return None
     cur = b
     few = 0
+    longest = 0     # a MultiPoint has no ring
     for lv in levels[:-1]:
         nxt: list = []
         for c in cur:
@@ -189,8 +199,18 @@ def _walk(b, levels: tuple[str, ...]) -> tuple[list, int] | None:
             nxt.extend(c)
         if lv == "surfaces":
             few += sum(1 for s in cur if type(s[0]) is list and len(s[0]) < 3)
+        if lv in ("rings", "lines"):
+            longest = max((len(c) for c in cur), default=0)
         cur = nxt
-    return cur, few
+    return cur, few, longest
+
+
+def _check_ring_length(path: Path, who: str, gtype: str, longest: int) -> None:
+    """Refuse a geometry one of whose rings lists more than :data:`MAX_RING_VERTICES` vertices."""
+    if longest > MAX_RING_VERTICES:
+        raise DataError(f"{path}: {who} ({gtype}): a ring lists {longest:,} vertices, more than the "
+                        f"{MAX_RING_VERTICES:,} of any real face (a broken export?); split the face or re-export "
+                        "the file")
 
 
 def _nesting_message(path: Path, who: str, gtype: str, b, levels: tuple[str, ...]) -> str:
@@ -373,7 +393,8 @@ def load_cityjson(path: str | Path) -> CityJSONDocument:
             walked = _walk(g.get("boundaries"), levels)
             if walked is None:
                 raise DataError(_nesting_message(path, who, gtype, g.get("boundaries"), levels))
-            flat, nfew = walked
+            flat, nfew, longest = walked
+            _check_ring_length(path, who, gtype, longest)
             _check_semantics(path, who, g, g["boundaries"], levels)
             idx.add(flat, who, gtype)
             if is_bldg and gtype in SURFACE_TYPES:
@@ -383,6 +404,7 @@ def load_cityjson(path: str | Path) -> CityJSONDocument:
     V = V * scale + translate
     V, blocks = _resolve_instances(cj, V, instances, path, usable, objects)
     _check_coordinates(V, path, flat_idx, idx, n, blocks, has_tr, scale)
+    _check_tin_faces(path, V, objects)
     cj["vertices"] = V
     cj.pop("transform", None)
     counts: dict[str, int] = {}
@@ -507,6 +529,7 @@ def _template(tg, t: int, T: np.ndarray, path: Path) -> tuple[dict, tuple[str, .
     walked = _walk(tg.get("boundaries"), levels)
     if walked is None:
         raise DataError(_nesting_message(path, name, gtype, tg.get("boundaries"), levels))
+    _check_ring_length(path, name, gtype, walked[2])
     _check_semantics(path, name, tg, tg["boundaries"], levels)
     idx = _Indices()
     idx.add(walked[0], name, gtype)
@@ -774,6 +797,45 @@ def read_buildings(path: str | Path, crs: CRS, *, steep_nz: float = 1e-3) -> Cit
                              _roots(ids, parents, cj["CityObjects"]), doc.warnings)
 
 
+def _check_tin_faces(path: Path, V: np.ndarray, objects: dict) -> None:
+    """Refuse a ``TINRelief`` face (of a validated document, vertices ``V`` [m]) whose outer ring,
+    in plan (x, y), is not a simple polygon: it crosses or overlaps itself, or lists a vertex
+    twice.  The terrain coverage of the surface unites these polygons (GEOS), which fails on such a
+    ring ("side location conflict") or runs out of memory.  Triangles are not checked (three
+    points cannot cross; a degenerate one unites as a line)."""
+    import shapely
+
+    rings: list[np.ndarray] = []
+    owner: list[str] = []
+    for oid, obj in objects.items():
+        if obj.get("type") != "TINRelief":
+            continue
+        for g in obj.get("geometry") or []:
+            if g.get("type") in SURFACE_TYPES:
+                for f, _ in surface_rings(g):
+                    if len(f[0]) > 3:
+                        rings.append(np.asarray(f[0], dtype=np.int64))
+                        owner.append(oid)
+    if not rings:
+        return
+    coords = V[np.concatenate(rings), :2]
+    ring_of = np.repeat(np.arange(len(rings)), [len(r) for r in rings])
+    try:
+        polys = shapely.polygons(shapely.linearrings(coords, indices=ring_of))
+        ok = shapely.is_valid(polys)
+    except shapely.errors.GEOSException as exc:
+        raise DataError(f"{path}: the TINRelief faces cannot be read as polygons ({exc}); fix or "
+                        "re-triangulate the TIN") from None
+    if not ok.all():
+        j = int(np.flatnonzero(~ok)[0])
+        why = shapely.is_valid_reason(polys[j])
+        n = int((~ok).sum())
+        more = f" ({n} such faces)" if n > 1 else ""
+        raise DataError(f"{path}: CityObject {owner[j]!r} (TINRelief): a face of {len(rings[j]):,} vertices is "
+                        f"not a simple polygon in plan ({why}){more}; a TIN face is a triangle or a polygon "
+                        "that does not cross itself: re-triangulate the TIN or fix the face")
+
+
 def _roots(ids: list[str], parents: list[list[str]], objects: dict) -> np.ndarray:
     """Per building (index into ``ids``): a group number shared by a Building and all its
     BuildingParts, following ``parents`` to the topmost ancestor (a Building without geometry of
@@ -794,6 +856,6 @@ def _roots(ids: list[str], parents: list[list[str]], objects: dict) -> np.ndarra
     return out
 
 
-__all__ = ["BOUNDARY_LEVELS", "MAX_CITYJSON_BYTES", "ROOF_TYPES", "SURFACE_TYPES", "XY_ABS_MAX_M", "Z_RANGE_M",
+__all__ = ["BOUNDARY_LEVELS", "MAX_CITYJSON_BYTES", "MAX_RING_VERTICES", "ROOF_TYPES", "SURFACE_TYPES", "XY_ABS_MAX_M", "Z_RANGE_M",
            "CityJSONBuildings", "CityJSONDocument", "cityjson_crs", "load_cityjson", "newell_normals", "read_buildings",
            "read_cityjson", "surface_rings", "surfaces", "vertices_in"]

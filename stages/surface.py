@@ -691,8 +691,12 @@ def _covered_cells(polys, grid: Grid) -> np.ndarray:
     every cell the complement (the grid's box minus the union) does not touch."""
     r = grid.resolution_m
     x0, y0, x1, y1 = grid.bounds
-    union = shapely.union_all([shapely.Polygon(np.asarray(p[0])[:, :2]) for p in polys])
-    rest = shapely.box(x0 - r, y0 - r, x1 + r, y1 + r).difference(union)
+    try:    # the reading refuses TIN faces that cross themselves (cityjson._check_tin_faces)
+        union = shapely.union_all([shapely.Polygon(np.asarray(p[0])[:, :2]) for p in polys])
+        rest = shapely.box(x0 - r, y0 - r, x1 + r, y1 + r).difference(union)
+    except shapely.errors.GEOSException as exc:
+        raise DataError(f"the CityJSON TINRelief faces cannot be united into the terrain's coverage ({exc}); "
+                        "re-triangulate the TIN (faces that do not cross or overlap)") from None
     parts = [g for g in getattr(rest, "geoms", [rest]) if g.geom_type == "Polygon" and not g.is_empty]
     if not parts:
         return np.ones(grid.shape, bool)

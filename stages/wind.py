@@ -50,6 +50,14 @@ or the height coordinate) must be finite (all-NaN is refused, and every column t
 samples must have finite u, v and heights).  :func:`read_wind` refuses a FIFO or device and a
 file larger than :data:`MAX_WIND_BYTES` before NetCDF / zarr opens it.
 
+Before any variable is loaded, :func:`canonical_wind` checks what the file declares: latitude and
+longitude are 1-D, finite, within [-90, 90] / [-180, 360] deg and strictly monotonic; a dimension
+besides latitude, longitude and the levels (an ensemble ``number``, a ``step``) of length 1 is
+dropped, a longer one refused; the memory the read takes (the declared shapes,
+:data:`READ_BYTES_PER_VALUE`) must fit the command's ``--max-memory`` and at most
+:data:`MAX_WIND_VALUES` values are read.  Every wind component the scenario samples must be at
+most :data:`MAX_WIND_SPEED_MPS` in magnitude.
+
 A 2.5 deg forecast varies little across a city, so the result may be stored on a coarser
 horizontal grid than the scenario (``horizontal_step_m``): same CRS and bounds, cells of that
 size; :func:`sample_wind` reads it at any map point (nearest column, linear in height).
@@ -68,7 +76,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from skyroute.stages.base import CRSError, DataError, InputError
+from skyroute.stages.base import CRSError, DataError, InputError, memory_limit_bytes
 from skyroute.stages.grid import Grid
 
 G0 = 9.80665  # standard gravity [m/s^2], geopotential [m^2/s^2] -> geopotential height [gpm]
@@ -94,6 +102,22 @@ _VAR_NAMES = {
 MAX_WIND_BYTES = 2 * 1024**3
 """The largest wind file (or zarr store) read [bytes]: a global 0.25 deg forecast of one time on
 all pressure levels is a few hundred MB."""
+
+MAX_WIND_SPEED_MPS = 100.0
+"""The strongest wind component a forecast file may hold where the scenario samples it [m/s]: the
+same bound as ``skyroute.pipeline.settings.common.MAX_WIND_SPEED_MPS`` for a uniform wind and the
+wind events (close to the strongest gust ever measured at the surface, 113 m/s).  Kept here, not
+imported, because the stages may not import the pipeline; tests/test_wind_findings.py checks that
+the two are equal."""
+
+MAX_WIND_VALUES = 2**29
+"""The most values (summed over the variables read: u, v, w, gh, u10, v10) a wind file may
+declare over the part that is read, whatever the memory limit: a global 0.25 deg forecast of one
+time on 37 pressure levels holds 3 x 38 million."""
+
+READ_BYTES_PER_VALUE = 16
+"""Memory a value read takes besides its bytes in the file's dtype [bytes]: its float64 copy (the
+canonical form) and one float64 temporary (unit conversion, sorting the coordinates)."""
 
 KNOT_MPS = 1852.0 / 3600.0
 #: Wind-speed units (normalised: lower case, ``**`` and ``^`` dropped, blanks single) -> m/s.
@@ -270,6 +294,12 @@ def canonical_wind(ds: xr.Dataset, source: str = "<dataset>", time=None,
         raise DataError(f"{source}: no wind components: need u and v (eastward_wind/northward_wind) "
                         f"or u10 and v10; variables found: {found}")
     ds = _select_time(ds, time, source, time_tolerance_h)
+    _check_lonlat(ds, lat, lon, source)
+    read = [names[k] for k in ("u", "v", "w") if has_levels and names[k] is not None]
+    read += [names["gh"] or names["z"]] if has_levels and (names["gh"] or names["z"]) else []
+    read += [names["u10"], names["v10"]] if has_10m else []
+    ds = _squeeze_extra_dims(ds, read, lat, lon, source)
+    check_wind_read_bytes(ds, read, source)
     out = {}
     coords: dict = {}
     level_type = None
@@ -339,12 +369,122 @@ def canonical_wind(ds: xr.Dataset, source: str = "<dataset>", time=None,
             else:
                 res[k] = res[k].transpose("level", "latitude", "longitude")
                 res[k].attrs = {"units": "gpm", "standard_name": "geopotential_height"}
+    for k in res.data_vars:
+        res[k].attrs["file_variable"] = names[str(k)] or names["z"]
     res.attrs = {"source": source, "level_type": level_type or "none"}
     for n in _TIME_DIMS:
         if n in ds.coords and ds[n].ndim == 0:
             res.attrs["valid_time"] = str(pd.Timestamp(ds[n].values))
             break
     return res
+
+
+def _check_lonlat(ds: xr.Dataset, lat: str, lon: str, source: str) -> None:
+    """Refuse latitude / longitude coordinates that are not 1-D, not finite numbers, outside
+    [-90, 90] / [-180, 360] deg or not strictly monotonic (a DataError naming the coordinate and
+    the offending value)."""
+    for name, lo, hi, what in ((lat, -90.0, 90.0, "latitude [degrees_north]"),
+                               (lon, -180.0, 360.0, "longitude [degrees_east]")):
+        c = ds[name]
+        if c.ndim != 1:
+            raise DataError(f"{source}: coordinate {name!r} has dims {tuple(map(str, c.dims))}, not one "
+                            f"dimension of its own: skyroute reads a regular latitude/longitude grid; regrid "
+                            "the file to one (e.g. cdo remapbil)")
+        try:
+            v = np.asarray(c.values, dtype=float)
+        except (TypeError, ValueError):
+            raise DataError(f"{source}: coordinate {name!r} holds {c.dtype} values, not numbers: give the "
+                            f"{what} in degrees") from None
+        bad = ~np.isfinite(v) | (v < lo) | (v > hi)
+        if np.any(bad):
+            k = int(np.argmax(bad))
+            why = "not a finite number" if not np.isfinite(v[k]) else f"outside [{lo:g}, {hi:g}] deg"
+            raise DataError(f"{source}: coordinate {name!r} holds {float(v[k])!r} at index {k}, {why}: every "
+                            f"{what} must be a finite value in [{lo:g}, {hi:g}]; fix the file's coordinates")
+        d = np.diff(v)
+        if d.size and not (np.all(d > 0) or np.all(d < 0)):
+            k = int(np.argmax((d <= 0) if d[0] > 0 else (d >= 0)))
+            raise DataError(f"{source}: coordinate {name!r} is not strictly monotonic: {float(v[k])!r} at index "
+                            f"{k} is followed by {float(v[k + 1])!r}; a regular grid's {what.split()[0]}s strictly "
+                            "increase or decrease: fix or sort the file's coordinates (e.g. cdo "
+                            "invertlat, or xarray ds.sortby)")
+
+
+def _squeeze_extra_dims(ds: xr.Dataset, read: list[str], lat: str, lon: str, source: str) -> xr.Dataset:
+    """Drop the dimensions of length 1 the variables ``read`` have besides latitude, longitude
+    and one vertical dimension (an ensemble ``number``, a ``step``); refuse a longer one (a
+    DataError naming the variable, the dimension, its length and the fix)."""
+    vertical = _PRESSURE_DIMS + _HEIGHT_DIMS
+    for n in read:
+        da = ds[n]
+        if lat not in da.dims or lon not in da.dims:
+            raise DataError(f"{source}: variable {n!r} has dims {tuple(map(str, da.dims))}, without the "
+                            f"latitude and longitude dimensions ({lat!r}, {lon!r}): give it on the "
+                            "latitude/longitude grid")
+        keep = next((d for d in vertical if d in da.dims), None)
+        for d in da.dims:
+            if d in (lat, lon, keep):
+                continue
+            size = int(ds.sizes[d])
+            if size == 1:
+                ds = ds.isel({d: 0})
+                continue
+            raise DataError(f"{source}: variable {n!r} has the dimension {str(d)!r} of length {size} "
+                            f"besides latitude, longitude{' and ' + repr(keep) if keep else ''} (e.g. ensemble "
+                            "members or forecast steps): skyroute reads one field per variable; select one "
+                            f"first, e.g. ncks -d {d},0 IN.nc OUT.nc or xarray ds.isel({d}=0)")
+    return ds
+
+
+def check_wind_read_bytes(ds: xr.Dataset, read: list[str], source: str, *,
+                          limit_bytes: float | None = None) -> float:
+    """The memory [bytes] reading the variables ``read`` of ``ds`` takes, from their declared
+    shapes and dtypes (:data:`READ_BYTES_PER_VALUE`), checked before anything is loaded.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The opened (lazy) file, with the part read selected (one time).
+    read : list of str
+        The variables loaded.
+    source : str
+        The file (named in messages).
+    limit_bytes : float, optional
+        The limit [bytes]; default the command's ``--max-memory``
+        (:func:`~skyroute.stages.base.memory_limit_bytes`).
+
+    Returns
+    -------
+    float
+        The estimate [bytes].
+
+    Raises
+    ------
+    DataError
+        Naming the variables, their declared shape, the estimate, the limit and the fixes, when
+        the estimate exceeds the limit or the values exceed :data:`MAX_WIND_VALUES`.
+    """
+    limit = memory_limit_bytes() if limit_bytes is None else float(limit_bytes)
+    values = 0.0
+    need = 0.0
+    for n in read:
+        size = float(np.prod([float(s) for s in ds[n].shape]))
+        values += size
+        need += size * (ds[n].dtype.itemsize + READ_BYTES_PER_VALUE)
+    if need <= limit and values <= MAX_WIND_VALUES:
+        return need
+    gib = lambda b: f"{b / (1 << 30):,.1f} GiB" if b >= 1 << 30 else f"{b / (1 << 20):,.0f} MiB"  # noqa: E731
+    big = max(read, key=lambda n: ds[n].size)
+    dims = " x ".join(f"{int(s):,}" for s in ds[big].shape)
+    what = (f"variables {', '.join(map(repr, read))} declare {values:,.0f} values ({big!r}: {dims} "
+            f"on {tuple(map(str, ds[big].dims))})")
+    fix = ("crop the file to the scenario's area (e.g. cdo sellonlatbox,W,E,S,N IN.nc OUT.nc or ncks -d "
+           "latitude,S,N -d longitude,W,E IN.nc OUT.nc), keep fewer levels or one time")
+    if need > limit:
+        raise DataError(f"{source}: reading the wind needs about {gib(need)} of memory, more than --max-memory "
+                        f"({gib(limit)}): {what}; {fix}, or raise --max-memory")
+    raise DataError(f"{source}: {what}, more than the {MAX_WIND_VALUES:,} values skyroute reads from a wind "
+                    f"file; {fix}")
 
 
 def read_wind(path: str | Path, time=None, time_tolerance_h: float = 6.0) -> xr.Dataset:
@@ -464,7 +604,8 @@ def sample_columns(wind: xr.Dataset, lon_deg, lat_deg) -> dict[str, np.ndarray]:
     lat = np.atleast_1d(np.asarray(lat_deg, dtype=float))
     source = wind.attrs.get("source", "wind")
     idx = _bilinear_setup(wind["longitude"].values, wind["latitude"].values, lon, lat, source)
-    out = {k: _bilinear(np.asarray(wind[k].values), idx) for k in ("u", "v", "w", "gh", "u10", "v10") if k in wind}
+    fields = {k: np.asarray(wind[k].values) for k in ("u", "v", "w", "gh", "u10", "v10") if k in wind}
+    out = {k: _bilinear(f, idx) for k, f in fields.items()}
     for k, a in out.items():
         bad = ~np.isfinite(a)
         if np.any(bad):
@@ -473,7 +614,29 @@ def sample_columns(wind: xr.Dataset, lon_deg, lat_deg) -> dict[str, np.ndarray]:
             raise DataError(f"{source}: {k} ({what}) has no data (NaN) around lon={float(lon.ravel()[i]):.4f}, "
                             f"lat={float(lat.ravel()[i]):.4f}: the wind there is unknown; fill the file or give "
                             "one that covers the scenario")
+    for k in ("u", "v", "w", "u10", "v10"):
+        if k in fields:
+            _check_speed_bound(fields[k], idx, k, wind[k].attrs.get("file_variable", k), lon, lat, source)
     return out
+
+
+def _check_speed_bound(field: np.ndarray, idx, key: str, file_name: str, lon: np.ndarray, lat: np.ndarray,
+                       source: str) -> None:
+    """Refuse a wind component [m/s] above :data:`MAX_WIND_SPEED_MPS` in magnitude at any grid
+    node the bilinear interpolation ``idx`` reads (the region sampled)."""
+    i0, i1, j0, j1 = idx[:4]
+    corners = np.stack([field[..., j, i] for j in (j0, j1) for i in (i0, i1)])   # (4, ..., npts)
+    mag = np.abs(np.nan_to_num(corners, nan=0.0))
+    if not np.any(mag > MAX_WIND_SPEED_MPS):
+        return
+    flat = np.argmax(mag)
+    val = float(corners.ravel()[flat])
+    p = int(np.unravel_index(flat, corners.shape)[-1])
+    named = repr(key) if file_name == key else f"{key!r} (variable {file_name!r} of the file)"
+    raise DataError(f"{source}: wind component {named} is {val:g} m/s around lon={float(lon.ravel()[p]):.4f}, "
+                    f"lat={float(lat.ravel()[p]):.4f}, more than {MAX_WIND_SPEED_MPS:g} m/s in magnitude (the "
+                    "strongest wind skyroute accepts, close to the strongest gust ever measured): the value "
+                    "is not a wind; check the file's values and the variable's 'units' attribute")
 
 
 def _as_canonical(wind: xr.Dataset) -> xr.Dataset:

@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import re
 from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
@@ -20,6 +22,8 @@ from skyroute.pipeline.settings.checks import (
 from skyroute.pipeline.settings.common import DEFAULT_SCENARIO, _is_file, _problems_from
 from skyroute.pipeline.settings.events import Event, GnssEvent, ObstacleEvent, WindEvent
 from skyroute.pipeline.settings.schema import Obstacle, Scenario
+from skyroute.stages import yaml_io
+from skyroute.stages.base import DataError, read_limited
 from skyroute.stages.yaml_io import read_yaml_file
 
 
@@ -218,8 +222,80 @@ def load_scenario(name_or_path: str | Path = DEFAULT_SCENARIO) -> Scenario:
 
 _EVENTS = TypeAdapter(tuple[Event, ...])
 
+#: a JSON number PyYAML (YAML 1.1) reads as a float: a dot, and a signed exponent if any
+#: (``1e5`` and ``1.5e3`` are strings to it)
+_YAML_FLOAT = re.compile(r"-?[0-9]+\.[0-9]*(?:[eE][-+][0-9]+)?")
+
+
+class _NotPlainJSON(ValueError):
+    """The text is not JSON that reads exactly as YAML would: let the YAML reader decide."""
+
+
+def _json_pairs(pairs: list[tuple[str, Any]]) -> dict:
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        raise _NotPlainJSON("a key given twice")     # the YAML reader names it, with its line
+    return out
+
+
+def _json_constant(name: str) -> Any:
+    raise _NotPlainJSON(name)       # NaN, Infinity: not JSON; YAML reads them as strings
+
+
+def _json_float(text: str) -> float | str:
+    return float(text) if _YAML_FLOAT.fullmatch(text) else text
+
+
+def _json_size(doc: Any) -> tuple[int, int]:
+    """(values, deepest nesting) of a parsed document, counted as the YAML reader counts them
+    (:func:`skyroute.stages.yaml_io._expanded_size`: a mapping key is a value too)."""
+    n, deepest = 0, 0
+    stack: list[tuple[Any, int]] = [(doc, 0)]
+    while stack:
+        node, depth = stack.pop()
+        n += 1
+        deepest = max(deepest, depth)
+        if isinstance(node, dict):
+            n += len(node)      # the keys
+            stack.extend((v, depth + 1) for v in node.values())
+        elif isinstance(node, list):
+            stack.extend((v, depth + 1) for v in node)
+    return n, deepest
+
+
 def _read_yaml(p: Path) -> Any:
-    return read_yaml_file(p, "events")
+    """An events file parsed once.  A JSON file (JSON is YAML, and what a program writes: a
+    generated file of 100 000 events or a 200 000-vertex polygon is ~10 MB, 40-60 s for PyYAML's
+    pure-Python parser) is read by :func:`json.loads` in well under a second, giving the values
+    YAML gives (numbers without a dot stay strings as in YAML 1.1) and refusing what
+    :func:`~skyroute.stages.yaml_io.read_yaml_file` refuses (more than ``MAX_NODES`` values or
+    ``MAX_DEPTH`` levels); anything else (YAML proper, a duplicate key, ``NaN``, a NUL, bytes that
+    are not UTF-8) goes to that reader, which names the problem and its line."""
+    try:
+        data = read_limited(p, yaml_io.MAX_BYTES, "events")
+    except DataError as exc:
+        raise ScenarioError(str(p), [f"<file>: {exc}"]) from None
+    head = data[:64].lstrip(b"\xef\xbb\xbf \t\r\n")
+    if head[:1] in (b"[", b"{"):
+        try:
+            text = data.decode("utf-8").removeprefix("\ufeff")
+            if "\x00" in text:
+                raise _NotPlainJSON("NUL")
+            doc = json.loads(text, object_pairs_hook=_json_pairs, parse_constant=_json_constant,
+                             parse_float=_json_float)
+            if yaml_io._nul_string(doc) is not None:
+                raise _NotPlainJSON("NUL")
+        except (ValueError, RecursionError):    # JSONDecodeError, UnicodeDecodeError, _NotPlainJSON
+            pass
+        else:
+            n, deepest = _json_size(doc)
+            if deepest > yaml_io.MAX_DEPTH:
+                raise ScenarioError(str(p), [f"<file>: refused: nesting deeper than {yaml_io.MAX_DEPTH} levels"])
+            if n > yaml_io.MAX_NODES:
+                raise ScenarioError(str(p), [f"<file>: refused: {n:,} values, more than the {yaml_io.MAX_NODES:,} "
+                                             "an events file may hold; split it or simplify its polygons"])
+            return doc
+    return yaml_io.read_yaml_text(data, str(p), "events")
 
 def _raw_events_of(path: str | Path) -> list:
     p = Path(path)

@@ -61,11 +61,11 @@ def check_intruders(sc: Scenario) -> int:
 
 def fly_params(sc: Scenario, t_rep_s: float | None = None, tick_s: float | None = None, seed: int | None = None,
                method: str | None = None):
-    """The replay's :class:`~skyroute.stages.tactical.replay.FlyParams`: the scenario's
+    """The replay's :class:`~skyroute.stages.tactical.params.FlyParams`: the scenario's
     ``tactical:`` section (``t_rep_s``, ``tick_s``, ``seed``, ``method`` override it) and its
     plan request (:func:`~skyroute.pipeline.stages_builtin.plan_request`: the planning settings)."""
     from skyroute.pipeline.stages_builtin import plan_request
-    from skyroute.stages.tactical.replay import FlyParams
+    from skyroute.stages.tactical.params import FlyParams  # not the replay (its planners: numba)
 
     t = sc.tactical
     return FlyParams(t_rep_s=t.t_rep_s if t_rep_s is None else t_rep_s, tick_s=t.tick_s if tick_s is None else tick_s,

@@ -292,9 +292,13 @@ def test_bitstar_path_valid_close_to_grid_and_reproducible():
 def test_energy_replan_loop_with_tiny_battery():
     tiny = VEH.model_copy(update={"battery_capacity_mah": 10.0})   # 10 mAh * 52.8 V = 1.9 kJ
     pr = make_problem(vehicle=tiny, weights=(1, 1, 1, 1))
-    r = plan_step1(pr, "astar", 5.0, max_tries=3)
+    refused = plan_step1(pr, "astar", 5.0, max_tries=3, energy_refusal=True)   # the bound: before any search
+    assert refused.status == "energy_infeasible" and refused.tries == 0 and refused.waypoints is None
+    assert "refused before the search" in refused.reason
+    r = plan_step1(pr, "astar", 5.0, max_tries=3, energy_refusal=False)   # the w_l re-plan loop
     assert r.status == "energy_infeasible"
     assert r.tries == 3
+    assert r.energy_J >= refused.info["energy_bound_j"]
     assert [t["weights"][0] for t in r.info["tries"]] == [1.0, 2.0, 4.0]
     assert "more than the battery" in r.reason and r.energy_J > tiny.battery_energy_j
     ok = plan_step1(make_problem(), "astar", 5.0, max_tries=3)

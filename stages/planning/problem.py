@@ -113,7 +113,8 @@ _REASONS = {
 
 # private memos a problem carries that depend on its maps, wind and vehicle but not on its
 # weights (kept by PlanningProblem.with_weights)
-_WEIGHT_FREE_MEMOS = ("_ratio_tiles", "_block_memo", "_coarse_blocks", "_wind_key", "_winds_cache", "_lb_cache")
+_WEIGHT_FREE_MEMOS = ("_ratio_tiles", "_block_memo", "_coarse_blocks", "_wind_key", "_winds_cache", "_lb_cache",
+                      "_energy_rates")
 
 
 @dataclass(frozen=True, eq=False)

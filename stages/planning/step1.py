@@ -10,6 +10,12 @@ Energy feasibility (seed 000 III-A.3): when the chain needs more energy E_w than
 holds, the level is re-planned with a larger length weight (w_l doubled; w_l = sum of the
 weights if it was 0), at most ``max_tries`` plans in all (N_t).  If every try is still
 infeasible the level's status is ``"energy_infeasible"`` with the numbers in ``reason``.
+Before any search, a rotorcraft level of a mission of at least :data:`ENERGY_BOUND_MIN_M` whose
+admissible energy lower bound
+(:func:`~skyroute.stages.planning.energy_bound.energy_lower_bound`: the winds at the admissible
+altitudes of the coarse cells, a ring recursion from the goal) exceeds the usable battery is
+refused at once (``"energy_infeasible"``, no chain, ``tries == 0``, the bound and the battery
+[Wh] in ``reason``): no plan can fly it, so no plan that would have been accepted changes.
 
 Reproducibility: both planners are deterministic for given inputs and ``seed``.  A* is
 deterministic by construction; BIT* stops on an iteration count that stands for the budget
@@ -33,12 +39,20 @@ import numpy as np
 
 from skyroute.stages import control
 from skyroute.stages.base import InputError, UnknownNameError
+from skyroute.stages.planning.energy_bound import energy_lower_bound
 from skyroute.stages.planning.grid_planner import STEP_CELLS, EdgeCache, refine_path
 from skyroute.stages.planning.problem import COST_NAMES, PlanningProblem
 
 # the one list of planners; the fixed-wing ones (seed 002) are solved by
 # skyroute.stages.planning.fixedwing (plan_strategic dispatches them; plan_step1 refuses them)
 from skyroute.stages.planning.registry import PLANNERS
+from skyroute.stages.vehicle import FixedWingProfile
+
+#: The shortest straight start-goal distance [m] for which a level's energy lower bound is worked
+#: out before the search: it costs 0.3-1.2 s a level (it grows with the distinct winds of the
+#: window), while a refused 1-2 km mission costs the old three tries only a few seconds; the bound
+#: only refuses what no plan can fly, so the choice changes no plan, only when a refusal comes.
+ENERGY_BOUND_MIN_M = 3000.0
 
 # Every planner stops on counted work, so the same scenario and seed give the same plan on an
 # idle or a loaded machine: A* on its expansions (``max_expansions``) and the refinement on its
@@ -198,7 +212,7 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
                max_tries: int = 3, refine: bool = True, step_cells: int = STEP_CELLS,
                max_iterations: int | None = None, h2: np.ndarray | None = None,
                battery_reserve_pct: float = 0.0, z_anchor_m: float | None = None,
-               edge_cache: EdgeCache | None = None) -> Step1Result:
+               edge_cache: EdgeCache | None = None, energy_refusal: bool | None = None) -> Step1Result:
     """STEP I on one level: plan, check the energy, re-plan with larger w_l if needed.
 
     Every level, all tries and refinement included, stops at the wall-clock cap
@@ -237,12 +251,17 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
     edge_cache : EdgeCache, optional
         A* only: the :class:`~skyroute.stages.planning.grid_planner.EdgeCache` of ``problem``'s
         maps, weights and vehicle, used by the first try (the later ones change the weights).
+    energy_refusal : bool, optional
+        True: refuse a rotorcraft level before any search when its energy lower bound
+        (:func:`~skyroute.stages.planning.energy_bound.energy_lower_bound`) exceeds the usable
+        battery; False: plan it as before (the benchmarks' reference path); default: True for a
+        mission whose start and goal are at least :data:`ENERGY_BOUND_MIN_M` apart.
 
     Returns
     -------
     Step1Result
         ``status`` "solved", "no_solution" or "energy_infeasible" (with the numbers in
-        ``reason``).
+        ``reason``); ``info["energy_bound_j"]`` the energy lower bound [J] when it was computed.
 
     Raises
     ------
@@ -274,6 +293,19 @@ def plan_step1(problem: PlanningProblem, planner: str = "astar", time_budget_s: 
     w = list(problem.weights)
     best = None
     info: dict = {"tries": []}
+    if energy_refusal is None:        # by default for missions long enough for the bound to pay
+        energy_refusal = math.dist(problem.start_xyz[:2], problem.goal_xyz[:2]) >= ENERGY_BOUND_MIN_M
+    if energy_refusal and not isinstance(problem.vehicle, FixedWingProfile):
+        lb = energy_lower_bound(problem)
+        info["energy_bound_j"] = lb["bound_j"]
+        info["energy_bound_s"] = lb["compute_s"]
+        if math.isfinite(lb["bound_j"]) and lb["bound_j"] > battery:   # inf (no chain of cells): the search says why
+            r = _empty(problem, planner, "energy_infeasible",
+                       f"{problem.label}: no path can be flown on the battery: every path needs at least "
+                       f"{lb['bound_j'] / 3600:.1f} Wh (energy lower bound over the winds at the admissible altitudes), "
+                       f"more than the battery's usable {battery / 3600:.1f} Wh (refused before the search)", t0)
+            r.info = info
+            return r
     for attempt in range(int(max_tries)):
         if attempt > 0 and control.work_clock() >= deadline:
             info["stopped_by"] = "time"

@@ -15,6 +15,13 @@ Modes (combine freely; default: ``--default --cells 1e7``):
     the tiled map of >= ``cells`` cells: a dask.distributed LocalCluster (processes, 1 thread
     each) per worker count, and/or the threaded scheduler per thread count.  Result reduced to
     two numbers (sum of floors, count of unflyable cells).  Target: 2 workers >= 1.6x faster.
+``--kernels [--city helsinki|rotterdam] [--repeat 3]``
+    issue 36 item 3, single core (CPU time of this process, kernels on the same visibility
+    heights, interleaved runs, median): the occlusion scan's rate (cells x directions / s),
+    the DOP-floor kernel of today (``_reference_floor_epoch_kernel``, kept callable) and the
+    memoised one (column x satellite x epoch / s, their floors checked bit-identical), and the
+    stage (``coverage_maps``, numpy runner: scan + floor + wrapping) with each kernel: cells x
+    visible satellite-epochs / core-s and its ratio to the scan's rate (target >= 0.5).
 ``--memory --side-m 10000 --res-m 1 [--workers 2]``
     a ``side`` x ``side`` map (10^8 cells at 1 m) on a LocalCluster, written to a zarr store in
     a temporary folder (the result is never held in memory), then a few statistics read back.
@@ -27,6 +34,7 @@ the same run.  "cores free" is measured in the same run: 2 threads of a pure num
 
 Run:  /work/venv/bin/python benchmarks/bench_coverage_scale.py [--default] [--cells 1e7]
       [--workers 1,2] [--threads 1,2] [--memory --side-m 10000 --res-m 1] [--city rotterdam]
+      [--kernels]
 """
 
 from __future__ import annotations
@@ -35,6 +43,7 @@ import argparse
 import logging
 import math
 import os
+import sys
 import tempfile
 import threading
 import time
@@ -417,6 +426,82 @@ def bench_memory(args) -> None:
           f"compute+write {t_write:.1f} s = {1e9 * t_write / big.size:.0f} ns/cell")
 
 
+def bench_kernels(args) -> None:
+    """Issue 36 item 3: the floor kernels and the stage per core against the occlusion scan."""
+    from skyroute.stages.dop import los_rows
+    from skyroute.stages.occlusion import visibility_heights_numpy
+    from skyroute.stages.orbits import epoch_directions
+
+    name = CITIES[args.city] if args.kernels_city_given else DEFAULT_SCENARIO
+    surf, _, az, el, sc = scenario_inputs(name)
+    thr = np.unique(np.asarray(sc.gnss.dop_thresholds, np.float64))
+    kind = cv.dop_kind_index(sc.gnss.dop_kind)
+    mask = sc.gnss.elevation_mask_deg
+    cell = Grid.from_dataarray(surf).resolution_m
+    s2 = np.ascontiguousarray(surf.values, np.float32)
+    dirs = epoch_directions(cv._grid_azimuth(az.values, surf), el.values, mask)
+    rows = [np.ascontiguousarray(los_rows(a, e)) for a, e in dirs]
+    work = s2.size * sum(a.size for a, _ in dirs)  # cells x visible satellite-epochs
+    warm(az, el)
+    hs = [np.ascontiguousarray(visibility_heights_numpy(s2, a, e, cell)) for a, e in dirs]
+    for fn in (cv._reference_floor_epoch_kernel, cv._floor_epoch_kernel):
+        fn(hs[0], rows[0], thr, kind, np.full((thr.size,) + s2.shape, -np.inf))
+
+    def scan() -> None:
+        for a, e in dirs:
+            visibility_heights_numpy(s2, a, e, cell)
+
+    outs = {}
+
+    def floors(fn) -> Callable[[], None]:
+        def run() -> None:
+            out = np.full((thr.size,) + s2.shape, -np.inf)
+            for h, g in zip(hs, rows, strict=True):
+                fn(h, g, thr, kind, out)
+            outs[fn] = out
+        return run
+
+    kw = dict(thresholds=sc.gnss.dop_thresholds, dop=sc.gnss.dop_kind, mask_deg=mask)
+    stage_out = {}
+
+    def stage(fn) -> Callable[[], None]:
+        def run() -> None:
+            saved = cv._floor_epoch_kernel
+            cv._floor_epoch_kernel = fn
+            try:
+                stage_out[fn] = cv.coverage_maps(surf, az, el, **kw)["coverage_floor"].values
+            finally:
+                cv._floor_epoch_kernel = saved
+        return run
+
+    new, ref = cv._floor_epoch_kernel, cv._reference_floor_epoch_kernel
+    cases = {"occlusion scan": scan, "floor kernel, today": floors(ref),
+             "floor kernel, memoised": floors(new), "stage, today's kernel": stage(ref),
+             "stage, memoised kernel": stage(new)}
+    cpu: dict[str, list[float]] = {k: [] for k in cases}
+    print(f"\n[kernels] {sc.name}: surface {s2.shape} = {s2.size:,d} cells at {cell:g} m, "
+          f"{len(dirs)} epochs, {work / s2.size / len(dirs):.1f} visible satellites per epoch, "
+          f"{sc.gnss.dop_kind} thresholds {thr.tolist()}; single thread, CPU s of this process, "
+          f"median of {args.repeat} interleaved runs ({load()})", flush=True)
+    for _ in range(args.repeat):
+        for k, fn in cases.items():
+            c0 = time.process_time()
+            fn()
+            cpu[k].append(time.process_time() - c0)
+    assert np.array_equal(outs[ref], outs[new]), "memoised floors differ from today's kernel"
+    assert np.array_equal(stage_out[ref], stage_out[new], equal_nan=True), "stage floors differ"
+    med = {k: float(np.median(v)) for k, v in cpu.items()}
+    rate = {k: work / t for k, t in med.items()}
+    r_scan = rate["occlusion scan"]
+    print(f"{'case':<28}{'CPU s':>8}{'rate /s/core':>15}{'vs scan':>9}")
+    for k in cases:
+        print(f"{k:<28}{med[k]:>8.3f}{rate[k]:>15.3e}{rate[k] / r_scan:>8.2f}x")
+    print(f"floor kernel: memoised / today {rate['floor kernel, memoised'] / rate['floor kernel, today']:.2f}x "
+          f"(floors bit-identical); stage throughput / scan rate: today "
+          f"{rate['stage, today' + chr(39) + 's kernel'] / r_scan:.2f}, memoised "
+          f"{rate['stage, memoised kernel'] / r_scan:.2f} (target >= 0.50); {load()}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--default", action="store_true", help="time the default scenario")
@@ -424,6 +509,8 @@ def main() -> None:
     ap.add_argument("--workers", default=None, help="LocalCluster worker counts, e.g. 1,2")
     ap.add_argument("--threads", default=None, help="threaded-scheduler thread counts, e.g. 1,2")
     ap.add_argument("--memory", action="store_true", help="the side x side map to zarr")
+    ap.add_argument("--kernels", action="store_true",
+                    help="floor kernels and stage per core vs the occlusion scan (issue 36)")
     ap.add_argument("--side-m", type=float, default=10000.0)
     ap.add_argument("--res-m", type=float, default=None,
                     help="cell size [m] of the tiled maps (default: the scenario's)")
@@ -435,7 +522,8 @@ def main() -> None:
 
     for name in ["distributed", *[n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]]:
         logging.getLogger(name).setLevel(logging.ERROR)
-    if not (args.default or args.cells or args.memory):
+    args.kernels_city_given = any(a.startswith("--city") for a in sys.argv[1:])
+    if not (args.default or args.cells or args.memory or args.kernels):
         args.default, args.cells = True, 1e7
         args.workers = args.workers or "1,2"
     if args.memory and args.res_m is None:
@@ -448,7 +536,10 @@ def main() -> None:
         bench_scaling(args)
     if args.memory:
         bench_memory(args)
-    print_table()
+    if args.kernels:
+        bench_kernels(args)
+    if ROWS:
+        print_table()
     print(f"\n{load()}; cores free now: {cores_free():.2f}")
     print("targets: default scenario < 10 s on 2 cores; 2 workers >= 1.6x faster than 1 on "
           ">= 1e7 cells; 10^8 cells at 1 m with peak RSS < 6 GiB")

@@ -13,7 +13,8 @@ a satellite adds a positive semi-definite rank-one term ``g g^T`` to the normal 
 (GDOP, PDOP, HDOP, VDOP, TDOP) never increases with altitude.  Each column's DOP profile is
 computed *exactly* from its breakpoints (rank-one updates of the 4x4 normal matrix and a 4x4
 Cholesky inverse-diagonal at each distinct breakpoint, numba kernel) instead of sampling a
-voxel grid.
+voxel grid; the coverage floor's kernel shares these operations between columns with the same
+breakpoint groups (memoised, floors bit-identical to the direct kernel).
 
 GNSS coverage map (seeds 000 item 5, 001 item 5): for a DOP threshold ``D_j`` the altitude
 above which DOP < D_j, worst case (max) over the epochs of a time window (default 20 min at
@@ -117,8 +118,10 @@ def _sorted_column(h: np.ndarray, i: int, j: int, hs: np.ndarray, order: np.ndar
 
 
 @numba.njit(cache=True, nogil=True)
-def _floor_epoch_kernel(h, g, thresholds, kind, out):
-    """Fold one epoch into the running worst-case floor.
+def _reference_floor_epoch_kernel(h, g, thresholds, kind, out):
+    """Fold one epoch into the running worst-case floor: the direct kernel (the reference of
+    the memoised :func:`_floor_epoch_kernel`, which gives bit-identical floors; kept for the
+    tests, the benchmark and more than :data:`_MEMO_MAX_SAT` satellites).
 
     h: (n, ny, nx) visibility heights [m] (+inf/NaN = never visible; any strides, e.g. the
     core of an overlapped block); g: (n, 4) rows [e_east, e_north, e_up, 1]; thresholds:
@@ -188,6 +191,327 @@ def _floor_epoch_kernel(h, g, thresholds, kind, out):
             while jj >= 0:  # never reached in this epoch
                 out[jj, i, j] = inf
                 jj -= 1
+
+
+#: Most satellites per epoch the memoised floor kernel handles (a breakpoint's group of
+#: satellites is a bit mask in one int64); more: the direct kernel.
+_MEMO_MAX_SAT = 62
+
+#: Nodes of the memo of :func:`_floor_epoch_kernel` (one per distinct sequence of breakpoint
+#: groups up to the first regular breakpoint; 160 bytes each); when it is full, it is
+#: cleared before the next column.
+_MEMO_NODES = 1 << 14
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _memo_slot(parent, mask, tmask):
+    """Hash-table slot of the edge (``parent`` node, group ``mask``); ``tmask`` = size - 1."""
+    x = (mask ^ (parent * -7046029254386353131)) * -4658895280553007687  # wraps (int64)
+    return (x >> 40) & tmask
+
+
+@numba.njit(cache=True, nogil=True)
+def _memo_child(tab, nd, nodes, parent, mask, tmask, g, kind, nm, lo, mi, qs, q):
+    """Node of the prefix ``parent`` + the group ``mask`` (looked up in the hash table ``tab``
+    or computed into node ``nodes``); returns (node, nodes).  A new node gets the direct
+    kernel's operations in its order: the group's rows added in index order to the lower
+    triangle of the parent's normal matrix, then, with >= 4 satellites, the Cholesky inverse
+    (kept when regular)."""
+    slot = _memo_slot(parent, mask, tmask)
+    while True:
+        km = tab[slot, 0]
+        if km == mask and (tab[slot, 1] >> 32) == parent:
+            return tab[slot, 1] & 0xFFFFFFFF, nodes
+        if km == 0:
+            break
+        slot = (slot + 1) & tmask
+    c = nodes
+    for a in range(4):
+        for b in range(4):
+            nm[a, b] = nd[parent, a, b]
+    k = nd[parent, 4, 1]
+    for s in range(g.shape[0]):
+        if (mask >> s) & 1:
+            gs = g[s]
+            for a in range(4):  # lower triangle (all inv4 reads)
+                for b in range(a + 1):
+                    nm[a, b] += gs[a] * gs[b]
+            k += 1.0
+    res = nm
+    d = np.inf
+    reg = 0.0
+    if k >= 4.0 and inv4(nm, lo, mi, qs):
+        res = qs
+        for a in range(4):
+            q[a] = qs[a, a]
+        d = dop_of_kind(q, kind)
+        reg = 1.0
+    for a in range(4):
+        for b in range(4):
+            nd[c, a, b] = res[a, b]
+    nd[c, 4, 0] = d
+    nd[c, 4, 1] = k
+    nd[c, 4, 2] = reg
+    tab[slot, 0] = mask
+    tab[slot, 1] = (parent << 32) | c
+    return c, nodes + 1
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _rank_one16(q, g0, g1, g2, g3):
+    """:func:`~skyroute.stages.dop.add_rank_one` on a row-major 16-tuple ``q`` (held in
+    registers), the same operations in the same order (the same bits)."""
+    u0 = q[0] * g0 + q[1] * g1 + q[2] * g2 + q[3] * g3
+    u1 = q[4] * g0 + q[5] * g1 + q[6] * g2 + q[7] * g3
+    u2 = q[8] * g0 + q[9] * g1 + q[10] * g2 + q[11] * g3
+    u3 = q[12] * g0 + q[13] * g1 + q[14] * g2 + q[15] * g3
+    s = 1.0 / (1.0 + g0 * u0 + g1 * u1 + g2 * u2 + g3 * u3)
+    a0 = u0 * s
+    a1 = u1 * s
+    a2 = u2 * s
+    a3 = u3 * s
+    return (q[0] - a0 * u0, q[1] - a0 * u1, q[2] - a0 * u2, q[3] - a0 * u3,
+            q[4] - a1 * u0, q[5] - a1 * u1, q[6] - a1 * u2, q[7] - a1 * u3,
+            q[8] - a2 * u0, q[9] - a2 * u1, q[10] - a2 * u2, q[11] - a2 * u3,
+            q[12] - a3 * u0, q[13] - a3 * u1, q[14] - a3 * u2, q[15] - a3 * u3)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _rank_column(h, i, j, col, rank):
+    """Heights of column (i, j) into ``col`` (NaN -> +inf) and ``rank[s]``, the number of
+    satellites strictly lower than ``s``: the same for every satellite of a breakpoint group,
+    and the group of ``c`` satellites at rank ``r`` is followed by the one at rank ``r + c``
+    (:func:`_group_at`).  Branch-free, O(n^2) comparisons: cheaper than a selection pass per
+    breakpoint for the columns that need several."""
+    n = col.shape[0]
+    inf = np.inf
+    for s in range(n):
+        v = h[s, i, j]
+        col[s] = v if v == v else inf
+    for s in range(n):
+        v = col[s]
+        r = 0
+        for t in range(n):
+            r += col[t] < v
+        rank[s] = r
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _group_at(rank, r):
+    """(bit mask, size, first satellite) of the group at rank ``r`` (:func:`_rank_column`);
+    one branch-free pass."""
+    n = rank.shape[0]
+    mask = 0
+    c = 0
+    smin = n
+    for s in range(n):
+        e = rank[s] == r
+        mask |= np.int64(e) << s
+        c += e
+        smin = min(smin, s if e else n)
+    return mask, c, smin
+
+
+@numba.njit(cache=True, nogil=True)
+def _memo_floor_epoch_kernel(h, g, thresholds, kind, out):
+    """:func:`_floor_epoch_kernel` for at most :data:`_MEMO_MAX_SAT` satellites and at least
+    one threshold: the memoised kernel, floors bit-identical to
+    :func:`_reference_floor_epoch_kernel`.
+
+    h: (n, ny, nx) visibility heights [m] (finite, +inf or NaN = never visible, never -inf;
+    any strides, e.g. the core of an overlapped block); g: (n, 4) rows [e_east, e_north,
+    e_up, 1]; thresholds: (J,) ascending; out: (J, ny, nx), running max of the lowest altitude
+    with DOP < D_j (+inf = never).  Updated in place.
+
+    Why the same bits: a column's floors depend on its heights only through the sequence of
+    its breakpoint *groups* (the satellites that appear at each distinct height, ascending)
+    and their heights: the direct kernel adds a group's rows in index order to the lower
+    triangle of the normal matrix, inverts it (Cholesky) at the first breakpoint with >= 4
+    satellites where it is regular, updates the inverse by Sherman-Morrison (index order)
+    after it and compares the DOP with the thresholds after each group, stopping at the
+    smallest.  This kernel performs exactly these floating-point operations in the same order
+    (no fast-math, the same compiled building blocks or their operation-for-operation
+    copies :func:`_rank_one16`), but shares them between columns:
+
+    * the states up to the first regular breakpoint are nodes of a trie, edges (node, group
+      bit mask) in an open-addressing hash table (:func:`_memo_child`): a city has a few
+      thousand distinct first groups per epoch for 10^5-10^6 columns (a quarter of its
+      columns see every satellite at the surface: one group, one look-up);
+    * the previous column's state after each group is kept and reused while the groups are
+      the same (71 % of the first groups of Helsinki are the left neighbour's);
+    * past both, the Sherman-Morrison chain runs in registers, and every state is kept for
+      the next column.
+
+    Finding the groups costs no selection loop with branches: the first breakpoint of every
+    column of a row comes from vectorised passes along the rows of ``h``; a column that needs
+    more ranks its satellites once (:func:`_rank_column`, :func:`_group_at`).  Benchmark:
+    ``benchmarks/bench_coverage_scale.py --kernels``; tests: ``tests/test_coverage_incremental.py``
+    (property-generated columns, shipped scenarios, ``np.array_equal``)."""
+    n, ny, nx = h.shape
+    nj = thresholds.shape[0]
+    cap = _MEMO_NODES
+    tsize = 4 * cap  # load factor <= 1/4
+    tmask = tsize - 1
+    tab = np.zeros((tsize, 2), np.int64)  # [group mask (0 = empty), parent << 32 | child]
+    nd = np.empty((cap, 5, 4))  # matrix (normal, lower triangle; or its inverse), [d, k, reg]
+    nd[0, :, :] = 0.0  # the root: no satellite
+    nodes = 1
+    # the current (and the previous) column's state after each group
+    pm = np.zeros(n + 1, np.int64)  # group masks
+    pq = np.empty((n + 1, 16))  # inverse of the normal matrix, row-major (regular states)
+    pd = np.empty(n + 1)  # DOP (regular states)
+    pk = np.empty(n + 1, np.int64)  # satellites added
+    preg = np.zeros(n + 1, np.bool_)
+    pnode = np.zeros(n + 1, np.int64)  # trie node (states before the first regular one)
+    plen = 0  # valid levels
+    nm = np.zeros((4, 4))
+    lo = np.zeros((4, 4))
+    mi = np.zeros((4, 4))
+    qs = np.zeros((4, 4))
+    q = np.zeros(4)
+    inf = np.inf
+    zr = np.empty(nx, h.dtype)  # per column of the row: first breakpoint [m],
+    mr = np.empty(nx, np.int64)  # visible satellites,
+    gr = np.empty(nx, np.int64)  # the group at the first breakpoint
+    col = np.empty(n)  # one column's heights (NaN -> +inf) and ranks, once it needs a
+    rank = np.empty(n, np.int64)  # second breakpoint (_rank_column)
+    for i in range(ny):
+        # the first breakpoint of every column of the row: branch-free passes along the rows
+        # of h (contiguous, vectorised)
+        zr[:] = inf
+        mr[:] = 0
+        gr[:] = 0
+        for s in range(n):
+            for j in range(nx):
+                v = h[s, i, j]
+                mr[j] += v < inf  # NaN and +inf: never visible
+                zr[j] = v if v < zr[j] else zr[j]
+        for s in range(n):
+            for j in range(nx):
+                gr[j] |= np.int64(h[s, i, j] == zr[j]) << s
+        for j in range(nx):
+            if nodes + n > cap:  # a column adds at most n nodes: clear the memo
+                tab[:, 0] = 0
+                nodes = 1
+                plen = 0
+            m = mr[j]
+            z = np.float64(zr[j])
+            mask = gr[j]
+            smin = 0
+            r = 0  # rank and size of the current group (_rank_column)
+            c = 0
+            jj = nj - 1  # the largest threshold is reached first
+            lv = 0
+            same = True  # the groups so far are the previous column's
+            gathered = False
+            done = m == 0
+            # phase 1: the previous column's states, then the trie, while they hold the state
+            while not done:
+                if not (same and lv < plen and pm[lv] == mask):
+                    same = False
+                    if lv and preg[lv - 1]:
+                        break  # a regular state no column before had: phase 2
+                    pm[lv] = mask
+                    nc, nodes = _memo_child(tab, nd, nodes, pnode[lv - 1] if lv else 0, mask,
+                                            tmask, g, kind, nm, lo, mi, qs, q)
+                    pnode[lv] = nc
+                    pk[lv] = int(nd[nc, 4, 1])
+                    preg[lv] = nd[nc, 4, 2] != 0.0
+                    if preg[lv]:
+                        pd[lv] = nd[nc, 4, 0]
+                        for a in range(4):
+                            for b in range(4):
+                                pq[lv, 4 * a + b] = nd[nc, a, b]
+                if preg[lv]:
+                    d = pd[lv]
+                    while jj >= 0 and d < thresholds[jj]:
+                        if z > out[jj, i, j]:
+                            out[jj, i, j] = z
+                        jj -= 1
+                lv += 1
+                if pk[lv - 1] >= m or jj < 0:
+                    done = True
+                    break
+                if not gathered:
+                    _rank_column(h, i, j, col, rank)
+                    c = _group_at(rank, 0)[1]  # the first group's size
+                    gathered = True
+                r += c  # the next group
+                mask, c, smin = _group_at(rank, r)
+                z = col[smin]
+            if not done:
+                # phase 2: Sherman-Morrison in registers from the state of level lv - 1, each
+                # group in index order; every state kept for the next column
+                qt = (pq[lv - 1, 0], pq[lv - 1, 1], pq[lv - 1, 2], pq[lv - 1, 3],
+                      pq[lv - 1, 4], pq[lv - 1, 5], pq[lv - 1, 6], pq[lv - 1, 7],
+                      pq[lv - 1, 8], pq[lv - 1, 9], pq[lv - 1, 10], pq[lv - 1, 11],
+                      pq[lv - 1, 12], pq[lv - 1, 13], pq[lv - 1, 14], pq[lv - 1, 15])
+                k = pk[lv - 1]
+                while True:
+                    if c == 1:  # one satellite (the usual case)
+                        gs = g[smin]
+                        qt = _rank_one16(qt, gs[0], gs[1], gs[2], gs[3])
+                        k += 1
+                    else:
+                        for s in range(smin, n):
+                            if (mask >> s) & 1:
+                                gs = g[s]
+                                qt = _rank_one16(qt, gs[0], gs[1], gs[2], gs[3])
+                                k += 1
+                    pq[lv, 0] = qt[0]
+                    pq[lv, 1] = qt[1]
+                    pq[lv, 2] = qt[2]
+                    pq[lv, 3] = qt[3]
+                    pq[lv, 4] = qt[4]
+                    pq[lv, 5] = qt[5]
+                    pq[lv, 6] = qt[6]
+                    pq[lv, 7] = qt[7]
+                    pq[lv, 8] = qt[8]
+                    pq[lv, 9] = qt[9]
+                    pq[lv, 10] = qt[10]
+                    pq[lv, 11] = qt[11]
+                    pq[lv, 12] = qt[12]
+                    pq[lv, 13] = qt[13]
+                    pq[lv, 14] = qt[14]
+                    pq[lv, 15] = qt[15]
+                    q[0] = qt[0]
+                    q[1] = qt[5]
+                    q[2] = qt[10]
+                    q[3] = qt[15]
+                    d = dop_of_kind(q, kind)
+                    pm[lv] = mask
+                    pk[lv] = k
+                    preg[lv] = True
+                    pd[lv] = d
+                    while jj >= 0 and d < thresholds[jj]:
+                        if z > out[jj, i, j]:
+                            out[jj, i, j] = z
+                        jj -= 1
+                    lv += 1
+                    if k >= m or jj < 0:
+                        break
+                    r += c  # the next group
+                    mask, c, smin = _group_at(rank, r)
+                    z = col[smin]
+            plen = max(plen, lv) if same else lv
+            while jj >= 0:  # never reached in this epoch
+                out[jj, i, j] = inf
+                jj -= 1
+
+
+def _floor_epoch_kernel(h: np.ndarray, g: np.ndarray, thresholds: np.ndarray, kind: int,
+                        out: np.ndarray) -> None:
+    """Fold one epoch into the running worst-case floor ``out`` (in place).
+
+    h: (n, ny, nx) visibility heights [m] (finite, +inf or NaN = never visible, never -inf;
+    any strides); g: (n, 4) rows [e_east, e_north, e_up, 1]; thresholds: (J,) ascending;
+    out: (J, ny, nx), running max of the lowest altitude with DOP < D_j (+inf = never).
+    The memoised kernel (:func:`_memo_floor_epoch_kernel`) up to :data:`_MEMO_MAX_SAT`
+    satellites, else the direct one: the same floors, bit for bit."""
+    if h.shape[0] > _MEMO_MAX_SAT or thresholds.shape[0] == 0:
+        _reference_floor_epoch_kernel(h, g, thresholds, kind, out)
+    else:
+        _memo_floor_epoch_kernel(h, g, thresholds, kind, out)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -18,6 +18,7 @@ from skyroute.stages.figures import (
     GOAL_STYLE,
     START_STYLE,
     add_map_furniture,
+    grow_until_unclipped,
     image_extent,
     side_colorbar,
 )
@@ -59,6 +60,7 @@ def plot_surface(result: RunResult, path: Path) -> Path:
     ax.ticklabel_format(useOffset=False, style="plain")
     add_map_furniture(ax)
     fig.tight_layout()
+    grow_until_unclipped(fig)     # a narrow AOI: the legend below and the long x label need room
     fig.savefig(path)
     plt.close(fig)
     return path

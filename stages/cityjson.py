@@ -595,13 +595,21 @@ def read_cityjson(path: str | Path) -> dict:
 
 def cityjson_crs(cj: dict) -> CRS:
     """The horizontal CRS of a CityJSON document (``metadata.referenceSystem``)."""
-    ref = (cj.get("metadata") or {}).get("referenceSystem")
+    meta = cj.get("metadata")
+    if meta is not None and not isinstance(meta, dict):
+        raise DataError(f"CityJSON metadata is a {type(meta).__name__}, not an object: give "
+                        '"metadata": {"referenceSystem": "https://www.opengis.net/def/crs/EPSG/0/<code>"}')
+    ref = (meta or {}).get("referenceSystem")
     if not ref:
         raise DataError("CityJSON has no metadata.referenceSystem; set aoi.crs to the file's CRS")
     m = re.search(r"EPSG[:/]+(?:[0-9.]*/)?(?:0/)?:?(\d+)", str(ref))
     if not m:
-        raise DataError(f"cannot read the CityJSON referenceSystem {ref!r}")
-    crs = CRS.from_epsg(int(m.group(1)))
+        raise DataError(f"cannot read the CityJSON referenceSystem {str(ref)[:120]!r}")
+    try:
+        crs = CRS.from_epsg(int(m.group(1)))
+    except Exception as exc:                 # pyproj.exceptions.CRSError: no such EPSG code
+        raise DataError(f"CityJSON metadata.referenceSystem {str(ref)[:120]!r}: EPSG:{m.group(1)} is not a "
+                        f"known CRS ({exc}); give the file's real EPSG code") from None
     return crs.sub_crs_list[0] if crs.is_compound else crs
 
 

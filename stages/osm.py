@@ -169,6 +169,9 @@ def _read(path: str, mtime_ns: int, keys: tuple[str, ...] | None) -> tuple[OsmFe
             out.append(OsmFeature(kind, int(oid), dict(tags), geom))
     except osmium.InvalidLocationError as exc:   # raised by the file reader, e.g. lat="inf"
         raise DataError(f"OSM file {path}: a node coordinate cannot be read ({exc}); {fix}") from None
+    except (RuntimeError, ValueError) as exc:     # libosmium's parser: a damaged file ("illegal id: ' 1'")
+        raise DataError(f"OSM file {path} cannot be read: {exc}; the file is damaged or not OSM XML / PBF: "
+                        "download the extract again (or check it with `osmium fileinfo`)") from None
     return tuple(out)
 
 

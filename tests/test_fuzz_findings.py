@@ -356,3 +356,29 @@ def test_help_shows_no_none_ranges(command):
     res = CliRunner().invoke(main, [command, "--help"])
     assert res.exit_code == 0
     assert "None" not in res.output and "x<=" not in res.output.replace("0<=x<=", "")
+
+
+@pytest.mark.parametrize("meta, match", [
+    (18446744073709551616, "metadata is a int, not an object"),
+    ([0], "metadata is a list, not an object"),
+    ({"referenceSystem": "https://www.opengis.net/def/crs/EPSG/0/0"}, "EPSG:0 is not a known CRS"),
+])
+def test_a_cityjson_metadata_of_the_wrong_type_or_an_unknown_crs_is_one_error(meta, match):
+    """Found by the deeper fuzz run (benchmarks/fuzz_inputs.py --kind files --seed 11): an
+    AttributeError / pyproj CRSError traceback before."""
+    from skyroute.stages.base import DataError
+    from skyroute.stages.cityjson import cityjson_crs
+
+    with pytest.raises(DataError, match=match):
+        cityjson_crs({"type": "CityJSON", "metadata": meta})
+
+
+def test_a_damaged_osm_xml_file_is_one_error(tmp_path):
+    """A flipped byte in an id (``id=" 3"``): libosmium's ValueError traceback before."""
+    from skyroute.stages.base import DataError
+    from skyroute.stages.osm import read_osm
+
+    p = tmp_path / "d.osm"
+    p.write_text('<?xml version="1.0"?><osm version="0.6"><node id=" 3" lat="60.1" lon="24.9"/></osm>')
+    with pytest.raises(DataError, match="cannot be read: .*damaged or not OSM"):
+        read_osm(p)

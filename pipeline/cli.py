@@ -504,7 +504,7 @@ def run_command(scenario, out_dir, cache_dir, scheduler, workers, targets, force
         if plan is not None and plan["status"] == "flyable":
             click.echo(plan_summary_line(plan))
         if fly is not None:
-            from skyroute.stages.tactical.outputs import fly_summary_line
+            from skyroute.stages.tactical.log import fly_summary_line
 
             click.echo(fly_summary_line(fly["section"]))
     else:

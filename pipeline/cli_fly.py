@@ -66,7 +66,7 @@ def fly_command(scenario, out_dir, events_file, t_rep_s, tick_s, seed, method, c
     section = fly_folder(sc, out_dir, cache=Cache(cache_dir), scheduler=scheduler,
                          progress=show_progress(quiet), t_rep_s=t_rep_s, tick_s=tick_s, seed=seed,
                          method=method)
-    from skyroute.stages.tactical.outputs import fly_summary_line
+    from skyroute.stages.tactical.log import fly_summary_line
 
     click.echo(fly_summary_line(section))
     if section["outcome"] == "failed" or section.get("separation_lost"):

@@ -603,10 +603,13 @@ def plan_arguments(s: PlanSettings, surface: xr.Dataset) -> dict:
     """The keyword arguments of :func:`~skyroute.stages.planning.strategic.plan_levels` (the fields of a
     :class:`~skyroute.stages.planning.request.PlanRequest`) for
     these settings (one place: the plan stage and the benchmarks call it)."""
-    from skyroute.stages.traffic import intruders_for
     from skyroute.stages.vehicle import vehicle_from_dict
 
-    intr = intruders_for(s.intruders, surface) if s.intruders else None
+    intr = None
+    if s.intruders:     # only then (its maps' module imports rioxarray: a warm fly needs none)
+        from skyroute.stages.traffic import intruders_for
+
+        intr = intruders_for(s.intruders, surface)
     # the vehicle travels as its profile (the content the cache key hashed), never reloaded by name
     return dict(start_xy=s.start_xy, start_agl_m=s.start_agl_m, goal_xy=s.goal_xy, goal_agl_m=s.goal_agl_m,
                 start_time_utc=s.start_time_utc, vehicle=vehicle_from_dict(s.vehicle_profile), weights=s.weights, planner=s.planner,

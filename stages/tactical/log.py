@@ -9,10 +9,11 @@ datum (``FlightLog.vertical_datum``); times are seconds since the mission start
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-__all__ = ["FlightLog", "FlownPart", "IntruderTrack", "LevelAttempt", "NoFlyZone", "PART_NAMES"]
+__all__ = ["FlightLog", "FlownPart", "IntruderTrack", "LevelAttempt", "NoFlyZone", "PART_NAMES", "fly_summary_line"]
 
 PART_NAMES = ("strategic", "L1", "L2", "L3", "octant", "potential", "landing", "escape", "resume", "climb", "right",
               "left", "loiter", "descend")
@@ -157,3 +158,18 @@ class FlightLog:
             ts.append(p.t_s[k:])
             ps.append(p.xyz_m[k:])
         return np.concatenate(ts), np.concatenate(ps)
+
+
+def fly_summary_line(sec: dict[str, Any]) -> str:
+    """One line of a :func:`flight_section`: outcome, replannings and chosen levels, flight
+    time and the smallest separation margin."""
+    levels = ", ".join(f"L{v}" if v in ("1", "2", "3") else v for v in sec["chosen_levels"]) or "none"
+    head = {"goal": "reached the goal", "landed": "landed", "failed": "failed"}.get(sec["outcome"], sec["outcome"])
+    why = f" ({sec['reason']})" if sec["reason"] and sec["outcome"] != "goal" else ""
+    seps = [r for r in sec["min_separation"] if r["clearance_m"] is not None]
+    sep = ""
+    if seps:
+        r = min(seps, key=lambda r: r["clearance_m"])
+        sep = f", closest intruder {r['id']} at {r['min_distance_m']:.1f} m (margin {r['clearance_m']:+.1f} m)"
+    ft = "" if sec["flight_time_s"] is None else f", flight time {sec['flight_time_s']:.1f} s"
+    return f"fly: {head}{why}; {sec['n_replannings']} replannings ({levels}){ft}{sep}"

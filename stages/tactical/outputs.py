@@ -39,7 +39,7 @@ from skyroute.stages.figures import add_map_furniture, grow_until_unclipped
 from skyroute.stages.planning.outputs import crs_of, raster_values, write_csv
 from skyroute.stages.planning.step3 import utc_of
 from skyroute.stages.tactical.daa import ALERT_LEVELS, daa_series
-from skyroute.stages.tactical.log import PART_NAMES, FlightLog
+from skyroute.stages.tactical.log import PART_NAMES, FlightLog, fly_summary_line  # noqa: F401  (re-exported)
 
 __all__ = ["write_flight", "flight_section", "fly_summary_line", "flown_samples", "min_separations", "nofly_time_inside",
            "TACTICAL_COLUMNS", "FLOWN_COLUMNS", "SEPARATION_STEP_S", "PART_COLOURS"]
@@ -418,21 +418,6 @@ def _json_safe(v):
     if isinstance(v, np.integer | np.bool_):
         return v.item()
     return v
-
-
-def fly_summary_line(sec: dict[str, Any]) -> str:
-    """One line of a :func:`flight_section`: outcome, replannings and chosen levels, flight
-    time and the smallest separation margin."""
-    levels = ", ".join(f"L{v}" if v in ("1", "2", "3") else v for v in sec["chosen_levels"]) or "none"
-    head = {"goal": "reached the goal", "landed": "landed", "failed": "failed"}.get(sec["outcome"], sec["outcome"])
-    why = f" ({sec['reason']})" if sec["reason"] and sec["outcome"] != "goal" else ""
-    seps = [r for r in sec["min_separation"] if r["clearance_m"] is not None]
-    sep = ""
-    if seps:
-        r = min(seps, key=lambda r: r["clearance_m"])
-        sep = f", closest intruder {r['id']} at {r['min_distance_m']:.1f} m (margin {r['clearance_m']:+.1f} m)"
-    ft = "" if sec["flight_time_s"] is None else f", flight time {sec['flight_time_s']:.1f} s"
-    return f"fly: {head}{why}; {sec['n_replannings']} replannings ({levels}){ft}{sep}"
 
 
 # ------------------------------------------------------------------ figures

@@ -255,6 +255,7 @@ def _figures(cand, cands, grid, out, datum, surface_m, terrain_m, floor_m, cost_
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal")
     ax.ticklabel_format(useOffset=False, style="plain")
+    ax.locator_params(axis="x", nbins=4)   # 6-7-digit eastings on a narrow map never run into each other
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2)   # below the map
     ax.set_title("plan, top view")
     add_map_furniture(ax)

@@ -317,11 +317,6 @@ class OutFolder:
         self.in_place.append(rel)
         return rel
 
-    def previous_file(self, rel: str) -> Path | None:
-        """``--out/rel`` when it is a file skyroute wrote there (e.g. the previous summary)."""
-        p = os.path.join(self.final, rel)
-        return Path(p) if rel in self.old and _matches(p, self.old[rel]) else None
-
     def shown(self, p: str | Path) -> Path:
         """Where a file written into the staging folder will be once the command ends."""
         s = os.path.abspath(os.fspath(p))
@@ -726,12 +721,6 @@ _OUTPUT_NAMES = frozenset({
 })
 
 
-def is_output_name(name: str) -> bool:
-    """Whether a top-level name of --out may be written by a command (:data:`_OUTPUT_NAMES`, or
-    a GeoTIFF / PNG / CSV / JSON / HTML of one)."""
-    return name in _OUTPUT_NAMES or name.endswith((".tif", ".png", ".csv", ".geojson", ".html", ".json", ".gif"))
-
-
 def scenario_inputs(sc) -> list[str]:
     """Every file a scenario names (its YAML, data files, almanacs, vehicle file...)."""
     keys = {"path", "landuse", "landing_sites", "nofly_zones", "risk_tags", "almanacs", "source_path", "zones"}
@@ -763,8 +752,3 @@ def note_scenario_inputs(sc) -> None:
 
     for p in scenario_inputs(sc):
         note_input(p)
-
-
-def input_paths(extra: Iterable[str | Path] = ()) -> list[str]:
-    """The inputs recorded so far and ``extra`` (resolved)."""
-    return [*inputs_read(), *(os.path.realpath(os.fspath(p)) for p in extra)]

@@ -242,7 +242,6 @@ def run_case(argv) -> Outcome:
     from click.testing import CliRunner
 
     from skyroute.pipeline.cli import main
-
     from skyroute.stages.control import compile_seconds
 
     t0, c0 = time.perf_counter(), compile_seconds()

@@ -20,20 +20,10 @@ import xarray as xr
 from skyroute.pipeline.cache import Cache
 from skyroute.pipeline.settings import catalog_dir, load_scenario
 
+sys.path.insert(0, str(Path(__file__).parent))
+from _dem import dem_scenario, write_dem_window  # noqa: E402
+
 DATA = catalog_dir() / "data"
-SCENARIO = """name: my-mountains-dem
-aoi: {crs: EPSG:32611, bounds: [383010, 3794010, 385980, 3796980], resolution_m: 30.0}
-data:
-  terrain: {path: dem.tif, vertical_datum: EGM96 geoid}
-  risk_default_level: 1
-  almanacs: [yuma.txt]
-mission:
-  start: {x: 383500, y: 3796200, alt_agl_m: 60}
-  goal: {x: 384800, y: 3796600, alt_agl_m: 60}
-  start_time_utc: 2020-01-03T18:00:00Z
-constraints: {min_altitude_agl_m: 10, max_altitude_agl_m: 80}
-planner: {step_cells: 4}
-"""
 
 
 @pytest.fixture(autouse=True)
@@ -44,26 +34,15 @@ def _own_digest_memo(tmp_path, monkeypatch):
 
 @pytest.fixture(scope="module")
 def dem_src(tmp_path_factory) -> Path:
-    """A 4 x 4 km window of the shipped SRTM DEM."""
-    import rasterio
-    import rasterio.windows
-
-    out = tmp_path_factory.mktemp("dem") / "dem.tif"
-    with rasterio.open(DATA / "srtm_bigtujunga30m_utm11.tif") as src:
-        w = rasterio.windows.from_bounds(382500, 3793500, 386500, 3797500, src.transform).round_offsets().round_lengths()
-        a = src.read(1, window=w)
-        prof = {"driver": "GTiff", "width": a.shape[1], "height": a.shape[0], "count": 1, "dtype": a.dtype,
-                "crs": src.crs, "transform": src.window_transform(w)}
-    with rasterio.open(out, "w", **prof) as dst:
-        dst.write(a, 1)
-    return out
+    """The DEM of the README's bring-your-own-DEM example."""
+    return write_dem_window(tmp_path_factory.mktemp("dem") / "dem.tif")
 
 
 def _scenario(folder: Path, dem_src: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     shutil.copy(dem_src, folder / "dem.tif")
     shutil.copy(DATA / "yuma_2020-01-03.txt", folder / "yuma.txt")
-    (folder / "s.yaml").write_text(SCENARIO)
+    (folder / "s.yaml").write_text(dem_scenario())
     return folder / "s.yaml"
 
 

@@ -10,6 +10,7 @@ import hashlib
 import json
 import os
 import shutil
+import sys
 from pathlib import Path
 
 import pytest
@@ -19,37 +20,16 @@ from skyroute.pipeline.cli import main
 from skyroute.pipeline.outfolder import MANIFEST_NAME
 from skyroute.pipeline.settings import catalog_dir
 
+sys.path.insert(0, str(Path(__file__).parent))
+from _dem import dem_scenario, write_dem_window  # noqa: E402
+
 DATA = catalog_dir() / "data"
-SCENARIO = """name: my-mountains-dem
-aoi: {crs: EPSG:32611, bounds: [383010, 3794010, 385980, 3796980], resolution_m: 30.0}
-data:
-  terrain: {path: DEM, vertical_datum: EGM96 geoid}
-  risk_default_level: 1
-  almanacs: [yuma.txt]
-mission:
-  start: {x: 383500, y: 3796200, alt_agl_m: 60}
-  goal: {x: 384800, y: 3796600, alt_agl_m: 60}
-  start_time_utc: 2020-01-03T18:00:00Z
-constraints: {min_altitude_agl_m: 10, max_altitude_agl_m: 80}
-planner: {step_cells: 4}
-"""
 
 
 @pytest.fixture(scope="module")
 def dem_src(tmp_path_factory) -> Path:
-    """A 4 x 4 km window of the shipped SRTM DEM (the README's bring-your-own-DEM example)."""
-    import rasterio
-    import rasterio.windows
-
-    out = tmp_path_factory.mktemp("dem") / "dem.tif"
-    with rasterio.open(DATA / "srtm_bigtujunga30m_utm11.tif") as src:
-        w = rasterio.windows.from_bounds(382500, 3793500, 386500, 3797500, src.transform).round_offsets().round_lengths()
-        a = src.read(1, window=w)
-        prof = {"driver": "GTiff", "width": a.shape[1], "height": a.shape[0], "count": 1, "dtype": a.dtype,
-                "crs": src.crs, "transform": src.window_transform(w)}
-    with rasterio.open(out, "w", **prof) as dst:
-        dst.write(a, 1)
-    return out
+    """The DEM of the README's bring-your-own-DEM example."""
+    return write_dem_window(tmp_path_factory.mktemp("dem") / "dem.tif")
 
 
 def _scenario(folder: Path, dem_src: Path, dem_name: str = "dem.tif") -> Path:
@@ -57,7 +37,7 @@ def _scenario(folder: Path, dem_src: Path, dem_name: str = "dem.tif") -> Path:
     shutil.copy(dem_src, folder / dem_name)
     shutil.copy(DATA / "yuma_2020-01-03.txt", folder / "yuma.txt")
     p = folder / "s.yaml"
-    p.write_text(SCENARIO.replace("DEM", dem_name))
+    p.write_text(dem_scenario(dem_name))
     return p
 
 
@@ -112,7 +92,7 @@ def test_an_input_that_skyroute_wrote_in_out_is_refused(tmp_path, dem_src):
     assert _run(["run", "s.yaml", "--stage", "surface", "--no-report", "-q", "--out", "out"], tmp_path / "c",
                 cwd=home).exit_code == 0
     assert (home / "out" / "surface.tif").is_file()
-    (home / "t.yaml").write_text(SCENARIO.replace("DEM", "out/surface.tif"))
+    (home / "t.yaml").write_text(dem_scenario("out/surface.tif"))
     before = _tree(home / "out")
     r = _run(["run", "t.yaml", "--stage", "satellites", "--no-report", "--out", "out"], tmp_path / "c", cwd=home)
     out = _one_error(r)

@@ -281,14 +281,9 @@ def test_cityjson_building_part_on_a_part_is_not_ground(tmp_path, with_tin):
 
 # ------------------------------------------------------------------ catalogs/README: bring your own city
 def _readme_yamls() -> dict[str, str]:
-    import re
+    from _dem import readme_scenarios
 
-    from skyroute.pipeline.settings import catalog_dir
-
-    text = (catalog_dir() / "README.md").read_text()
-    sec = text.split("## Bring your own city", 1)[1].split("\n## ", 1)[0]
-    blocks = re.findall(r"```yaml\n(.*?)```", sec, re.S)
-    return {re.search(r"^name: (\S+)", b, re.M).group(1): b for b in blocks}
+    return readme_scenarios()
 
 
 def _own_city_fixtures(tmp_path):
